@@ -1,0 +1,190 @@
+"""The localizer's configuration: one significance level, the probability of success, the
+sensor noise model and a few named priors. Nothing else is tunable, by design (paper §2.2:
+"all thresholds can be replaced by a unique value, the significance level").
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import json
+import math
+import tomllib
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import tomli_w
+
+from boxloc.errors import InputError
+from boxloc.scan import NoiseModel
+
+
+@dataclass(frozen=True)
+class Config:
+    """Parameters of :func:`boxloc.pipeline.find_graspable_surfaces`.
+
+    Parameters
+    ----------
+    alpha : float
+        Significance level of every statistical test (Förstner, Brunn & Heuel 2000).
+    p_success : float
+        Probability of detecting the shortest line (Olson 2001); the paper uses 0.9.
+    noise : NoiseModel
+        Range-noise model of the sensor; every test's covariance comes from it.
+    min_edge, max_edge : float
+        Prior: shortest and longest box edge, metres. The shortest edge sets the smallest
+        line worth finding (and so the number of Hough trials); the longest bounds searches.
+    max_tilt : float
+        Prior: largest angle between a graspable surface's normal and "up", radians.
+    min_crease_angle : float
+        Prior: smallest fold between two box faces, radians. Smaller folds (cardboard bulge)
+        are not crease edges.
+    support_fraction : float
+        The paper's threshold p, as a fraction of the far-side perimeter that edge points
+        must cover in ``dimensions_from_edges``.
+    min_inlier_fraction : float
+        Prior: the fraction of the range points inside a fully exposed face that lie on its
+        plane (the rest are dropouts, bulge and mixed pixels at its border).
+    mdl_k1, mdl_k2, mdl_k3 : float
+        MDL weights (Leonardis et al.): per explained point, per unit of normalized squared
+        residual, per model parameter.
+    workers : int
+        Processes for the per-vertex stage (1 = serial; results are identical).
+    max_pixels : int
+        Largest scan accepted, pixels; larger scans are refused before any work.
+    direction_granularity : int
+        Subdivision level of the icosahedral direction accumulator (4 gives 1281 cells).
+    """
+
+    alpha: float = 0.01
+    p_success: float = 0.9
+    noise: NoiseModel = field(default_factory=NoiseModel)
+    min_edge: float = 0.10
+    max_edge: float = 1.20
+    max_tilt: float = math.radians(45.0)
+    min_crease_angle: float = math.radians(20.0)
+    support_fraction: float = 0.3
+    min_inlier_fraction: float = 0.8
+    mdl_k1: float = 1.0
+    mdl_k2: float = 0.5
+    mdl_k3: float = 10.0
+    workers: int = 1
+    max_pixels: int = 16_777_216
+    direction_granularity: int = 4
+
+    def __post_init__(self) -> None:
+        def check(name: str, ok: bool, what: str) -> None:
+            if not ok:
+                raise InputError(f"config {name} must be {what}, got {getattr(self, name)!r}")
+
+        check("alpha", 0 < self.alpha < 0.5, "in (0, 0.5)")
+        check("p_success", 0 < self.p_success < 1, "in (0, 1)")
+        check("min_edge", 0 < self.min_edge < self.max_edge, "> 0 and < max_edge")
+        check("max_edge", math.isfinite(self.max_edge), "finite")
+        check("max_tilt", 0 < self.max_tilt <= math.pi / 2, "in (0, pi/2]")
+        check("min_crease_angle", 0 < self.min_crease_angle < math.pi / 2, "in (0, pi/2)")
+        check("support_fraction", 0 < self.support_fraction <= 1, "in (0, 1]")
+        check("min_inlier_fraction", 0 < self.min_inlier_fraction <= 1, "in (0, 1]")
+        for k in ("mdl_k1", "mdl_k2", "mdl_k3"):
+            check(k, math.isfinite(getattr(self, k)) and getattr(self, k) >= 0, "finite and >= 0")
+        check("workers", isinstance(self.workers, int) and self.workers >= 1, "an integer >= 1")
+        check("max_pixels", isinstance(self.max_pixels, int) and self.max_pixels > 0, "> 0")
+        check("direction_granularity", self.direction_granularity in range(2, 7), "in 2..6")
+        if not isinstance(self.noise, NoiseModel):
+            raise TypeError(f"config noise must be a NoiseModel, got {type(self.noise)}")
+
+    # --- serialization -------------------------------------------------------------------
+
+    def to_dict(self) -> dict[str, Any]:
+        d = dataclasses.asdict(self)
+        d["noise"] = self.noise.to_dict()
+        return d
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any]) -> Config:
+        d = dict(d)
+        known = {f.name for f in dataclasses.fields(cls)}
+        unknown = sorted(set(d) - known)
+        if unknown:
+            raise InputError(f"unknown config key(s): {', '.join(unknown)}")
+        noise = d.pop("noise", None)
+        kw: dict[str, Any] = {}
+        if noise is not None:
+            if isinstance(noise, NoiseModel):
+                kw["noise"] = noise
+            else:
+                nk = {f.name for f in dataclasses.fields(NoiseModel)}
+                bad = sorted(set(noise) - nk)
+                if bad:
+                    raise InputError(f"unknown config key(s): {', '.join('noise.' + b for b in bad)}")
+                kw["noise"] = NoiseModel(**{k: float(v) for k, v in noise.items()})
+        for k, v in d.items():
+            default = getattr(cls, k, None)
+            if isinstance(default, int) and not isinstance(default, bool):
+                if isinstance(v, float) and v.is_integer():
+                    v = int(v)
+                if not isinstance(v, int):
+                    raise InputError(f"config {k} must be an integer, got {v!r}")
+            elif isinstance(default, float):
+                if not isinstance(v, int | float) or isinstance(v, bool):
+                    raise InputError(f"config {k} must be a number, got {v!r}")
+                v = float(v)
+            kw[k] = v
+        return cls(**kw)
+
+    def canonical_json(self) -> str:
+        return json.dumps(self.to_dict(), sort_keys=True, separators=(",", ":"))
+
+    @property
+    def hash(self) -> str:
+        """SHA-256 (first 16 hex digits) of the canonical JSON form."""
+        return hashlib.sha256(self.canonical_json().encode()).hexdigest()[:16]
+
+    def to_toml(self) -> str:
+        return tomli_w.dumps(self.to_dict())
+
+    @classmethod
+    def from_toml(cls, text: str) -> Config:
+        try:
+            return cls.from_dict(tomllib.loads(text))
+        except tomllib.TOMLDecodeError as e:
+            raise InputError(f"config is not valid TOML: {e}") from None
+
+    @classmethod
+    def load(cls, path: str | Path) -> Config:
+        p = Path(path)
+        if not p.is_file():
+            raise InputError(f"config file not found: {p}")
+        return cls.from_toml(p.read_text())
+
+    def with_overrides(self, assignments: list[str] | dict[str, Any]) -> Config:
+        """Apply ``key=value`` overrides; dotted keys reach into ``noise``.
+
+        Values are parsed as TOML scalars (``alpha=0.05``, ``workers=2``).
+        """
+        d = self.to_dict()
+        items = assignments.items() if isinstance(assignments, dict) else None
+        if items is None:
+            parsed = []
+            for a in assignments:
+                if "=" not in a:
+                    raise InputError(f"override must be key=value, got {a!r}")
+                k, v = a.split("=", 1)
+                try:
+                    val = tomllib.loads(f"v = {v.strip()}")["v"]
+                except tomllib.TOMLDecodeError:
+                    raise InputError(f"override {k.strip()}: cannot parse value {v!r}") from None
+                parsed.append((k.strip(), val))
+            items = parsed
+        for k, v in items:
+            parts = k.split(".")
+            tgt = d
+            for p in parts[:-1]:
+                if p not in tgt or not isinstance(tgt[p], dict):
+                    raise InputError(f"unknown config key: {k}")
+                tgt = tgt[p]
+            if parts[-1] not in tgt:
+                raise InputError(f"unknown config key: {k}")
+            tgt[parts[-1]] = v
+        return Config.from_dict(d)

@@ -1,0 +1,121 @@
+"""The pipeline of the paper's Fig. 2; the only module that knows the order of the stages.
+
+    range image -> edges -> lines -> vertices -> find_graspable_surfaces -> select -> surfaces
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from typing import TypeVar
+
+import numpy as np
+
+from boxloc import __version__
+from boxloc.config import Config
+from boxloc.edges import detect_edges
+from boxloc.errors import InputError
+from boxloc.hypotheses import generate_hypotheses
+from boxloc.lines import find_lines
+from boxloc.observer import NullObserver, Observer
+from boxloc.products import Result
+from boxloc.scan import Scan
+from boxloc.select import select
+from boxloc.surfaces import make_surfaces
+from boxloc.vertices import find_vertices
+
+T = TypeVar("T")
+
+
+def _timed(timing: dict[str, float], name: str, fn: Callable[[], T]) -> T:
+    t0 = time.perf_counter()
+    out = fn()
+    timing[name] = (time.perf_counter() - t0) * 1e3
+    return out
+
+
+def check_scan(scan: Scan, config: Config) -> None:
+    """Refuse scans the localizer cannot work on, with a message naming the problem."""
+    if not isinstance(scan, Scan):
+        raise TypeError(f"scan must be a boxloc.scan.Scan, got {type(scan).__name__}")
+    H, W = scan.shape
+    if H * W > config.max_pixels:
+        raise InputError(
+            f"scan of {H}x{W} = {H * W} pixels exceeds max_pixels = {config.max_pixels}"
+        )
+    if not np.isfinite(scan.range).any():
+        raise InputError("scan has no valid range (all NaN)")
+
+
+def find_graspable_surfaces(
+    scan: Scan, config: Config | None = None, observer: Observer | None = None
+) -> Result:
+    """Find the graspable (fully exposed) box surfaces in a range scan.
+
+    Parameters
+    ----------
+    scan : Scan
+        The range image and its sensor model.
+    config : Config, optional
+        alpha, the probability of success, the noise model and the priors.
+    observer : Observer, optional
+        Receives every stage's product, in order (the recorder).
+
+    Returns
+    -------
+    Result
+        All stage products; ``result.surfaces`` are the graspable surfaces in pick order.
+
+    Notes
+    -----
+    Randomness (the Hough trials) is seeded from the scan content, so the same scan and
+    config always give the same result, bit for bit. Wall-clock time enters only
+    ``Result.timing_ms``.
+
+    References
+    ----------
+    D. Katsoulas, "Localization of Piled Boxes by Means of the Hough Transform", DAGM 2003.
+    """
+    config = config or Config()
+    obs: Observer = observer if observer is not None else NullObserver()
+    check_scan(scan, config)
+    rng = np.random.default_rng(scan.seed)
+    timing: dict[str, float] = {}
+
+    obs.on_scan(scan, config)
+    edges = _timed(timing, "edges", lambda: detect_edges(scan, config=config))
+    obs.on_edges(scan, edges)
+    lines = _timed(timing, "lines", lambda: find_lines(scan, edges, config=config, rng=rng))
+    obs.on_lines(scan, lines)
+    vertices = _timed(timing, "vertices", lambda: find_vertices(lines, config=config))
+    obs.on_vertices(scan, vertices)
+    hyps, verification = _timed(
+        timing, "hypotheses", lambda: generate_hypotheses(scan, edges, vertices, config=config)
+    )
+    obs.on_hypotheses(scan, hyps)
+    obs.on_verification(scan, verification)
+    selection = _timed(timing, "select", lambda: select(verification, config=config))
+    obs.on_selection(scan, selection)
+    surfaces = _timed(
+        timing, "surfaces", lambda: make_surfaces(scan, hyps, verification, selection)
+    )
+    obs.on_surfaces(scan, surfaces)
+    timing["total"] = float(sum(timing.values()))
+
+    result = Result(
+        scan_index=scan.index,
+        capture_time_ns=scan.capture_time_ns,
+        seed=scan.seed,
+        config_hash=config.hash,
+        version=__version__,
+        edges=edges,
+        lines=lines,
+        vertices=vertices,
+        hypotheses=hyps,
+        verification=verification,
+        selection=selection,
+        surfaces=surfaces,
+        timing_ms=timing,
+    )
+    obs.on_result(scan, result)
+    return result

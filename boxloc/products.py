@@ -1,0 +1,563 @@
+"""The typed, immutable products of each stage (the paper's Fig. 2, one dataclass per stage).
+
+Every product is a frozen dataclass of NumPy arrays and scalars. Entities carry stable
+integer ids (their row index within the scan), so logs, diffs and explanations can refer
+to them. Variable-length per-row data is stored CSR-style: a flat ``values`` array and an
+``offsets`` array of length n + 1 (row i is ``values[offsets[i]:offsets[i+1]]``).
+
+:func:`to_arrays` / :func:`from_arrays` turn any product into a flat ``{name: ndarray}``
+mapping and back, losslessly; the recorder encodes that mapping, nothing is pickled.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import typing
+from dataclasses import dataclass, field
+from enum import IntEnum
+from typing import Any
+
+import numpy as np
+
+from boxloc.stats import TestTable
+
+
+class EdgeKind(IntEnum):
+    """Label of an edge pixel."""
+
+    NONE = 0
+    #: depth discontinuity; the edge point lies on the nearer (occluding) surface
+    JUMP = 1
+    #: convex fold (e.g. a box top meeting its own side)
+    CREASE_CONVEX = 2
+    #: concave fold (e.g. a box side meeting the top of a lower box)
+    CREASE_CONCAVE = 3
+
+
+class DimensionSource(IntEnum):
+    """Where a hypothesis got its width and length (paper Fig. 2, lines 4 and 7)."""
+
+    NONE = 0
+    VERTICES = 1
+    EDGES = 2
+
+
+class VerifyReason(IntEnum):
+    """Why a verification passed or failed (the first failing test, in order)."""
+
+    ACCEPTED = 0
+    TOO_FEW_POINTS = 1
+    TILTED = 2
+    NOT_EXPOSED = 3
+    INLIERS = 4
+    MEAN_OFFSET = 5
+    INTERIOR_EDGES = 6
+    OUTSIDE_IMAGE = 7
+
+
+class SelectReason(IntEnum):
+    """Why a verified hypothesis was or was not selected by MDL."""
+
+    CHOSEN = 0
+    #: adding it would lower the objective because it overlaps chosen ones
+    OVERLAPS_CHOSEN = 1
+    #: its own MDL gain is not positive
+    NO_GAIN = 2
+
+
+def _f(*shape: int, dtype: Any = np.float64) -> np.ndarray:
+    return np.zeros(shape, dtype)
+
+
+@dataclass(frozen=True, eq=False)
+class EdgeMap:
+    """Edges of the range image (stage 2), from scan-line approximation.
+
+    Attributes
+    ----------
+    labels : (H, W) uint8
+        :class:`EdgeKind` per pixel.
+    pixels : (N, 2) int32
+        (row, column) of each edge point.
+    points : (N, 3) float64, metres, sensor frame
+        Sub-pixel edge point: the fitted segments' intersection (crease) or the fitted
+        segment's end on the nearer surface (jump).
+    covariances : (N, 3, 3) float64, metres squared
+    kinds : (N,) uint8
+        :class:`EdgeKind`.
+    strength : (N,) float64
+        Jump height, metres, or fold angle, radians.
+    scan_dir : (N,) uint8
+        Bit 1: found on a row; bit 2: found on a column.
+    tests : TestTable
+        The JUMP and CREASE decision at every breakpoint.
+    """
+
+    labels: np.ndarray
+    pixels: np.ndarray
+    points: np.ndarray
+    covariances: np.ndarray
+    kinds: np.ndarray
+    strength: np.ndarray
+    scan_dir: np.ndarray
+    tests: TestTable
+
+    def __len__(self) -> int:
+        return int(self.points.shape[0])
+
+
+@dataclass(frozen=True, eq=False)
+class LineSet:
+    """3D line segments (stage 3) from a series of constrained Hough transforms.
+
+    Attributes
+    ----------
+    points : (L, 3) float64
+        Centroid of each segment's support, metres.
+    directions : (L, 3) float64
+        Unit direction.
+    covariances : (L, 6, 6) float64
+        Joint covariance of (centroid, direction).
+    starts, ends : (L, 3) float64
+        Segment end points on the line, metres.
+    n_support : (L,) int32
+    support_offsets : (L + 1,) int64
+    support : (M,) int32
+        Edge-point ids of each segment's support.
+    support_statistic : (M,) float32
+        The point-on-line test statistic (chi2, 2 dof) of each support point.
+    kinds : (L,) uint8
+        Majority :class:`EdgeKind` of the support.
+    trial : (L,) int32
+        The Hough trial that found each line.
+    direction_votes, position_votes : (L,) float64
+        Peak heights of the direction and position accumulators.
+    n_trials : int
+        Trials run (distinguished points drawn).
+    epsilon : float
+        Fraction of edge points in the smallest line worth finding, at the start.
+    p_success : float
+    seed : int
+        The seed of the trials (derived from the scan).
+    tests : TestTable
+    """
+
+    points: np.ndarray
+    directions: np.ndarray
+    covariances: np.ndarray
+    starts: np.ndarray
+    ends: np.ndarray
+    n_support: np.ndarray
+    support_offsets: np.ndarray
+    support: np.ndarray
+    support_statistic: np.ndarray
+    kinds: np.ndarray
+    trial: np.ndarray
+    direction_votes: np.ndarray
+    position_votes: np.ndarray
+    n_trials: int
+    epsilon: float
+    p_success: float
+    seed: int
+    tests: TestTable
+
+    def __len__(self) -> int:
+        return int(self.points.shape[0])
+
+    def support_of(self, i: int) -> np.ndarray:
+        return self.support[self.support_offsets[i] : self.support_offsets[i + 1]]
+
+
+@dataclass(frozen=True, eq=False)
+class VertexSet:
+    """Vertices (stage 4): pairs of segments that meet orthogonally near an end of both.
+
+    Attributes
+    ----------
+    points : (V, 3) float64
+        Intersection point, metres.
+    d1, d2 : (V, 3) float64
+        Unit directions from the point into each segment; ``normals = d1 x d2`` (unit),
+        turned toward the sensor by the order of d1 and d2.
+    normals : (V, 3) float64
+    covariances : (V, 9, 9) float64
+        Joint covariance of (point, d1, d2).
+    line_a, line_b : (V,) int32
+        The two lines (``d1`` runs along ``line_a``).
+    tests : TestTable
+        LINES_MEET, LINES_ORTHOGONAL and AT_SEGMENT_ENDS for every pair considered.
+    """
+
+    points: np.ndarray
+    d1: np.ndarray
+    d2: np.ndarray
+    normals: np.ndarray
+    covariances: np.ndarray
+    line_a: np.ndarray
+    line_b: np.ndarray
+    tests: TestTable
+
+    def __len__(self) -> int:
+        return int(self.points.shape[0])
+
+
+@dataclass(frozen=True, eq=False)
+class HypothesisSet:
+    """One rectangle hypothesis per vertex (stage 5), with every dimension attempt.
+
+    Row i is the hypothesis generated by vertex ``vertex[i]``. Its frame: origin at the
+    vertex, ``x_axis = d1``, ``y_axis = d2``; width runs along x, length along y (here
+    width may exceed length; :class:`SurfaceSet` sorts them).
+
+    Attempts are the (width, length) candidates tried in the paper's order, each then
+    verified; the hypothesis keeps the first verified attempt (``attempt``, -1 if none).
+
+    Attributes
+    ----------
+    vertex : (n,) int32
+    source : (n,) uint8
+        :class:`DimensionSource` of the kept attempt.
+    attempt : (n,) int32
+        The kept attempt's id, or -1.
+    origins, x_axis, y_axis, normals : (n, 3) float64
+    width, length : (n,) float64
+        Dimensions of the kept attempt, metres (NaN if none).
+    corners : (n, 4, 3) float64
+        Rectangle corners (origin, +x, +x+y, +y), metres (NaN if none).
+    acc_bin : (n,) float64
+        Bin width of the 1-D accumulators, metres.
+    acc_x_offsets, acc_y_offsets : (n + 1,) int64
+    acc_x, acc_y : float32
+        The accumulators A_x and A_y (votes per bin), ragged per hypothesis.
+    peaks_x_offsets, peaks_y_offsets : (n + 1,) int64
+    peaks_x, peaks_y : float64
+        Peak positions M_x, M_y, metres.
+    n_candidates : (n,) int32
+        |P_c|: edge points coplanar with the rectangle and in its first quadrant.
+    att_hypothesis, att_source, att_diagonal : (k,) int32 / uint8 / int32
+        Attempt owner, source, and the diagonal vertex used (-1 for edges).
+    att_width, att_length : (k,) float64
+    att_support, att_threshold : (k,) float64
+        |P_f| and the threshold p (edges); the diagonal's test statistic total (vertices).
+    att_verified : (k,) bool
+    tests : TestTable
+        COPLANAR, PARALLEL, FIRST_QUADRANT, POINT_ON_PLANE and EDGE_SUPPORT.
+    """
+
+    vertex: np.ndarray
+    source: np.ndarray
+    attempt: np.ndarray
+    origins: np.ndarray
+    x_axis: np.ndarray
+    y_axis: np.ndarray
+    normals: np.ndarray
+    width: np.ndarray
+    length: np.ndarray
+    corners: np.ndarray
+    acc_bin: np.ndarray
+    acc_x_offsets: np.ndarray
+    acc_x: np.ndarray
+    acc_y_offsets: np.ndarray
+    acc_y: np.ndarray
+    peaks_x_offsets: np.ndarray
+    peaks_x: np.ndarray
+    peaks_y_offsets: np.ndarray
+    peaks_y: np.ndarray
+    n_candidates: np.ndarray
+    att_hypothesis: np.ndarray
+    att_source: np.ndarray
+    att_diagonal: np.ndarray
+    att_width: np.ndarray
+    att_length: np.ndarray
+    att_support: np.ndarray
+    att_threshold: np.ndarray
+    att_verified: np.ndarray
+    tests: TestTable
+
+    def __len__(self) -> int:
+        return int(self.vertex.shape[0])
+
+    @property
+    def n_attempts(self) -> int:
+        return int(self.att_hypothesis.shape[0])
+
+
+@dataclass(frozen=True, eq=False)
+class Verification:
+    """Verification of every attempt (stage 6) by the range points inside its rectangle.
+
+    Row j verifies attempt j of the :class:`HypothesisSet`.
+
+    Attributes
+    ----------
+    attempt, hypothesis : (k,) int32
+    n_inside : (k,) int32
+        Pixels inside the rasterized rectangle.
+    n_valid : (k,) int32
+        Of those, pixels with a return.
+    n_inliers, n_front, n_behind : (k,) int32
+        Points on the plane, significantly in front of it, behind it (point-on-plane, 1 dof).
+    inlier_fraction : (k,) float64
+    mean_distance, sigma_mean : (k,) float64
+        Mean signed distance of the inliers to the plane and its standard deviation, metres.
+    n_interior_edges : (k,) int32
+        Edge points strictly inside the rectangle (beyond their localization error).
+    plane_centers, plane_normals : (k, 3) float64
+        Plane refitted to the inliers (normal toward the sensor).
+    plane_covariances : (k, 6, 6) float64
+        Covariance of (center, normal) of the refit.
+    rms : (k,) float64
+        RMS of inlier distances, metres.
+    accepted : (k,) bool
+    reason : (k,) uint8
+        :class:`VerifyReason`.
+    inlier_offsets : (k + 1,) int64
+    inlier_pixels : int32
+        Flat pixel indices (row * W + col) of each attempt's inliers.
+    tests : TestTable
+    """
+
+    attempt: np.ndarray
+    hypothesis: np.ndarray
+    n_inside: np.ndarray
+    n_valid: np.ndarray
+    n_inliers: np.ndarray
+    n_front: np.ndarray
+    n_behind: np.ndarray
+    inlier_fraction: np.ndarray
+    mean_distance: np.ndarray
+    sigma_mean: np.ndarray
+    n_interior_edges: np.ndarray
+    plane_centers: np.ndarray
+    plane_normals: np.ndarray
+    plane_covariances: np.ndarray
+    rms: np.ndarray
+    accepted: np.ndarray
+    reason: np.ndarray
+    inlier_offsets: np.ndarray
+    inlier_pixels: np.ndarray
+    tests: TestTable
+
+    def __len__(self) -> int:
+        return int(self.attempt.shape[0])
+
+    def inliers_of(self, j: int) -> np.ndarray:
+        return self.inlier_pixels[self.inlier_offsets[j] : self.inlier_offsets[j + 1]]
+
+
+@dataclass(frozen=True, eq=False)
+class Selection:
+    """MDL selection (stage 7): maximize m^T Q m over the verified attempts.
+
+    Attributes
+    ----------
+    candidates : (c,) int32
+        Attempt ids that passed verification.
+    hypothesis : (c,) int32
+    n_points : (c,) int32
+        n_i, inliers explained.
+    error : (c,) float64
+        xi_i, sum of squared normalized residuals.
+    n_params : (c,) int32
+        N_i (8 for a rectangle).
+    Q : (c, c) float64
+        The MDL matrix (q_ii on the diagonal, q_ij off it).
+    chosen : (c,) bool
+    order : (s,) int32
+        Candidate indices in the order the greedy search added them.
+    objective : float
+        m^T Q m at the chosen m.
+    beaten_by : (c,) int32
+        For a candidate not chosen, the chosen candidate it overlaps most (-1 if none).
+    reason : (c,) uint8
+        :class:`SelectReason`.
+    k1, k2, k3 : float
+        The MDL weights used.
+    """
+
+    candidates: np.ndarray
+    hypothesis: np.ndarray
+    n_points: np.ndarray
+    error: np.ndarray
+    n_params: np.ndarray
+    Q: np.ndarray
+    chosen: np.ndarray
+    order: np.ndarray
+    objective: float
+    beaten_by: np.ndarray
+    reason: np.ndarray
+    k1: float
+    k2: float
+    k3: float
+
+    def __len__(self) -> int:
+        return int(self.candidates.shape[0])
+
+
+@dataclass(frozen=True, eq=False)
+class SurfaceSet:
+    """The graspable surfaces (the result), ordered by pick order (top-most first).
+
+    Attributes
+    ----------
+    hypothesis, attempt : (s,) int32
+        Where each surface came from.
+    centers, normals, x_axis, y_axis : (s, 3) float64
+        Pose in the sensor frame; normal toward the sensor; x along width, y along length.
+    width, length : (s,) float64
+        Metres, width <= length.
+    corners : (s, 4, 3) float64
+    grasp_points : (s, 3) float64
+    scores : (s,) float64
+        The surface's MDL gain q_ii normalized by its point count (in [.., 1]).
+    covariances : (s, 6, 6) float64
+        Covariance of (center, rotation vector) in the sensor frame.
+    pick_order : (s,) int32
+        0 is picked first.
+    """
+
+    hypothesis: np.ndarray
+    attempt: np.ndarray
+    centers: np.ndarray
+    normals: np.ndarray
+    x_axis: np.ndarray
+    y_axis: np.ndarray
+    width: np.ndarray
+    length: np.ndarray
+    corners: np.ndarray
+    grasp_points: np.ndarray
+    scores: np.ndarray
+    covariances: np.ndarray
+    pick_order: np.ndarray
+
+    def __len__(self) -> int:
+        return int(self.centers.shape[0])
+
+    def to_json_list(self) -> list[dict[str, Any]]:
+        """The public ``locate`` JSON records (ids are row indices)."""
+        out = []
+        for i in range(len(self)):
+            out.append(
+                {
+                    "id": i,
+                    "center": self.centers[i].tolist(),
+                    "normal": self.normals[i].tolist(),
+                    "x_axis": self.x_axis[i].tolist(),
+                    "y_axis": self.y_axis[i].tolist(),
+                    "width": float(self.width[i]),
+                    "length": float(self.length[i]),
+                    "grasp_point": self.grasp_points[i].tolist(),
+                    "score": float(self.scores[i]),
+                    "covariance": self.covariances[i].tolist(),
+                    "pick_order": int(self.pick_order[i]),
+                }
+            )
+        return out
+
+
+@dataclass(frozen=True, eq=False)
+class Result:
+    """Everything one pass of the pipeline produced for one scan.
+
+    ``timing_ms`` is wall-clock and never part of a comparison (see :func:`products_equal`).
+    """
+
+    scan_index: int
+    capture_time_ns: int
+    seed: int
+    config_hash: str
+    version: str
+    edges: EdgeMap
+    lines: LineSet
+    vertices: VertexSet
+    hypotheses: HypothesisSet
+    verification: Verification
+    selection: Selection
+    surfaces: SurfaceSet
+    timing_ms: dict[str, float] = field(default_factory=dict)
+
+    def to_json(self) -> dict[str, Any]:
+        """The public ``boxloc locate`` output."""
+        return {
+            "surfaces": self.surfaces.to_json_list(),
+            "timing_ms": {k: round(float(v), 3) for k, v in self.timing_ms.items()},
+            "version": self.version,
+        }
+
+
+STAGES: tuple[str, ...] = (
+    "edges", "lines", "vertices", "hypotheses", "verification", "selection", "surfaces",
+)
+PRODUCT_TYPES: dict[str, type] = {
+    "edges": EdgeMap, "lines": LineSet, "vertices": VertexSet, "hypotheses": HypothesisSet,
+    "verification": Verification, "selection": Selection, "surfaces": SurfaceSet,
+}
+
+
+# --- lossless flat encoding ----------------------------------------------------------------
+
+_SEP = "/"
+
+
+def to_arrays(obj: Any, prefix: str = "") -> dict[str, np.ndarray]:
+    """Flatten a product into ``{name: ndarray}``; nested products use ``a/b`` names.
+
+    Scalars become 0-d arrays; strings become 0-d unicode arrays. Lossless with
+    :func:`from_arrays`.
+    """
+    out: dict[str, np.ndarray] = {}
+    for f in dataclasses.fields(obj):
+        v = getattr(obj, f.name)
+        name = prefix + f.name
+        if dataclasses.is_dataclass(v):
+            out.update(to_arrays(v, name + _SEP))
+        elif isinstance(v, dict):
+            out[name] = np.asarray(json.dumps(v, sort_keys=True))
+        else:
+            out[name] = np.asarray(v)
+    return out
+
+
+def from_arrays(cls: type, arrays: dict[str, np.ndarray], prefix: str = "") -> Any:
+    """Inverse of :func:`to_arrays`."""
+    hints = typing.get_type_hints(cls)
+    kw: dict[str, Any] = {}
+    for f in dataclasses.fields(cls):
+        name = prefix + f.name
+        t = hints[f.name]
+        if isinstance(t, type) and dataclasses.is_dataclass(t):
+            kw[f.name] = from_arrays(t, arrays, name + _SEP)
+            continue
+        if name not in arrays:
+            raise KeyError(f"missing field {name!r} for {cls.__name__}")
+        a = arrays[name]
+        if t is int:
+            kw[f.name] = int(a)
+        elif t is float:
+            kw[f.name] = float(a)
+        elif t is str:
+            kw[f.name] = str(a)
+        elif t == dict[str, float] or typing.get_origin(t) is dict:
+            kw[f.name] = json.loads(str(a))
+        else:
+            kw[f.name] = np.asarray(a)
+    return cls(**kw)
+
+
+def products_equal(a: Any, b: Any, ignore: tuple[str, ...] = ("timing_ms",)) -> list[str]:
+    """Bit-for-bit comparison of two products; returns the names of fields that differ."""
+    fa, fb = to_arrays(a), to_arrays(b)
+    diffs = []
+    for k in sorted(set(fa) | set(fb)):
+        if k.split(_SEP)[-1] in ignore:
+            continue
+        if k not in fa or k not in fb:
+            diffs.append(k)
+            continue
+        x, y = fa[k], fb[k]
+        if x.dtype != y.dtype or x.shape != y.shape:
+            diffs.append(k)
+        elif np.ascontiguousarray(x).tobytes() != np.ascontiguousarray(y).tobytes():
+            diffs.append(k)
+    return diffs

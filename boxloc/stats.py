@@ -1,0 +1,221 @@
+"""Statistical tests of uncertain geometric relations and the table that records them.
+
+Every geometric decision in boxloc is a test ``T <= chi2_{r, 1-alpha}`` with one
+significance level alpha (Förstner, Brunn & Heuel, DAGM 2000; the paper's ref [3]).
+Each stage keeps every test it made in a :class:`TestTable`, so a post-mortem can read the
+statistic, the degrees of freedom, the critical value, the p-value and the decision.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from enum import IntEnum
+from functools import lru_cache
+
+import numpy as np
+import numpy.typing as npt
+from scipy import stats as _st
+
+
+class TestKind(IntEnum):
+    """What a test decided. ``a`` and ``b`` name the entities, as documented per kind."""
+
+    __test__ = False  # not a pytest class
+
+    #: edge stage: a breakpoint is a jump (a = edge-point id or -1, b = scan line)
+    JUMP = 1
+    #: edge stage: the fold at a breakpoint exceeds min_crease_angle (a = edge point, b = line)
+    CREASE = 2
+    #: line stage: the line's support passes point-on-line (a = line, b = support size)
+    POINT_ON_LINE = 3
+    #: vertex stage: two lines meet (a, b = line ids), 1 dof
+    LINES_MEET = 4
+    #: vertex stage: two lines are orthogonal (a, b = line ids), 1 dof
+    LINES_ORTHOGONAL = 5
+    #: vertex stage: the intersection lies at an end of both segments (a, b = line ids)
+    AT_SEGMENT_ENDS = 6
+    #: hypothesis stage: vertex b lies on the plane of hypothesis a's rectangle, 1 dof
+    COPLANAR = 7
+    #: hypothesis stage: vertex b's directions are parallel to hypothesis a's, 2 dof
+    PARALLEL = 8
+    #: hypothesis stage: vertex b lies in the first quadrant of hypothesis a (one-sided z)
+    FIRST_QUADRANT = 9
+    #: hypothesis stage: edge points on hypothesis a's plane (b = number tested), 1 dof each
+    POINT_ON_PLANE = 10
+    #: hypothesis stage: |P_f| > p (a = hypothesis, statistic = |P_f|, critical = p)
+    EDGE_SUPPORT = 11
+    #: verification: range points inside hypothesis a that lie on its plane (fraction)
+    VERIFY_INLIERS = 12
+    #: verification: the mean signed distance of the inliers is zero, 1 dof
+    VERIFY_MEAN = 13
+    #: verification: no edge crosses the interior of hypothesis a (binomial on edge pixels)
+    VERIFY_INTERIOR = 14
+    #: verification: hypothesis a's normal is within max_tilt of up (a prior, not chi2)
+    VERIFY_TILT = 15
+    #: verification: nothing lies in front of hypothesis a's face (occluders), 1 dof each
+    VERIFY_EXPOSED = 16
+
+
+@lru_cache(maxsize=256)
+def chi2_critical(dof: float, alpha: float) -> float:
+    """Critical value ``chi2_{dof, 1-alpha}``."""
+    return float(_st.chi2.ppf(1.0 - alpha, dof))
+
+
+def chi2_test(
+    statistic: npt.ArrayLike, dof: float, alpha: float
+) -> tuple[np.ndarray, float, np.ndarray, np.ndarray]:
+    """Vectorized chi-square test.
+
+    Returns
+    -------
+    statistic : ndarray, float64
+    critical : float
+    p_value : ndarray, float64
+    accepted : ndarray, bool
+        True where the relation holds: ``statistic <= critical``.
+    """
+    t = np.asarray(statistic, dtype=np.float64)
+    crit = chi2_critical(float(dof), float(alpha))
+    p = _st.chi2.sf(t, dof)
+    return t, crit, np.asarray(p, dtype=np.float64), t <= crit
+
+
+@dataclass(frozen=True, eq=False)
+class TestTable:
+    """A column table of statistical tests.
+
+    Attributes
+    ----------
+    kind : ndarray (n,), uint8
+        :class:`TestKind` of each test.
+    a, b : ndarray (n,), int32
+        The entities tested (meaning per kind; -1 when unused).
+    statistic : ndarray (n,), float64
+    dof : ndarray (n,), float32
+        Degrees of freedom (0 for decisions that are not chi-square tests).
+    critical : ndarray (n,), float64
+    p_value : ndarray (n,), float64
+        NaN for decisions that are not chi-square tests.
+    accepted : ndarray (n,), bool
+        The decision: True where the relation was accepted.
+    alpha : float
+        The significance level of every test in the table.
+    """
+
+    __test__ = False
+
+    kind: np.ndarray
+    a: np.ndarray
+    b: np.ndarray
+    statistic: np.ndarray
+    dof: np.ndarray
+    critical: np.ndarray
+    p_value: np.ndarray
+    accepted: np.ndarray
+    alpha: float
+
+    def __len__(self) -> int:
+        return int(self.kind.shape[0])
+
+    @classmethod
+    def empty(cls, alpha: float) -> TestTable:
+        return cls(
+            kind=np.zeros(0, np.uint8), a=np.zeros(0, np.int32), b=np.zeros(0, np.int32),
+            statistic=np.zeros(0), dof=np.zeros(0, np.float32), critical=np.zeros(0),
+            p_value=np.zeros(0), accepted=np.zeros(0, bool), alpha=float(alpha),
+        )
+
+    @classmethod
+    def chi2(
+        cls,
+        kind: TestKind,
+        a: npt.ArrayLike,
+        b: npt.ArrayLike,
+        statistic: npt.ArrayLike,
+        dof: float,
+        alpha: float,
+    ) -> TestTable:
+        """Run chi-square tests and record them."""
+        t, crit, p, acc = chi2_test(statistic, dof, alpha)
+        t = np.atleast_1d(t)
+        n = t.shape[0]
+        return cls(
+            kind=np.full(n, int(kind), np.uint8),
+            a=np.broadcast_to(np.asarray(a, np.int32), (n,)).copy(),
+            b=np.broadcast_to(np.asarray(b, np.int32), (n,)).copy(),
+            statistic=t,
+            dof=np.full(n, dof, np.float32),
+            critical=np.full(n, crit),
+            p_value=np.atleast_1d(p),
+            accepted=np.atleast_1d(acc),
+            alpha=float(alpha),
+        )
+
+    @classmethod
+    def decision(
+        cls,
+        kind: TestKind,
+        a: npt.ArrayLike,
+        b: npt.ArrayLike,
+        statistic: npt.ArrayLike,
+        critical: npt.ArrayLike,
+        accepted: npt.ArrayLike,
+        alpha: float,
+        p_value: npt.ArrayLike | float = np.nan,
+        dof: float = 0.0,
+    ) -> TestTable:
+        """Record decisions that are not plain chi-square tests (supports, fractions, priors)."""
+        s = np.atleast_1d(np.asarray(statistic, np.float64))
+        n = s.shape[0]
+        return cls(
+            kind=np.full(n, int(kind), np.uint8),
+            a=np.broadcast_to(np.asarray(a, np.int32), (n,)).copy(),
+            b=np.broadcast_to(np.asarray(b, np.int32), (n,)).copy(),
+            statistic=s,
+            dof=np.full(n, dof, np.float32),
+            critical=np.broadcast_to(np.asarray(critical, np.float64), (n,)).copy(),
+            p_value=np.broadcast_to(np.asarray(p_value, np.float64), (n,)).copy(),
+            accepted=np.broadcast_to(np.asarray(accepted, bool), (n,)).copy(),
+            alpha=float(alpha),
+        )
+
+    @classmethod
+    def concat(cls, tables: list[TestTable], alpha: float) -> TestTable:
+        tables = [t for t in tables if len(t)]
+        if not tables:
+            return cls.empty(alpha)
+        return cls(
+            **{
+                name: np.concatenate([getattr(t, name) for t in tables])
+                for name in ("kind", "a", "b", "statistic", "dof", "critical", "p_value", "accepted")
+            },
+            alpha=float(alpha),
+        )
+
+    def select(self, mask: npt.ArrayLike) -> TestTable:
+        m = np.asarray(mask)
+        return TestTable(
+            **{
+                name: getattr(self, name)[m]
+                for name in ("kind", "a", "b", "statistic", "dof", "critical", "p_value", "accepted")
+            },
+            alpha=self.alpha,
+        )
+
+    def of_kind(self, kind: TestKind) -> TestTable:
+        return self.select(self.kind == int(kind))
+
+    def rows(self) -> list[dict[str, object]]:
+        """The tests as plain dicts (for reports and JSON)."""
+        return [
+            {
+                "kind": TestKind(int(k)).name, "a": int(a), "b": int(b), "statistic": float(s),
+                "dof": float(d), "critical": float(c), "p_value": float(p),
+                "alpha": self.alpha, "accepted": bool(acc),
+            }
+            for k, a, b, s, d, c, p, acc in zip(
+                self.kind, self.a, self.b, self.statistic, self.dof, self.critical,
+                self.p_value, self.accepted,
+            )
+        ]

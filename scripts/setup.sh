@@ -1,0 +1,31 @@
+#!/usr/bin/env bash
+# Installs what boxloc needs on a fresh Debian machine: system libraries, then a venv.
+# Idempotent; sourced by demo.sh and test.sh.
+set -euo pipefail
+ROOT="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
+VENV="${BOXLOC_VENV:-$ROOT/.venv}"
+
+# open3d needs libusb and OpenGL/OpenMP runtimes; the headless Rerun viewer needs Vulkan.
+DEB_PKGS="libusb-1.0-0 libgl1 libgomp1 libvulkan1 mesa-vulkan-drivers"
+missing=""
+for p in $DEB_PKGS; do
+  dpkg -s "$p" >/dev/null 2>&1 || missing="$missing $p"
+done
+if [ -n "$missing" ]; then
+  if [ "$(id -u)" = 0 ]; then
+    echo "setup: installing Debian packages:$missing" >&2
+    export DEBIAN_FRONTEND=noninteractive
+    apt-get update -qq >/dev/null
+    apt-get install -y -qq $missing >/dev/null
+  else
+    echo "setup: missing Debian packages:$missing" >&2
+    echo "setup: run as root: apt-get update && apt-get install -y$missing" >&2
+    exit 2
+  fi
+fi
+
+if [ ! -x "$VENV/bin/python" ]; then
+  python3 -m venv "$VENV"
+fi
+"$VENV/bin/python" -m pip install -q --upgrade pip >/dev/null
+"$VENV/bin/python" -m pip install -q -e "$ROOT[test]"
