@@ -117,7 +117,8 @@ class Config:
                 nk = {f.name for f in dataclasses.fields(NoiseModel)}
                 bad = sorted(set(noise) - nk)
                 if bad:
-                    raise InputError(f"unknown config key(s): {', '.join('noise.' + b for b in bad)}")
+                    names = ", ".join("noise." + b for b in bad)
+                    raise InputError(f"unknown config key(s): {names}")
                 kw["noise"] = NoiseModel(**{k: float(v) for k, v in noise.items()})
         for k, v in d.items():
             default = getattr(cls, k, None)

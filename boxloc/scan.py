@@ -312,7 +312,9 @@ class Scan:
 
     def __post_init__(self) -> None:
         if not isinstance(self.sensor, PinholeModel | RayTableModel):
-            raise TypeError(f"sensor must be a PinholeModel or RayTableModel, got {type(self.sensor)}")
+            raise TypeError(
+                f"sensor must be a PinholeModel or RayTableModel, got {type(self.sensor)}"
+            )
         r = _check_range(self.range)
         if r.shape != self.sensor.shape:
             raise InputError(

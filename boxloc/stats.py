@@ -81,6 +81,9 @@ def chi2_test(
     return t, crit, np.asarray(p, dtype=np.float64), t <= crit
 
 
+_COLUMNS = ("kind", "a", "b", "statistic", "dof", "critical", "p_value", "accepted")
+
+
 @dataclass(frozen=True, eq=False)
 class TestTable:
     """A column table of statistical tests.
@@ -188,7 +191,7 @@ class TestTable:
         return cls(
             **{
                 name: np.concatenate([getattr(t, name) for t in tables])
-                for name in ("kind", "a", "b", "statistic", "dof", "critical", "p_value", "accepted")
+                for name in _COLUMNS
             },
             alpha=float(alpha),
         )
@@ -198,7 +201,7 @@ class TestTable:
         return TestTable(
             **{
                 name: getattr(self, name)[m]
-                for name in ("kind", "a", "b", "statistic", "dof", "critical", "p_value", "accepted")
+                for name in _COLUMNS
             },
             alpha=self.alpha,
         )
