@@ -33,6 +33,8 @@ class EdgeKind(IntEnum):
     CREASE_CONVEX = 2
     #: concave fold (e.g. a box side meeting the top of a lower box)
     CREASE_CONCAVE = 3
+    #: a narrow dip between two collinear, continuous surfaces: the seam of touching boxes
+    GROOVE = 4
 
 
 class DimensionSource(IntEnum):
@@ -309,6 +311,8 @@ class Verification:
         Covariance of (center, normal) of the refit.
     rms : (k,) float64
         RMS of inlier distances, metres.
+    error : (k,) float64
+        Sum of the inliers' squared normalized distances (the MDL error xi).
     accepted : (k,) bool
     reason : (k,) uint8
         :class:`VerifyReason`.
@@ -333,6 +337,7 @@ class Verification:
     plane_normals: np.ndarray
     plane_covariances: np.ndarray
     rms: np.ndarray
+    error: np.ndarray
     accepted: np.ndarray
     reason: np.ndarray
     inlier_offsets: np.ndarray

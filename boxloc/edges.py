@@ -1,0 +1,555 @@
+"""Stage 2: edges of the range image by scan-line approximation.
+
+Every row and every column of the organized cloud is approximated by 3D line segments
+(split-and-merge, Jiang & Bunke 1999). A scan line crossing a planar face is straight in
+3D, so a breakpoint between two segments is where the surface changes:
+
+* **jump** — the two fitted lines are separated along the rays at the break (a depth
+  discontinuity); the edge point lies on the nearer line, half a sample past its last point;
+* **crease** — the lines meet at an angle of at least ``min_crease_angle``; the edge point
+  is their intersection (closest approach), convex or concave as seen from the sensor;
+* **groove** — the lines are continuous and collinear but the samples between them lie
+  significantly behind both (the seam between two touching boxes of equal height).
+
+Each edge point carries a covariance: the sensor noise at the point plus the localization
+uncertainty along the scan line. Where a row scan and a column scan find an edge at the
+same pixel, the two estimates are fused (information-weighted).
+
+Thresholds are statistical at the one significance level alpha: a segment is a line if its
+largest normalized residual passes a Bonferroni-corrected two-sided z test; a break is a
+jump if the gap between the lines fails a chi2(1) continuity test.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numba as nb
+import numpy as np
+from scipy import stats as st
+
+from boxloc.config import Config
+from boxloc.products import EdgeKind, EdgeMap
+from boxloc.scan import Scan
+from boxloc.stats import TestKind, TestTable, chi2_critical
+
+#: Segments with fewer samples are not fitted (their samples are "dropped": mixed pixels,
+#: a sliver of a steep side face). Three is the fewest that can show a line's residual.
+MIN_SEGMENT_POINTS = 4
+
+
+# --- kernels -------------------------------------------------------------------------------
+
+
+@nb.njit(cache=True)
+def _fit(P: np.ndarray, s: int, e: int) -> tuple[np.ndarray, np.ndarray]:
+    """Total-least-squares line through P[s:e+1]: centroid, unit direction (s -> e)."""
+    n = e - s + 1
+    c = np.zeros(3)
+    for i in range(s, e + 1):
+        c += P[i]
+    c /= n
+    M = np.zeros((3, 3))
+    for i in range(s, e + 1):
+        d = P[i] - c
+        M += np.outer(d, d)
+    w, V = np.linalg.eigh(M)
+    d = V[:, 2].copy()
+    if np.dot(P[e] - P[s], d) < 0:
+        d = -d
+    return c, d
+
+
+@nb.njit(cache=True)
+def _max_resid(P: np.ndarray, S: np.ndarray, s: int, e: int, c: np.ndarray, d: np.ndarray):
+    best = 0.0
+    arg = s
+    for i in range(s, e + 1):
+        v = P[i] - c
+        t = np.dot(v, d)
+        r = v - t * d
+        z = math.sqrt(np.dot(r, r)) / S[i]
+        if z > best:
+            best = z
+            arg = i
+    return best, arg
+
+
+@nb.njit(cache=True)
+def _split_merge(P: np.ndarray, S: np.ndarray, thr: np.ndarray) -> np.ndarray:
+    """Split-and-merge of one scan line into segments; returns (m, 2) inclusive bounds.
+
+    ``thr[n]`` is the largest normalized residual allowed in a segment of n points.
+    """
+    n = P.shape[0]
+    bounds = np.empty((n, 2), np.int64)
+    nb_ = 0
+    stack = np.empty((n + 1, 2), np.int64)
+    sp = 0
+    stack[0, 0] = 0
+    stack[0, 1] = n - 1
+    sp = 1
+    # split: depth-first on the chord, emitting segments left to right
+    out = np.empty((n, 2), np.int64)
+    no = 0
+    while sp > 0:
+        sp -= 1
+        s = stack[sp, 0]
+        e = stack[sp, 1]
+        if e - s < 2:
+            out[no, 0] = s
+            out[no, 1] = e
+            no += 1
+            continue
+        a = P[s]
+        b = P[e]
+        ab = b - a
+        L = math.sqrt(np.dot(ab, ab))
+        best = 0.0
+        arg = -1
+        if L > 0:
+            u = ab / L
+            for i in range(s + 1, e):
+                v = P[i] - a
+                r = v - np.dot(v, u) * u
+                z = math.sqrt(np.dot(r, r)) / S[i]
+                if z > best:
+                    best = z
+                    arg = i
+        if arg >= 0 and best > thr[e - s + 1]:
+            # push right first so the left half is processed first
+            stack[sp, 0] = arg
+            stack[sp, 1] = e
+            sp += 1
+            stack[sp, 0] = s
+            stack[sp, 1] = arg
+            sp += 1
+        else:
+            out[no, 0] = s
+            out[no, 1] = e
+            no += 1
+    # make segments disjoint: a shared vertex goes to the side whose chord fits it better
+    for k in range(no - 1):
+        v = out[k, 1]
+        if out[k + 1, 0] == v:
+            out[k + 1, 0] = v + 1
+    # merge neighbours whose union is still a line (TLS fit, max normalized residual)
+    k = 0
+    while k < no:
+        s = out[k, 0]
+        e = out[k, 1]
+        if e < s:
+            k += 1
+            continue
+        if nb_ > 0:
+            ps = bounds[nb_ - 1, 0]
+            if e - ps + 1 >= 3:
+                c, d = _fit(P, ps, e)
+                z, _ = _max_resid(P, S, ps, e, c, d)
+                if z <= thr[e - ps + 1]:
+                    bounds[nb_ - 1, 1] = e
+                    k += 1
+                    continue
+        bounds[nb_, 0] = s
+        bounds[nb_, 1] = e
+        nb_ += 1
+        k += 1
+    return bounds[:nb_]
+
+
+@nb.njit(cache=True)
+def _range_on_line(u: np.ndarray, c: np.ndarray, d: np.ndarray) -> float:
+    """Range along unit ray u of the point of line (c, d) closest to the ray."""
+    # minimize |s u - c - t d|^2 over s, t
+    ud = np.dot(u, d)
+    uc = np.dot(u, c)
+    dc = np.dot(d, c)
+    den = 1.0 - ud * ud
+    if den < 1e-12:
+        return np.nan
+    return (uc - ud * dc) / den
+
+
+@nb.njit(cache=True)
+def _closest_between(c1, d1, c2, d2):
+    """Midpoint of the common perpendicular of two lines."""
+    w = c1 - c2
+    a = np.dot(d1, d2)
+    b1 = np.dot(d1, w)
+    b2 = np.dot(d2, w)
+    den = 1.0 - a * a
+    if den < 1e-12:
+        return 0.5 * (c1 + c2)
+    t1 = (a * b2 - b1) / den
+    t2 = (b2 - a * b1) / den
+    return 0.5 * (c1 + t1 * d1 + c2 + t2 * d2)
+
+
+@nb.njit(cache=True)
+def _scan_line_edges(
+    P: np.ndarray,
+    S: np.ndarray,
+    pix: np.ndarray,
+    thr: np.ndarray,
+    jump_crit: float,
+    min_crease: float,
+    min_pts: int,
+    out_pix: np.ndarray,
+    out_pt: np.ndarray,
+    out_along: np.ndarray,
+    out_sig: np.ndarray,
+    out_kind: np.ndarray,
+    out_strength: np.ndarray,
+    out_stat: np.ndarray,
+    out_crit: np.ndarray,
+    out_test: np.ndarray,
+    n_out: int,
+) -> int:
+    """Edge points of one scan line (valid samples only, in order).
+
+    P (n, 3) points, S (n,) their noise sigma, pix (n,) their position in the image line.
+    Appends to the out_* arrays from index n_out; returns the new count.
+    """
+    n = P.shape[0]
+    if n < 2 * min_pts:
+        return n_out
+    B = _split_merge(P, S, thr)
+    m = B.shape[0]
+    # keep segments with enough points
+    keep = np.empty(m, np.int64)
+    nk = 0
+    for k in range(m):
+        if B[k, 1] - B[k, 0] + 1 >= min_pts:
+            keep[nk] = k
+            nk += 1
+    cs = np.empty((nk, 3))
+    ds = np.empty((nk, 3))
+    for j in range(nk):
+        k = keep[j]
+        c, d = _fit(P, B[k, 0], B[k, 1])
+        cs[j] = c
+        ds[j] = d
+    for j in range(nk - 1):
+        ka = keep[j]
+        kb = keep[j + 1]
+        ia = B[ka, 1]
+        ib = B[kb, 0]
+        ca = cs[j]
+        da = ds[j]
+        cb = cs[j + 1]
+        db = ds[j + 1]
+        ua = P[ia] / math.sqrt(np.dot(P[ia], P[ia]))
+        ub = P[ib] / math.sqrt(np.dot(P[ib], P[ib]))
+        # ranges of both lines on the two rays bounding the break
+        ra_a = _range_on_line(ua, ca, da)
+        rb_a = _range_on_line(ua, cb, db)
+        ra_b = _range_on_line(ub, ca, da)
+        rb_b = _range_on_line(ub, cb, db)
+        dA = ra_a - rb_a
+        dB = ra_b - rb_b
+        sig2 = S[ia] * S[ia] + S[ib] * S[ib]
+        J = 0.0
+        if np.isfinite(dA) and np.isfinite(dB) and dA * dB > 0:
+            J = min(abs(dA), abs(dB))
+        elif not (np.isfinite(dA) and np.isfinite(dB)):
+            J = abs(np.linalg.norm(P[ib] - P[ia]))
+        tstat = J * J / sig2
+        cosang = abs(np.dot(da, db))
+        if cosang > 1.0:
+            cosang = 1.0
+        ang = math.acos(cosang)
+        if tstat > jump_crit:
+            # jump: the edge belongs to the nearer surface
+            near_a = (ra_a + ra_b) < (rb_a + rb_b) if np.isfinite(dA + dB) else (
+                np.dot(P[ia], P[ia]) < np.dot(P[ib], P[ib])
+            )
+            if near_a:
+                i_end = ia
+                i_next = ia + 1
+                c = ca
+                d = da
+            else:
+                i_end = ib
+                i_next = ib - 1
+                c = cb
+                d = db
+            u1 = P[i_end] / math.sqrt(np.dot(P[i_end], P[i_end]))
+            u2 = P[i_next] / math.sqrt(np.dot(P[i_next], P[i_next]))
+            r1 = _range_on_line(u1, c, d)
+            r2 = _range_on_line(u2, c, d)
+            if not (np.isfinite(r1) and np.isfinite(r2)):
+                continue
+            q1 = r1 * u1
+            q2 = r2 * u2
+            step = math.sqrt(np.dot(q2 - q1, q2 - q1))
+            # samples between ia and ib in the image may be missing: one pixel step
+            npx = abs(pix[i_next] - pix[i_end])
+            if npx > 1:
+                step = step / npx
+            h = q2 - q1
+            hn = math.sqrt(np.dot(h, h))
+            dirv = h / hn if hn > 0 else d
+            out_pt[n_out] = q1 + 0.5 * step * dirv
+            out_along[n_out] = dirv
+            out_sig[n_out] = step / math.sqrt(12.0)
+            out_pix[n_out] = pix[i_end]
+            out_kind[n_out] = 1
+            out_strength[n_out] = J
+            out_stat[n_out] = tstat
+            out_crit[n_out] = jump_crit
+            out_test[n_out] = 1
+            n_out += 1
+        elif ang >= min_crease:
+            q = _closest_between(ca, da, cb, db)
+            rq = math.sqrt(np.dot(q, q))
+            uq = q / rq
+            # convex if the fold point is nearer than the chord through both segments' middles
+            mid = 0.5 * (ca + cb)
+            convex = np.dot(q, uq) < np.dot(mid, uq)
+            # pixel: the sample (ia or ib) nearer to the fold
+            ea = P[ia] - q
+            eb = P[ib] - q
+            ipx = pix[ia] if np.dot(ea, ea) <= np.dot(eb, eb) else pix[ib]
+            out_pt[n_out] = q
+            out_along[n_out] = da
+            out_sig[n_out] = math.sqrt(sig2) / max(math.sin(ang), 0.05)
+            out_pix[n_out] = ipx
+            out_kind[n_out] = 2 if convex else 3
+            out_strength[n_out] = ang
+            out_stat[n_out] = ang
+            out_crit[n_out] = min_crease
+            out_test[n_out] = 2
+            n_out += 1
+        elif ib - ia > 1:
+            # collinear and continuous: a groove if the dropped samples lie behind both lines
+            best = 0.0
+            kbest = -1
+            for i in range(ia + 1, ib):
+                u = P[i] / math.sqrt(np.dot(P[i], P[i]))
+                r = 0.5 * (_range_on_line(u, ca, da) + _range_on_line(u, cb, db))
+                z = (math.sqrt(np.dot(P[i], P[i])) - r) / S[i]
+                if z > best:
+                    best = z
+                    kbest = i
+            if kbest >= 0 and best > thr[ib - ia]:
+                u = P[kbest] / math.sqrt(np.dot(P[kbest], P[kbest]))
+                r = 0.5 * (_range_on_line(u, ca, da) + _range_on_line(u, cb, db))
+                q = r * u
+                w = P[ib] - P[ia]
+                out_pt[n_out] = q
+                wn = math.sqrt(np.dot(w, w))
+                out_along[n_out] = w / wn if wn > 0 else da
+                out_sig[n_out] = wn / math.sqrt(12.0)
+                out_pix[n_out] = pix[kbest]
+                out_kind[n_out] = 4
+                out_strength[n_out] = best * S[kbest]
+                out_stat[n_out] = best * best
+                out_crit[n_out] = thr[ib - ia] ** 2
+                out_test[n_out] = 1
+                n_out += 1
+    return n_out
+
+
+@nb.njit(cache=True)
+def _all_lines(
+    P: np.ndarray,
+    S: np.ndarray,
+    thr: np.ndarray,
+    jump_crit: float,
+    min_crease: float,
+    min_pts: int,
+    axis: int,
+):
+    """Run the scan-line detector over every row (axis=0) or column (axis=1)."""
+    H, W = S.shape
+    nlines = H if axis == 0 else W
+    L = W if axis == 0 else H
+    cap = H * W // 2 + 16
+    out_pix = np.empty(cap, np.int64)
+    out_line = np.empty(cap, np.int64)
+    out_pt = np.empty((cap, 3))
+    out_along = np.empty((cap, 3))
+    out_sig = np.empty(cap)
+    out_kind = np.empty(cap, np.uint8)
+    out_strength = np.empty(cap)
+    out_stat = np.empty(cap)
+    out_crit = np.empty(cap)
+    out_test = np.empty(cap, np.uint8)
+    n_out = 0
+    buf = np.empty((L, 3))
+    sbuf = np.empty(L)
+    pbuf = np.empty(L, np.int64)
+    for li in range(nlines):
+        nv = 0
+        for k in range(L):
+            if axis == 0:
+                p = P[li, k]
+                s = S[li, k]
+            else:
+                p = P[k, li]
+                s = S[k, li]
+            if np.isfinite(s):
+                buf[nv] = p
+                sbuf[nv] = s
+                pbuf[nv] = k
+                nv += 1
+        if nv < 2 * min_pts:
+            continue
+        if n_out + L > cap:
+            break
+        n0 = n_out
+        n_out = _scan_line_edges(
+            buf[:nv], sbuf[:nv], pbuf[:nv], thr, jump_crit, min_crease, min_pts,
+            out_pix, out_pt, out_along, out_sig, out_kind, out_strength, out_stat,
+            out_crit, out_test, n_out,
+        )
+        for k in range(n0, n_out):
+            out_line[k] = li
+    return (
+        out_pix[:n_out], out_line[:n_out], out_pt[:n_out], out_along[:n_out],
+        out_sig[:n_out], out_kind[:n_out], out_strength[:n_out], out_stat[:n_out],
+        out_crit[:n_out], out_test[:n_out],
+    )
+
+
+# --- public --------------------------------------------------------------------------------
+
+
+def residual_thresholds(n_max: int, alpha: float) -> np.ndarray:
+    """Largest normalized residual a line of n points may show: z_{1 - alpha / (2n)}.
+
+    Bonferroni over the n residuals, so a true line is split with probability <= alpha.
+    """
+    n = np.arange(n_max + 2, dtype=np.float64)
+    n[0] = 1
+    return st.norm.isf(alpha / (2.0 * n)).astype(np.float64)
+
+
+def point_sigma(scan: Scan, config: Config) -> np.ndarray:
+    """Per-pixel noise sigma (metres) used for line fitting, (H, W), NaN where no return."""
+    r = scan.range.astype(np.float64)
+    sr = config.noise.sigma_range(r)
+    sl = config.noise.sigma_lateral(r, scan.sensor.pixel_angle)
+    return np.sqrt(sr * sr + sl * sl)
+
+
+def detect_edges(scan: Scan, *, config: Config) -> EdgeMap:
+    """Jump, crease and groove edges of a range image by scan-line approximation.
+
+    Parameters
+    ----------
+    scan : Scan
+        Range image and sensor model.
+    config : Config
+        Uses ``alpha``, ``noise`` and ``min_crease_angle``.
+
+    Returns
+    -------
+    EdgeMap
+        Edge labels per pixel and the sub-pixel edge points with covariances.
+
+    References
+    ----------
+    X. Jiang, H. Bunke, "Edge detection in range images based on scan line approximation",
+    CVIU 73(2), 1999. Katsoulas et al., ICRA 2002 ("edge map creation via scan line
+    approximation").
+    """
+    H, W = scan.shape
+    P = scan.points.astype(np.float64)
+    S = point_sigma(scan, config)
+    thr = residual_thresholds(max(H, W), config.alpha)
+    jump_crit = chi2_critical(1.0, config.alpha)
+    parts = []
+    for axis in (0, 1):
+        parts.append(
+            _all_lines(P, S, thr, jump_crit, config.min_crease_angle, MIN_SEGMENT_POINTS, axis)
+        )
+    rows, cols = [], []
+    pts, along, sig, kinds, strength, stat, crit, test, sdir = [], [], [], [], [], [], [], [], []
+    for axis, (pix, line, pt, al, sg, kd, stg, sta, cr, te) in enumerate(parts):
+        if axis == 0:
+            rows.append(line)
+            cols.append(pix)
+        else:
+            rows.append(pix)
+            cols.append(line)
+        pts.append(pt)
+        along.append(al)
+        sig.append(sg)
+        kinds.append(kd)
+        strength.append(stg)
+        stat.append(sta)
+        crit.append(cr)
+        test.append(te)
+        sdir.append(np.full(pix.shape[0], 1 << axis, np.uint8))
+    r = np.concatenate(rows).astype(np.int64)
+    c = np.concatenate(cols).astype(np.int64)
+    pt = np.concatenate(pts)
+    al = np.concatenate(along)
+    sg = np.concatenate(sig)
+    kd = np.concatenate(kinds)
+    stg = np.concatenate(strength)
+    sta = np.concatenate(stat)
+    cr = np.concatenate(crit)
+    te = np.concatenate(test)
+    sd = np.concatenate(sdir)
+
+    cov = config.noise.covariance(pt, scan.sensor.pixel_angle)
+    cov += (sg**2)[:, None, None] * (al[:, :, None] * al[:, None, :])
+
+    # the tests at every breakpoint, in detection order
+    is_jump_test = te == 1
+    kind_col = np.where(is_jump_test, int(TestKind.JUMP), int(TestKind.CREASE)).astype(np.uint8)
+    pval = np.where(is_jump_test, st.chi2.sf(sta, 1.0), np.nan)
+    tests = TestTable(
+        kind=kind_col, a=np.arange(len(r), dtype=np.int32), b=(r * W + c).astype(np.int32),
+        statistic=sta, dof=np.where(is_jump_test, 1.0, 0.0).astype(np.float32), critical=cr,
+        p_value=pval, accepted=np.ones(len(r), bool), alpha=config.alpha,
+    )
+
+    # fuse detections at the same pixel (row and column scans) by information weighting
+    flat = r * W + c
+    order = np.lexsort((kd, flat))
+    flat_s = flat[order]
+    uniq, start = np.unique(flat_s, return_index=True)
+    groups = np.split(order, start[1:]) if len(order) else []
+    n = len(uniq)
+    out_pt = np.empty((n, 3))
+    out_cov = np.empty((n, 3, 3))
+    out_kind = np.empty(n, np.uint8)
+    out_str = np.empty(n)
+    out_dir = np.empty(n, np.uint8)
+    single = np.array([len(g) == 1 for g in groups], bool)
+    if n:
+        idx1 = np.array([g[0] for g in groups])
+        out_pt[:] = pt[idx1]
+        out_cov[:] = cov[idx1]
+        out_kind[:] = kd[idx1]
+        out_str[:] = stg[idx1]
+        out_dir[:] = sd[idx1]
+        for gi in np.flatnonzero(~single):
+            g = groups[gi]
+            info = np.linalg.inv(cov[g])
+            Sinv = info.sum(0)
+            Cf = np.linalg.inv(Sinv)
+            out_cov[gi] = 0.5 * (Cf + Cf.T)
+            out_pt[gi] = Cf @ np.einsum("kij,kj->i", info, pt[g])
+            out_kind[gi] = kd[g].min()  # JUMP < CREASE_CONVEX < CREASE_CONCAVE < GROOVE
+            out_str[gi] = stg[g].max()
+            out_dir[gi] = np.bitwise_or.reduce(sd[g])
+    labels = np.zeros((H, W), np.uint8)
+    pix = np.stack(np.divmod(uniq, W), -1).astype(np.int32) if n else np.zeros((0, 2), np.int32)
+    labels.reshape(-1)[uniq] = out_kind
+    return EdgeMap(
+        labels=labels,
+        pixels=pix,
+        points=out_pt,
+        covariances=out_cov,
+        kinds=out_kind,
+        strength=out_str,
+        scan_dir=out_dir,
+        tests=tests,
+    )
+
+
+__all__ = ["detect_edges", "residual_thresholds", "point_sigma", "EdgeKind"]

@@ -1,0 +1,464 @@
+"""Stage 5: one rectangle hypothesis per vertex, with its dimensions (the paper's Fig. 2).
+
+``generate_hypotheses`` is lines 2-8 of the paper's ``findgraspablesurfaces``: for every
+vertex V_i a rectangle R is aligned with it (origin at the vertex, x along d1, y along d2);
+its dimensions come first from a diagonal vertex (``dimensions_from_vertices``, lines
+11-17), else from the edge points (``dimensions_from_edges``, lines 18-30). Each candidate
+pair of dimensions is an *attempt*, verified by :func:`boxloc.verify.verify`; the
+hypothesis keeps the first verified attempt. Attempts are tried smallest area first, the
+tightest rectangle the evidence supports, so a row of touching boxes is not merged.
+
+The paper returns after verifying the first candidate; here a candidate that fails
+verification is followed by the next one (at most ``MAX_ATTEMPTS``), and every attempt is
+recorded, so a post-mortem sees what else was tried.
+
+Per-vertex work is independent (the paper's parallel implementation); with
+``config.workers > 1`` it runs in processes and the result is identical to serial.
+"""
+
+from __future__ import annotations
+
+import math
+from concurrent.futures import ProcessPoolExecutor
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from boxloc.config import Config
+from boxloc.products import DimensionSource, EdgeMap, HypothesisSet, Verification, VertexSet
+from boxloc.scan import Scan
+from boxloc.stats import TestKind, TestTable, chi2_critical
+from boxloc.verify import VerifyContext, VerifyOutcome, rectangle_corners, verify
+from boxloc.vertices import normal_covariance
+
+#: Most dimension candidates verified per vertex (bounds the work on cluttered scenes).
+MAX_ATTEMPTS = 6
+
+
+@dataclass
+class Rectangle:
+    """A rectangle aligned with its generating vertex (the paper's R)."""
+
+    vertex: int
+    origin: np.ndarray
+    x_axis: np.ndarray
+    y_axis: np.ndarray
+    normal: np.ndarray
+    plane_cov: np.ndarray  # (6, 6): origin, normal
+    width: float = np.nan
+    length: float = np.nan
+
+
+@dataclass
+class _Attempt:
+    source: DimensionSource
+    diagonal: int
+    width: float
+    length: float
+    support: float
+    threshold: float
+    outcome: VerifyOutcome | None = None
+
+
+@dataclass
+class _VertexWork:
+    """Everything found for one vertex."""
+
+    vertex: int
+    attempts: list[_Attempt] = field(default_factory=list)
+    tests: list[TestTable] = field(default_factory=list)
+    acc_bin: float = np.nan
+    acc_x: np.ndarray = field(default_factory=lambda: np.zeros(0, np.float32))
+    acc_y: np.ndarray = field(default_factory=lambda: np.zeros(0, np.float32))
+    peaks_x: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    peaks_y: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    n_candidates: int = 0
+
+
+@dataclass
+class _Context:
+    scan: Scan
+    config: Config
+    vertices: VertexSet
+    normal_cov: np.ndarray
+    edge_points: np.ndarray
+    edge_cov: np.ndarray
+    edge_tree: cKDTree | None
+    verify_ctx: VerifyContext
+
+
+def align(vertices: VertexSet, i: int, normal_cov: np.ndarray) -> Rectangle:
+    """Rectangle R aligned with vertex i (paper Fig. 2, line 3)."""
+    cov = np.zeros((6, 6))
+    cov[:3, :3] = vertices.covariances[i][:3, :3]
+    cov[3:, 3:] = normal_cov[i]
+    return Rectangle(i, vertices.points[i], vertices.d1[i], vertices.d2[i],
+                     vertices.normals[i], cov)
+
+
+def dimensions_from_vertices(R: Rectangle, ctx: _Context, work: _VertexWork) -> list[_Attempt]:
+    """Candidate dimensions from diagonal vertices (paper Fig. 2, lines 11-15).
+
+    A vertex V_j is diagonal to R if it is coplanar with R (its point on R's plane and
+    its normal parallel to R's: chi2(3)), its directions are parallel to R's (chi2(2)),
+    it lies in R's first quadrant (one-sided z tests on both coordinates) and its arms
+    point back toward R's origin.
+    """
+    V = ctx.vertices
+    cfg = ctx.config
+    alpha = cfg.alpha
+    others = np.array([j for j in range(len(V)) if j != R.vertex], np.int64)
+    if len(others) == 0:
+        return []
+    D = V.points[others] - R.origin
+    u, v = D @ R.x_axis, D @ R.y_axis
+    near = (np.abs(u) <= cfg.max_edge * 1.05) & (np.abs(v) <= cfg.max_edge * 1.05)
+    # arms pointing back: d1_j, d2_j == -x, -y in either order
+    a1x, a1y = V.d1[others] @ R.x_axis, V.d1[others] @ R.y_axis
+    a2x, a2y = V.d2[others] @ R.x_axis, V.d2[others] @ R.y_axis
+    straight = (a1x < -0.5) & (a2y < -0.5)
+    swapped = (a1y < -0.5) & (a2x < -0.5)
+    cand = near & (straight | swapped) & (u > 0) & (v > 0)
+    idx = others[cand]
+    if len(idx) == 0:
+        return []
+    Dc = D[cand]
+    n = R.normal
+    Sx, Sn = R.plane_cov[:3, :3], R.plane_cov[3:, 3:]
+    # coplanar: point on plane (1) + normals parallel (2) = chi2(3)
+    w = Dc @ n
+    Sj = V.covariances[idx][:, :3, :3]
+    var_w = n @ Sx @ n + np.einsum("i,nij,j->n", n, Sj, n) + np.einsum("ni,ij,nj->n", Dc, Sn, Dc)
+    nj = V.normals[idx]
+    e = np.cross(n, nj)
+    Snj = ctx.normal_cov[idx]
+    Kn = _skew(n)
+    Knj = _skew(nj)
+    See = Kn @ Snj @ Kn.T + np.einsum("nij,jk,nlk->nil", Knj, Sn, Knj)
+    T_par_n = np.array([_pinv_quad(e[k], See[k], 2) for k in range(len(idx))])
+    T_cop = w**2 / np.maximum(var_w, 1e-30) + T_par_n
+    cop = TestTable.chi2(TestKind.COPLANAR, R.vertex, idx, T_cop, 3.0, alpha)
+    # parallel: R's x axis against the matching direction of V_j, chi2(2)
+    sw = swapped[cand]
+    dj = np.where(sw[:, None], V.d2[idx], V.d1[idx])
+    Sdj = np.where(sw[:, None, None], V.covariances[idx][:, 6:, 6:],
+                   V.covariances[idx][:, 3:6, 3:6])
+    Sdx = V.covariances[R.vertex][3:6, 3:6]
+    e2 = np.cross(R.x_axis, dj)
+    Kx = _skew(R.x_axis)
+    Kd = _skew(dj)
+    See2 = Kx @ Sdj @ Kx.T + np.einsum("nij,jk,nlk->nil", Kd, Sdx, Kd)
+    T_par = np.array([_pinv_quad(e2[k], See2[k], 2) for k in range(len(idx))])
+    par = TestTable.chi2(TestKind.PARALLEL, R.vertex, idx, T_par, 2.0, alpha)
+    # first quadrant: u and v significantly positive (one-sided z at alpha each)
+    uc, vc = u[cand], v[cand]
+    var_u = np.einsum("i,nij,j->n", R.x_axis, Sj, R.x_axis) + R.x_axis @ Sx @ R.x_axis
+    var_v = np.einsum("i,nij,j->n", R.y_axis, Sj, R.y_axis) + R.y_axis @ Sx @ R.y_axis
+    zq = np.minimum(uc / np.sqrt(var_u), vc / np.sqrt(var_v))
+    zc = float(_norm_isf(alpha))
+    quad = TestTable.decision(TestKind.FIRST_QUADRANT, R.vertex, idx, zq, zc, zq > zc, alpha)
+    work.tests += [cop, par, quad]
+    ok = cop.accepted & par.accepted & quad.accepted
+    ok &= (uc >= cfg.min_edge * 0.9) & (vc >= cfg.min_edge * 0.9)
+    ok &= (uc <= cfg.max_edge) & (vc <= cfg.max_edge)
+    out = [
+        _Attempt(DimensionSource.VERTICES, int(idx[k]), float(uc[k]), float(vc[k]),
+                 float(T_cop[k] + T_par[k]), float(cop.critical[0] + par.critical[0]))
+        for k in np.flatnonzero(ok)
+    ]
+    out.sort(key=lambda a: (a.width * a.length, a.diagonal))
+    return out
+
+
+def dimensions_from_edges(R: Rectangle, ctx: _Context, work: _VertexWork) -> list[_Attempt]:
+    """Candidate dimensions from edge points and two 1-D accumulators (Fig. 2, lines 18-28).
+
+    ``preprocess`` keeps the edge points on R's plane (point-on-plane, chi2(1)) in its
+    first quadrant (P_c); their coordinates along x and y vote into A_x and A_y. For each
+    pair of peaks (M_x, M_y), P_f are the points of both peaks inside the rectangle; the
+    pair is supported if |P_f| > p, with p = support_fraction of the far sides' expected
+    edge points.
+    """
+    cfg = ctx.config
+    alpha = cfg.alpha
+    if ctx.edge_tree is None:
+        return []
+    nb = np.asarray(ctx.edge_tree.query_ball_point(R.origin, cfg.max_edge * math.sqrt(2)),
+                    np.int64)
+    if len(nb) == 0:
+        return []
+    D = ctx.edge_points[nb] - R.origin
+    u, v, w = D @ R.x_axis, D @ R.y_axis, D @ R.normal
+    Sx, Sn = R.plane_cov[:3, :3], R.plane_cov[3:, 3:]
+    Ce = ctx.edge_cov[nb]
+    var_w = (np.einsum("i,nij,j->n", R.normal, Ce, R.normal) + R.normal @ Sx @ R.normal
+             + np.einsum("ni,ij,nj->n", D, Sn, D))
+    T = w**2 / np.maximum(var_w, 1e-30)
+    crit = chi2_critical(1.0, alpha)
+    on_plane = T <= crit
+    su = np.sqrt(np.einsum("i,nij,j->n", R.x_axis, Ce, R.x_axis))
+    sv = np.sqrt(np.einsum("i,nij,j->n", R.y_axis, Ce, R.y_axis))
+    kq = math.sqrt(crit)
+    quad = (u > -kq * su) & (v > -kq * sv) & (u <= cfg.max_edge) & (v <= cfg.max_edge)
+    Pc = on_plane & quad
+    work.tests.append(TestTable.decision(
+        TestKind.POINT_ON_PLANE, R.vertex, int(quad.sum()), int((Pc).sum()), crit, True, alpha,
+        dof=1.0,
+    ))
+    work.n_candidates = int(Pc.sum())
+    if Pc.sum() == 0:
+        return []
+    u, v = u[Pc], v[Pc]
+    spacing = ctx.verify_ctx.spacing
+    h = max(spacing, 2.0 * float(np.median(np.concatenate([su[Pc], sv[Pc]]))))
+    nbins = int(math.ceil(cfg.max_edge / h)) + 2
+    ax = np.bincount(np.clip((u / h).astype(np.int64), 0, nbins - 1), minlength=nbins)
+    ay = np.bincount(np.clip((v / h).astype(np.int64), 0, nbins - 1), minlength=nbins)
+    work.acc_bin, work.acc_x, work.acc_y = h, ax.astype(np.float32), ay.astype(np.float32)
+    min_peak = cfg.support_fraction * cfg.min_edge / spacing
+    px = _peaks(ax, h, cfg.min_edge * 0.9, min_peak)
+    py = _peaks(ay, h, cfg.min_edge * 0.9, min_peak)
+    work.peaks_x, work.peaks_y = px, py
+    out: list[_Attempt] = []
+    sup_tests: list[tuple[float, float, bool]] = []
+    for Mx in px:
+        for My in py:
+            on_x = np.abs(u - Mx) <= 1.5 * h
+            on_y = np.abs(v - My) <= 1.5 * h
+            Pi = on_x | on_y
+            Pf = Pi & (u <= Mx + 1.5 * h) & (v <= My + 1.5 * h)
+            p = cfg.support_fraction * (Mx + My) / spacing
+            n_f = int(Pf.sum())
+            sup_tests.append((n_f, p, n_f > p))
+            if n_f > p:
+                out.append(_Attempt(DimensionSource.EDGES, -1, float(Mx), float(My),
+                                    float(n_f), float(p)))
+    if sup_tests:
+        s = np.array(sup_tests)
+        work.tests.append(TestTable.decision(TestKind.EDGE_SUPPORT, R.vertex, -1, s[:, 0],
+                                             s[:, 1], s[:, 2].astype(bool), alpha))
+    out.sort(key=lambda a: a.width * a.length)
+    return out
+
+
+def _peaks(acc: np.ndarray, h: float, lo: float, min_height: float) -> np.ndarray:
+    """Positions (metres, bin centres refined by the 3-bin centroid) of accumulator peaks."""
+    if acc.size < 3:
+        return np.zeros(0)
+    s3 = np.convolve(acc, [1, 1, 1], mode="same").astype(np.float64)
+    left = np.r_[-1, s3[:-1]]
+    right = np.r_[s3[1:], -1]
+    pk = np.flatnonzero((s3 >= left) & (s3 > right) & (s3 >= min_height))
+    out = []
+    for i in pk:
+        a, b = max(i - 1, 0), min(i + 2, acc.size)
+        wts = acc[a:b].astype(np.float64)
+        pos = (np.arange(a, b) + 0.5) * h
+        x = float((wts * pos).sum() / max(wts.sum(), 1e-12))
+        if x >= lo:
+            out.append(x)
+    return np.array(out)
+
+
+def _norm_isf(alpha: float) -> float:
+    from scipy import stats as st
+
+    return float(st.norm.isf(alpha))
+
+
+def _skew(v: np.ndarray) -> np.ndarray:
+    from boxloc.vertices import _skew as sk
+
+    return sk(v)
+
+
+def _pinv_quad(e: np.ndarray, S: np.ndarray, rank: int) -> float:
+    """e^T S^+ e with S's pseudo-inverse of the given rank."""
+    w, V = np.linalg.eigh(S)
+    w, V = w[-rank:], V[:, -rank:]
+    y = V.T @ e
+    return float((y**2 / np.maximum(w, 1e-30)).sum())
+
+
+def _work_on_vertex(i: int, ctx: _Context) -> _VertexWork:
+    """Lines 3-8 of findgraspablesurfaces for one vertex."""
+    work = _VertexWork(vertex=i)
+    R = align(ctx.vertices, i, ctx.normal_cov)
+    cands = dimensions_from_vertices(R, ctx, work)
+    tried = 0
+    for att in cands:
+        if tried >= MAX_ATTEMPTS:
+            break
+        tried += 1
+        _verify(R, att, ctx)
+        work.attempts.append(att)
+        if att.outcome is not None and att.outcome.accepted:
+            return work
+    for att in dimensions_from_edges(R, ctx, work):
+        if tried >= MAX_ATTEMPTS:
+            break
+        tried += 1
+        _verify(R, att, ctx)
+        work.attempts.append(att)
+        if att.outcome is not None and att.outcome.accepted:
+            return work
+    return work
+
+
+def _verify(R: Rectangle, att: _Attempt, ctx: _Context) -> None:
+    att.outcome = verify(ctx.scan, ctx.verify_ctx, R.origin, R.x_axis, R.y_axis, R.normal,
+                         att.width, att.length, R.plane_cov, ctx.config, attempt_id=-1)
+
+
+_WORKER_CTX: list[_Context] = []
+
+
+def _init_worker(ctx: _Context) -> None:
+    _WORKER_CTX[:] = [ctx]
+
+
+def _work_chunk(ids: list[int]) -> list[_VertexWork]:
+    ctx = _WORKER_CTX[0]
+    return [_work_on_vertex(i, ctx) for i in ids]
+
+
+def generate_hypotheses(
+    scan: Scan, edges: EdgeMap, vertices: VertexSet, *, config: Config
+) -> tuple[HypothesisSet, Verification]:
+    """One hypothesis per vertex with its dimensions, and the verification of every attempt.
+
+    Parameters
+    ----------
+    scan : Scan
+    edges : EdgeMap
+    vertices : VertexSet
+    config : Config
+
+    Returns
+    -------
+    HypothesisSet, Verification
+    """
+    ctx = _Context(
+        scan=scan, config=config, vertices=vertices,
+        normal_cov=normal_covariance(vertices) if len(vertices) else np.zeros((0, 3, 3)),
+        edge_points=edges.points, edge_cov=edges.covariances,
+        edge_tree=cKDTree(edges.points) if len(edges) else None,
+        verify_ctx=VerifyContext.build(scan, edges.points, config),
+    )
+    ids = list(range(len(vertices)))
+    if config.workers > 1 and len(ids) > 1:
+        chunks = [ids[k :: config.workers] for k in range(config.workers)]
+        with ProcessPoolExecutor(config.workers, initializer=_init_worker, initargs=(ctx,)) as ex:
+            parts = list(ex.map(_work_chunk, chunks))
+        by_id = {w.vertex: w for part in parts for w in part}
+        works = [by_id[i] for i in ids]
+    else:
+        works = [_work_on_vertex(i, ctx) for i in ids]
+    return _assemble(works, vertices, config, scan)
+
+
+def _ragged(arrs: list[np.ndarray], dtype: type) -> tuple[np.ndarray, np.ndarray]:
+    offs = np.zeros(len(arrs) + 1, np.int64)
+    if arrs:
+        offs[1:] = np.cumsum([len(a) for a in arrs])
+    vals = np.concatenate(arrs).astype(dtype) if arrs and offs[-1] else np.zeros(0, dtype)
+    return offs, vals
+
+
+def _assemble(
+    works: list[_VertexWork], vertices: VertexSet, config: Config, scan: Scan
+) -> tuple[HypothesisSet, Verification]:
+    alpha = config.alpha
+    n = len(works)
+    att_rows: list[tuple[int, _Attempt]] = []
+    kept = np.full(n, -1, np.int32)
+    for hi, w in enumerate(works):
+        for a in w.attempts:
+            if a.outcome is not None and a.outcome.accepted and kept[hi] < 0:
+                kept[hi] = len(att_rows)
+            att_rows.append((hi, a))
+    source = np.zeros(n, np.uint8)
+    diag = np.full(n, -1, np.int32)
+    width = np.full(n, np.nan)
+    length = np.full(n, np.nan)
+    corners = np.full((n, 4, 3), np.nan)
+    for hi in range(n):
+        if kept[hi] >= 0:
+            a = att_rows[kept[hi]][1]
+            source[hi], diag[hi] = int(a.source), a.diagonal
+            width[hi], length[hi] = a.width, a.length
+            corners[hi] = rectangle_corners(vertices.points[hi], vertices.d1[hi],
+                                            vertices.d2[hi], a.width, a.length)
+    ax_off, ax = _ragged([w.acc_x for w in works], np.float32)
+    ay_off, ay = _ragged([w.acc_y for w in works], np.float32)
+    px_off, px = _ragged([w.peaks_x for w in works], np.float64)
+    py_off, py = _ragged([w.peaks_y for w in works], np.float64)
+    tests = []
+    for w in works:
+        tests += w.tests
+    k = len(att_rows)
+    hyps = HypothesisSet(
+        vertex=np.arange(n, dtype=np.int32),
+        source=source,
+        attempt=kept,
+        origins=vertices.points.copy(),
+        x_axis=vertices.d1.copy(),
+        y_axis=vertices.d2.copy(),
+        normals=vertices.normals.copy(),
+        width=width,
+        length=length,
+        corners=corners,
+        acc_bin=np.array([w.acc_bin for w in works], np.float64),
+        acc_x_offsets=ax_off, acc_x=ax, acc_y_offsets=ay_off, acc_y=ay,
+        peaks_x_offsets=px_off, peaks_x=px, peaks_y_offsets=py_off, peaks_y=py,
+        n_candidates=np.array([w.n_candidates for w in works], np.int32),
+        att_hypothesis=np.array([h for h, _ in att_rows], np.int32),
+        att_source=np.array([int(a.source) for _, a in att_rows], np.uint8),
+        att_diagonal=np.array([a.diagonal for _, a in att_rows], np.int32),
+        att_width=np.array([a.width for _, a in att_rows], np.float64),
+        att_length=np.array([a.length for _, a in att_rows], np.float64),
+        att_support=np.array([a.support for _, a in att_rows], np.float64),
+        att_threshold=np.array([a.threshold for _, a in att_rows], np.float64),
+        att_verified=np.array([bool(a.outcome and a.outcome.accepted) for _, a in att_rows],
+                              bool),
+        tests=TestTable.concat(tests, alpha),
+    )
+    outs = [a.outcome for _, a in att_rows]
+    vtests = []
+    for j, o in enumerate(outs):
+        assert o is not None
+        t = o.tests
+        vtests.append(TestTable(kind=t.kind, a=np.full(len(t), j, np.int32), b=t.b,
+                                statistic=t.statistic, dof=t.dof, critical=t.critical,
+                                p_value=t.p_value, accepted=t.accepted, alpha=t.alpha))
+    in_off, in_pix = _ragged([o.inlier_pixels for o in outs], np.int32)  # type: ignore[union-attr]
+
+    def col(name: str, dtype: type) -> np.ndarray:
+        return np.array([getattr(o, name) for o in outs], dtype).reshape(k, *(
+            () if not outs else np.shape(getattr(outs[0], name))))
+
+    ver = Verification(
+        attempt=np.arange(k, dtype=np.int32),
+        hypothesis=hyps.att_hypothesis.copy(),
+        n_inside=col("n_inside", np.int32),
+        n_valid=col("n_valid", np.int32),
+        n_inliers=col("n_inliers", np.int32),
+        n_front=col("n_front", np.int32),
+        n_behind=col("n_behind", np.int32),
+        inlier_fraction=col("inlier_fraction", np.float64),
+        mean_distance=col("mean_distance", np.float64),
+        sigma_mean=col("sigma_mean", np.float64),
+        n_interior_edges=col("n_interior_edges", np.int32),
+        plane_centers=col("plane_center", np.float64).reshape(k, 3),
+        plane_normals=col("plane_normal", np.float64).reshape(k, 3),
+        plane_covariances=col("plane_cov", np.float64).reshape(k, 6, 6),
+        rms=col("rms", np.float64),
+        accepted=col("accepted", bool),
+        reason=col("reason", np.uint8),
+        inlier_offsets=in_off,
+        inlier_pixels=in_pix,
+        error=col("error", np.float64),
+        tests=TestTable.concat(vtests, alpha),
+    )
+    return hyps, ver

@@ -1,0 +1,368 @@
+"""Stage 3: 3D line segments by a series of constrained Hough transforms.
+
+After Katsoulas (IbPRIA 2003, the paper's ref [6]) and Olson (IJCV 2001, ref [9]): each
+trial draws one *distinguished* edge point p0 (k = 1), which leaves a line two free
+parameters; they are recovered in two 2-D Hough transforms:
+
+1. **direction** — every other edge point p_i near p0 votes for the direction
+   (p_i - p0)/|p_i - p0| on an icosahedral tessellation of the hemisphere (Jeltsch, Dalitz
+   & Pohle-Fröhlich 2016), spread over every cell inside its propagated error region
+   (chi2(2) at alpha): far points vote sharply, near points broadly;
+2. **position** — the points are projected on the plane perpendicular to the found
+   direction and vote for the line's offset from p0 in a 2-D accumulator, again spread by
+   their propagated error, so p0's own noise does not fix the line.
+
+The inliers (point-on-line test, chi2(2) at alpha) are refitted by total least squares,
+with covariance, and split into segments at gaps. Olson's bound gives the number of
+trials: t = ceil(ln(1 - P) / ln(1 - eps)), eps = the fraction of edge points on the
+smallest line worth finding; it is recomputed as found lines remove their points, and the
+search stops after t consecutive trials that find nothing.
+"""
+
+from __future__ import annotations
+
+import math
+from functools import lru_cache
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from boxloc.config import Config
+from boxloc.products import EdgeMap, LineSet
+from boxloc.scan import Scan
+from boxloc.stats import TestKind, TestTable, chi2_critical
+
+#: Largest angular error region a direction vote may spread over; nearer points carry
+#: almost no direction information and only slow the accumulator down.
+MAX_VOTE_RADIUS = math.radians(8.0)
+#: Points voting per trial (a seeded random subset when there are more): the peak's
+#: relative height does not depend on it, the cost does.
+MAX_VOTERS = 600
+
+
+@lru_cache(maxsize=8)
+def hemisphere_directions(granularity: int) -> np.ndarray:
+    """Unit directions of a subdivided icosahedron on the upper hemisphere, (n, 3).
+
+    Granularity 0..6 gives 6, 21, 81, 321, 1281, 5121, 20481 directions (z >= 0, with
+    only half of the equator kept), as in Dalitz et al., IPOL 2017.
+    """
+    t = (1.0 + 5**0.5) / 2.0
+    v = [(-1, t, 0), (1, t, 0), (-1, -t, 0), (1, -t, 0), (0, -1, t), (0, 1, t),
+         (0, -1, -t), (0, 1, -t), (t, 0, -1), (t, 0, 1), (-t, 0, -1), (-t, 0, 1)]
+    f = [(0, 11, 5), (0, 5, 1), (0, 1, 7), (0, 7, 10), (0, 10, 11), (1, 5, 9), (5, 11, 4),
+         (11, 10, 2), (10, 7, 6), (7, 1, 8), (3, 9, 4), (3, 4, 2), (3, 2, 6), (3, 6, 8),
+         (3, 8, 9), (4, 9, 5), (2, 4, 11), (6, 2, 10), (8, 6, 7), (9, 8, 1)]
+    verts = [np.array(p, float) / np.linalg.norm(p) for p in v]
+    faces = f
+    for _ in range(granularity):
+        cache: dict[tuple[int, int], int] = {}
+
+        def mid(a: int, b: int) -> int:
+            key = (min(a, b), max(a, b))
+            if key not in cache:
+                m = verts[a] + verts[b]
+                verts.append(m / np.linalg.norm(m))
+                cache[key] = len(verts) - 1
+            return cache[key]
+
+        nf = []
+        for a, b, c in faces:
+            ab, bc, ca = mid(a, b), mid(b, c), mid(c, a)
+            nf += [(a, ab, ca), (b, bc, ab), (c, ca, bc), (ab, bc, ca)]
+        faces = nf
+    V = np.array(verts)
+    eps = 1e-9
+    keep = (V[:, 2] > eps) | (
+        (np.abs(V[:, 2]) <= eps) & ((V[:, 0] > eps) | ((np.abs(V[:, 0]) <= eps) & (V[:, 1] > 0)))
+    )
+    return V[keep]
+
+
+@lru_cache(maxsize=8)
+def _direction_tree(granularity: int) -> tuple[cKDTree, np.ndarray]:
+    D = hemisphere_directions(granularity)
+    # both hemispheres in the tree so that a vote near the equator finds its cells
+    both = np.concatenate([D, -D])
+    return cKDTree(both), np.concatenate([np.arange(len(D)), np.arange(len(D))])
+
+
+def _perp_basis(b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    a = np.array([1.0, 0.0, 0.0]) if abs(b[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
+    e1 = np.cross(b, a)
+    e1 /= np.linalg.norm(e1)
+    e2 = np.cross(b, e1)
+    return e1, e2
+
+
+def _tls(P: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    c = P.mean(0)
+    Q = P - c
+    w, V = np.linalg.eigh(Q.T @ Q)
+    return c, V[:, 2], w
+
+
+def _point_on_line_stat(
+    P: np.ndarray, C: np.ndarray, c: np.ndarray, b: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """chi2(2) statistic of each point's distance to line (c, b); and t along the line."""
+    e1, e2 = _perp_basis(b)
+    E = np.stack([e1, e2])  # (2, 3)
+    D = P - c
+    t = D @ b
+    r = D @ E.T  # (n, 2)
+    S = np.einsum("ij,njk,lk->nil", E, C, E)  # (n, 2, 2)
+    det = S[:, 0, 0] * S[:, 1, 1] - S[:, 0, 1] * S[:, 1, 0]
+    T = (S[:, 1, 1] * r[:, 0] ** 2 - 2 * S[:, 0, 1] * r[:, 0] * r[:, 1]
+         + S[:, 0, 0] * r[:, 1] ** 2) / np.maximum(det, 1e-30)
+    return T, t
+
+
+def _split_at_gaps(t: np.ndarray, gap: float) -> list[np.ndarray]:
+    """Index groups of sorted positions t separated by more than gap."""
+    order = np.argsort(t, kind="stable")
+    ts = t[order]
+    cuts = np.flatnonzero(np.diff(ts) > gap) + 1
+    return np.split(order, cuts)
+
+
+def find_lines(scan: Scan, edges: EdgeMap, *, config: Config, rng: np.random.Generator) -> LineSet:
+    """3D line segments through the edge points, by constrained Hough transforms.
+
+    Parameters
+    ----------
+    scan : Scan
+        For the sensor's pixel angle (expected edge-point spacing).
+    edges : EdgeMap
+        Edge points with covariances.
+    config : Config
+        Uses ``alpha``, ``p_success``, ``min_edge``, ``max_edge``, ``direction_granularity``.
+    rng : numpy.random.Generator
+        Source of the distinguished points (seeded from the scan by the pipeline).
+
+    Returns
+    -------
+    LineSet
+
+    References
+    ----------
+    C. F. Olson, "A general method for geometric feature matching and model extraction",
+    IJCV 45(1), 2001. D. Katsoulas, "Robust extraction of vertices in range images by
+    constraining the Hough transform", IbPRIA 2003.
+    """
+    rng = np.random.default_rng(rng)
+    P = np.asarray(edges.points, dtype=np.float64)
+    C = np.asarray(edges.covariances, dtype=np.float64)
+    N = P.shape[0]
+    alpha = config.alpha
+    chi2_2 = chi2_critical(2.0, alpha)
+    k2 = math.sqrt(chi2_2)
+    pixel_angle = scan.sensor.pixel_angle
+
+    r_med = float(np.median(np.linalg.norm(P, axis=1))) if N else 1.0
+    spacing = r_med * pixel_angle  # expected edge-point spacing along an edge, metres
+    m_min = max(6, int(0.5 * config.min_edge / spacing))
+    eps0 = min(1.0, m_min / max(N, 1))
+
+    dirs = hemisphere_directions(config.direction_granularity)
+    dtree, dmap = _direction_tree(config.direction_granularity)
+    ptree = cKDTree(P) if N else None
+
+    alive = np.ones(N, bool)
+    n_alive = N
+    lines: list[dict] = []
+    trial = 0
+    fails = 0
+    line_tests: list[TestTable] = []
+
+    def needed_trials(n: int) -> int:
+        eps = min(1.0, m_min / max(n, 1))
+        if eps >= 1.0:
+            return 1
+        return int(math.ceil(math.log(1.0 - config.p_success) / math.log(1.0 - eps)))
+
+    while n_alive >= m_min and fails < needed_trials(n_alive):
+        trial += 1
+        alive_idx = np.flatnonzero(alive)
+        i0 = int(alive_idx[rng.integers(len(alive_idx))])
+        p0 = P[i0]
+        nb = np.asarray(ptree.query_ball_point(p0, config.max_edge), dtype=np.int64)
+        nb = nb[alive[nb] & (nb != i0)]
+        found = False
+        if len(nb) >= m_min:
+            found = _trial(
+                i0, nb, P, C, edges.kinds, alive, rng, dirs, dtree, dmap, k2, chi2_2, spacing, m_min,
+                config, trial, lines, line_tests,
+            )
+        if found:
+            n_alive = int(alive.sum())
+            fails = 0
+        else:
+            fails += 1
+
+    return _to_lineset(lines, line_tests, trial, eps0, config, scan.seed)
+
+
+def _trial(
+    i0: int, nb: np.ndarray, P: np.ndarray, C: np.ndarray, edge_kinds: np.ndarray,
+    alive: np.ndarray,
+    rng: np.random.Generator, dirs: np.ndarray, dtree: cKDTree, dmap: np.ndarray,
+    k2: float, chi2_2: float, spacing: float, m_min: int, config: Config, trial: int,
+    lines: list[dict], line_tests: list[TestTable],
+) -> bool:
+    p0 = P[i0]
+    V = P[nb] - p0
+    ell = np.linalg.norm(V, axis=1)
+    ok = ell > 0
+    nb, V, ell = nb[ok], V[ok], ell[ok]
+    d = V / ell[:, None]
+    # propagated angular error: J (S_i + S_0) J^T with J = (I - d d^T) / l; trace/2
+    Ssum = C[nb] + C[i0]
+    tr = np.einsum("nii->n", Ssum) - np.einsum("ni,nij,nj->n", d, Ssum, d)
+    sig_theta = np.sqrt(np.maximum(tr, 0) / 2.0) / ell
+    rad = k2 * sig_theta
+    use = rad <= MAX_VOTE_RADIUS
+    if use.sum() < m_min:
+        return False
+    vi = np.flatnonzero(use)
+    if len(vi) > MAX_VOTERS:
+        vi = np.sort(rng.choice(vi, MAX_VOTERS, replace=False))
+    dv, rv = d[vi], rad[vi]
+    chord = 2.0 * np.sin(np.maximum(rv, 1e-6) / 2.0)
+    hits = dtree.query_ball_point(dv, chord)
+    lens = np.fromiter((len(h) for h in hits), np.int64, len(hits))
+    if lens.sum() == 0:
+        return False
+    cells = dmap[np.concatenate([np.asarray(h, np.int64) for h in hits if len(h)])]
+    # each vote is spread evenly over its error region: one point, one vote
+    w = np.repeat(1.0 / np.maximum(lens, 1), lens)
+    acc = np.bincount(cells, weights=w, minlength=len(dirs))
+    peak = int(np.argmax(acc))
+    b = dirs[peak]
+    dir_votes = float(acc[peak])
+    # points whose error region contains the peak: refine the direction from them
+    cosang = np.abs(d @ b)
+    agree = np.arccos(np.clip(cosang, -1, 1)) <= np.maximum(rad, 2 * np.arcsin(0.5 * 1e-3))
+    agree &= use
+    if agree.sum() < m_min - 1:
+        return False
+    dd = d[agree] * np.sign(d[agree] @ b)[:, None]
+    b = dd.mean(0)
+    b /= np.linalg.norm(b)
+
+    # HT-2: offset of the line from p0 in the plane perpendicular to b
+    e1, e2 = _perp_basis(b)
+    E = np.stack([e1, e2])
+    sel = np.concatenate([[i0], nb[agree]])
+    O = (P[sel] - p0) @ E.T  # (m, 2)
+    S2 = np.einsum("ij,njk,lk->nil", E, C[sel], E)
+    sig2d = np.sqrt(np.maximum(np.einsum("nii->n", S2) / 2.0, 1e-12))
+    cell = float(np.median(sig2d))
+    half = int(math.ceil(3 * k2 * sig2d[0] / cell)) + 1
+    n_cells = 2 * half + 1
+    acc2 = np.zeros((n_cells, n_cells))
+    g = np.arange(-half, half + 1) * cell
+    # gaussian-weighted votes truncated at the chi2(2) region; normalized per point
+    for o, s in zip(O, sig2d):
+        wx = np.exp(-0.5 * ((g - o[0]) / s) ** 2)
+        wy = np.exp(-0.5 * ((g - o[1]) / s) ** 2)
+        W2 = np.outer(wx, wy)
+        W2[W2 < math.exp(-0.5 * chi2_2)] = 0.0
+        tot = W2.sum()
+        if tot > 0:
+            acc2 += W2 / tot
+    pk = np.unravel_index(int(np.argmax(acc2)), acc2.shape)
+    pos_votes = float(acc2[pk])
+    anchor = p0 + g[pk[0]] * e1 + g[pk[1]] * e2
+
+    # inliers among all live points, two rounds of TLS refit
+    live = np.flatnonzero(alive)
+    c, bb = anchor, b
+    inl = live[:0]
+    for _ in range(2):
+        T, _t = _point_on_line_stat(P[live], C[live], c, bb)
+        inl = live[T <= chi2_2]
+        if len(inl) < m_min:
+            return False
+        c, bb, _w = _tls(P[inl])
+    T, t = _point_on_line_stat(P[inl], C[inl], c, bb)
+    keep = T <= chi2_2
+    inl, T, t = inl[keep], T[keep], t[keep]
+    if len(inl) < m_min:
+        return False
+    # segments: split at gaps larger than a quarter of the shortest box edge
+    gap = max(0.25 * config.min_edge, 4.0 * spacing)
+    found = False
+    for grp in _split_at_gaps(t, gap):
+        if len(grp) < m_min:
+            continue
+        idx = inl[grp]
+        extent = float(t[grp].max() - t[grp].min())
+        if extent < 0.5 * config.min_edge:
+            continue
+        cs, bs, w = _tls(P[idx])
+        if bs @ b < 0:
+            bs = -bs
+        ts = (P[idx] - cs) @ bs
+        n = len(idx)
+        res2 = float(w[0] + w[1]) / max(n - 2, 1) / 2.0
+        pred = float(np.median(np.einsum("nii->n", C[idx]))) / 3.0
+        s2 = max(res2, pred)
+        cov = np.zeros((6, 6))
+        Pp = np.eye(3) - np.outer(bs, bs)
+        cov[:3, :3] = s2 / n * Pp + np.outer(bs, bs) * (ts.var() / n)
+        cov[3:, 3:] = s2 / max(float((ts**2).sum()), 1e-12) * Pp
+        Tseg, _ = _point_on_line_stat(P[idx], C[idx], cs, bs)
+        kinds = np.bincount(edge_kinds[idx], minlength=5)
+        lines.append(
+            dict(
+                point=cs, direction=bs, cov=cov, start=cs + ts.min() * bs,
+                end=cs + ts.max() * bs, support=idx[np.argsort(ts)],
+                stat=Tseg[np.argsort(ts)], kind=int(np.argmax(kinds[1:]) + 1),
+                trial=trial, dir_votes=dir_votes, pos_votes=pos_votes,
+            )
+        )
+        alive[idx] = False
+        line_tests.append(
+            TestTable.chi2(TestKind.POINT_ON_LINE, len(lines) - 1, n, float(Tseg.max()), 2.0,
+                           config.alpha)
+        )
+        found = True
+    return found
+
+
+def _to_lineset(
+    lines: list[dict], tests: list[TestTable], n_trials: int, eps0: float, config: Config,
+    seed: int,
+) -> LineSet:
+    L = len(lines)
+    sup = [ln["support"] for ln in lines]
+    offs = np.zeros(L + 1, np.int64)
+    if L:
+        offs[1:] = np.cumsum([len(s) for s in sup])
+
+    def stack(key: str, shape: tuple[int, ...]) -> np.ndarray:
+        return np.array([ln[key] for ln in lines], dtype=np.float64).reshape((L, *shape))
+
+    return LineSet(
+        points=stack("point", (3,)),
+        directions=stack("direction", (3,)),
+        covariances=stack("cov", (6, 6)),
+        starts=stack("start", (3,)),
+        ends=stack("end", (3,)),
+        n_support=np.array([len(s) for s in sup], np.int32),
+        support_offsets=offs,
+        support=(np.concatenate(sup) if L else np.zeros(0)).astype(np.int32),
+        support_statistic=(
+            np.concatenate([ln["stat"] for ln in lines]) if L else np.zeros(0)
+        ).astype(np.float32),
+        kinds=np.array([ln["kind"] for ln in lines], np.uint8),
+        trial=np.array([ln["trial"] for ln in lines], np.int32),
+        direction_votes=np.array([ln["dir_votes"] for ln in lines], np.float64),
+        position_votes=np.array([ln["pos_votes"] for ln in lines], np.float64),
+        n_trials=int(n_trials),
+        epsilon=float(eps0),
+        p_success=float(config.p_success),
+        seed=int(seed),
+        tests=TestTable.concat(tests, config.alpha),
+    )

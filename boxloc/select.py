@@ -1,0 +1,110 @@
+"""Stage 7: minimum description length selection (paper Fig. 2, line 9; its ref [5]).
+
+Recover-and-select after Leonardis, Gupta & Bajcsy (1995) and Jaklič, Leonardis & Solina
+(2000, p. 122): choose the subset m of verified hypotheses maximizing ``m^T Q m`` with
+
+    q_ii = K1 n_i - K2 xi_i - K3 N_i
+    q_ij = (-K1 |R_i ∩ R_j| + K2 xi_ij) / 2
+
+n_i the range points hypothesis i explains (its verification inliers), xi_i their summed
+squared normalized residuals, N_i = 8 parameters of a rectangle, |R_i ∩ R_j| the points
+both explain and xi_ij the larger of the two models' errors on them. Hypotheses of the
+same face from different vertices overlap almost fully, so one survives: the one that
+explains most points best. The search is greedy (add the best gain while it is positive).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy import sparse
+
+from boxloc.config import Config
+from boxloc.products import Selection, SelectReason, Verification
+
+#: Parameters of a 3D rectangle: 6 of pose and 2 of size (paper §2).
+RECTANGLE_PARAMETERS = 8
+
+
+def overlap_counts(verification: Verification, attempts: np.ndarray) -> np.ndarray:
+    """|R_i ∩ R_j|: inlier pixels shared by each pair of attempts, (c, c) int64."""
+    c = len(attempts)
+    if c == 0:
+        return np.zeros((0, 0), np.int64)
+    rows, cols = [], []
+    for k, j in enumerate(attempts):
+        px = verification.inliers_of(int(j))
+        rows.append(np.full(len(px), k))
+        cols.append(px)
+    r = np.concatenate(rows)
+    col = np.concatenate(cols).astype(np.int64)
+    M = sparse.csr_matrix((np.ones(len(r), np.int64), (r, col)),
+                          shape=(c, int(col.max()) + 1 if len(col) else 1))
+    return (M @ M.T).toarray().astype(np.int64)
+
+
+def select(verification: Verification, *, config: Config) -> Selection:
+    """Select the hypotheses that describe the scene best (MDL, greedy).
+
+    Parameters
+    ----------
+    verification : Verification
+        The verified attempts are the candidates.
+    config : Config
+        Uses ``mdl_k1``, ``mdl_k2``, ``mdl_k3``.
+
+    Returns
+    -------
+    Selection
+    """
+    k1, k2, k3 = config.mdl_k1, config.mdl_k2, config.mdl_k3
+    cand = np.flatnonzero(verification.accepted).astype(np.int32)
+    c = len(cand)
+    n_pts = verification.n_inliers[cand].astype(np.int64)
+    err = verification.error[cand].astype(np.float64)
+    n_par = np.full(c, RECTANGLE_PARAMETERS, np.int32)
+    inter = overlap_counts(verification, cand)
+    per_pt = err / np.maximum(n_pts, 1)
+    Q = np.zeros((c, c))
+    if c:
+        xi_ij = inter * np.maximum(per_pt[:, None], per_pt[None, :])
+        Q = 0.5 * (-k1 * inter + k2 * xi_ij)
+        np.fill_diagonal(Q, k1 * n_pts - k2 * err - k3 * n_par)
+    chosen = np.zeros(c, bool)
+    order: list[int] = []
+    gain = np.diag(Q).copy() if c else np.zeros(0)
+    while c:
+        # marginal gain of adding k: q_kk + 2 sum_{j chosen} q_kj
+        cand_gain = np.where(chosen, -np.inf, gain)
+        k = int(np.argmax(cand_gain))
+        if not np.isfinite(cand_gain[k]) or cand_gain[k] <= 0:
+            break
+        chosen[k] = True
+        order.append(k)
+        gain = gain + 2 * Q[:, k]
+    objective = float(chosen @ Q @ chosen) if c else 0.0
+    beaten = np.full(c, -1, np.int32)
+    reason = np.zeros(c, np.uint8)
+    for k in range(c):
+        if chosen[k]:
+            reason[k] = SelectReason.CHOSEN
+            continue
+        ov = np.where(chosen, inter[k], -1)
+        if ov.size and ov.max() > 0:
+            beaten[k] = int(np.argmax(ov))
+        reason[k] = SelectReason.NO_GAIN if Q[k, k] <= 0 else SelectReason.OVERLAPS_CHOSEN
+    return Selection(
+        candidates=cand,
+        hypothesis=verification.hypothesis[cand].astype(np.int32),
+        n_points=n_pts.astype(np.int32),
+        error=err,
+        n_params=n_par,
+        Q=Q,
+        chosen=chosen,
+        order=np.array(order, np.int32),
+        objective=objective,
+        beaten_by=beaten,
+        reason=reason,
+        k1=float(k1),
+        k2=float(k2),
+        k3=float(k3),
+    )

@@ -1,0 +1,265 @@
+"""Stage 6: verification of a rectangle hypothesis by the range points inside it (paper §2.2).
+
+The rectangle, shrunk by the border margin, is projected into the range image and
+rasterized (the paper's ref [10]; here ``cv2.fillPoly``). Its points are tested against the
+rectangle's plane with their propagated uncertainty (point-on-plane, chi2(1) at alpha):
+
+* ``VERIFY_TILT`` — the face's normal is within ``max_tilt`` of up (a prior: graspable
+  faces are tops);
+* ``VERIFY_EXPOSED`` — the points significantly *in front* of the plane (something resting
+  on the face or hanging over it) are no more than the false alarms of the point test
+  (one-sided binomial test at alpha);
+* ``VERIFY_INLIERS`` — at least ``min_inlier_fraction`` of the pixels inside are on the
+  plane (the rest are dropouts and noise);
+* ``VERIFY_MEAN`` — the inliers' mean signed distance is zero within the propagated
+  uncertainty of the plane and of the mean (chi2(1));
+* ``VERIFY_INTERIOR`` — no edge crosses the interior: fewer interior edge points than the
+  support a side of the rectangle would need (the paper's threshold p).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+from scipy import stats as st
+
+from boxloc.config import Config
+from boxloc.products import VerifyReason
+from boxloc.scan import Scan
+from boxloc.stats import TestKind, TestTable, chi2_critical
+
+
+@dataclass
+class VerifyContext:
+    """Per-scan arrays the verification of every hypothesis reads (built once)."""
+
+    points: np.ndarray  # (H, W, 3) float64
+    sigma2: np.ndarray  # (H, W) float64: range variance, NaN where no return
+    lateral2: np.ndarray  # (H, W) float64: lateral variance
+    valid: np.ndarray  # (H, W) bool
+    edge_points: np.ndarray  # (N, 3)
+    spacing: float  # metres per pixel at the median range
+
+    @classmethod
+    def build(cls, scan: Scan, edge_points: np.ndarray, config: Config) -> VerifyContext:
+        P = scan.points.astype(np.float64)
+        r = scan.range.astype(np.float64)
+        sr = config.noise.sigma_range(r)
+        sl = config.noise.sigma_lateral(r, scan.sensor.pixel_angle)
+        valid = np.isfinite(r)
+        med = float(np.nanmedian(r)) if valid.any() else 1.0
+        return cls(P, sr**2, sl**2, valid, edge_points, med * scan.sensor.pixel_angle)
+
+
+@dataclass
+class VerifyOutcome:
+    """Everything :func:`verify` found about one rectangle (one row of Verification)."""
+
+    n_inside: int
+    n_valid: int
+    n_inliers: int
+    n_front: int
+    n_behind: int
+    inlier_fraction: float
+    mean_distance: float
+    sigma_mean: float
+    n_interior_edges: int
+    plane_center: np.ndarray
+    plane_normal: np.ndarray
+    plane_cov: np.ndarray
+    rms: float
+    error: float  # sum of squared normalized residuals of the inliers (MDL xi)
+    accepted: bool
+    reason: VerifyReason
+    inlier_pixels: np.ndarray
+    tests: TestTable
+
+
+def rectangle_corners(
+    origin: np.ndarray, x_axis: np.ndarray, y_axis: np.ndarray, width: float, length: float
+) -> np.ndarray:
+    """Corners (4, 3): origin, +x, +x+y, +y."""
+    return np.array(
+        [origin, origin + width * x_axis, origin + width * x_axis + length * y_axis,
+         origin + length * y_axis]
+    )
+
+
+def rasterize(scan: Scan, corners: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
+    """Pixels (rows, cols) inside the projected polygon; None if it leaves the image."""
+    uv = scan.sensor.project(corners)
+    if not np.isfinite(uv).all():
+        return None
+    H, W = scan.shape
+    if (uv[:, 0] < -0.5).any() or (uv[:, 1] < -0.5).any() or (uv[:, 0] > W - 0.5).any() or (
+        uv[:, 1] > H - 0.5
+    ).any():
+        return None
+    x0, y0 = np.floor(uv.min(0)).astype(int)
+    x1, y1 = np.ceil(uv.max(0)).astype(int)
+    x0, y0 = max(x0, 0), max(y0, 0)
+    x1, y1 = min(x1, W - 1), min(y1, H - 1)
+    mask = np.zeros((y1 - y0 + 1, x1 - x0 + 1), np.uint8)
+    shift = 4  # sub-pixel vertex precision for fillPoly
+    pts = np.round((uv - [x0, y0]) * (1 << shift)).astype(np.int32)
+    cv2.fillPoly(mask, [pts], 1, lineType=cv2.LINE_8, shift=shift)
+    rr, cc = np.nonzero(mask)
+    return rr + y0, cc + x0
+
+
+def verify(
+    scan: Scan,
+    ctx: VerifyContext,
+    origin: np.ndarray,
+    x_axis: np.ndarray,
+    y_axis: np.ndarray,
+    normal: np.ndarray,
+    width: float,
+    length: float,
+    plane_cov: np.ndarray,
+    config: Config,
+    attempt_id: int,
+) -> VerifyOutcome:
+    """Verify one rectangle hypothesis by the range points inside it.
+
+    Parameters
+    ----------
+    origin, x_axis, y_axis, normal : ndarray (3,)
+        The rectangle's frame (generating vertex; unit axes; normal toward the sensor).
+    width, length : float
+        Extent along x_axis and y_axis, metres.
+    plane_cov : ndarray (6, 6)
+        Covariance of (origin, normal) of the rectangle's plane.
+    attempt_id : int
+        Recorded as entity ``a`` of every test.
+
+    Returns
+    -------
+    VerifyOutcome
+    """
+    alpha = config.alpha
+    chi1 = chi2_critical(1.0, alpha)
+    k = float(np.sqrt(chi1))
+    m = 2.0 * ctx.spacing  # border margin: the bevel and mixed pixels of the edge itself
+    tests: list[TestTable] = []
+
+    def fail(reason: VerifyReason, **kw: object) -> VerifyOutcome:
+        base = dict(
+            n_inside=0, n_valid=0, n_inliers=0, n_front=0, n_behind=0, inlier_fraction=0.0,
+            mean_distance=np.nan, sigma_mean=np.nan, n_interior_edges=0,
+            plane_center=np.full(3, np.nan), plane_normal=np.full(3, np.nan),
+            plane_cov=np.full((6, 6), np.nan), rms=np.nan, error=np.nan, accepted=False,
+            reason=reason, inlier_pixels=np.zeros(0, np.int32),
+            tests=TestTable.concat(tests, alpha),
+        )
+        base.update(kw)
+        return VerifyOutcome(**base)  # type: ignore[arg-type]
+
+    up = scan.up
+    tilt = float(np.arccos(np.clip(normal @ up, -1, 1)))
+    tests.append(TestTable.decision(TestKind.VERIFY_TILT, attempt_id, -1, tilt, config.max_tilt,
+                                    tilt <= config.max_tilt, alpha))
+    if tilt > config.max_tilt:
+        return fail(VerifyReason.TILTED)
+    if width <= 2 * m or length <= 2 * m:
+        return fail(VerifyReason.TOO_FEW_POINTS)
+    inner = rectangle_corners(origin + m * x_axis + m * y_axis, x_axis, y_axis,
+                              width - 2 * m, length - 2 * m)
+    ras = rasterize(scan, inner)
+    if ras is None:
+        return fail(VerifyReason.OUTSIDE_IMAGE)
+    rr, cc = ras
+    n_inside = len(rr)
+    valid = ctx.valid[rr, cc]
+    rv, cv = rr[valid], cc[valid]
+    n_valid = len(rv)
+    if n_valid < 3:
+        return fail(VerifyReason.TOO_FEW_POINTS, n_inside=n_inside, n_valid=n_valid)
+    P = ctx.points[rv, cv]
+    D = P - origin
+    w = D @ normal
+    # variance of each distance: the point's noise along the normal + the plane's uncertainty
+    ray = P / np.linalg.norm(P, axis=1, keepdims=True)
+    cn2 = (ray @ normal) ** 2
+    var_pt = ctx.sigma2[rv, cv] * cn2 + ctx.lateral2[rv, cv] * (1 - cn2)
+    So, Sn = plane_cov[:3, :3], plane_cov[3:, 3:]
+    var_pl = normal @ So @ normal + np.einsum("ni,ij,nj->n", D, Sn, D)
+    var = var_pt + var_pl
+    z = w / np.sqrt(var)
+    inl = np.abs(z) <= k
+    front = z > k
+    behind = z < -k
+    n_in, n_front, n_behind = int(inl.sum()), int(front.sum()), int(behind.sum())
+
+    # exposed: front points are false alarms of a one-sided test at level alpha/2
+    p_front = float(st.binom.sf(n_front - 1, n_valid, alpha / 2)) if n_front else 1.0
+    exposed = p_front >= alpha
+    tests.append(TestTable.decision(TestKind.VERIFY_EXPOSED, attempt_id, n_valid, n_front,
+                                    st.binom.isf(alpha, n_valid, alpha / 2), exposed, alpha,
+                                    p_value=p_front))
+    frac = n_in / max(n_inside, 1)
+    tests.append(TestTable.decision(TestKind.VERIFY_INLIERS, attempt_id, n_inside, frac,
+                                    config.min_inlier_fraction,
+                                    frac >= config.min_inlier_fraction, alpha))
+    if n_in >= 3:
+        wi = w[inl]
+        mean = float(wi.mean())
+        cen = P[inl].mean(0)
+        dc = cen - origin
+        s2_mean = float(var_pt[inl].mean() / n_in + normal @ So @ normal + dc @ Sn @ dc)
+        T_mean = mean**2 / s2_mean
+    else:
+        mean, s2_mean, T_mean = np.nan, np.nan, np.inf
+    mean_t = TestTable.chi2(TestKind.VERIFY_MEAN, attempt_id, n_in, T_mean, 1.0, alpha)
+    tests.append(mean_t)
+
+    # interior edges: edge points strictly inside and not behind the plane
+    E = ctx.edge_points - origin
+    eu, ev, ew = E @ x_axis, E @ y_axis, E @ normal
+    sig_e = np.sqrt(np.nanmedian(var)) if n_valid else ctx.spacing
+    inside_e = (eu > m) & (eu < width - m) & (ev > m) & (ev < length - m) & (ew > -k * sig_e)
+    inside_e &= np.abs(ew) < 0.5 * config.min_edge
+    n_int = int(inside_e.sum())
+    crit_int = config.support_fraction * min(width, length) / ctx.spacing
+    tests.append(TestTable.decision(TestKind.VERIFY_INTERIOR, attempt_id, -1, n_int, crit_int,
+                                    n_int <= crit_int, alpha))
+
+    # the face's plane refitted to the inliers (for the pose), with covariance
+    if n_in >= 3:
+        Q = P[inl]
+        c = Q.mean(0)
+        lam, V = np.linalg.eigh((Q - c).T @ (Q - c))
+        nf = V[:, 0] if V[:, 0] @ normal > 0 else -V[:, 0]
+        s2 = float(max(lam[0] / max(n_in - 3, 1), np.median(var_pt[inl])))
+        cov = np.zeros((6, 6))
+        cov[:3, :3] = s2 / n_in * np.eye(3)
+        cov[3:, 3:] = s2 * (np.outer(V[:, 1], V[:, 1]) / max(lam[1], 1e-12)
+                            + np.outer(V[:, 2], V[:, 2]) / max(lam[2], 1e-12))
+        rms = float(np.sqrt(np.mean(w[inl] ** 2)))
+        err = float((z[inl] ** 2).sum())
+    else:
+        c, nf, cov, rms, err = np.full(3, np.nan), np.full(3, np.nan), np.full((6, 6), np.nan), \
+            np.nan, np.nan
+
+    if not exposed:
+        reason = VerifyReason.NOT_EXPOSED
+    elif frac < config.min_inlier_fraction:
+        reason = VerifyReason.INLIERS
+    elif not bool(mean_t.accepted[0]):
+        reason = VerifyReason.MEAN_OFFSET
+    elif n_int > crit_int:
+        reason = VerifyReason.INTERIOR_EDGES
+    else:
+        reason = VerifyReason.ACCEPTED
+    H, W = scan.shape
+    return VerifyOutcome(
+        n_inside=n_inside, n_valid=n_valid, n_inliers=n_in, n_front=n_front,
+        n_behind=n_behind, inlier_fraction=frac, mean_distance=mean,
+        sigma_mean=float(np.sqrt(s2_mean)) if np.isfinite(s2_mean) else np.nan,
+        n_interior_edges=n_int, plane_center=c, plane_normal=nf, plane_cov=cov, rms=rms,
+        error=err, accepted=reason == VerifyReason.ACCEPTED, reason=reason,
+        inlier_pixels=(rv[inl] * W + cv[inl]).astype(np.int32),
+        tests=TestTable.concat(tests, alpha),
+    )
