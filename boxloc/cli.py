@@ -113,7 +113,7 @@ def scan_options(f: Any) -> Any:
 
 
 @cli.command()
-@click.argument("scan_path", metavar="SCAN", type=click.Path(dir_okay=False))
+@click.argument("scan_path", metavar="SCAN", type=click.Path())  # the reader names the problem
 @click.option("--output", "-o", type=click.Path(dir_okay=False), default=None,
               help="Write the JSON here instead of stdout.")
 @click.option("--table", is_flag=True, help="Also print a table of the surfaces to stderr.")
@@ -130,10 +130,13 @@ def locate(
     Prints JSON: {"surfaces": [...], "timing_ms": {...}, "version": ...}; metres, sensor frame.
     """
     from boxloc.io import read_scan
-    from boxloc.pipeline import find_graspable_surfaces
 
     cfg = load_config(config_path, overrides, workers=workers)
-    scan = read_scan(scan_path, intrinsics=intrinsics, depth_scale=depth_scale)
+    # Read (and refuse bad input) before importing the pipeline: fast, clear failures.
+    scan = read_scan(scan_path, intrinsics=intrinsics, depth_scale=depth_scale,
+                     max_pixels=cfg.max_pixels)
+    from boxloc.pipeline import find_graspable_surfaces
+
     result = find_graspable_surfaces(scan, cfg)
     text = json.dumps(result.to_json(), indent=2)
     if output:
@@ -167,11 +170,123 @@ def _print_surfaces(result: Any) -> None:
 
 
 @cli.command()
+@click.option("--n", "n", type=click.IntRange(min=1), default=100, show_default=True,
+              help="Number of simulated scenes.")
+@click.option("--seed", type=int, default=0, show_default=True, help="Seed of the scene suite.")
+@click.option("--out", type=click.Path(file_okay=False), default=None,
+              help="Directory to write bench.json into.")
+@click.option("--no-baseline", is_flag=True, help="Do not run the open3d baseline.")
+@config_options
+def bench(
+    n: int, seed: int, out: str | None, no_baseline: bool,
+    config_path: str | None, overrides: tuple[str, ...],
+) -> None:
+    """Benchmark the localizer against the open3d baseline on N simulated scenes.
+
+    Prints both side by side with the targets; with --out writes DIR/bench.json. Extra
+    sections come from the `boxloc.bench` entry-point group (see boxloc.bench).
+    """
+    import os
+
+    # The time target is per core: pin the thread pools before the heavy imports read them.
+    for var in ("OMP_NUM_THREADS", "NUMBA_NUM_THREADS", "OPENBLAS_NUM_THREADS"):
+        os.environ.setdefault(var, "1")
+    from boxloc.bench import run_bench
+
+    cfg = load_config(config_path, overrides)
+    run_bench(n, seed, config=cfg, out=Path(out) if out else None, baseline=not no_baseline,
+              progress=True)
+
+
+@cli.command()
 def config() -> None:
     """Print the default configuration as TOML (a starting point for --config)."""
     from boxloc.config import Config
 
     click.echo(Config().to_toml())
+
+
+@cli.command("calibrate-noise")
+@click.argument("scan_paths", metavar="SCAN...", nargs=-1, required=True, type=click.Path())
+@click.option("--output", "-o", type=click.Path(dir_okay=False), default=None,
+              help="Also write the [noise] TOML table to this file.")
+@click.option("--terms", default="sigma0,k1,k2", show_default=True,
+              help="Model terms to fit (comma-separated subset of sigma0,k1,k2).")
+@click.option("--estimator", type=click.Choice(["mad", "clipped"]), default="mad",
+              show_default=True, help="Per-bin standard deviation: 1.4826*MAD or clipped std.")
+@click.option("--incidence", type=click.Choice(["model", "ignore"]), default="model",
+              show_default=True,
+              help="'model': fit the NoiseModel's 1/cos(incidence) law; 'ignore': raw "
+                   "along-ray scatter.")
+@click.option("--bin-width", type=float, default=0.1, show_default=True,
+              help="Width of the range bins, metres.")
+@click.option("--use-labels", is_flag=True,
+              help="Keep every plane fit inside one segment of a PCD's 'label' field.")
+@scan_options
+def calibrate_noise(
+    scan_paths: tuple[str, ...], output: str | None, terms: str, estimator: str,
+    incidence: str, bin_width: float, use_labels: bool,
+    intrinsics: str | None, depth_scale: float | None,
+) -> None:
+    """Fit the range-noise model to flat surfaces in SCAN files (or directories of them).
+
+    Prints a TOML [noise] table (usable with --config) on stdout and the per-range-bin
+    table on stderr.
+    """
+    from boxloc.errors import InputError
+    from boxloc.io import read_labels, read_scans
+    from boxloc.noise import estimate_noise, noise_toml
+
+    scans, labels = [], []
+    for p in scan_paths:
+        for scan in read_scans(p, intrinsics=intrinsics, depth_scale=depth_scale):
+            scans.append(scan)
+            lab = None
+            if use_labels and Path(scan.source).suffix.lower() in (".pcd", ".ply"):
+                try:
+                    lab = read_labels(scan.source)
+                except InputError:  # no label field: plain tiles
+                    lab = None
+            labels.append(lab)
+    model, report = estimate_noise(
+        scans, labels=labels, bin_width=bin_width, estimator=estimator, incidence=incidence,
+        terms=[t.strip() for t in terms.split(",") if t.strip()],
+    )
+    text = noise_toml(model)
+    click.echo(text, nl=False)
+    if output:
+        Path(output).write_text(text)
+    _print_noise_report(report)
+
+
+def _print_noise_report(report: dict[str, Any]) -> None:
+    from rich.console import Console
+    from rich.table import Table
+
+    t = Table(title=f"range noise: {report['n_scans']} scan(s), {report['n_tiles_used']} flat "
+                    f"tiles, {report['n_points']} points ({report['estimator']}, incidence "
+                    f"{report['incidence']})",
+              caption="MAD, clip, model: std in mm (model at cos = 1); r: median range in m")
+    # Both spreads are shown; the fit uses the estimator's. Model: at cos(incidence) = 1.
+    for col in ("bin [m]", "r [m]", "points", "tiles", "MAD [mm]", "clip [mm]", "cos",
+                "model [mm]", "fit"):
+        t.add_column(col, justify="right", no_wrap=True)
+    for row in report["rows"]:
+        t.add_row(
+            f"{row['lo']:.2f}-{row['hi']:.2f}", f"{row['range']:.3f}", str(row["count"]),
+            str(row["tiles"]), f"{row['std_mad'] * 1e3:.3f}",
+            f"{row['std_clipped'] * 1e3:.3f}", f"{row['mean_cos']:.2f}",
+            f"{row['model_std'] * 1e3:.3f}", "yes" if row["used"] else "no",
+        )
+    con = Console(stderr=True)
+    con.print(t)
+    g = report.get("incidence_exponent")
+    rej = ", ".join(f"{k} {v}" for k, v in report["tiles_rejected"].items() if v)
+    con.print(f"fit: relative RMS {report['fit_rel_rms']:.3f}"
+              + (f"; incidence exponent {g:.2f} (model assumes 1)" if g is not None else "")
+              + (" [underdetermined: fewer bins than terms]" if report["underdetermined"]
+                 else ""))
+    con.print(f"tiles rejected: {rej or 'none'}")
 
 
 def main() -> None:

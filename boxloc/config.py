@@ -46,6 +46,9 @@ class Config:
     min_inlier_fraction : float
         Prior: the fraction of the range points inside a fully exposed face that lie on its
         plane (the rest are dropouts, bulge and mixed pixels at its border).
+    flatness : float
+        Prior: how far a box top may depart from a plane (cardboard bulge), metres; added
+        in quadrature to the point noise when points are tested against a face.
     mdl_k1, mdl_k2, mdl_k3 : float
         MDL weights (Leonardis et al.): per explained point, per unit of normalized squared
         residual, per model parameter.
@@ -66,6 +69,7 @@ class Config:
     min_crease_angle: float = math.radians(20.0)
     support_fraction: float = 0.3
     min_inlier_fraction: float = 0.8
+    flatness: float = 0.002
     mdl_k1: float = 1.0
     mdl_k2: float = 0.5
     mdl_k3: float = 10.0
@@ -86,6 +90,7 @@ class Config:
         check("min_crease_angle", 0 < self.min_crease_angle < math.pi / 2, "in (0, pi/2)")
         check("support_fraction", 0 < self.support_fraction <= 1, "in (0, 1]")
         check("min_inlier_fraction", 0 < self.min_inlier_fraction <= 1, "in (0, 1]")
+        check("flatness", 0 <= self.flatness < 0.1, "in [0, 0.1) m")
         for k in ("mdl_k1", "mdl_k2", "mdl_k3"):
             check(k, math.isfinite(getattr(self, k)) and getattr(self, k) >= 0, "finite and >= 0")
         check("workers", isinstance(self.workers, int) and self.workers >= 1, "an integer >= 1")

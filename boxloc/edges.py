@@ -45,18 +45,40 @@ MIN_SEGMENT_POINTS = 4
 def _fit(P: np.ndarray, s: int, e: int) -> tuple[np.ndarray, np.ndarray]:
     """Total-least-squares line through P[s:e+1]: centroid, unit direction (s -> e)."""
     n = e - s + 1
-    c = np.zeros(3)
+    cx = cy = cz = 0.0
     for i in range(s, e + 1):
-        c += P[i]
-    c /= n
-    M = np.zeros((3, 3))
+        cx += P[i, 0]
+        cy += P[i, 1]
+        cz += P[i, 2]
+    cx /= n
+    cy /= n
+    cz /= n
+    sxx = sxy = sxz = syy = syz = szz = 0.0
     for i in range(s, e + 1):
-        d = P[i] - c
-        M += np.outer(d, d)
+        dx = P[i, 0] - cx
+        dy = P[i, 1] - cy
+        dz = P[i, 2] - cz
+        sxx += dx * dx
+        sxy += dx * dy
+        sxz += dx * dz
+        syy += dy * dy
+        syz += dy * dz
+        szz += dz * dz
+    M = np.empty((3, 3))
+    M[0, 0] = sxx
+    M[0, 1] = M[1, 0] = sxy
+    M[0, 2] = M[2, 0] = sxz
+    M[1, 1] = syy
+    M[1, 2] = M[2, 1] = syz
+    M[2, 2] = szz
     w, V = np.linalg.eigh(M)
     d = V[:, 2].copy()
-    if np.dot(P[e] - P[s], d) < 0:
+    if (P[e, 0] - P[s, 0]) * d[0] + (P[e, 1] - P[s, 1]) * d[1] + (P[e, 2] - P[s, 2]) * d[2] < 0:
         d = -d
+    c = np.empty(3)
+    c[0] = cx
+    c[1] = cy
+    c[2] = cz
     return c, d
 
 
@@ -65,10 +87,14 @@ def _max_resid(P: np.ndarray, S: np.ndarray, s: int, e: int, c: np.ndarray, d: n
     best = 0.0
     arg = s
     for i in range(s, e + 1):
-        v = P[i] - c
-        t = np.dot(v, d)
-        r = v - t * d
-        z = math.sqrt(np.dot(r, r)) / S[i]
+        vx = P[i, 0] - c[0]
+        vy = P[i, 1] - c[1]
+        vz = P[i, 2] - c[2]
+        t = vx * d[0] + vy * d[1] + vz * d[2]
+        rx = vx - t * d[0]
+        ry = vy - t * d[1]
+        rz = vz - t * d[2]
+        z = math.sqrt(rx * rx + ry * ry + rz * rz) / S[i]
         if z > best:
             best = z
             arg = i
@@ -101,18 +127,20 @@ def _split_merge(P: np.ndarray, S: np.ndarray, thr: np.ndarray) -> np.ndarray:
             out[no, 1] = e
             no += 1
             continue
-        a = P[s]
-        b = P[e]
-        ab = b - a
-        L = math.sqrt(np.dot(ab, ab))
+        ax, ay, az = P[s, 0], P[s, 1], P[s, 2]
+        ux, uy, uz = P[e, 0] - ax, P[e, 1] - ay, P[e, 2] - az
+        L = math.sqrt(ux * ux + uy * uy + uz * uz)
         best = 0.0
         arg = -1
         if L > 0:
-            u = ab / L
+            ux /= L
+            uy /= L
+            uz /= L
             for i in range(s + 1, e):
-                v = P[i] - a
-                r = v - np.dot(v, u) * u
-                z = math.sqrt(np.dot(r, r)) / S[i]
+                vx, vy, vz = P[i, 0] - ax, P[i, 1] - ay, P[i, 2] - az
+                t = vx * ux + vy * uy + vz * uz
+                rx, ry, rz = vx - t * ux, vy - t * uy, vz - t * uz
+                z = math.sqrt(rx * rx + ry * ry + rz * rz) / S[i]
                 if z > best:
                     best = z
                     arg = i
@@ -193,6 +221,7 @@ def _scan_line_edges(
     thr: np.ndarray,
     jump_crit: float,
     min_crease: float,
+    z_crease: float,
     min_pts: int,
     out_pix: np.ndarray,
     out_pt: np.ndarray,
@@ -224,11 +253,20 @@ def _scan_line_edges(
             nk += 1
     cs = np.empty((nk, 3))
     ds = np.empty((nk, 3))
+    vd = np.empty(nk)
     for j in range(nk):
         k = keep[j]
         c, d = _fit(P, B[k, 0], B[k, 1])
         cs[j] = c
         ds[j] = d
+        # direction variance of a line fit: mean sigma^2 / sum (t - t_mean)^2
+        st2 = 0.0
+        ss = 0.0
+        for i in range(B[k, 0], B[k, 1] + 1):
+            t = (P[i, 0] - c[0]) * d[0] + (P[i, 1] - c[1]) * d[1] + (P[i, 2] - c[2]) * d[2]
+            st2 += t * t
+            ss += S[i] * S[i]
+        vd[j] = ss / (B[k, 1] - B[k, 0] + 1) / max(st2, 1e-30)
     for j in range(nk - 1):
         ka = keep[j]
         kb = keep[j + 1]
@@ -299,7 +337,7 @@ def _scan_line_edges(
             out_crit[n_out] = jump_crit
             out_test[n_out] = 1
             n_out += 1
-        elif ang >= min_crease:
+        elif (ang - min_crease) / math.sqrt(vd[j] + vd[j + 1]) > z_crease:
             q = _closest_between(ca, da, cb, db)
             rq = math.sqrt(np.dot(q, q))
             uq = q / rq
@@ -316,8 +354,8 @@ def _scan_line_edges(
             out_pix[n_out] = ipx
             out_kind[n_out] = 2 if convex else 3
             out_strength[n_out] = ang
-            out_stat[n_out] = ang
-            out_crit[n_out] = min_crease
+            out_stat[n_out] = (ang - min_crease) / math.sqrt(vd[j] + vd[j + 1])
+            out_crit[n_out] = z_crease
             out_test[n_out] = 2
             n_out += 1
         elif ib - ia > 1:
@@ -357,6 +395,7 @@ def _all_lines(
     thr: np.ndarray,
     jump_crit: float,
     min_crease: float,
+    z_crease: float,
     min_pts: int,
     axis: int,
 ):
@@ -399,7 +438,7 @@ def _all_lines(
             break
         n0 = n_out
         n_out = _scan_line_edges(
-            buf[:nv], sbuf[:nv], pbuf[:nv], thr, jump_crit, min_crease, min_pts,
+            buf[:nv], sbuf[:nv], pbuf[:nv], thr, jump_crit, min_crease, z_crease, min_pts,
             out_pix, out_pt, out_along, out_sig, out_kind, out_strength, out_stat,
             out_crit, out_test, n_out,
         )
@@ -459,10 +498,13 @@ def detect_edges(scan: Scan, *, config: Config) -> EdgeMap:
     S = point_sigma(scan, config)
     thr = residual_thresholds(max(H, W), config.alpha)
     jump_crit = chi2_critical(1.0, config.alpha)
+    # a crease is a fold significantly larger than min_crease_angle (one-sided z at alpha)
+    z_crease = float(st.norm.isf(config.alpha))
     parts = []
     for axis in (0, 1):
         parts.append(
-            _all_lines(P, S, thr, jump_crit, config.min_crease_angle, MIN_SEGMENT_POINTS, axis)
+            _all_lines(P, S, thr, jump_crit, config.min_crease_angle, z_crease,
+                       MIN_SEGMENT_POINTS, axis)
         )
     rows, cols = [], []
     pts, along, sig, kinds, strength, stat, crit, test, sdir = [], [], [], [], [], [], [], [], []

@@ -210,7 +210,7 @@ def dimensions_from_edges(R: Rectangle, ctx: _Context, work: _VertexWork) -> lis
     if Pc.sum() == 0:
         return []
     u, v = u[Pc], v[Pc]
-    spacing = ctx.verify_ctx.spacing
+    spacing = ctx.verify_ctx.spacing_at(R.origin)
     h = max(spacing, 2.0 * float(np.median(np.concatenate([su[Pc], sv[Pc]]))))
     nbins = int(math.ceil(cfg.max_edge / h)) + 2
     ax = np.bincount(np.clip((u / h).astype(np.int64), 0, nbins - 1), minlength=nbins)
@@ -344,7 +344,7 @@ def generate_hypotheses(
         normal_cov=normal_covariance(vertices) if len(vertices) else np.zeros((0, 3, 3)),
         edge_points=edges.points, edge_cov=edges.covariances,
         edge_tree=cKDTree(edges.points) if len(edges) else None,
-        verify_ctx=VerifyContext.build(scan, edges.points, config),
+        verify_ctx=VerifyContext.build(scan, edges, config),
     )
     ids = list(range(len(vertices)))
     if config.workers > 1 and len(ids) > 1:

@@ -56,6 +56,8 @@ class VerifyReason(IntEnum):
     MEAN_OFFSET = 5
     INTERIOR_EDGES = 6
     OUTSIDE_IMAGE = 7
+    #: a side of the rectangle is not a convex boundary (jump, convex crease, groove)
+    BOUNDARY = 8
 
 
 class SelectReason(IntEnum):

@@ -4,13 +4,19 @@ Recover-and-select after Leonardis, Gupta & Bajcsy (1995) and Jaklič, Leonardis
 (2000, p. 122): choose the subset m of verified hypotheses maximizing ``m^T Q m`` with
 
     q_ii = K1 n_i - K2 xi_i - K3 N_i
-    q_ij = (-K1 |R_i ∩ R_j| + K2 xi_ij) / 2
+    q_ij = (-2 K1 |R_i ∩ R_j| + K2 xi_ij) / 2
 
 n_i the range points hypothesis i explains (its verification inliers), xi_i their summed
 squared normalized residuals, N_i = 8 parameters of a rectangle, |R_i ∩ R_j| the points
 both explain and xi_ij the larger of the two models' errors on them. Hypotheses of the
 same face from different vertices overlap almost fully, so one survives: the one that
 explains most points best. The search is greedy (add the best gain while it is positive).
+
+One deviation from Leonardis' q_ij: the shared points are subtracted from *both* models
+(factor 2). With tens of thousands of points per face, two rectangles of the same face a
+pixel apart would otherwise both be kept (the sliver one explains beyond the other
+outweighs the cost of a model); box faces are disjoint in space, so a point claimed twice
+is evidence against the pair, not for it.
 """
 
 from __future__ import annotations
@@ -67,7 +73,7 @@ def select(verification: Verification, *, config: Config) -> Selection:
     Q = np.zeros((c, c))
     if c:
         xi_ij = inter * np.maximum(per_pt[:, None], per_pt[None, :])
-        Q = 0.5 * (-k1 * inter + k2 * xi_ij)
+        Q = 0.5 * (-2.0 * k1 * inter + k2 * xi_ij)
         np.fill_diagonal(Q, k1 * n_pts - k2 * err - k3 * n_par)
     chosen = np.zeros(c, bool)
     order: list[int] = []

@@ -52,8 +52,10 @@ class TestKind(IntEnum):
     VERIFY_INTERIOR = 14
     #: verification: hypothesis a's normal is within max_tilt of up (a prior, not chi2)
     VERIFY_TILT = 15
-    #: verification: nothing lies in front of hypothesis a's face (occluders), 1 dof each
+    #: verification: points in front of hypothesis a's face are no more than behind (sign test)
     VERIFY_EXPOSED = 16
+    #: verification: one side of hypothesis a is covered by convex edge points (fraction)
+    VERIFY_BOUNDARY = 17
 
 
 @lru_cache(maxsize=256)

@@ -6,15 +6,21 @@ rectangle's plane with their propagated uncertainty (point-on-plane, chi2(1) at 
 
 * ``VERIFY_TILT`` — the face's normal is within ``max_tilt`` of up (a prior: graspable
   faces are tops);
-* ``VERIFY_EXPOSED`` — the points significantly *in front* of the plane (something resting
-  on the face or hanging over it) are no more than the false alarms of the point test
-  (one-sided binomial test at alpha);
+* ``VERIFY_EXPOSED`` — points significantly *in front* of the face's refitted plane
+  (something resting on it or hanging over it) are not more frequent than points
+  significantly behind it: noise is symmetric, occluders are not (a sign test at alpha,
+  which does not depend on the noise model being exact);
 * ``VERIFY_INLIERS`` — at least ``min_inlier_fraction`` of the pixels inside are on the
   plane (the rest are dropouts and noise);
 * ``VERIFY_MEAN`` — the inliers' mean signed distance is zero within the propagated
   uncertainty of the plane and of the mean (chi2(1));
 * ``VERIFY_INTERIOR`` — no edge crosses the interior: fewer interior edge points than the
-  support a side of the rectangle would need (the paper's threshold p).
+  support a side of the rectangle would need (the paper's threshold p);
+* ``VERIFY_BOUNDARY`` — each of the four sides is a real boundary of a top face: edge
+  points where the face drops away (jump, convex crease) or meets an equal neighbour
+  (groove) cover at least the fraction p of it. This extends the paper's |P_f| > p from
+  the two far sides to all four, and rejects a sub-rectangle of a larger face, and the
+  floor or pallet between boxes (bounded by concave creases where the boxes rise).
 """
 
 from __future__ import annotations
@@ -26,7 +32,7 @@ import numpy as np
 from scipy import stats as st
 
 from boxloc.config import Config
-from boxloc.products import VerifyReason
+from boxloc.products import EdgeKind, EdgeMap, VerifyReason
 from boxloc.scan import Scan
 from boxloc.stats import TestKind, TestTable, chi2_critical
 
@@ -40,17 +46,21 @@ class VerifyContext:
     lateral2: np.ndarray  # (H, W) float64: lateral variance
     valid: np.ndarray  # (H, W) bool
     edge_points: np.ndarray  # (N, 3)
-    spacing: float  # metres per pixel at the median range
+    edge_kinds: np.ndarray  # (N,) EdgeKind
+    pixel_angle: float  # radians per pixel: the edge-point spacing is range * pixel_angle
 
     @classmethod
-    def build(cls, scan: Scan, edge_points: np.ndarray, config: Config) -> VerifyContext:
+    def build(cls, scan: Scan, edges: EdgeMap, config: Config) -> VerifyContext:
         P = scan.points.astype(np.float64)
         r = scan.range.astype(np.float64)
         sr = config.noise.sigma_range(r)
         sl = config.noise.sigma_lateral(r, scan.sensor.pixel_angle)
         valid = np.isfinite(r)
-        med = float(np.nanmedian(r)) if valid.any() else 1.0
-        return cls(P, sr**2, sl**2, valid, edge_points, med * scan.sensor.pixel_angle)
+        return cls(P, sr**2, sl**2, valid, edges.points, edges.kinds, scan.sensor.pixel_angle)
+
+    def spacing_at(self, point: np.ndarray) -> float:
+        """Expected spacing of edge points along an edge at ``point``, metres."""
+        return float(np.linalg.norm(point)) * self.pixel_angle
 
 
 @dataclass
@@ -142,7 +152,9 @@ def verify(
     alpha = config.alpha
     chi1 = chi2_critical(1.0, alpha)
     k = float(np.sqrt(chi1))
-    m = 2.0 * ctx.spacing  # border margin: the bevel and mixed pixels of the edge itself
+    centre = origin + 0.5 * width * x_axis + 0.5 * length * y_axis
+    spacing = ctx.spacing_at(centre)
+    m = 2.0 * spacing  # border margin: the bevel and mixed pixels of the edge itself
     tests: list[TestTable] = []
 
     def fail(reason: VerifyReason, **kw: object) -> VerifyOutcome:
@@ -179,35 +191,53 @@ def verify(
         return fail(VerifyReason.TOO_FEW_POINTS, n_inside=n_inside, n_valid=n_valid)
     P = ctx.points[rv, cv]
     D = P - origin
-    w = D @ normal
-    # variance of each distance: the point's noise along the normal + the plane's uncertainty
+    w0 = D @ normal
+    # each point's noise along the normal; the flatness prior covers cardboard bulge
     ray = P / np.linalg.norm(P, axis=1, keepdims=True)
     cn2 = (ray @ normal) ** 2
-    var_pt = ctx.sigma2[rv, cv] * cn2 + ctx.lateral2[rv, cv] * (1 - cn2)
+    var_pt = ctx.sigma2[rv, cv] * cn2 + ctx.lateral2[rv, cv] * (1 - cn2) + config.flatness**2
+    # 1) points on the plane of R, with R's own uncertainty
     So, Sn = plane_cov[:3, :3], plane_cov[3:, 3:]
     var_pl = normal @ So @ normal + np.einsum("ni,ij,nj->n", D, Sn, D)
-    var = var_pt + var_pl
-    z = w / np.sqrt(var)
+    on0 = np.abs(w0) <= k * np.sqrt(var_pt + var_pl)
+    if on0.sum() < 3:
+        return fail(VerifyReason.INLIERS, n_inside=n_inside, n_valid=n_valid)
+    # 2) the face's plane refitted to them, with covariance
+    Q = P[on0]
+    c = Q.mean(0)
+    lam, V = np.linalg.eigh((Q - c).T @ (Q - c))
+    nf = V[:, 0] if V[:, 0] @ normal > 0 else -V[:, 0]
+    # 3) inliers, front and behind against the refitted plane (point noise only)
+    z = ((P - c) @ nf) / np.sqrt(var_pt)
     inl = np.abs(z) <= k
     front = z > k
     behind = z < -k
     n_in, n_front, n_behind = int(inl.sum()), int(front.sum()), int(behind.sum())
+    s2 = float(max(lam[0] / max(int(on0.sum()) - 3, 1), np.median(var_pt[on0])))
+    cov = np.zeros((6, 6))
+    cov[:3, :3] = s2 / max(n_in, 1) * np.eye(3)
+    cov[3:, 3:] = s2 * (np.outer(V[:, 1], V[:, 1]) / max(lam[1], 1e-12)
+                        + np.outer(V[:, 2], V[:, 2]) / max(lam[2], 1e-12))
+    rms = float(np.sqrt(np.mean(((P[inl] - c) @ nf) ** 2))) if n_in else np.nan
+    err = float((z[inl] ** 2).sum())
 
-    # exposed: front points are false alarms of a one-sided test at level alpha/2
-    p_front = float(st.binom.sf(n_front - 1, n_valid, alpha / 2)) if n_front else 1.0
+    # exposed: a sign test, front vs behind outliers
+    m_out = n_front + n_behind
+    p_front = float(st.binom.sf(n_front - 1, m_out, 0.5)) if n_front else 1.0
     exposed = p_front >= alpha
-    tests.append(TestTable.decision(TestKind.VERIFY_EXPOSED, attempt_id, n_valid, n_front,
-                                    st.binom.isf(alpha, n_valid, alpha / 2), exposed, alpha,
-                                    p_value=p_front))
+    tests.append(TestTable.decision(
+        TestKind.VERIFY_EXPOSED, attempt_id, m_out, n_front,
+        float(st.binom.isf(alpha, m_out, 0.5)) if m_out else 0.0, exposed, alpha,
+        p_value=p_front))
     frac = n_in / max(n_inside, 1)
     tests.append(TestTable.decision(TestKind.VERIFY_INLIERS, attempt_id, n_inside, frac,
                                     config.min_inlier_fraction,
                                     frac >= config.min_inlier_fraction, alpha))
+    # mean distance of the inliers to R's plane: zero within the propagated uncertainty
     if n_in >= 3:
-        wi = w[inl]
+        wi = w0[inl]
         mean = float(wi.mean())
-        cen = P[inl].mean(0)
-        dc = cen - origin
+        dc = P[inl].mean(0) - origin
         s2_mean = float(var_pt[inl].mean() / n_in + normal @ So @ normal + dc @ Sn @ dc)
         T_mean = mean**2 / s2_mean
     else:
@@ -215,33 +245,38 @@ def verify(
     mean_t = TestTable.chi2(TestKind.VERIFY_MEAN, attempt_id, n_in, T_mean, 1.0, alpha)
     tests.append(mean_t)
 
-    # interior edges: edge points strictly inside and not behind the plane
+    # edge points near the face's plane, in the rectangle's frame
     E = ctx.edge_points - origin
     eu, ev, ew = E @ x_axis, E @ y_axis, E @ normal
-    sig_e = np.sqrt(np.nanmedian(var)) if n_valid else ctx.spacing
-    inside_e = (eu > m) & (eu < width - m) & (ev > m) & (ev < length - m) & (ew > -k * sig_e)
-    inside_e &= np.abs(ew) < 0.5 * config.min_edge
+    sig_e = float(np.sqrt(np.median(var_pt)))
+    near_plane = (ew > -k * sig_e - k * spacing) & (ew < 0.5 * config.min_edge)
+    # interior edges: strictly inside
+    inside_e = near_plane & (eu > m) & (eu < width - m) & (ev > m) & (ev < length - m)
     n_int = int(inside_e.sum())
-    crit_int = config.support_fraction * min(width, length) / ctx.spacing
+    crit_int = config.support_fraction * min(width, length) / spacing
     tests.append(TestTable.decision(TestKind.VERIFY_INTERIOR, attempt_id, -1, n_int, crit_int,
                                     n_int <= crit_int, alpha))
-
-    # the face's plane refitted to the inliers (for the pose), with covariance
-    if n_in >= 3:
-        Q = P[inl]
-        c = Q.mean(0)
-        lam, V = np.linalg.eigh((Q - c).T @ (Q - c))
-        nf = V[:, 0] if V[:, 0] @ normal > 0 else -V[:, 0]
-        s2 = float(max(lam[0] / max(n_in - 3, 1), np.median(var_pt[inl])))
-        cov = np.zeros((6, 6))
-        cov[:3, :3] = s2 / n_in * np.eye(3)
-        cov[3:, 3:] = s2 * (np.outer(V[:, 1], V[:, 1]) / max(lam[1], 1e-12)
-                            + np.outer(V[:, 2], V[:, 2]) / max(lam[2], 1e-12))
-        rms = float(np.sqrt(np.mean(w[inl] ** 2)))
-        err = float((z[inl] ** 2).sum())
-    else:
-        c, nf, cov, rms, err = np.full(3, np.nan), np.full(3, np.nan), np.full((6, 6), np.nan), \
-            np.nan, np.nan
+    # boundary: every side covered by convex edge evidence (jump, convex crease, groove)
+    convex = near_plane & np.isin(ctx.edge_kinds, (EdgeKind.JUMP, EdgeKind.CREASE_CONVEX,
+                                                   EdgeKind.GROOVE))
+    band = 1.5 * m
+    sides = (
+        (np.abs(ev) <= band, eu, width),
+        (np.abs(ev - length) <= band, eu, width),
+        (np.abs(eu) <= band, ev, length),
+        (np.abs(eu - width) <= band, ev, length),
+    )
+    coverage = []
+    for near, along, L in sides:
+        sel = convex & near & (along >= 0) & (along <= L)
+        # distinct positions along the side (one per spacing) measure coverage, not density
+        bins = np.unique(np.floor(along[sel] / spacing).astype(np.int64))
+        coverage.append(len(bins) * spacing / L)
+    cov_min = float(min(coverage))
+    bound_ok = cov_min >= config.support_fraction
+    tests.append(TestTable.decision(TestKind.VERIFY_BOUNDARY, attempt_id, -1,
+                                    np.array(coverage), config.support_fraction,
+                                    np.array(coverage) >= config.support_fraction, alpha))
 
     if not exposed:
         reason = VerifyReason.NOT_EXPOSED
@@ -251,6 +286,8 @@ def verify(
         reason = VerifyReason.MEAN_OFFSET
     elif n_int > crit_int:
         reason = VerifyReason.INTERIOR_EDGES
+    elif not bound_ok:
+        reason = VerifyReason.BOUNDARY
     else:
         reason = VerifyReason.ACCEPTED
     H, W = scan.shape

@@ -1,0 +1,522 @@
+"""Estimate the sensor's range-noise model from real scans of flat surfaces.
+
+The residuals come from small local plane fits (tiles of ``patch`` x ``patch`` pixels), not
+from one plane per surface, so cardboard bulge, table warp and plane misfit do not inflate
+them. A tile is used only when it is genuinely flat and whole: nearly all its pixels have a
+return, few points are outliers of its robust plane fit, and a quadratic surface does not fit
+it markedly better than the plane (which rejects creases, curved objects and edges that the
+outlier test lets through). The residual standard deviation is then binned by range and the
+model of :class:`boxloc.scan.NoiseModel`,
+
+    sigma(r) = sqrt(sigma0**2 + (k1 r)**2 + (k2 r**2)**2),
+
+is fitted to the binned (robust) standard deviations by non-negative least squares on
+sigma**2, which is linear in (sigma0**2, k1**2, k2**2).
+
+The NoiseModel divides the range noise by ``max(cos_incidence, min_cos)``; the residual of
+each point along its ray is multiplied by the same factor before binning, so the fitted model
+predicts the observed along-ray scatter at the incidences seen in the data.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import warnings
+from collections.abc import Iterator, Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+
+from boxloc.errors import InputError
+from boxloc.scan import NoiseModel, Scan
+
+__all__ = ["plane_residuals", "estimate_noise", "noise_toml", "NOISE_TERMS"]
+
+NOISE_TERMS = ("sigma0", "k1", "k2")
+_MAD_TO_STD = 1.4826  # 1 / Phi^-1(3/4): MAD of a normal distribution -> its std
+
+
+@dataclass(frozen=True)
+class _TileResiduals:
+    """Per-point residuals of accepted tiles, plus bookkeeping for the report."""
+
+    range: np.ndarray  # (N,) metres
+    cos_incidence: np.ndarray  # (N,)
+    residual: np.ndarray  # (N,) metres, along the ray
+    tile: np.ndarray  # (N,) int, tile id (unique within one scan)
+    n_tiles: int  # tiles considered (enough valid pixels)
+    n_accepted: int  # tiles that passed every test
+    rejected: dict[str, int]  # tiles rejected, by reason
+
+
+def plane_residuals(
+    scan: Scan,
+    mask: npt.ArrayLike | None = None,
+    *,
+    patch: int = 16,
+    labels: npt.ArrayLike | None = None,
+    min_valid: float = 0.9,
+    max_outliers: float = 0.05,
+    max_curvature_ratio: float = 1.5,
+    min_cos: float = 0.3,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Residuals of the scan's points from robust local plane fits.
+
+    The image is cut into ``patch`` x ``patch`` pixel tiles; each tile that is nearly full,
+    flat and not seen at a grazing angle gets a robust plane fit (least squares with
+    iterative 3.5-sigma MAD rejection), and its inliers' residuals along their rays are
+    returned.
+
+    Parameters
+    ----------
+    scan : Scan
+    mask : ndarray, shape (H, W), bool, optional
+        Pixels that may be used (e.g. the known-flat region of a calibration target).
+    patch : int
+        Tile side, pixels (>= 4). Small enough that real surfaces are flat over a tile,
+        large enough to span several quantization steps of the sensor.
+    labels : ndarray, shape (H, W), int, optional
+        Segment labels (e.g. mOSD ground truth); tiles that cover more than one label are
+        skipped, so no tile straddles two surfaces.
+    min_valid : float
+        Smallest fraction of a tile's pixels that must have a return (and be in ``mask``).
+    max_outliers : float
+        Largest fraction of a tile's valid points rejected by the robust fit; more means the
+        tile holds two surfaces or mixed pixels.
+    max_curvature_ratio : float
+        Largest ratio of the plane fit's residual variance to a quadratic fit's; more means
+        the tile is curved or folded.
+    min_cos : float
+        Smallest cosine of the incidence angle of a tile (grazing tiles carry mixed pixels).
+
+    Returns
+    -------
+    range : ndarray, shape (N,), float64, metres
+        Range of each inlier point.
+    cos_incidence : ndarray, shape (N,), float64
+        |cos| of the angle between the point's ray and its tile's plane normal.
+    residual : ndarray, shape (N,), float64, metres
+        Signed distance along the ray from the fitted plane, scaled by sqrt(n / (n - 3)) for
+        the tile's n inliers so that its variance is unbiased for independent noise.
+
+    Raises
+    ------
+    InputError
+        If ``mask`` or ``labels`` do not have the scan's shape, or a parameter is out of range.
+    """
+    t = _tile_residuals(scan, mask, patch=patch, labels=labels, min_valid=min_valid,
+                        max_outliers=max_outliers, max_curvature_ratio=max_curvature_ratio,
+                        min_cos=min_cos)
+    return t.range, t.cos_incidence, t.residual
+
+
+def _check_image(a: npt.ArrayLike | None, shape: tuple[int, int], name: str) -> np.ndarray | None:
+    if a is None:
+        return None
+    arr = np.asarray(a)
+    if arr.shape != shape:
+        raise InputError(f"{name} must have the scan's shape {shape}, got {arr.shape}")
+    return arr
+
+
+def _tiles(a: np.ndarray, patch: int) -> np.ndarray:
+    """(H, W, ...) -> (T, patch*patch, ...) for the whole tiles of the image, row-major."""
+    H, W = a.shape[:2]
+    ty, tx = H // patch, W // patch
+    rest = a.shape[2:]
+    a = a[: ty * patch, : tx * patch].reshape(ty, patch, tx, patch, *rest)
+    return a.swapaxes(1, 2).reshape(ty * tx, patch * patch, *rest)
+
+
+def _tile_residuals(
+    scan: Scan,
+    mask: npt.ArrayLike | None,
+    *,
+    patch: int,
+    labels: npt.ArrayLike | None,
+    min_valid: float,
+    max_outliers: float,
+    max_curvature_ratio: float,
+    min_cos: float,
+) -> _TileResiduals:
+    if not isinstance(scan, Scan):
+        raise TypeError(f"scan must be a boxloc.scan.Scan, got {type(scan).__name__}")
+    if not isinstance(patch, int) or patch < 4:
+        raise InputError(f"patch must be an integer >= 4, got {patch!r}")
+    for name, v, lo, hi in (("min_valid", min_valid, 0, 1), ("max_outliers", max_outliers, 0, 1),
+                            ("min_cos", min_cos, 0, 1)):
+        if not lo <= v <= hi:
+            raise InputError(f"{name} must be in [{lo}, {hi}], got {v}")
+    if not max_curvature_ratio >= 1:
+        raise InputError(f"max_curvature_ratio must be >= 1, got {max_curvature_ratio}")
+    m = _check_image(mask, scan.shape, "mask")
+    lab = _check_image(labels, scan.shape, "labels")
+    valid = scan.valid if m is None else scan.valid & m.astype(bool)
+
+    def nothing(n_tiles: int, rejected: dict[str, int]) -> _TileResiduals:
+        z = np.zeros(0)
+        return _TileResiduals(z, z, z, np.zeros(0, dtype=np.int64), n_tiles, 0, rejected)
+
+    if scan.shape[0] < patch or scan.shape[1] < patch:
+        return nothing(0, {})
+    P = _tiles(np.asarray(scan.points, dtype=np.float64), patch)  # (T, n, 3)
+    V = _tiles(valid, patch)  # (T, n)
+    rejected: dict[str, int] = {}
+    keep = V.mean(1) >= min_valid
+    rejected["too few returns"] = int((~keep).sum())
+    if lab is not None:
+        L = _tiles(lab, patch).astype(np.float64)
+        Lv = np.where(V, L, np.nan)
+        with np.errstate(invalid="ignore"), _quiet_nan():
+            one = np.nanmin(Lv, 1) == np.nanmax(Lv, 1)
+        rejected["several labels"] = int((keep & ~one).sum())
+        keep &= one
+    ids = np.flatnonzero(keep)
+    n_tiles = int(keep.sum() + rejected.get("several labels", 0))
+    if ids.size == 0:
+        return nothing(n_tiles, rejected)
+    P, V = P[ids], V[ids]
+    P0 = np.where(V[..., None], P, 0.0)
+
+    w = V.astype(np.float64)
+    for _ in range(4):  # robust plane: refit on the points within 3.5 sigma (MAD)
+        mean, normal, axes = _weighted_plane(P0, w)
+        h = np.einsum("tnk,tk->tn", P0 - mean[:, None], normal)
+        absh = np.where(V, np.abs(h), np.nan)
+        with _quiet_nan():
+            s = _MAD_TO_STD * np.nanmedian(np.where(w > 0, absh, np.nan), 1)
+        new_w = (V & (absh <= 3.5 * np.maximum(s, 1e-9)[:, None])).astype(np.float64)
+        if np.array_equal(new_w, w):
+            break
+        w = new_w
+    else:  # not converged: fit the plane of the final inliers
+        mean, normal, axes = _weighted_plane(P0, w)
+        h = np.einsum("tnk,tk->tn", P0 - mean[:, None], normal)
+    n_in = w.sum(1)
+    outl = 1.0 - n_in / V.sum(1)
+    ok = (outl <= max_outliers) & (n_in >= 10)
+    rejected["outliers (edge or mixed pixels)"] = int((~ok).sum())
+
+    # Flatness: does a quadratic surface explain the tile markedly better than the plane?
+    ratio = _curvature_ratio(P0, w, mean, normal, axes, h)
+    curved = ok & ~(ratio <= max_curvature_ratio)
+    rejected["curved or folded"] = int(curved.sum())
+    ok &= ~curved
+
+    # Incidence at the tile's centroid.
+    d_mean = mean / np.linalg.norm(mean, axis=1, keepdims=True)
+    cos_tile = np.abs(np.einsum("tk,tk->t", d_mean, normal))
+    grazing = ok & (cos_tile < min_cos)
+    rejected["grazing incidence"] = int(grazing.sum())
+    ok &= ~grazing
+
+    sel = np.flatnonzero(ok)
+    wi = w[sel] > 0
+    r = np.linalg.norm(P0[sel], axis=2)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        d = P0[sel] / r[..., None]
+    ndot = np.einsum("tnk,tk->tn", d, normal[sel])
+    with np.errstate(invalid="ignore", divide="ignore"):
+        e_ray = h[sel] / ndot
+    dof = np.sqrt(n_in[sel] / (n_in[sel] - 3.0))[:, None]
+    e_ray = e_ray * dof
+    tile = np.broadcast_to(ids[sel][:, None], wi.shape)
+    return _TileResiduals(
+        range=r[wi], cos_incidence=np.abs(ndot[wi]), residual=e_ray[wi],
+        tile=tile[wi].astype(np.int64), n_tiles=n_tiles, n_accepted=int(sel.size),
+        rejected=rejected,
+    )
+
+
+@contextlib.contextmanager
+def _quiet_nan() -> Iterator[None]:
+    """Silence numpy's all-NaN-slice warnings: an empty tile is expected here."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        yield
+
+
+def _weighted_plane(P0: np.ndarray, w: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Weighted total-least-squares planes of tiles.
+
+    Returns the centroids (T, 3), unit normals (T, 3) and in-plane axes (T, 2, 3) scaled by
+    their standard deviations (so local coordinates are O(1)).
+    """
+    sw = np.maximum(w.sum(1), 1e-12)
+    mean = np.einsum("tn,tnk->tk", w, P0) / sw[:, None]
+    X = (P0 - mean[:, None]) * np.sqrt(w)[..., None]
+    C = np.einsum("tnk,tnl->tkl", X, X) / sw[:, None, None]
+    evals, evecs = np.linalg.eigh(C)  # ascending
+    normal = evecs[:, :, 0]
+    # Orient normals toward the sensor, so signs are reproducible.
+    flip = np.einsum("tk,tk->t", normal, mean) > 0
+    normal[flip] *= -1
+    scale = np.sqrt(np.maximum(evals[:, 1:], 1e-18))
+    axes = np.stack([evecs[:, :, 1] / scale[:, 0:1], evecs[:, :, 2] / scale[:, 1:2]], 1)
+    return mean, normal, axes
+
+
+def _curvature_ratio(
+    P0: np.ndarray, w: np.ndarray, mean: np.ndarray, normal: np.ndarray, axes: np.ndarray,
+    h: np.ndarray,
+) -> np.ndarray:
+    """Residual variance of the plane over that of a quadratic in the plane's coordinates."""
+    D = P0 - mean[:, None]
+    a = np.einsum("tnk,tk->tn", D, axes[:, 0])
+    b = np.einsum("tnk,tk->tn", D, axes[:, 1])
+    X = np.stack([np.ones_like(a), a, b, a * a, a * b, b * b], -1)  # (T, n, 6)
+    Xw = X * w[..., None]
+    A = np.einsum("tni,tnj->tij", Xw, X) + 1e-12 * np.eye(6)
+    y = np.einsum("tni,tn->ti", Xw, h)
+    coef = np.linalg.solve(A, y[..., None])[..., 0]
+    e = h - np.einsum("tni,ti->tn", X, coef)
+    n = w.sum(1)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        v_plane = (w * h * h).sum(1) / np.maximum(n - 3, 1)
+        v_quad = (w * e * e).sum(1) / np.maximum(n - 6, 1)
+        return v_plane / np.maximum(v_quad, 1e-30)
+
+
+# --- the fit ------------------------------------------------------------------------------
+
+
+def _robust_std(y: np.ndarray) -> float:
+    return float(_MAD_TO_STD * np.median(np.abs(y - np.median(y))))
+
+
+def _clipped_std(y: np.ndarray, k: float = 3.0, iters: int = 10) -> float:
+    """Standard deviation after iterative k-sigma clipping (starting from the MAD)."""
+    s = _robust_std(y)
+    keep = np.ones(y.size, dtype=bool)
+    for _ in range(iters):
+        c = float(np.mean(y[keep]))
+        new = np.abs(y - c) <= k * max(s, 1e-12)
+        if new.sum() < 3:
+            break
+        s = float(np.std(y[new], ddof=1))
+        if np.array_equal(new, keep):
+            break
+        keep = new
+    return s
+
+
+def estimate_noise(
+    scans: Sequence[Scan],
+    masks: Sequence[npt.ArrayLike | None] | None = None,
+    *,
+    labels: Sequence[npt.ArrayLike | None] | None = None,
+    bin_width: float = 0.1,
+    min_points: int = 2000,
+    min_tiles: int = 4,
+    estimator: str = "mad",
+    incidence: str = "model",
+    terms: Sequence[str] = NOISE_TERMS,
+    base: NoiseModel | None = None,
+    patch: int = 16,
+) -> tuple[NoiseModel, dict[str, Any]]:
+    """Fit the range-noise model to the residuals of flat surfaces in real scans.
+
+    Parameters
+    ----------
+    scans : sequence of Scan
+        Scans with flat surfaces (walls, tables, box faces) over a spread of ranges.
+    masks : sequence of (H, W) bool arrays or None, optional
+        Per scan, the pixels that may be used.
+    labels : sequence of (H, W) int arrays or None, optional
+        Per scan, segment labels; tiles spanning two labels are skipped.
+    bin_width : float
+        Width of the range bins, metres.
+    min_points, min_tiles : int
+        A bin enters the fit only with at least this many points from this many tiles.
+    estimator : {"mad", "clipped"}
+        Per-bin standard deviation: 1.4826 * MAD (robust, exact for Gaussian noise; it
+        overestimates uniform quantization noise by ~28 %), or the 3-sigma-clipped sample
+        standard deviation. Both are reported.
+    incidence : {"model", "ignore"}
+        "model": each residual along the ray is multiplied by ``max(cos_incidence,
+        min_cos)`` before binning, matching the NoiseModel's ``1 / cos`` factor, so the
+        fitted model predicts the along-ray scatter at every incidence. "ignore": the raw
+        along-ray residuals are binned (the model then over-predicts at oblique incidence,
+        by ``1 / cos``); useful to compare with sensor data sheets quoted along the ray.
+    terms : sequence of {"sigma0", "k1", "k2"}
+        Which terms of the model to fit; the others are 0.
+    base : NoiseModel, optional
+        Supplies ``sigma_angle`` and ``min_cos``, which are not estimated here.
+    patch : int
+        Tile side of the local plane fits, pixels.
+
+    Returns
+    -------
+    model : NoiseModel
+    report : dict
+        ``bins`` (edges, metres), and per used bin ``range`` (median, m), ``count``,
+        ``tiles``, ``std`` (the estimator's, m), ``std_mad``, ``std_clipped``, ``mean_cos``,
+        ``model_std`` (fitted, m, at cos = 1), ``used`` (entered the fit); ``fit_rel_rms``
+        (RMS of std/model - 1 over the fitted bins), ``incidence_exponent`` (see Notes),
+        ``n_points``, ``n_tiles``, ``n_tiles_used``, ``tiles_rejected`` (by reason),
+        ``n_scans``, ``estimator``, ``incidence``, ``terms``, ``underdetermined``, ``model``.
+
+    Raises
+    ------
+    InputError
+        If there are no scans, the masks/labels do not match, a parameter is out of range, or
+        no range bin holds enough flat surface.
+
+    Notes
+    -----
+    The model is linear in (sigma0**2, k1**2, k2**2), so the fit is a non-negative least
+    squares on the binned variances, each row weighted by sqrt(count) / std**2 (the inverse
+    of the relative standard error of a variance estimate). Over a short span of ranges the
+    three terms are nearly collinear: NNLS then keeps the fewest terms that explain the
+    data; pass ``terms`` to choose.
+
+    ``incidence_exponent`` is g in std(along-ray residual) ~ cos_incidence**-g, measured
+    within range bins: the model assumes g = 1. Far from 1 means the ``1 / cos`` factor of
+    :class:`NoiseModel` does not describe this sensor.
+    """
+    scans = list(scans)
+    if not scans:
+        raise InputError("estimate_noise needs at least one scan")
+    masks_l = list(masks) if masks is not None else [None] * len(scans)
+    labels_l = list(labels) if labels is not None else [None] * len(scans)
+    if len(masks_l) != len(scans) or len(labels_l) != len(scans):
+        raise InputError(f"got {len(scans)} scans but {len(masks_l)} masks and "
+                         f"{len(labels_l)} label images")
+    if estimator not in ("mad", "clipped"):
+        raise InputError(f"estimator must be 'mad' or 'clipped', got {estimator!r}")
+    if incidence not in ("model", "ignore"):
+        raise InputError(f"incidence must be 'model' or 'ignore', got {incidence!r}")
+    terms = tuple(terms)
+    if not terms or any(t not in NOISE_TERMS for t in terms) or len(set(terms)) != len(terms):
+        raise InputError(f"terms must be a non-empty subset of {NOISE_TERMS}, got {terms}")
+    if not (np.isfinite(bin_width) and bin_width > 0):
+        raise InputError(f"bin_width must be finite and > 0, got {bin_width}")
+    base = base or NoiseModel()
+
+    rs, ys, cs, ts = [], [], [], []
+    n_tiles, rejected = 0, {}
+    for i, (scan, m, lab) in enumerate(zip(scans, masks_l, labels_l)):
+        t = _tile_residuals(scan, m, patch=patch, labels=lab, min_valid=0.9,
+                            max_outliers=0.05, max_curvature_ratio=1.5, min_cos=0.3)
+        rs.append(t.range)
+        cs.append(t.cos_incidence)
+        # The model divides range noise by max(cos, min_cos); undo that per point.
+        f = np.maximum(t.cos_incidence, base.min_cos) if incidence == "model" else 1.0
+        ys.append(t.residual * f)
+        ts.append(t.tile + (i << 32))
+        n_tiles += t.n_tiles
+        for k, v in t.rejected.items():
+            rejected[k] = rejected.get(k, 0) + v
+    r, y, c, tile = (np.concatenate(a) for a in (rs, ys, cs, ts))
+    ok = np.isfinite(r) & np.isfinite(y)
+    r, y, c, tile = r[ok], y[ok], c[ok], tile[ok]
+    report: dict[str, Any] = {
+        "n_scans": len(scans), "n_points": int(r.size), "n_tiles": n_tiles,
+        "n_tiles_used": int(np.unique(tile).size), "tiles_rejected": rejected,
+        "estimator": estimator, "incidence": incidence, "terms": list(terms),
+        "bin_width": float(bin_width),
+    }
+    if r.size == 0:
+        raise InputError("no flat surface found to estimate the noise from "
+                         f"({n_tiles} tiles examined)")
+
+    lo = np.floor(r.min() / bin_width) * bin_width
+    nb = int(np.ceil((r.max() - lo) / bin_width)) or 1
+    edges = lo + bin_width * np.arange(nb + 1)
+    which = np.clip(((r - lo) / bin_width).astype(np.int64), 0, nb - 1)
+    rows = []
+    for b in range(nb):
+        sel = which == b
+        if not sel.any():
+            continue
+        yb = y[sel]
+        tiles_b = int(np.unique(tile[sel]).size)
+        row = {
+            "lo": float(edges[b]), "hi": float(edges[b + 1]),
+            "range": float(np.median(r[sel])), "count": int(sel.sum()), "tiles": tiles_b,
+            "std_mad": _robust_std(yb), "std_clipped": _clipped_std(yb),
+            "mean_cos": float(np.mean(c[sel])),
+        }
+        row["std"] = row["std_mad"] if estimator == "mad" else row["std_clipped"]
+        row["used"] = bool(row["count"] >= min_points and tiles_b >= min_tiles
+                           and row["std"] > 0)
+        rows.append(row)
+    report["bins"] = [float(e) for e in edges]
+    report["rows"] = rows
+    used = [row for row in rows if row["used"]]
+    if not used:
+        raise InputError(
+            f"not enough flat surface to estimate the noise: no range bin has {min_points} "
+            f"points from {min_tiles} flat tiles ({r.size} points in total)"
+        )
+    e_ray = y / np.maximum(c, base.min_cos) if incidence == "model" else y
+    report["incidence_exponent"] = _incidence_exponent(r, c, e_ray, used)
+    model, x = _fit(used, terms, base)
+    for row in rows:
+        row["model_std"] = float(model.sigma_range(row["range"]) * 1.0)
+    rel = np.array([row["std"] / row["model_std"] - 1.0 for row in used])
+    report["fit_rel_rms"] = float(np.sqrt(np.mean(rel**2)))
+    report["underdetermined"] = len(used) < len(terms)
+    report["model"] = model.to_dict()
+    return model, report
+
+
+def _incidence_exponent(
+    r: np.ndarray, c: np.ndarray, e_ray: np.ndarray, used: list[dict[str, Any]],
+    min_points: int = 500,
+) -> float | None:
+    """Exponent g of std(along-ray residual) ~ cos_incidence**-g, pooled over range bins.
+
+    A diagnostic: the NoiseModel assumes g = 1; structured-light sensors often show less
+    (their noise is mostly along the ray whatever the surface's slant). None when no range
+    bin spans enough incidences.
+    """
+    xs, ys = [], []
+    for row in used:
+        in_bin = (r >= row["lo"]) & (r < row["hi"])
+        lx, ly = [], []
+        for clo in np.arange(0.0, 1.0, 0.15):
+            q = in_bin & (c >= clo) & (c < clo + 0.15)
+            if q.sum() >= min_points:
+                s = _robust_std(e_ray[q])
+                if s > 0:
+                    lx.append(np.log(np.median(c[q])))
+                    ly.append(np.log(s))
+        if len(lx) >= 2:  # remove the bin's own level: only the slope is pooled
+            xs += list(np.asarray(lx) - np.mean(lx))
+            ys += list(np.asarray(ly) - np.mean(ly))
+    x, yv = np.asarray(xs), np.asarray(ys)
+    if x.size < 2 or not np.any(x != 0):
+        return None
+    return float(-(x @ yv) / (x @ x))
+
+
+def _fit(
+    used: list[dict[str, Any]], terms: tuple[str, ...], base: NoiseModel
+) -> tuple[NoiseModel, np.ndarray]:
+    from scipy.optimize import nnls
+
+    r = np.array([row["range"] for row in used])
+    s = np.array([row["std"] for row in used])
+    n = np.array([row["count"] for row in used], dtype=np.float64)
+    cols = {"sigma0": np.ones_like(r), "k1": r**2, "k2": r**4}
+    A = np.stack([cols[t] for t in terms], 1)
+    wt = np.sqrt(n) / s**2
+    x, _ = nnls(A * wt[:, None], s**2 * wt)
+    params = dict.fromkeys(NOISE_TERMS, 0.0)
+    for t, v in zip(terms, x):
+        params[t] = float(np.sqrt(v))
+    if params["sigma0"] == params["k1"] == params["k2"] == 0:
+        raise InputError("the measured range noise is zero; cannot fit a noise model")
+    model = NoiseModel(sigma0=params["sigma0"], k1=params["k1"], k2=params["k2"],
+                       sigma_angle=base.sigma_angle, min_cos=base.min_cos)
+    return model, x
+
+
+def noise_toml(model: NoiseModel) -> str:
+    """The model as a TOML ``[noise]`` table, loadable with ``boxloc --config``."""
+    import tomli_w
+
+    return tomli_w.dumps({"noise": model.to_dict()})
