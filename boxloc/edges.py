@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import math
 
+import cv2
 import numba as nb
 import numpy as np
 from scipy import stats as st
@@ -472,6 +473,38 @@ def point_sigma(scan: Scan, config: Config) -> np.ndarray:
     return np.sqrt(sr * sr + sl * sl)
 
 
+#: A scan line finds an edge reliably when it crosses it within this angle of the edge's
+#: normal; beyond it (a row running along a near-horizontal edge) the breakpoint position is
+#: ill-defined, and the other scan direction, which crosses the edge better, is used.
+MAX_CROSSING_ANGLE = math.radians(60.0)
+
+
+def _crossing_ok(r: np.ndarray, c: np.ndarray, scan_dir: np.ndarray,
+                 shape: tuple[int, int]) -> np.ndarray:
+    """Detections whose scan line crosses the local edge within MAX_CROSSING_ANGLE, (n,) bool.
+
+    The edge's local orientation is that of the structure tensor of the edge-pixel map.
+    """
+    if len(r) == 0:
+        return np.zeros(0, bool)
+    E = np.zeros(shape, np.float32)
+    E[r, c] = 1.0
+    E = cv2.GaussianBlur(E, (0, 0), 1.0)
+    gx = cv2.Sobel(E, cv2.CV_32F, 1, 0, ksize=3)
+    gy = cv2.Sobel(E, cv2.CV_32F, 0, 1, ksize=3)
+    jxx = cv2.GaussianBlur(gx * gx, (0, 0), 2.0)[r, c]
+    jyy = cv2.GaussianBlur(gy * gy, (0, 0), 2.0)[r, c]
+    jxy = cv2.GaussianBlur(gx * gy, (0, 0), 2.0)[r, c]
+    # dominant gradient direction of the edge map = across the edge
+    theta = 0.5 * np.arctan2(2 * jxy, jxx - jyy)
+    across_x = np.abs(np.cos(theta))  # |cos| of the angle between x and the edge normal
+    across_y = np.abs(np.sin(theta))
+    lim = math.cos(MAX_CROSSING_ANGLE)
+    row = scan_dir == 1
+    flat = (jxx + jyy) < 1e-12  # isolated points: no orientation, keep
+    return flat | np.where(row, across_x >= lim, across_y >= lim)
+
+
 def detect_edges(scan: Scan, *, config: Config) -> EdgeMap:
     """Jump, crease and groove edges of a range image by scan-line approximation.
 
@@ -548,6 +581,13 @@ def detect_edges(scan: Scan, *, config: Config) -> EdgeMap:
         statistic=sta, dof=np.where(is_jump_test, 1.0, 0.0).astype(np.float32), critical=cr,
         p_value=pval, accepted=np.ones(len(r), bool), alpha=config.alpha,
     )
+
+    # keep each detection only from a scan line that crosses its edge at a fair angle
+    keep = _crossing_ok(r, c, sd, (H, W))
+    r, c, pt, al, sg, kd, stg, sta, cr, te, sd = (
+        a[keep] for a in (r, c, pt, al, sg, kd, stg, sta, cr, te, sd)
+    )
+    cov = cov[keep]
 
     # fuse detections at the same pixel (row and column scans) by information weighting
     flat = r * W + c
