@@ -48,7 +48,12 @@ class Config:
         plane (the rest are dropouts, bulge and mixed pixels at its border).
     flatness : float
         Prior: how far a box top may depart from a plane (cardboard bulge), metres; added
-        in quadrature to the point noise when points are tested against a face.
+        in quadrature to the point noise when points are tested against a face, and to
+        the distance of two lines in the meet test.
+    angle_tolerance : float
+        Prior: how far real box edges depart from square and straight (cardboard, and a
+        line that runs along the edges of several neighbouring boxes), radians; added in
+        quadrature to the direction uncertainty in the orthogonal and parallel tests.
     mdl_k1, mdl_k2, mdl_k3 : float
         MDL weights (Leonardis et al.): per explained point, per unit of normalized squared
         residual, per model parameter.
@@ -70,6 +75,7 @@ class Config:
     support_fraction: float = 0.3
     min_inlier_fraction: float = 0.8
     flatness: float = 0.002
+    angle_tolerance: float = math.radians(1.0)
     mdl_k1: float = 1.0
     mdl_k2: float = 0.5
     mdl_k3: float = 10.0
@@ -91,6 +97,7 @@ class Config:
         check("support_fraction", 0 < self.support_fraction <= 1, "in (0, 1]")
         check("min_inlier_fraction", 0 < self.min_inlier_fraction <= 1, "in (0, 1]")
         check("flatness", 0 <= self.flatness < 0.1, "in [0, 0.1) m")
+        check("angle_tolerance", 0 <= self.angle_tolerance < 0.2, "in [0, 0.2) rad")
         for k in ("mdl_k1", "mdl_k2", "mdl_k3"):
             check(k, math.isfinite(getattr(self, k)) and getattr(self, k) >= 0, "finite and >= 0")
         check("workers", isinstance(self.workers, int) and self.workers >= 1, "an integer >= 1")

@@ -129,13 +129,15 @@ def dimensions_from_vertices(R: Rectangle, ctx: _Context, work: _VertexWork) -> 
     # coplanar: point on plane (1) + normals parallel (2) = chi2(3)
     w = Dc @ n
     Sj = V.covariances[idx][:, :3, :3]
-    var_w = n @ Sx @ n + np.einsum("i,nij,j->n", n, Sj, n) + np.einsum("ni,ij,nj->n", Dc, Sn, Dc)
+    var_w = (n @ Sx @ n + np.einsum("i,nij,j->n", n, Sj, n)
+             + np.einsum("ni,ij,nj->n", Dc, Sn, Dc) + 2 * cfg.flatness**2)
     nj = V.normals[idx]
     e = np.cross(n, nj)
     Snj = ctx.normal_cov[idx]
     Kn = _skew(n)
     Knj = _skew(nj)
-    See = Kn @ Snj @ Kn.T + np.einsum("nij,jk,nlk->nil", Knj, Sn, Knj)
+    Sn_t = Sn + cfg.angle_tolerance**2 * (np.eye(3) - np.outer(n, n))
+    See = Kn @ Snj @ Kn.T + np.einsum("nij,jk,nlk->nil", Knj, Sn_t, Knj)
     T_par_n = np.array([_pinv_quad(e[k], See[k], 2) for k in range(len(idx))])
     T_cop = w**2 / np.maximum(var_w, 1e-30) + T_par_n
     cop = TestTable.chi2(TestKind.COPLANAR, R.vertex, idx, T_cop, 3.0, alpha)
@@ -144,7 +146,8 @@ def dimensions_from_vertices(R: Rectangle, ctx: _Context, work: _VertexWork) -> 
     dj = np.where(sw[:, None], V.d2[idx], V.d1[idx])
     Sdj = np.where(sw[:, None, None], V.covariances[idx][:, 6:, 6:],
                    V.covariances[idx][:, 3:6, 3:6])
-    Sdx = V.covariances[R.vertex][3:6, 3:6]
+    Sdx = V.covariances[R.vertex][3:6, 3:6] + cfg.angle_tolerance**2 * (
+        np.eye(3) - np.outer(R.x_axis, R.x_axis))
     e2 = np.cross(R.x_axis, dj)
     Kx = _skew(R.x_axis)
     Kd = _skew(dj)

@@ -37,6 +37,10 @@ from boxloc.scan import Scan
 from boxloc.stats import TestKind, TestTable, chi2_critical
 
 
+#: Edges within this fraction of the shortest box edge from a side belong to that side.
+BOUNDARY_BAND = 0.1
+
+
 @dataclass
 class VerifyContext:
     """Per-scan arrays the verification of every hypothesis reads (built once)."""
@@ -250,8 +254,10 @@ def verify(
     eu, ev, ew = E @ x_axis, E @ y_axis, E @ normal
     sig_e = float(np.sqrt(np.median(var_pt)))
     near_plane = (ew > -k * sig_e - k * spacing) & (ew < 0.5 * config.min_edge)
-    # interior edges: strictly inside
-    inside_e = near_plane & (eu > m) & (eu < width - m) & (ev > m) & (ev < length - m)
+    # interior edges: strictly inside, beyond the band where the boundary's own edges lie
+    # (rounded or bevelled cardboard gives a second, parallel edge a few mm inside)
+    mi = max(m, BOUNDARY_BAND * config.min_edge)
+    inside_e = near_plane & (eu > mi) & (eu < width - mi) & (ev > mi) & (ev < length - mi)
     n_int = int(inside_e.sum())
     crit_int = config.support_fraction * min(width, length) / spacing
     tests.append(TestTable.decision(TestKind.VERIFY_INTERIOR, attempt_id, -1, n_int, crit_int,

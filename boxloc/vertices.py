@@ -6,7 +6,8 @@ Every pair of segments is tested, with the propagated covariances of both lines
 * **meet** — the signed distance between the two lines is zero: chi2(1);
 * **orthogonal** — the cosine of their angle is zero: chi2(1);
 * **at segment ends** — the intersection lies on both segments (within their extent plus
-  the localization tolerance), so a corner, a T or a cross; not the extension of a line.
+  half the shortest box edge, as support thins out near junctions), so a corner, a T or
+  a cross; not the far extension of a line.
 
 An accepted pair gives one vertex per combination of *arms*: the directions from the
 intersection along which each segment extends by at least half the shortest box edge. An
@@ -84,14 +85,15 @@ def find_vertices(lines: LineSet, *, config: Config) -> VertexSet:
     delta = np.einsum("ij,ij->i", X1 - X2, n)
     S1 = line_point_covariance(lines, ia, t1)
     S2 = line_point_covariance(lines, ib, t2)
-    var_d = np.einsum("ni,nij,nj->n", n, S1 + S2, n)
+    var_d = np.einsum("ni,nij,nj->n", n, S1 + S2, n) + 2 * config.flatness**2
     T_meet = delta**2 / np.maximum(var_d, 1e-30)
     meet = TestTable.chi2(TestKind.LINES_MEET, ia, ib, T_meet, 1.0, alpha)
 
     # orthogonal: cos = b1.b2, var = b2^T S_b1 b2 + b1^T S_b2 b1, chi2(1)
     Sb1 = lines.covariances[ia][:, 3:, 3:]
     Sb2 = lines.covariances[ib][:, 3:, 3:]
-    var_c = np.einsum("ni,nij,nj->n", b2, Sb1, b2) + np.einsum("ni,nij,nj->n", b1, Sb2, b1)
+    var_c = (np.einsum("ni,nij,nj->n", b2, Sb1, b2) + np.einsum("ni,nij,nj->n", b1, Sb2, b1)
+             + config.angle_tolerance**2)
     T_orth = a**2 / np.maximum(var_c, 1e-30)
     orth = TestTable.chi2(TestKind.LINES_ORTHOGONAL, ia, ib, T_orth, 1.0, alpha)
 
@@ -105,7 +107,9 @@ def find_vertices(lines: LineSet, *, config: Config) -> VertexSet:
     beyond = np.maximum.reduce(
         [lo1 - t1, t1 - hi1, lo2 - t2, t2 - hi2, np.zeros_like(t1)]
     )
-    tol = 0.25 * config.min_edge
+    # edge support thins out near junctions (both scan directions cross the edge there
+    # badly), so a segment may stop short of its corner by a fraction of the shortest edge
+    tol = 0.5 * config.min_edge
     ends = TestTable.decision(
         TestKind.AT_SEGMENT_ENDS, ia, ib, beyond, tol, beyond <= tol, alpha
     )
