@@ -289,6 +289,25 @@ def _print_noise_report(report: dict[str, Any]) -> None:
     con.print(f"tiles rejected: {rej or 'none'}")
 
 
+@cli.command("simulate")
+@click.argument("spec_text", metavar="KIND_OR_SPEC")
+@click.option("--seed", type=int, default=None, help="Seed (overrides the spec's); with "
+              "--count, the first of consecutive seeds.")
+@click.option("--count", type=int, default=None, help="Write this many scans: PATH_stem_000.npz...")
+@click.option("--out", "-o", "out", required=True, type=click.Path(),
+              help="Output .npz file, or a directory for KIND_SEED.npz files.")
+def simulate_cmd(spec_text: str, seed: int | None, count: int | None, out: str) -> None:
+    """Simulate piled-box scans with exact ground truth (.npz with truth/...).
+
+    KIND_OR_SPEC is a kind (single, pallet, partial, mixed, touching, empty) or a spec such
+    as "mixed:seed=3,distance=2.0,bulge=0.01". Prints one line per scan.
+    """
+    from boxloc.simulate import simulate_to_files, summary_line
+
+    for path, sim in simulate_to_files(spec_text, out, seed=seed, count=count):
+        click.echo(summary_line(path, sim))
+
+
 def main() -> None:
     """Console-script entry point."""
     cli(prog_name="boxloc")

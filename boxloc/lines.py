@@ -24,6 +24,7 @@ from __future__ import annotations
 import math
 from functools import lru_cache
 
+import numba as nb
 import numpy as np
 from scipy.spatial import cKDTree
 
@@ -37,7 +38,11 @@ from boxloc.stats import TestKind, TestTable, chi2_critical
 MAX_VOTE_RADIUS = math.radians(8.0)
 #: Points voting per trial (a seeded random subset when there are more): the peak's
 #: relative height does not depend on it, the cost does.
-MAX_VOTERS = 600
+MAX_VOTERS = 300
+#: Direction votes come from points within this many shortest box edges of the
+#: distinguished point: far enough for a sharp direction (the error shrinks with distance),
+#: near enough that the line's own points are not drowned by the rest of the scene.
+VOTE_RADIUS_EDGES = 3.0
 
 
 @lru_cache(maxsize=8)
@@ -79,12 +84,77 @@ def hemisphere_directions(granularity: int) -> np.ndarray:
     return V[keep]
 
 
+#: Resolution of the lookup table from (polar, azimuth) to the nearest direction cell.
+_LUT_POLAR, _LUT_AZIMUTH = 256, 512
+
+
 @lru_cache(maxsize=8)
-def _direction_tree(granularity: int) -> tuple[cKDTree, np.ndarray]:
+def _direction_index(granularity: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Lookup structures for voting on the tessellation.
+
+    Returns
+    -------
+    lut : (P, A) int32
+        Nearest hemisphere cell of each (polar, azimuth) bin of the whole sphere.
+    nbr : (C, K) int32
+        For each cell, the cells within MAX_VOTE_RADIUS plus two cell spacings (-1 pads).
+    D : (C, 3) float64
+        Cell directions.
+    """
     D = hemisphere_directions(granularity)
-    # both hemispheres in the tree so that a vote near the equator finds its cells
     both = np.concatenate([D, -D])
-    return cKDTree(both), np.concatenate([np.arange(len(D)), np.arange(len(D))])
+    hemi = np.concatenate([np.arange(len(D)), np.arange(len(D))])
+    tree = cKDTree(both)
+    th = (np.arange(_LUT_POLAR) + 0.5) * math.pi / _LUT_POLAR
+    ph = (np.arange(_LUT_AZIMUTH) + 0.5) * 2 * math.pi / _LUT_AZIMUTH
+    T, F = np.meshgrid(th, ph, indexing="ij")
+    q = np.stack([np.sin(T) * np.cos(F), np.sin(T) * np.sin(F), np.cos(T)], -1).reshape(-1, 3)
+    lut = hemi[tree.query(q)[1]].reshape(_LUT_POLAR, _LUT_AZIMUTH).astype(np.int32)
+    spacing = math.sqrt(4 * math.pi / len(both))
+    reach = 2 * math.sin((MAX_VOTE_RADIUS + 2 * spacing) / 2)
+    lists = tree.query_ball_point(D, reach)
+    uniq = [np.unique(hemi[np.asarray(li, np.int64)]) for li in lists]
+    K = max(len(u) for u in uniq)
+    nbr = np.full((len(D), K), -1, np.int32)
+    for i, u in enumerate(uniq):
+        nbr[i, : len(u)] = u
+    return lut, nbr, D
+
+
+@nb.njit(cache=True)
+def _vote_directions(d: np.ndarray, rad: np.ndarray, lut: np.ndarray, nbr: np.ndarray,
+                     D: np.ndarray) -> np.ndarray:
+    """Each direction d_i votes (weight 1, spread evenly) for every cell within rad_i of +-d_i."""
+    nc = D.shape[0]
+    acc = np.zeros(nc)
+    P, A = lut.shape
+    cells = np.empty(nbr.shape[1], np.int64)
+    for i in range(d.shape[0]):
+        x, y, z = d[i, 0], d[i, 1], d[i, 2]
+        th = math.acos(min(1.0, max(-1.0, z)))
+        ph = math.atan2(y, x)
+        if ph < 0:
+            ph += 2 * math.pi
+        bi = min(int(th / math.pi * P), P - 1)
+        bj = min(int(ph / (2 * math.pi) * A), A - 1)
+        c0 = lut[bi, bj]
+        cr = math.cos(rad[i])
+        n = 0
+        for k in range(nbr.shape[1]):
+            c = nbr[c0, k]
+            if c < 0:
+                break
+            dot = abs(D[c, 0] * x + D[c, 1] * y + D[c, 2] * z)
+            if dot >= cr:
+                cells[n] = c
+                n += 1
+        if n == 0:
+            cells[0] = c0
+            n = 1
+        w = 1.0 / n
+        for k in range(n):
+            acc[cells[k]] += w
+    return acc
 
 
 def _perp_basis(b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -164,8 +234,7 @@ def find_lines(scan: Scan, edges: EdgeMap, *, config: Config, rng: np.random.Gen
     m_min = max(6, int(0.5 * config.min_edge / spacing))
     eps0 = min(1.0, m_min / max(N, 1))
 
-    dirs = hemisphere_directions(config.direction_granularity)
-    dtree, dmap = _direction_tree(config.direction_granularity)
+    lut, nbr, dirs = _direction_index(config.direction_granularity)
     ptree = cKDTree(P) if N else None
 
     alive = np.ones(N, bool)
@@ -186,12 +255,13 @@ def find_lines(scan: Scan, edges: EdgeMap, *, config: Config, rng: np.random.Gen
         alive_idx = np.flatnonzero(alive)
         i0 = int(alive_idx[rng.integers(len(alive_idx))])
         p0 = P[i0]
-        nb = np.asarray(ptree.query_ball_point(p0, config.max_edge), dtype=np.int64)
+        radius = min(config.max_edge, VOTE_RADIUS_EDGES * config.min_edge)
+        nb = np.asarray(ptree.query_ball_point(p0, radius), dtype=np.int64)
         nb = nb[alive[nb] & (nb != i0)]
         found = False
         if len(nb) >= m_min:
             found = _trial(
-                i0, nb, P, C, edges.kinds, alive, rng, dirs, dtree, dmap, k2, chi2_2, spacing, m_min,
+                i0, nb, P, C, edges.kinds, alive, rng, dirs, lut, nbr, k2, chi2_2, spacing, m_min,
                 config, trial, lines, line_tests,
             )
         if found:
@@ -206,7 +276,7 @@ def find_lines(scan: Scan, edges: EdgeMap, *, config: Config, rng: np.random.Gen
 def _trial(
     i0: int, nb: np.ndarray, P: np.ndarray, C: np.ndarray, edge_kinds: np.ndarray,
     alive: np.ndarray,
-    rng: np.random.Generator, dirs: np.ndarray, dtree: cKDTree, dmap: np.ndarray,
+    rng: np.random.Generator, dirs: np.ndarray, lut: np.ndarray, nbr: np.ndarray,
     k2: float, chi2_2: float, spacing: float, m_min: int, config: Config, trial: int,
     lines: list[dict], line_tests: list[TestTable],
 ) -> bool:
@@ -227,16 +297,8 @@ def _trial(
     vi = np.flatnonzero(use)
     if len(vi) > MAX_VOTERS:
         vi = np.sort(rng.choice(vi, MAX_VOTERS, replace=False))
-    dv, rv = d[vi], rad[vi]
-    chord = 2.0 * np.sin(np.maximum(rv, 1e-6) / 2.0)
-    hits = dtree.query_ball_point(dv, chord)
-    lens = np.fromiter((len(h) for h in hits), np.int64, len(hits))
-    if lens.sum() == 0:
-        return False
-    cells = dmap[np.concatenate([np.asarray(h, np.int64) for h in hits if len(h)])]
     # each vote is spread evenly over its error region: one point, one vote
-    w = np.repeat(1.0 / np.maximum(lens, 1), lens)
-    acc = np.bincount(cells, weights=w, minlength=len(dirs))
+    acc = _vote_directions(d[vi], rad[vi], lut, nbr, dirs)
     peak = int(np.argmax(acc))
     b = dirs[peak]
     dir_votes = float(acc[peak])
@@ -260,17 +322,15 @@ def _trial(
     cell = float(np.median(sig2d))
     half = int(math.ceil(3 * k2 * sig2d[0] / cell)) + 1
     n_cells = 2 * half + 1
-    acc2 = np.zeros((n_cells, n_cells))
     g = np.arange(-half, half + 1) * cell
-    # gaussian-weighted votes truncated at the chi2(2) region; normalized per point
-    for o, s in zip(O, sig2d):
-        wx = np.exp(-0.5 * ((g - o[0]) / s) ** 2)
-        wy = np.exp(-0.5 * ((g - o[1]) / s) ** 2)
-        W2 = np.outer(wx, wy)
-        W2[W2 < math.exp(-0.5 * chi2_2)] = 0.0
-        tot = W2.sum()
-        if tot > 0:
-            acc2 += W2 / tot
+    # gaussian-weighted votes truncated at the chi2(2) region, one vote per point; the
+    # separable kernel makes the accumulator a product of (points x cells) matrices
+    wx = np.exp(-0.5 * ((g[None, :] - O[:, :1]) / sig2d[:, None]) ** 2)
+    wy = np.exp(-0.5 * ((g[None, :] - O[:, 1:]) / sig2d[:, None]) ** 2)
+    tot = wx.sum(1) * wy.sum(1)
+    scale = np.where(tot > 0, 1.0 / np.maximum(tot, 1e-300), 0.0)
+    acc2 = (wx * scale[:, None]).T @ wy
+    acc2[acc2 < 0] = 0.0
     pk = np.unravel_index(int(np.argmax(acc2)), acc2.shape)
     pos_votes = float(acc2[pk])
     anchor = p0 + g[pk[0]] * e1 + g[pk[1]] * e2

@@ -1,0 +1,243 @@
+"""Tests of boxloc.bench and the `boxloc bench` verb (no timing assertions)."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+from pathlib import Path
+from types import SimpleNamespace
+from typing import Any
+
+import numpy as np
+import pytest
+from click.testing import CliRunner
+
+import boxloc.bench as bench
+from boxloc.baseline import surface_set_from_rects
+from boxloc.bench import PeakRSS, evaluate_targets, run_bench
+from boxloc.cli import cli
+
+TOP_KEYS = {
+    "version", "n", "seed", "config", "config_hash", "scene_noise", "threads", "warmup",
+    "crash_policy", "summary", "edges", "per_kind", "timing", "memory", "targets", "sections",
+    "errors", "scenes",
+}
+SUMMARY_KEYS = {
+    "precision", "recall", "f1", "tp", "fp", "fn", "grasp_err_median_mm", "grasp_err_p95_mm",
+    "dim_err_median_mm", "normal_err_median_deg",
+}
+
+
+def _simulator() -> Any:
+    try:
+        import boxloc.simulate as sim
+    except ImportError as e:  # pragma: no cover - only while the simulator is being written
+        pytest.skip(f"boxloc.simulate is not importable yet: {e}")
+    return sim
+
+
+def _tiny_specs(sim: Any) -> list[Any]:
+    """Two small scenes (160 x 120) of different kinds, so the test stays fast."""
+    base = sim.scene_suite(2, seed=7)
+    return [dataclasses.replace(s, width=160, height=120, f=131.25) for s in base]
+
+
+def _oracle(specs: list[Any], sim: Any) -> Any:
+    """A localizer that answers with the ground truth (exposed faces, exact edges)."""
+    by_seed = {}
+    for spec in specs:
+        s = sim.simulate(spec)
+        by_seed[s.scan.seed] = s.truth
+
+    def localize(scan: Any, config: Any) -> Any:
+        t = by_seed[scan.seed]
+        ex = np.asarray(t.fully_exposed, bool)
+        surfaces = surface_set_from_rects(t.centers[ex], t.normals[ex], t.x_axis[ex],
+                                          t.width[ex], t.length[ex], up=scan.up)
+        edges = SimpleNamespace(labels=np.asarray(t.edge_labels))
+        return SimpleNamespace(surfaces=surfaces, edges=edges,
+                               timing_ms={"edges": 1.0, "total": 2.0})
+
+    return localize
+
+
+def test_run_bench_writes_report(tmp_path: Path) -> None:
+    sim = _simulator()
+    specs = _tiny_specs(sim)
+    calls: list[Any] = []
+
+    def section(ctx: bench.BenchContext) -> dict[str, Any]:
+        calls.append(ctx)
+        return {"scenes_seen": ctx.n, "ratio": float("nan"), "nested": {"a": 1}}
+
+    def broken(ctx: bench.BenchContext) -> dict[str, Any]:
+        raise RuntimeError("section exploded")
+
+    report = run_bench(
+        specs=specs, out=tmp_path, progress=False, localizer=_oracle(specs, sim),
+        sections=[("extra", section), ("broken", broken)], warmup=False,
+    )
+    assert set(report) == TOP_KEYS
+    text = (tmp_path / "bench.json").read_text()
+    on_disk = json.loads(text)  # strict JSON: NaN would not parse back as null
+    assert "NaN" not in text
+    assert on_disk == report
+    # the oracle is perfect, the baseline ran
+    s = report["summary"]
+    assert set(s) == {"boxloc", "baseline"}
+    assert SUMMARY_KEYS <= set(s["boxloc"]) and SUMMARY_KEYS <= set(s["baseline"])
+    assert s["boxloc"]["precision"] == 1.0 and s["boxloc"]["recall"] == 1.0
+    assert s["boxloc"]["fn"] == 0 and s["boxloc"]["fp"] == 0
+    assert s["boxloc"]["tp"] == sum(r["n_exposed"] for r in report["scenes"])
+    assert s["boxloc"]["grasp_err_median_mm"] == pytest.approx(0.0, abs=1e-6)
+    assert report["edges"]["any"]["precision"] == 1.0 and report["edges"]["any"]["recall"] == 1.0
+    # per kind, per scene
+    kinds = {spec.kind for spec in specs}
+    assert set(report["per_kind"]) == kinds
+    assert len(report["scenes"]) == 2
+    for row, spec in zip(report["scenes"], specs):
+        assert row["kind"] == spec.kind
+        assert {"boxloc", "baseline", "spec", "n_faces", "n_exposed"} <= set(row)
+        assert row["spec"]["width"] == 160
+        assert not _keys_ending(row, "_ms")  # durations live in "timing", not in the rows
+    # timing, memory, targets
+    assert report["timing"]["boxloc"]["stages_ms"]["edges"]["median"] == pytest.approx(1.0)
+    assert len(report["timing"]["baseline"]["per_scene_total_ms"]) == 2
+    assert report["memory"]["boxloc_peak_rss_mb"] > 0
+    assert report["memory"]["process_max_rss_mb"] > 0
+    names = [t["name"] for t in report["targets"]]
+    assert names == [t.name for t in bench.TARGETS]
+    prec = next(t for t in report["targets"] if t["key"] == "precision")
+    assert prec["pass"] is True and prec["value"] == 1.0
+    # sections: the good one is stored (NaN -> null), the broken one is an error
+    assert report["sections"] == {"extra": {"scenes_seen": 2, "ratio": None, "nested": {"a": 1}}}
+    assert calls and calls[0].report["summary"]["boxloc"]["recall"] == 1.0
+    assert report["errors"]["total"] == 1
+    assert report["errors"]["list"][0]["method"] == "section:broken"
+    assert "section exploded" in report["errors"]["list"][0]["error"]
+    assert report["config_hash"] and report["version"]
+
+
+def _keys_ending(d: Any, suffix: str) -> list[str]:
+    if isinstance(d, dict):
+        return [k for k in d if k.endswith(suffix)] + sum(
+            (_keys_ending(v, suffix) for v in d.values()), [])
+    if isinstance(d, list):
+        return sum((_keys_ending(v, suffix) for v in d), [])
+    return []
+
+
+@pytest.mark.slow
+def test_run_bench_with_the_real_localizer() -> None:
+    # The localizer may still fail on a scene; the bench must report that, not crash.
+    sim = _simulator()
+    specs = _tiny_specs(sim)[:1]
+    report = run_bench(specs=specs, baseline=False, progress=False, sections=[], warmup=False)
+    assert set(report) == TOP_KEYS
+    row = report["scenes"][0]["boxloc"]
+    if row["error"] is None:
+        assert row["n_pred"] == row["tp"] + row["fp"]
+        assert report["timing"]["boxloc"]["total_ms"]["median"] > 0
+    else:
+        assert report["errors"]["count"]["boxloc"] == 1
+
+
+def test_run_bench_counts_crashes(tmp_path: Path) -> None:
+    sim = _simulator()
+    specs = _tiny_specs(sim)[:1]
+
+    def crash(scan: Any, config: Any) -> Any:
+        raise ValueError("localizer exploded")
+
+    report = run_bench(specs=specs, out=None, baseline=False, progress=False,
+                       localizer=crash, sections=[], warmup=True)
+    assert set(report["summary"]) == {"boxloc"}
+    assert report["errors"]["count"]["boxloc"] == 1
+    assert "localizer exploded" in report["errors"]["list"][0]["error"]
+    row = report["scenes"][0]
+    assert row["boxloc"]["error"].startswith("ValueError")
+    # a crash scores as "found nothing"
+    assert row["boxloc"]["n_pred"] == 0
+    assert row["boxloc"]["fn"] == row["n_exposed"]
+    beats = [t for t in report["targets"] if t["target"].endswith("baseline")]
+    assert beats and all(t["pass"] is None for t in beats)
+    assert not (tmp_path / "bench.json").exists()
+
+
+def test_discovered_sections_run(monkeypatch: pytest.MonkeyPatch) -> None:
+    class EP:
+        def __init__(self, name: str, fn: Any = None) -> None:
+            self.name, self.value, self._fn = name, f"fake:{name}", fn
+
+        def load(self) -> Any:
+            if self._fn is None:
+                raise ImportError("no such module")
+            return self._fn
+
+    eps = [EP("zeta", lambda ctx: {"ok": True}), EP("alpha")]
+    monkeypatch.setattr(bench, "entry_points", lambda group: eps if group == "boxloc.bench"
+                        else [])
+    found = bench.discover_sections()
+    assert [n for n, _ in found] == ["alpha", "zeta"]
+    assert found[1][1](None) == {"ok": True}
+    with pytest.raises(ImportError, match="cannot load fake:alpha"):
+        found[0][1](None)
+
+
+def _report(boxloc: dict[str, Any], baseline: dict[str, Any] | None) -> dict[str, Any]:
+    summary = {"boxloc": boxloc} | ({"baseline": baseline} if baseline is not None else {})
+    timing = {m: {"total_ms": {"median": 100.0}} for m in summary}
+    memory = {f"{m}_peak_rss_mb": 300.0 for m in summary}
+    return {"summary": summary, "timing": timing, "memory": memory}
+
+
+def test_evaluate_targets() -> None:
+    good = {"precision": 0.995, "recall": 0.97, "f1": 0.98, "grasp_err_median_mm": 3.0,
+            "grasp_err_p95_mm": 9.0, "dim_err_median_mm": 4.0}
+    worse = {"precision": 0.8, "recall": 0.5, "f1": 0.6, "grasp_err_median_mm": 6.0,
+             "grasp_err_p95_mm": 20.0, "dim_err_median_mm": 7.0}
+    rows = {r["name"]: r for r in evaluate_targets(_report(good, worse))}
+    assert all(r["pass"] is True for r in rows.values())
+    rows = {r["name"]: r for r in evaluate_targets(_report(worse, good))}
+    assert rows["median time per scan"]["pass"] is True
+    assert rows["peak RSS"]["pass"] is True
+    others = [r for n, r in rows.items() if n not in ("median time per scan", "peak RSS")]
+    assert all(r["pass"] is False for r in others)
+    assert rows["F1 better than baseline"]["baseline"] == 0.98
+    # no true positive: the error figures are n/a, and losing to a baseline that has one
+    none = dict(good, grasp_err_median_mm=None, grasp_err_p95_mm=None, dim_err_median_mm=None)
+    rows = {r["name"]: r for r in evaluate_targets(_report(none, good))}
+    assert rows["median grasp error"]["pass"] is None
+    assert rows["grasp error better than baseline"]["pass"] is False
+    rows = {r["name"]: r for r in evaluate_targets(_report(good, None))}
+    assert rows["F1 better than baseline"]["pass"] is None
+
+
+def test_peak_rss_sees_an_allocation() -> None:
+    with PeakRSS() as before:
+        pass
+    with PeakRSS() as pk:
+        a = np.ones(64 * 2**20 // 8)  # 64 MiB, touched
+    assert a.sum() > 0  # still alive when the exit sample is taken
+    assert pk.peak_mb >= before.peak_mb + 48
+
+
+def test_jsonable() -> None:
+    out = bench._jsonable({"a": np.float32(1.5), "b": [np.nan, np.inf, 2], "c": (np.int64(3),),
+                           "d": np.arange(2), "e": Path("/x"), "f": None, "g": True})
+    assert out == {"a": 1.5, "b": [None, None, 2], "c": [3], "d": [0, 1], "e": "PosixPath('/x')",
+                   "f": None, "g": True}
+    json.dumps(out, allow_nan=False)
+
+
+def test_cli_bench_help_and_bad_n() -> None:
+    runner = CliRunner()
+    r = runner.invoke(cli, ["bench", "--help"])
+    assert r.exit_code == 0
+    for opt in ("--n", "--seed", "--out", "--no-baseline", "--config", "--set"):
+        assert opt in r.output
+    r = runner.invoke(cli, ["bench", "--n", "0"])
+    assert r.exit_code == 2
+    r = runner.invoke(cli, ["bench", "--n", "1", "--set", "nonsense=1"])
+    assert r.exit_code == 2
+    assert "unknown config key" in r.output
