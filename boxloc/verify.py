@@ -36,7 +36,6 @@ from boxloc.products import EdgeKind, EdgeMap, VerifyReason
 from boxloc.scan import Scan
 from boxloc.stats import TestKind, TestTable, chi2_critical
 
-
 #: Edges within this fraction of the shortest box edge from a side belong to that side.
 BOUNDARY_BAND = 0.1
 
@@ -181,6 +180,48 @@ def verify(
         return fail(VerifyReason.TILTED)
     if width <= 2 * m or length <= 2 * m:
         return fail(VerifyReason.TOO_FEW_POINTS)
+    # cheap tests first, on the edge points (no rasterization): interior and boundary
+    # edge points near the face's plane, in the rectangle's frame
+    E = ctx.edge_points - origin
+    eu, ev, ew = E @ x_axis, E @ y_axis, E @ normal
+    r_c = float(np.linalg.norm(centre))
+    sig_e = float(np.sqrt(config.noise.sigma_range(r_c) ** 2 + config.flatness**2))
+    near_plane = (ew > -k * sig_e - k * spacing) & (ew < 0.5 * config.min_edge)
+    # interior edges: strictly inside, beyond the band where the boundary's own edges lie
+    # (rounded or bevelled cardboard gives a second, parallel edge a few mm inside)
+    mi = max(m, BOUNDARY_BAND * config.min_edge)
+    inside_e = near_plane & (eu > mi) & (eu < width - mi) & (ev > mi) & (ev < length - mi)
+    n_int = int(inside_e.sum())
+    crit_int = config.support_fraction * min(width, length) / spacing
+    tests.append(TestTable.decision(TestKind.VERIFY_INTERIOR, attempt_id, -1, n_int, crit_int,
+                                    n_int <= crit_int, alpha))
+    # boundary: every side covered by convex edge evidence (jump, convex crease, groove)
+    convex = near_plane & np.isin(ctx.edge_kinds, (EdgeKind.JUMP, EdgeKind.CREASE_CONVEX,
+                                                   EdgeKind.GROOVE))
+    band = 1.5 * m
+    sides = (
+        (np.abs(ev) <= band, eu, width),
+        (np.abs(ev - length) <= band, eu, width),
+        (np.abs(eu) <= band, ev, length),
+        (np.abs(eu - width) <= band, ev, length),
+    )
+    coverage = []
+    for near, along, L in sides:
+        sel = convex & near & (along >= 0) & (along <= L)
+        # distinct positions along the side (one per spacing) measure coverage, not density
+        bins = np.unique(np.floor(along[sel] / spacing).astype(np.int64))
+        coverage.append(len(bins) * spacing / L)
+    cov_min = float(min(coverage))
+    bound_ok = cov_min >= config.support_fraction
+    tests.append(TestTable.decision(TestKind.VERIFY_BOUNDARY, attempt_id, -1,
+                                    np.array(coverage), config.support_fraction,
+                                    np.array(coverage) >= config.support_fraction, alpha))
+
+    if n_int > crit_int:
+        return fail(VerifyReason.INTERIOR_EDGES, n_interior_edges=n_int)
+    if not bound_ok:
+        return fail(VerifyReason.BOUNDARY, n_interior_edges=n_int)
+
     inner = rectangle_corners(origin + m * x_axis + m * y_axis, x_axis, y_axis,
                               width - 2 * m, length - 2 * m)
     ras = rasterize(scan, inner)
@@ -249,51 +290,12 @@ def verify(
     mean_t = TestTable.chi2(TestKind.VERIFY_MEAN, attempt_id, n_in, T_mean, 1.0, alpha)
     tests.append(mean_t)
 
-    # edge points near the face's plane, in the rectangle's frame
-    E = ctx.edge_points - origin
-    eu, ev, ew = E @ x_axis, E @ y_axis, E @ normal
-    sig_e = float(np.sqrt(np.median(var_pt)))
-    near_plane = (ew > -k * sig_e - k * spacing) & (ew < 0.5 * config.min_edge)
-    # interior edges: strictly inside, beyond the band where the boundary's own edges lie
-    # (rounded or bevelled cardboard gives a second, parallel edge a few mm inside)
-    mi = max(m, BOUNDARY_BAND * config.min_edge)
-    inside_e = near_plane & (eu > mi) & (eu < width - mi) & (ev > mi) & (ev < length - mi)
-    n_int = int(inside_e.sum())
-    crit_int = config.support_fraction * min(width, length) / spacing
-    tests.append(TestTable.decision(TestKind.VERIFY_INTERIOR, attempt_id, -1, n_int, crit_int,
-                                    n_int <= crit_int, alpha))
-    # boundary: every side covered by convex edge evidence (jump, convex crease, groove)
-    convex = near_plane & np.isin(ctx.edge_kinds, (EdgeKind.JUMP, EdgeKind.CREASE_CONVEX,
-                                                   EdgeKind.GROOVE))
-    band = 1.5 * m
-    sides = (
-        (np.abs(ev) <= band, eu, width),
-        (np.abs(ev - length) <= band, eu, width),
-        (np.abs(eu) <= band, ev, length),
-        (np.abs(eu - width) <= band, ev, length),
-    )
-    coverage = []
-    for near, along, L in sides:
-        sel = convex & near & (along >= 0) & (along <= L)
-        # distinct positions along the side (one per spacing) measure coverage, not density
-        bins = np.unique(np.floor(along[sel] / spacing).astype(np.int64))
-        coverage.append(len(bins) * spacing / L)
-    cov_min = float(min(coverage))
-    bound_ok = cov_min >= config.support_fraction
-    tests.append(TestTable.decision(TestKind.VERIFY_BOUNDARY, attempt_id, -1,
-                                    np.array(coverage), config.support_fraction,
-                                    np.array(coverage) >= config.support_fraction, alpha))
-
     if not exposed:
         reason = VerifyReason.NOT_EXPOSED
     elif frac < config.min_inlier_fraction:
         reason = VerifyReason.INLIERS
     elif not bool(mean_t.accepted[0]):
         reason = VerifyReason.MEAN_OFFSET
-    elif n_int > crit_int:
-        reason = VerifyReason.INTERIOR_EDGES
-    elif not bound_ok:
-        reason = VerifyReason.BOUNDARY
     else:
         reason = VerifyReason.ACCEPTED
     H, W = scan.shape
