@@ -34,6 +34,12 @@ from boxloc.products import EdgeKind, EdgeMap
 from boxloc.scan import Scan
 from boxloc.stats import TestKind, TestTable, chi2_critical
 
+#: A groove is a run of this many to GROOVE_MAX_RUN samples behind the line, with
+#: GROOVE_CONTEXT samples on the line on each side (a seam, not a trend such as bulge).
+GROOVE_MIN_RUN = 3
+GROOVE_MAX_RUN = 8
+GROOVE_CONTEXT = 4
+
 #: Segments with fewer samples are not fitted (their samples are "dropped": mixed pixels,
 #: a sliver of a steep side face). Three is the fewest that can show a line's residual.
 MIN_SEGMENT_POINTS = 4
@@ -220,6 +226,7 @@ def _scan_line_edges(
     S: np.ndarray,
     pix: np.ndarray,
     thr: np.ndarray,
+    run_thr: np.ndarray,
     jump_crit: float,
     min_crease: float,
     z_crease: float,
@@ -268,6 +275,55 @@ def _scan_line_edges(
             st2 += t * t
             ss += S[i] * S[i]
         vd[j] = ss / (B[k, 1] - B[k, 0] + 1) / max(st2, 1e-30)
+    # grooves inside a segment: a short run of samples significantly behind its line, with
+    # the samples around it back on the line (a seam narrower than the split test can see)
+    for j in range(nk):
+        k = keep[j]
+        s0 = B[k, 0]
+        s1 = B[k, 1]
+        n_seg = s1 - s0 + 1
+        if n_seg < 2 * GROOVE_CONTEXT + 2:
+            continue
+        t_run = run_thr[n_seg]
+        z = np.empty(n_seg)
+        for i in range(s0, s1 + 1):
+            u = P[i] / math.sqrt(np.dot(P[i], P[i]))
+            rl = _range_on_line(u, cs[j], ds[j])
+            z[i - s0] = (math.sqrt(np.dot(P[i], P[i])) - rl) / S[i] if np.isfinite(rl) else 0.0
+        i = GROOVE_CONTEXT
+        while i < n_seg - GROOVE_CONTEXT:
+            if z[i] <= t_run:
+                i += 1
+                continue
+            e = i
+            while e + 1 < n_seg and z[e + 1] > t_run:
+                e += 1
+            run = e - i + 1
+            if run >= GROOVE_MIN_RUN and run <= GROOVE_MAX_RUN and e + GROOVE_CONTEXT < n_seg:
+                ctx = 0.0
+                for q in range(1, GROOVE_CONTEXT + 1):
+                    ctx = max(ctx, z[i - q], z[e + q])
+                if ctx < t_run:
+                    kd = i
+                    for q in range(i, e + 1):
+                        if z[q] > z[kd]:
+                            kd = q
+                    ip = s0 + kd
+                    u = P[ip] / math.sqrt(np.dot(P[ip], P[ip]))
+                    rl = _range_on_line(u, cs[j], ds[j])
+                    out_pt[n_out] = rl * u
+                    out_along[n_out] = ds[j]
+                    out_sig[n_out] = run * math.sqrt(np.dot(P[s0 + e] - P[s0 + i],
+                                                            P[s0 + e] - P[s0 + i])) / max(
+                        run - 1, 1) / math.sqrt(12.0)
+                    out_pix[n_out] = pix[ip]
+                    out_kind[n_out] = 4
+                    out_strength[n_out] = z[kd] * S[ip]
+                    out_stat[n_out] = z[kd]
+                    out_crit[n_out] = t_run
+                    out_test[n_out] = 1
+                    n_out += 1
+            i = e + 1
     for j in range(nk - 1):
         ka = keep[j]
         kb = keep[j + 1]
@@ -316,8 +372,11 @@ def _scan_line_edges(
             u2 = P[i_next] / math.sqrt(np.dot(P[i_next], P[i_next]))
             r1 = _range_on_line(u1, c, d)
             r2 = _range_on_line(u2, c, d)
-            if not (np.isfinite(r1) and np.isfinite(r2)):
-                continue
+            m1 = math.sqrt(np.dot(P[i_end], P[i_end]))
+            # a line seen almost along the ray extrapolates wildly: stay with the measurement
+            if not (np.isfinite(r1) and np.isfinite(r2)) or abs(r1 - m1) > 5.0 * S[i_end]:
+                r1 = m1
+                r2 = m1
             q1 = r1 * u1
             q2 = r2 * u2
             step = math.sqrt(np.dot(q2 - q1, q2 - q1))
@@ -367,12 +426,15 @@ def _scan_line_edges(
                 u = P[i] / math.sqrt(np.dot(P[i], P[i]))
                 r = 0.5 * (_range_on_line(u, ca, da) + _range_on_line(u, cb, db))
                 z = (math.sqrt(np.dot(P[i], P[i])) - r) / S[i]
-                if z > best:
+                if np.isfinite(z) and z > best:
                     best = z
                     kbest = i
             if kbest >= 0 and best > thr[ib - ia]:
                 u = P[kbest] / math.sqrt(np.dot(P[kbest], P[kbest]))
                 r = 0.5 * (_range_on_line(u, ca, da) + _range_on_line(u, cb, db))
+                mk = math.sqrt(np.dot(P[kbest], P[kbest]))
+                if not np.isfinite(r) or abs(r - mk) > 0.5 * abs(mk):
+                    continue
                 q = r * u
                 w = P[ib] - P[ia]
                 out_pt[n_out] = q
@@ -394,6 +456,7 @@ def _all_lines(
     P: np.ndarray,
     S: np.ndarray,
     thr: np.ndarray,
+    run_thr: np.ndarray,
     jump_crit: float,
     min_crease: float,
     z_crease: float,
@@ -439,7 +502,8 @@ def _all_lines(
             break
         n0 = n_out
         n_out = _scan_line_edges(
-            buf[:nv], sbuf[:nv], pbuf[:nv], thr, jump_crit, min_crease, z_crease, min_pts,
+            buf[:nv], sbuf[:nv], pbuf[:nv], thr, run_thr, jump_crit, min_crease, z_crease,
+            min_pts,
             out_pix, out_pt, out_along, out_sig, out_kind, out_strength, out_stat,
             out_crit, out_test, n_out,
         )
@@ -463,6 +527,14 @@ def residual_thresholds(n_max: int, alpha: float) -> np.ndarray:
     n = np.arange(n_max + 2, dtype=np.float64)
     n[0] = 1
     return st.norm.isf(alpha / (2.0 * n)).astype(np.float64)
+
+
+def run_thresholds(n_max: int, alpha: float) -> np.ndarray:
+    """Level t that GROOVE_MIN_RUN consecutive samples of an n-sample line all exceed on one
+    side with probability alpha: n * Phi(-t)^k = alpha (Bonferroni over the positions)."""
+    n = np.arange(n_max + 2, dtype=np.float64)
+    n[0] = 1
+    return st.norm.isf((alpha / n) ** (1.0 / GROOVE_MIN_RUN)).astype(np.float64)
 
 
 def point_sigma(scan: Scan, config: Config) -> np.ndarray:
@@ -530,13 +602,14 @@ def detect_edges(scan: Scan, *, config: Config) -> EdgeMap:
     P = scan.points.astype(np.float64)
     S = point_sigma(scan, config)
     thr = residual_thresholds(max(H, W), config.alpha)
+    run_thr = run_thresholds(max(H, W), config.alpha)
     jump_crit = chi2_critical(1.0, config.alpha)
     # a crease is a fold significantly larger than min_crease_angle (one-sided z at alpha)
     z_crease = float(st.norm.isf(config.alpha))
     parts = []
     for axis in (0, 1):
         parts.append(
-            _all_lines(P, S, thr, jump_crit, config.min_crease_angle, z_crease,
+            _all_lines(P, S, thr, run_thr, jump_crit, config.min_crease_angle, z_crease,
                        MIN_SEGMENT_POINTS, axis)
         )
     rows, cols = [], []
@@ -609,8 +682,16 @@ def detect_edges(scan: Scan, *, config: Config) -> EdgeMap:
         out_kind[:] = kd[idx1]
         out_str[:] = stg[idx1]
         out_dir[:] = sd[idx1]
+        chi3 = chi2_critical(3.0, config.alpha)
         for gi in np.flatnonzero(~single):
             g = groups[gi]
+            # fuse only estimates that agree (chi2(3)); else keep the first by kind order
+            d = pt[g] - pt[g[0]]
+            Ssum = cov[g] + cov[g[0]]
+            T = np.array([d[k] @ np.linalg.solve(Ssum[k], d[k]) for k in range(1, len(g))])
+            g = np.concatenate([[g[0]], g[1:][T <= chi3]])
+            if len(g) == 1:
+                continue
             info = np.linalg.inv(cov[g])
             Sinv = info.sum(0)
             Cf = np.linalg.inv(Sinv)

@@ -275,8 +275,9 @@ class GroundTruth:
         ``c - x w/2 - y l/2``, then ``+x``, ``+x+y``, ``+y``: counter-clockwise seen from the
         sensor.
     visible_fraction : (F,) float64
-        Fraction of the face area seen (noise-free, and lit by the emitter when the scene has
-        shadows), from each seeing pixel's footprint on the face plane; 0..1.
+        Fraction of the face area the sensor sees (``face_ids`` of the noise-free render,
+        each pixel weighted by its footprint on the face plane); 0..1. Emitter shadows,
+        dropouts and noise do not lower it: they are the sensor's, not the pile's.
     fully_exposed : (F,) bool
         Nothing rests on the face and ``visible_fraction >= 0.9``: the graspable faces.
     box_index : (F,) int32
@@ -394,7 +395,7 @@ def parse_spec(text: str) -> SceneSpec:
         if "=" not in item:
             raise InputError(f"scene spec item {item!r} must be key=value")
         key, val = (s.strip() for s in item.split("=", 1))
-        if key in kw or key.removeprefix("noise.") in noise_kw and key.startswith("noise."):
+        if key in kw or (key.startswith("noise.") and key.removeprefix("noise.") in noise_kw):
             raise InputError(f"scene spec key {key!r} is given twice")
         if key.startswith("noise."):
             name = key.removeprefix("noise.")
@@ -1309,7 +1310,7 @@ def _render(spec: SceneSpec, boxes: np.ndarray, T: np.ndarray,
     shadow = (_shadowed(world, r0[:, None] * rays, surf, spec.baseline, spec.f, (H, W))
               if spec.shadows else np.zeros(H * W, bool))
     faces = _faces(boxes, T)
-    seen = np.isfinite(r0) & ~shadow
+    seen = np.isfinite(r0)
     vis = _visible_fraction(faces, face_ids, seen, rays, spec.f)
     exposed = ~_rests_on(boxes) & (vis >= _FULLY_SEEN)
     truth = GroundTruth(
