@@ -36,7 +36,7 @@ from boxloc.stats import TestKind, TestTable, chi2_critical
 
 #: A groove is a run of this many to GROOVE_MAX_RUN samples behind the line, with
 #: GROOVE_CONTEXT samples on the line on each side (a seam, not a trend such as bulge).
-GROOVE_MIN_RUN = 3
+GROOVE_MIN_RUN = 2
 GROOVE_MAX_RUN = 8
 GROOVE_CONTEXT = 4
 
