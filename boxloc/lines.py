@@ -63,7 +63,7 @@ def hemisphere_directions(granularity: int) -> np.ndarray:
     for _ in range(granularity):
         cache: dict[tuple[int, int], int] = {}
 
-        def mid(a: int, b: int) -> int:
+        def mid(a: int, b: int, cache: dict[tuple[int, int], int] = cache) -> int:
             key = (min(a, b), max(a, b))
             if key not in cache:
                 m = verts[a] + verts[b]
@@ -186,6 +186,40 @@ def _point_on_line_stat(
     T = (S[:, 1, 1] * r[:, 0] ** 2 - 2 * S[:, 0, 1] * r[:, 0] * r[:, 1]
          + S[:, 0, 0] * r[:, 1] ** 2) / np.maximum(det, 1e-30)
     return T, t
+
+
+def fit_segment(P: np.ndarray, C: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray,
+                                                       np.ndarray]:
+    """Total-least-squares line through points, with the covariance of (centroid, direction).
+
+    Parameters
+    ----------
+    P : (n, 3) float64, metres
+    C : (n, 3, 3) float64
+        Point covariances.
+
+    Returns
+    -------
+    centroid : (3,)
+    direction : (3,) unit
+    covariance : (6, 6)
+        Of (centroid, direction): perpendicular position s2/n, direction s2 / sum t^2 (both
+        in the plane perpendicular to the line), with s2 the larger of the residual variance
+        and the points' predicted variance; along the line, the centroid's spread / n.
+    t : (n,)
+        Each point's position along the line from the centroid, metres.
+    """
+    c, b, w = _tls(P)
+    t = (P - c) @ b
+    n = len(P)
+    res2 = float(w[0] + w[1]) / max(n - 2, 1) / 2.0
+    pred = float(np.median(np.einsum("nii->n", C))) / 3.0
+    s2 = max(res2, pred)
+    cov = np.zeros((6, 6))
+    Pp = np.eye(3) - np.outer(b, b)
+    cov[:3, :3] = s2 / n * Pp + np.outer(b, b) * (t.var() / n)
+    cov[3:, 3:] = s2 / max(float((t**2).sum()), 1e-12) * Pp
+    return c, b, cov, t
 
 
 def _split_at_gaps(t: np.ndarray, gap: float) -> list[np.ndarray]:
@@ -321,7 +355,6 @@ def _trial(
     sig2d = np.sqrt(np.maximum(np.einsum("nii->n", S2) / 2.0, 1e-12))
     cell = float(np.median(sig2d))
     half = int(math.ceil(3 * k2 * sig2d[0] / cell)) + 1
-    n_cells = 2 * half + 1
     g = np.arange(-half, half + 1) * cell
     # gaussian-weighted votes truncated at the chi2(2) region, one vote per point; the
     # separable kernel makes the accumulator a product of (points x cells) matrices
@@ -360,18 +393,10 @@ def _trial(
         extent = float(t[grp].max() - t[grp].min())
         if extent < 0.5 * config.min_edge:
             continue
-        cs, bs, w = _tls(P[idx])
+        cs, bs, cov, ts = fit_segment(P[idx], C[idx])
         if bs @ b < 0:
             bs = -bs
-        ts = (P[idx] - cs) @ bs
-        n = len(idx)
-        res2 = float(w[0] + w[1]) / max(n - 2, 1) / 2.0
-        pred = float(np.median(np.einsum("nii->n", C[idx]))) / 3.0
-        s2 = max(res2, pred)
-        cov = np.zeros((6, 6))
-        Pp = np.eye(3) - np.outer(bs, bs)
-        cov[:3, :3] = s2 / n * Pp + np.outer(bs, bs) * (ts.var() / n)
-        cov[3:, 3:] = s2 / max(float((ts**2).sum()), 1e-12) * Pp
+            ts = -ts
         Tseg, _ = _point_on_line_stat(P[idx], C[idx], cs, bs)
         kinds = np.bincount(edge_kinds[idx], minlength=5)
         lines.append(
@@ -384,7 +409,7 @@ def _trial(
         )
         alive[idx] = False
         line_tests.append(
-            TestTable.chi2(TestKind.POINT_ON_LINE, len(lines) - 1, n, float(Tseg.max()), 2.0,
+            TestTable.chi2(TestKind.POINT_ON_LINE, len(lines) - 1, len(idx), float(Tseg.max()), 2.0,
                            config.alpha)
         )
         found = True

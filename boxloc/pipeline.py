@@ -97,7 +97,8 @@ def find_graspable_surfaces(
     selection = _timed(timing, "select", lambda: select(verification, config=config))
     obs.on_selection(scan, selection)
     surfaces = _timed(
-        timing, "surfaces", lambda: make_surfaces(scan, vertices, hyps, verification, selection, config)
+        timing, "surfaces",
+        lambda: make_surfaces(scan, vertices, hyps, verification, selection, config),
     )
     obs.on_surfaces(scan, surfaces)
     timing["total"] = float(sum(timing.values()))
