@@ -20,6 +20,10 @@ from boxloc.errors import InputError
 from boxloc.scan import NoiseModel
 
 
+#: Config fields that change how a result is computed, never what it is.
+EXECUTION_FIELDS = frozenset({"workers"})
+
+
 @dataclass(frozen=True)
 class Config:
     """Parameters of :func:`boxloc.pipeline.find_graspable_surfaces`.
@@ -34,7 +38,8 @@ class Config:
         Range-noise model of the sensor; every test's covariance comes from it.
     min_edge, max_edge : float
         Prior: shortest and longest box edge, metres. The shortest edge sets the smallest
-        line worth finding (and so the number of Hough trials); the longest bounds searches.
+        line worth finding (and so the number of Hough trials); the longest bounds the
+        dimension searches, and keeps a bare pallet (1.2 m) from passing for a box.
     max_tilt : float
         Prior: largest angle between a graspable surface's normal and "up", radians.
     min_crease_angle : float
@@ -69,7 +74,7 @@ class Config:
     p_success: float = 0.9
     noise: NoiseModel = field(default_factory=NoiseModel)
     min_edge: float = 0.10
-    max_edge: float = 1.20
+    max_edge: float = 1.00
     max_tilt: float = math.radians(45.0)
     min_crease_angle: float = math.radians(20.0)
     support_fraction: float = 0.3
@@ -151,8 +156,12 @@ class Config:
 
     @property
     def hash(self) -> str:
-        """SHA-256 (first 16 hex digits) of the canonical JSON form."""
-        return hashlib.sha256(self.canonical_json().encode()).hexdigest()[:16]
+        """SHA-256 (first 16 hex digits) of the canonical JSON of the fields that can change
+        a result; execution settings (``workers``) are left out, as results never depend on
+        them."""
+        d = {k: v for k, v in self.to_dict().items() if k not in EXECUTION_FIELDS}
+        text = json.dumps(d, sort_keys=True, separators=(",", ":"))
+        return hashlib.sha256(text.encode()).hexdigest()[:16]
 
     def to_toml(self) -> str:
         return tomli_w.dumps(self.to_dict())

@@ -36,8 +36,11 @@ from boxloc.products import EdgeKind, EdgeMap, VerifyReason
 from boxloc.scan import Scan
 from boxloc.stats import TestKind, TestTable, chi2_critical
 
-#: Edges within this fraction of the shortest box edge from a side belong to that side.
-BOUNDARY_BAND = 0.1
+#: Edges within this fraction of the shortest box edge from a side belong to that side: a
+#: seam that splits a rectangle into two boxes lies at least min_edge from a side, while
+#: the side's own second edges (bevel, rounded cardboard) and the error of the estimated
+#: dimensions put boundary edges up to a centimetre or two inside.
+BOUNDARY_BAND = 0.5
 
 
 @dataclass
