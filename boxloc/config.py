@@ -79,7 +79,7 @@ class Config:
     min_crease_angle: float = math.radians(20.0)
     support_fraction: float = 0.3
     min_inlier_fraction: float = 0.8
-    flatness: float = 0.002
+    flatness: float = 0.005
     angle_tolerance: float = math.radians(1.0)
     mdl_k1: float = 1.0
     mdl_k2: float = 0.5

@@ -286,7 +286,9 @@ def verify(
         wi = w0[inl]
         mean = float(wi.mean())
         dc = P[inl].mean(0) - origin
-        s2_mean = float(var_pt[inl].mean() / n_in + normal @ So @ normal + dc @ Sn @ dc)
+        # the face may depart from R's plane by the flatness prior as a whole (bulge)
+        s2_mean = float(var_pt[inl].mean() / n_in + normal @ So @ normal + dc @ Sn @ dc
+                        + config.flatness**2)
         T_mean = mean**2 / s2_mean
     else:
         mean, s2_mean, T_mean = np.nan, np.nan, np.inf
