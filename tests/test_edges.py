@@ -1,0 +1,76 @@
+"""Stage 2: edges by scan-line approximation."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from boxloc.config import Config
+from boxloc.edges import detect_edges, residual_thresholds, run_thresholds
+from boxloc.metrics import edge_scores
+from boxloc.products import EdgeKind
+from boxloc.scan import NoiseModel, PinholeModel, Scan
+from boxloc.stats import TestKind
+from tests.scenes import box, scene
+
+
+@pytest.fixture(scope="module")
+def one_box():
+    sim = scene([box(0.0, 0.0, 0.40, 0.30, 0.25)], seed=5)
+    return sim, detect_edges(sim.scan, config=Config())
+
+
+def test_box_outline_is_found(one_box):
+    sim, e = one_box
+    p, r = edge_scores(e.labels, sim.truth.edge_labels)
+    assert p > 0.75 and r > 0.8
+
+
+def test_jump_points_lie_on_the_top_face(one_box):
+    sim, e = one_box
+    gt = sim.truth
+    face = gt.face_ids[e.pixels[:, 0], e.pixels[:, 1]] == 0
+    jumps = (e.kinds == EdgeKind.JUMP) & face
+    d = (e.points[jumps] - gt.centers[0]) @ gt.normals[0]
+    sig = Config().noise.sigma_range(np.linalg.norm(gt.centers[0]))
+    assert jumps.sum() > 100
+    assert np.median(np.abs(d)) < 2 * sig
+
+
+def test_covariances_are_symmetric_positive(one_box):
+    _, e = one_box
+    C = e.covariances
+    assert np.allclose(C, np.swapaxes(C, 1, 2))
+    assert (np.linalg.eigvalsh(C) > 0).all()
+    assert e.labels[e.pixels[:, 0], e.pixels[:, 1]].tolist() == e.kinds.tolist()
+
+
+def test_every_edge_carries_its_test(one_box):
+    _, e = one_box
+    kinds = set(np.unique(e.tests.kind).tolist())
+    assert kinds <= {TestKind.JUMP, TestKind.CREASE}
+    assert len(e.tests) >= len(e)
+
+
+def _plane_scan(noise: NoiseModel, seed: int) -> Scan:
+    pin = PinholeModel(262.5, 262.5, 159.5, 119.5, 320, 240)
+    rays = pin.rays()
+    n = np.array([0.0, -0.2, -1.0]) / np.linalg.norm([0.0, -0.2, -1.0])
+    r = 1.5 / -(rays @ n)  # plane n.x = 1.5
+    rng = np.random.default_rng(seed)
+    r = r + rng.normal(size=r.shape) * noise.sigma_range(r)
+    return Scan(range=r.astype(np.float32), sensor=pin)
+
+
+def test_a_noisy_plane_has_almost_no_edges():
+    cfg = Config()
+    e = detect_edges(_plane_scan(cfg.noise, 3), config=cfg)
+    # 560 scan lines each tested at alpha: false edges are a small multiple of alpha per line
+    assert len(e) < 0.05 * 560
+
+
+def test_thresholds_grow_with_line_length():
+    t = residual_thresholds(640, 0.01)
+    assert t[10] < t[100] < t[640]
+    assert t[1] == pytest.approx(2.576, abs=1e-3)
+    assert run_thresholds(640, 0.01)[640] < t[640]

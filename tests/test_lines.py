@@ -1,0 +1,84 @@
+"""Stage 3: lines by constrained Hough transforms."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from boxloc.config import Config
+from boxloc.lines import find_lines, fit_segment, hemisphere_directions
+from boxloc.products import EdgeMap, products_equal
+from boxloc.scan import PinholeModel, Scan
+from boxloc.stats import TestTable
+
+
+@pytest.mark.parametrize("g,n", [(0, 6), (1, 21), (2, 81), (3, 321), (4, 1281)])
+def test_hemisphere_tessellation_counts(g, n):
+    D = hemisphere_directions(g)
+    assert D.shape == (n, 3)
+    assert np.allclose(np.linalg.norm(D, axis=1), 1)
+    assert (D[:, 2] >= -1e-9).all()
+
+
+def _edge_map(P: np.ndarray, sigma: float) -> EdgeMap:
+    n = len(P)
+    return EdgeMap(
+        labels=np.zeros((4, 4), np.uint8), pixels=np.zeros((n, 2), np.int32), points=P,
+        covariances=np.broadcast_to(sigma**2 * np.eye(3), (n, 3, 3)).copy(),
+        kinds=np.ones(n, np.uint8), strength=np.zeros(n), scan_dir=np.ones(n, np.uint8),
+        tests=TestTable.empty(0.01),
+    )
+
+
+def _scan() -> Scan:
+    return Scan(range=np.full((480, 640), 1.5, np.float32),
+                sensor=PinholeModel(525, 525, 319.5, 239.5, 640, 480))
+
+
+def _two_lines_and_clutter(seed: int):
+    rng = np.random.default_rng(seed)
+    s = 0.0015
+    t = np.arange(0, 0.4, 0.003)
+    a = np.array([0.0, 0.0, 1.5]) + t[:, None] * np.array([1.0, 0, 0])
+    b = np.array([0.0, 0.0, 1.5]) + t[:, None] * np.array([0, 0.6, 0.8])
+    clutter = rng.uniform([-0.2, -0.2, 1.3], [0.6, 0.4, 1.9], (150, 3))
+    P = np.concatenate([a, b, clutter]) + rng.normal(0, s, (len(a) + len(b) + 150, 3))
+    return P, s, len(a), len(b)
+
+
+def test_two_lines_are_found_among_clutter():
+    P, s, na, nb = _two_lines_and_clutter(1)
+    L = find_lines(_scan(), _edge_map(P, s), config=Config(), rng=np.random.default_rng(0))
+    assert len(L) == 2
+    dirs = np.abs(L.directions)
+    want = np.array([[1.0, 0, 0], [0, 0.6, 0.8]])
+    for w in want:
+        assert np.max(dirs @ w) > np.cos(np.radians(1.0))
+    # most of each line's points are its support; the clutter mostly is not
+    assert L.n_support.sum() > 0.85 * (na + nb)
+    assert L.n_trials >= 2 and 0 < L.epsilon < 1
+    assert len(L.tests) == 2
+
+
+def test_same_seed_same_lines():
+    P, s, *_ = _two_lines_and_clutter(2)
+    a = find_lines(_scan(), _edge_map(P, s), config=Config(), rng=np.random.default_rng(5))
+    b = find_lines(_scan(), _edge_map(P, s), config=Config(), rng=np.random.default_rng(5))
+    assert products_equal(a, b) == []
+
+
+def test_no_edges_no_lines():
+    L = find_lines(_scan(), _edge_map(np.zeros((0, 3)), 0.001), config=Config(),
+                   rng=np.random.default_rng(0))
+    assert len(L) == 0 and L.support_offsets.tolist() == [0]
+
+
+def test_fit_segment_covariance_scales_as_expected():
+    rng = np.random.default_rng(3)
+    t = np.linspace(-0.2, 0.2, 100)
+    P = np.c_[t, np.zeros_like(t), np.full_like(t, 1.5)] + rng.normal(0, 0.002, (100, 3))
+    c, b, cov, tt = fit_segment(P, np.broadcast_to(4e-6 * np.eye(3), (100, 3, 3)))
+    assert abs(b[0]) > 0.999
+    # direction variance ~ sigma^2 / sum t^2 in each perpendicular axis
+    assert cov[4, 4] == pytest.approx(4e-6 / (tt**2).sum(), rel=0.5)
+    assert cov[1, 1] == pytest.approx(4e-6 / 100, rel=0.5)

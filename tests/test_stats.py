@@ -1,0 +1,76 @@
+"""The statistical tests: records, and false-alarm rates close to alpha on simulated noise."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy import stats as st
+
+from boxloc.config import Config
+from boxloc.lines import fit_segment
+from boxloc.products import LineSet
+from boxloc.stats import TestKind, TestTable, chi2_critical, chi2_test
+from boxloc.vertices import find_vertices
+
+
+def test_chi2_test_matches_scipy():
+    t, crit, p, acc = chi2_test([0.5, 3.0, 10.0], 2.0, 0.05)
+    assert crit == pytest.approx(st.chi2.ppf(0.95, 2))
+    assert np.allclose(p, st.chi2.sf([0.5, 3.0, 10.0], 2))
+    assert acc.tolist() == [True, True, False]
+    assert chi2_critical(1.0, 0.01) == pytest.approx(6.6349, abs=1e-4)
+
+
+def test_table_concat_select_rows():
+    a = TestTable.chi2(TestKind.LINES_MEET, [0, 1], [2, 3], [1.0, 9.0], 1.0, 0.01)
+    b = TestTable.decision(TestKind.EDGE_SUPPORT, 4, -1, 12.0, 10.0, True, 0.01)
+    t = TestTable.concat([a, b], 0.01)
+    assert len(t) == 3
+    assert t.of_kind(TestKind.LINES_MEET).accepted.tolist() == [True, False]
+    rows = t.rows()
+    assert rows[2]["kind"] == "EDGE_SUPPORT" and np.isnan(rows[2]["p_value"])
+    assert {"statistic", "dof", "critical", "p_value", "alpha", "accepted"} <= set(rows[0])
+    assert len(TestTable.concat([], 0.05)) == 0
+
+
+def _line(c, d, n, length, sigma, rng):
+    t = np.linspace(-length / 2, length / 2, n)
+    P = c + t[:, None] * d + rng.normal(0, sigma, (n, 3))
+    C = np.broadcast_to(sigma**2 * np.eye(3), (n, 3, 3)).copy()
+    return fit_segment(P, C)
+
+
+def _lineset(fits):
+    L = len(fits)
+    return LineSet(
+        points=np.array([f[0] for f in fits]), directions=np.array([f[1] for f in fits]),
+        covariances=np.array([f[2] for f in fits]),
+        starts=np.array([f[0] + f[3].min() * f[1] for f in fits]),
+        ends=np.array([f[0] + f[3].max() * f[1] for f in fits]),
+        n_support=np.full(L, 40, np.int32), support_offsets=np.zeros(L + 1, np.int64),
+        support=np.zeros(0, np.int32), support_statistic=np.zeros(0, np.float32),
+        kinds=np.ones(L, np.uint8), trial=np.zeros(L, np.int32),
+        direction_votes=np.zeros(L), position_votes=np.zeros(L), n_trials=0, epsilon=0.0,
+        p_success=0.9, seed=0, tests=TestTable.empty(0.05),
+    )
+
+
+@pytest.mark.parametrize("kind", [TestKind.LINES_MEET, TestKind.LINES_ORTHOGONAL])
+def test_vertex_tests_false_alarm_rate_is_alpha(kind):
+    # two lines that truly meet at right angles: each test rejects with probability alpha
+    alpha = 0.05
+    cfg = Config(alpha=alpha, angle_tolerance=0.0, flatness=0.0)
+    rng = np.random.default_rng(7)
+    rejected = 0
+    trials = 600
+    for _ in range(trials):
+        corner = np.array([0.1, -0.05, 1.5])
+        a = _line(corner + 0.15 * np.array([1.0, 0, 0]), np.array([1.0, 0, 0]), 40, 0.3,
+                  0.002, rng)
+        b = _line(corner + 0.15 * np.array([0, 1.0, 0]), np.array([0, 1.0, 0]), 40, 0.3,
+                  0.002, rng)
+        t = find_vertices(_lineset([a, b]), config=cfg).tests.of_kind(kind)
+        rejected += int(not t.accepted[0])
+    rate = rejected / trials
+    lo, hi = st.binom.interval(0.999, trials, alpha)
+    assert lo / trials <= rate <= hi / trials, rate
