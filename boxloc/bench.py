@@ -722,3 +722,71 @@ def _flatten(d: dict[str, Any], prefix: str = "") -> list[tuple[str, Any]]:
         else:
             out.append((f"{prefix}{k}", v))
     return out
+
+
+def run_sections(
+    names: Sequence[str],
+    n: int = 100,
+    seed: int = 0,
+    *,
+    config: Config | None = None,
+    out: Path | str | None = None,
+    progress: bool = True,
+    console: Any = None,
+) -> dict[str, Any]:
+    """Run only the named extra sections, without scoring the scenes (``bench --replay``).
+
+    The sections get a :class:`BenchContext` whose ``report`` has no scene figures. The
+    report (``version``, ``n``, ``seed``, ``config``, ``sections``, ``errors``) is printed and,
+    with ``out``, written to ``out/bench.json``.
+
+    Raises
+    ------
+    InputError
+        If a named section is not registered (its package is not installed).
+    """
+    found = dict(discover_sections())
+    for name in names:
+        if name not in found:
+            raise InputError(f"no bench section {name!r} (the package that provides it is not "
+                             "installed)")
+    cfg = config or Config()
+    from boxloc.simulate import scene_suite
+
+    report: dict[str, Any] = {"version": __version__, "n": n, "seed": seed,
+                              "config": cfg.to_dict(), "config_hash": cfg.hash,
+                              "threads": _limit_threads()}
+    ctx = BenchContext(n=n, seed=seed, config=cfg, specs=scene_suite(n, seed),
+                       out=Path(out) if out is not None else None, report=dict(report))
+    sections: dict[str, Any] = {}
+    errors: list[dict[str, Any]] = []
+    for name in names:
+        try:
+            sections[name] = found[name](ctx)
+        except Exception as e:  # noqa: BLE001 - reported, like in run_bench
+            errors.append({"scene": None, "kind": None, "method": f"section:{name}",
+                           "error": _err(e)})
+    report["sections"] = sections
+    report["errors"] = {"total": len(errors), "list": errors}
+    report = _jsonable(report)
+    if out is not None:
+        d = Path(out)
+        d.mkdir(parents=True, exist_ok=True)
+        (d / "bench.json").write_text(json.dumps(report, indent=1) + "\n")
+    if progress:
+        from rich.console import Console
+        from rich.markup import escape
+        from rich.table import Table
+
+        con = console or Console(stderr=True)
+        for name, sec in report["sections"].items():
+            st = Table(title=escape(f"section: {name}"))
+            st.add_column("key")
+            st.add_column("value", justify="right")
+            for k, v in _flatten(sec):
+                st.add_row(escape(k), escape(_fmt(v) if not isinstance(v, list | dict)
+                                             else json.dumps(v)[:80]))
+            con.print(st)
+        for e in errors:
+            con.print(escape(f"[error] {e['method']}: {e['error']}"))
+    return report

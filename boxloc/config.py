@@ -19,7 +19,6 @@ import tomli_w
 from boxloc.errors import InputError
 from boxloc.scan import NoiseModel
 
-
 #: Config fields that change how a result is computed, never what it is.
 EXECUTION_FIELDS = frozenset({"workers"})
 

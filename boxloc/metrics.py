@@ -333,6 +333,7 @@ def match_surfaces(
     iou_min: float = 0.5,
     max_normal_deg: float = 15.0,
     max_plane_offset: float | None = 0.03,
+    iou: npt.ArrayLike | None = None,
 ) -> Match:
     """Match predicted surfaces one-to-one to ground-truth faces and score them.
 
@@ -351,6 +352,9 @@ def match_surfaces(
         A prediction whose centre lies farther than this from a face's plane (metres) cannot
         be paired with that face; None disables the gate. 3 cm is ~5 sigma of range noise at
         3 m and far below any box height, so it only removes phantom planes.
+    iou : array_like, shape (n_pred, n_faces), optional
+        A precomputed IoU matrix to use instead of :func:`iou_matrix` (e.g. the image IoU
+        of :func:`boxloc.real.real_iou_matrix`); ``max_plane_offset`` is then not applied.
 
     Returns
     -------
@@ -367,7 +371,12 @@ def match_surfaces(
     F = int(np.asarray(truth.centers).shape[0])
     exposed = np.asarray(truth.fully_exposed, dtype=bool).reshape(F)
     n_exposed = int(exposed.sum())
-    M = iou_matrix(pred, truth, max_plane_offset=max_plane_offset)
+    if iou is None:
+        M = iou_matrix(pred, truth, max_plane_offset=max_plane_offset)
+    else:
+        M = np.asarray(iou, dtype=np.float64)
+        if M.shape != (P, F):
+            raise ValueError(f"iou must have shape ({P}, {F}), got {M.shape}")
     pred_face = np.full(P, -1, dtype=np.int64)
     status = np.full(P, PredStatus.UNMATCHED, dtype=np.uint8)
     pairs = np.zeros((0, 2), dtype=np.int64)

@@ -1,1 +1,43 @@
-"""Recording: MCAP logs (the record of truth) and Rerun views of every scan and product."""
+"""Recording: MCAP logs (the record of truth) and Rerun views of every scan and product.
+
+``recorder`` imports ``boxloc``; ``boxloc`` never imports ``recorder``.
+
+MCAP (the record of truth)
+--------------------------
+- :mod:`recorder.channels`: the log layout, one table of topic -> schema -> encoder/decoder.
+- :mod:`recorder.encode`: products and scans to messages and back, bit for bit.
+- :mod:`recorder.mcap_sink`: :class:`McapRecorder`, the observer that writes logs.
+- :mod:`recorder.log`: :func:`open_log`, reading logs back.
+- :mod:`recorder.recover`: :func:`recover_log`, a complete log from a truncated one.
+- :mod:`recorder.annotate`: pick outcomes in a sidecar next to a log.
+- :mod:`recorder.overhead`: :func:`measure_overhead`, what recording costs.
+- :mod:`recorder.cli`: ``boxloc run``, ``info``, ``annotate``, ``recover``.
+
+The names below are imported lazily, so ``import recorder`` stays cheap.
+"""
+
+from __future__ import annotations
+
+from importlib import import_module
+from typing import Any
+
+_LAZY = {
+    "McapRecorder": "recorder.mcap_sink",
+    "RecordingError": "recorder.mcap_sink",
+    "open_log": "recorder.log",
+    "Log": "recorder.log",
+    "ScanRecord": "recorder.log",
+    "recover_log": "recorder.recover",
+    "append_outcome": "recorder.annotate",
+    "read_sidecar": "recorder.annotate",
+    "PickOutcome": "recorder.encode",
+    "measure_overhead": "recorder.overhead",
+}
+
+__all__ = sorted(_LAZY)
+
+
+def __getattr__(name: str) -> Any:
+    if name in _LAZY:
+        return getattr(import_module(_LAZY[name]), name)
+    raise AttributeError(f"module 'recorder' has no attribute {name!r}")

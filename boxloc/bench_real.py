@@ -1,0 +1,523 @@
+"""The benchmark on real labelled scans (mOSD): the localizer and the open3d peer, same frames.
+
+``boxloc bench --real DIR`` runs :func:`run_real_bench`: every organized PCD/PLY in DIR that
+has a ``label`` field is read, its top faces are derived from the labels
+(:func:`boxloc.real.top_faces`), both methods run on it and are scored with
+:func:`boxloc.real.score_real` (image IoU >= 0.5 with an exposed face's region, normal within
+15 degrees). The synthetic benchmark (:mod:`boxloc.bench`) is separate; this module borrows
+its timing, memory and report helpers.
+
+Inputs both methods get, and the report says which:
+
+* **noise** -- ``"estimate"`` (default): the range-noise model fitted to the frames
+  themselves with :func:`boxloc.noise.estimate_noise` (flat tiles, kept inside one label
+  segment); ``"config"``: the config's ``noise`` as given (e.g. from a calibrated TOML).
+* **pose** -- ``"plane"`` (default): ``sensor_to_base`` from each frame's dominant plane
+  (:func:`boxloc.real.support_plane_pose`, no labels), the stand-in for a robot cell's
+  camera calibration. mOSD's Kinect looks down at ~50 degrees, so without it "up" is the
+  sensor's -z and every top is tilted past the default ``max_tilt``. ``"none"``: scans as read.
+
+Layout of ``bench_real.json`` (lengths in mm, angles in degrees, times in ms):
+
+- ``version``, ``data_dir``, ``n_frames``, ``config`` (as run, noise included),
+  ``config_hash``, ``noise`` (source, model, fit summary), ``pose``, ``threads``,
+  ``warmup``, ``crash_policy``, ``truth_rule``
+- ``summary``: pooled figures per method (:func:`boxloc.metrics.aggregate_matches`)
+- ``groups``: the same per frame group (``boxes`` = learn0-16, ``stacked`` = learn17-24,
+  ``other``), each with ``n_frames`` and per-method ``errors``
+- ``targets``: recall >= 0.9 and precision >= 0.95 on the box frames, no crash on any
+  frame: name, target, value, baseline value, pass
+- ``timing``: per method, median/p95 per stage and of the wall time, per-frame wall times
+- ``memory``: per-method peak RSS and the process's ``ru_maxrss``
+- ``errors``: counts per method and the list (frame, method, message)
+- ``skipped``: files not benchmarked and why (no labels, unreadable)
+- ``frames``: one deterministic row per frame (truth summary, per-method counts, status
+  of every prediction, per-TP errors; no durations)
+"""
+
+from __future__ import annotations
+
+import contextlib
+import dataclasses
+import json
+import re
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from boxloc import __version__
+from boxloc.bench import (
+    LABELS,
+    METHODS,
+    PeakRSS,
+    Target,
+    _err,
+    _fmt,
+    _jsonable,
+    _limit_threads,
+    process_max_rss_mb,
+)
+from boxloc.config import Config
+from boxloc.errors import InputError
+from boxloc.metrics import Match, aggregate_matches, percentiles_ms
+from boxloc.scan import Scan
+
+__all__ = ["REAL_TARGETS", "GROUPS", "list_frames", "run_real_bench", "print_real_report"]
+
+#: Frame groups, in report order (see :func:`boxloc.real.frame_group`).
+GROUPS: tuple[str, ...] = ("boxes", "stacked", "other")
+#: The issue's targets: on the box frames, and no crash anywhere.
+REAL_TARGETS: tuple[Target, ...] = (
+    Target("recall (box frames)", "boxes.recall", ">=", 0.9),
+    Target("precision (box frames)", "boxes.precision", ">=", 0.95),
+    Target("crashes (all frames)", "crashes", "<=", 0.0),
+)
+#: Files that can carry a per-point label field.
+LABELLED_SUFFIXES: tuple[str, ...] = (".pcd", ".ply")
+
+TRUTH_RULE = (
+    "top face = the object's plane (sequential RANSAC in its label mask) whose normal is "
+    "closest to the table's, within 20 deg; region = that plane's pixels; exposed unless "
+    "another object rests on it (above it, reaching no lower than 2 cm below it, and over "
+    "its footprint). TP: image IoU >= 0.5 between the rectangle's seen pixels and the "
+    "region of an exposed face, and normal within 15 deg; centre error vs the region's "
+    "centroid."
+)
+
+
+def _natural_key(p: Path) -> tuple[Any, ...]:
+    """learn2 before learn10."""
+    return tuple(int(t) if t.isdigit() else t for t in re.split(r"(\d+)", p.name))
+
+
+def list_frames(data_dir: str | Path, frames: Sequence[str] | None = None) -> list[Path]:
+    """The labelled-format files of ``data_dir`` in natural order, optionally only ``frames``
+    (file stems or names).
+
+    Raises
+    ------
+    InputError
+        If the directory does not exist, holds no PCD/PLY, or a requested frame is missing.
+    """
+    d = Path(data_dir)
+    if not d.is_dir():
+        raise InputError(f"--real {d}: not a directory")
+    files = sorted((f for f in d.iterdir()
+                    if f.is_file() and f.suffix.lower() in LABELLED_SUFFIXES), key=_natural_key)
+    if not files:
+        raise InputError(f"no labelled scans ({', '.join(LABELLED_SUFFIXES)}) in {d}")
+    if frames is None:
+        return files
+    by_name = {f.stem: f for f in files} | {f.name: f for f in files}
+    missing = [n for n in frames if n not in by_name]
+    if missing:
+        raise InputError(f"frame(s) not in {d}: {', '.join(missing)}")
+    return [by_name[n] for n in frames]
+
+
+@dataclass
+class _Frame:
+    name: str
+    group: str
+    scan: Scan
+    labels: np.ndarray
+    truth: Any = None
+
+
+@dataclass
+class _Run:
+    """One method on one frame."""
+
+    match: Match | None = None
+    stage_ms: dict[str, float] = field(default_factory=dict)
+    wall_ms: float | None = None
+    peak_mb: float | None = None
+    error: str | None = None
+    group: str = ""
+
+
+def _default_localizer(scan: Scan, config: Config) -> Any:
+    from boxloc.pipeline import find_graspable_surfaces
+
+    return find_graspable_surfaces(scan, config)
+
+
+def _run(call: Callable[[], tuple[Any, dict[str, float]]], frame: _Frame) -> _Run:
+    from boxloc.real import score_real
+
+    run = _Run(group=frame.group)
+    try:
+        with PeakRSS() as pk:
+            t0 = time.perf_counter()
+            surfaces, stages = call()
+            run.wall_ms = (time.perf_counter() - t0) * 1e3
+        run.peak_mb = pk.peak_mb
+        run.stage_ms = {k: float(v) for k, v in stages.items()}
+        run.match = score_real(surfaces, frame.truth, frame.scan)
+    except Exception as e:  # noqa: BLE001 - a crash on one frame is a result, not the end
+        run.error = _err(e)
+    return run
+
+
+def _calls(method: str, frame: _Frame, config: Config,
+           localizer: Callable[[Scan, Config], Any]) -> Callable[[], tuple[Any, dict[str, float]]]:
+    if method == "boxloc":
+        def call() -> tuple[Any, dict[str, float]]:
+            result = localizer(frame.scan, config)
+            return result.surfaces, dict(getattr(result, "timing_ms", {}))
+    else:
+        def call() -> tuple[Any, dict[str, float]]:
+            from boxloc.baseline import baseline_surfaces
+
+            timing: dict[str, float] = {}
+            return baseline_surfaces(frame.scan, config=config, timing=timing), timing
+    return call
+
+
+def _empty_match(frame: _Frame) -> Match:
+    from boxloc.baseline import empty_surface_set
+    from boxloc.real import score_real
+
+    return score_real(empty_surface_set(), frame.truth, frame.scan)
+
+
+def _load(paths: Sequence[Path], config: Config,
+          skipped: list[dict[str, Any]]) -> list[_Frame]:
+    from boxloc.io import read_labels, read_scan
+    from boxloc.real import frame_group
+
+    frames: list[_Frame] = []
+    for p in paths:
+        try:
+            scan = read_scan(p, index=len(frames), max_pixels=config.max_pixels)
+            labels = read_labels(p, max_pixels=config.max_pixels)
+        except InputError as e:
+            skipped.append({"file": p.name, "reason": str(e).splitlines()[0]})
+            continue
+        frames.append(_Frame(p.stem, frame_group(p.stem), scan, labels))
+    if not frames:
+        raise InputError("no labelled scan could be read: "
+                         + "; ".join(f"{s['file']}: {s['reason']}" for s in skipped[:3]))
+    return frames
+
+
+def _noise(frames: list[_Frame], config: Config, source: str) -> tuple[Config, dict[str, Any]]:
+    if source == "config":
+        return config, {"source": "config", "model": config.noise.to_dict()}
+    if source != "estimate":
+        raise InputError(f"noise must be 'estimate' or 'config', got {source!r}")
+    from boxloc.noise import estimate_noise
+
+    model, rep = estimate_noise([f.scan for f in frames], labels=[f.labels for f in frames])
+    info = {
+        "source": "estimate_noise on the benchmarked frames (tiles within one label segment)",
+        "model": model.to_dict(),
+        "fit_rel_rms": rep.get("fit_rel_rms"),
+        "n_points": rep.get("n_points"), "n_tiles_used": rep.get("n_tiles_used"),
+        "bins": [{"range_m": r["range"], "std_mm": r["std"] * 1e3,
+                  "model_mm": r["model_std"] * 1e3, "used": r["used"]}
+                 for r in rep.get("rows", [])],
+    }
+    return dataclasses.replace(config, noise=model), info
+
+
+def _pose(frames: list[_Frame], config: Config, pose: str) -> str:
+    if pose == "none":
+        return "none: scans as read (up = sensor -z unless the file has a pose)"
+    if pose != "plane":
+        raise InputError(f"pose must be 'plane' or 'none', got {pose!r}")
+    from boxloc.real import support_plane_pose
+
+    for f in frames:
+        T = support_plane_pose(f.scan, noise=config.noise)
+        f.scan = dataclasses.replace(f.scan, sensor_to_base=T)
+    return "plane: sensor_to_base from each frame's dominant plane (no labels)"
+
+
+def run_real_bench(
+    data_dir: str | Path,
+    *,
+    config: Config | None = None,
+    out: Path | str | None = None,
+    baseline: bool = True,
+    progress: bool = True,
+    noise: str = "estimate",
+    pose: str = "plane",
+    frames: Sequence[str] | None = None,
+    localizer: Callable[[Scan, Config], Any] | None = None,
+    console: Any = None,
+    warmup: bool = True,
+) -> dict[str, Any]:
+    """Benchmark the localizer (and the open3d baseline) on real labelled scans.
+
+    Parameters
+    ----------
+    data_dir : path
+        A directory of organized PCD/PLY files with a ``label`` field (mOSD).
+    config : Config, optional
+        The localizer's configuration (its noise is replaced when ``noise="estimate"``).
+    out : path, optional
+        Directory for ``bench_real.json`` (created); nothing is written without it.
+    baseline : bool
+        Also run the open3d baseline on the same frames.
+    progress : bool
+        Show a progress bar and print the report (rich, on stderr).
+    noise : {"estimate", "config"}
+        Where the noise model comes from (module docstring).
+    pose : {"plane", "none"}
+        Whether to give each scan a ``sensor_to_base`` from its dominant plane.
+    frames : sequence of str, optional
+        Only these frames (file stems), in this order.
+    localizer : callable, optional
+        ``(scan, config) -> Result``-like; default the pipeline.
+    console : rich.console.Console, optional
+    warmup : bool
+        Run both methods once on the first frame, untimed (JIT compilation, lazy imports).
+
+    Returns
+    -------
+    dict
+        The report (module docstring), as written to ``bench_real.json``.
+
+    Raises
+    ------
+    InputError
+        Bad directory, no readable labelled scan, a missing frame, a bad option.
+    """
+    from boxloc.real import top_faces
+
+    cfg = config or Config()
+    paths = list_frames(data_dir, frames)
+    skipped: list[dict[str, Any]] = []
+    errors: list[dict[str, Any]] = []
+    threads = _limit_threads()
+    con = console
+    if con is None and progress:
+        from rich.console import Console
+
+        con = Console(stderr=True)
+    if con is not None and progress:
+        con.print(f"reading {len(paths)} frame(s) from {data_dir}")
+    loaded = _load(paths, cfg, skipped)
+    cfg_run, noise_info = _noise(loaded, cfg, noise)
+    pose_info = _pose(loaded, cfg_run, pose)
+    scored: list[_Frame] = []
+    for f in loaded:
+        try:
+            f.truth = top_faces(f.scan, f.labels, noise=cfg_run.noise)
+        except Exception as e:  # noqa: BLE001 - a frame without truth is reported, not fatal
+            errors.append({"frame": f.name, "group": f.group, "method": "truth",
+                           "error": _err(e)})
+            continue
+        scored.append(f)
+
+    loc = localizer or _default_localizer
+    methods = METHODS if baseline else METHODS[:1]
+    runs: dict[str, list[_Run]] = {m: [] for m in methods}
+    rows: list[dict[str, Any]] = []
+    bar = None
+    if progress:
+        from rich.progress import BarColumn, MofNCompleteColumn, Progress, TimeElapsedColumn
+
+        bar = Progress("[progress.description]{task.description}", BarColumn(),
+                       MofNCompleteColumn(), TimeElapsedColumn(), console=con, transient=True)
+        bar.start()
+        task = bar.add_task("bench --real", total=len(scored))
+    try:
+        if warmup and scored:
+            for m in methods:
+                with contextlib.suppress(Exception):
+                    _calls(m, scored[0], cfg_run, loc)()
+        for f in scored:
+            row: dict[str, Any] = {"frame": f.name, "group": f.group, "index": f.scan.index,
+                                   "truth": f.truth.to_dict()}
+            for m in methods:
+                if bar is not None:
+                    bar.update(task, description=f"{f.name}: {m}")
+                r = _run(_calls(m, f, cfg_run, loc), f)
+                if r.error is not None:
+                    errors.append({"frame": f.name, "group": f.group, "method": m,
+                                   "error": r.error})
+                    r.match = _empty_match(f)
+                runs[m].append(r)
+                mrow: dict[str, Any] = {"error": r.error}
+                mrow.update(r.match.to_dict() if r.match is not None else {})
+                row[m] = mrow
+            rows.append(row)
+            if bar is not None:
+                bar.advance(task)
+    finally:
+        if bar is not None:
+            bar.stop()
+
+    counts = {k: 0 for k in ("truth", *methods)}
+    for e in errors:
+        counts[e["method"]] = counts.get(e["method"], 0) + 1
+    report: dict[str, Any] = {
+        "version": __version__,
+        "data_dir": str(data_dir),
+        "n_frames": len(scored),
+        "config": cfg_run.to_dict(),
+        "config_hash": cfg_run.hash,
+        "noise": noise_info,
+        "pose": pose_info,
+        "threads": threads,
+        "warmup": warmup,
+        "crash_policy": "a method that crashes on a frame scores as predicting nothing there",
+        "truth_rule": TRUTH_RULE,
+        "summary": {m: aggregate_matches(r.match for r in runs[m] if r.match) for m in methods},
+        "groups": _groups(runs, methods),
+        "timing": {m: _timing(runs[m]) for m in methods},
+        "memory": {
+            **{f"{m}_peak_rss_mb": _max([r.peak_mb for r in runs[m]]) for m in methods},
+            "process_max_rss_mb": process_max_rss_mb(),
+        },
+        "errors": {"count": counts, "total": len(errors), "list": errors},
+        "skipped": skipped,
+    }
+    report["targets"] = evaluate_real_targets(report)
+    report["frames"] = rows
+    report = _jsonable(report)
+    if out is not None:
+        d = Path(out)
+        d.mkdir(parents=True, exist_ok=True)
+        (d / "bench_real.json").write_text(json.dumps(report, indent=1) + "\n")
+    if progress and con is not None:
+        print_real_report(report, con)
+        if out is not None:
+            con.print(f"wrote {Path(out) / 'bench_real.json'}")
+    return report
+
+
+def _max(vals: Sequence[float | None]) -> float | None:
+    v = [x for x in vals if x is not None]
+    return max(v) if v else None
+
+
+def _timing(runs: Sequence[_Run]) -> dict[str, Any]:
+    stages: dict[str, list[float]] = {}
+    for r in runs:
+        for k, v in r.stage_ms.items():
+            stages.setdefault(k, []).append(v)
+    return {
+        "stages_ms": {k: percentiles_ms(v) for k, v in stages.items()},
+        "total_ms": percentiles_ms([r.wall_ms for r in runs if r.wall_ms is not None]),
+        "per_frame_ms": [None if r.wall_ms is None else round(r.wall_ms, 3) for r in runs],
+    }
+
+
+def _groups(runs: dict[str, list[_Run]], methods: Sequence[str]) -> dict[str, Any]:
+    out: dict[str, Any] = {}
+    for g in GROUPS:
+        n = sum(r.group == g for r in runs[methods[0]])
+        if n == 0:
+            continue
+        entry: dict[str, Any] = {"n_frames": n}
+        for m in methods:
+            sel = [r for r in runs[m] if r.group == g]
+            entry[m] = aggregate_matches(r.match for r in sel if r.match)
+            entry[m]["errors"] = sum(r.error is not None for r in sel)
+        out[g] = entry
+    return out
+
+
+def _real_figures(report: dict[str, Any], method: str) -> dict[str, Any]:
+    figs: dict[str, Any] = {}
+    for g, entry in report["groups"].items():
+        for k, v in entry.get(method, {}).items():
+            figs[f"{g}.{k}"] = v
+    if method in report["summary"]:
+        figs["crashes"] = float(report["errors"]["count"].get(method, 0))
+    return figs
+
+
+def evaluate_real_targets(report: dict[str, Any]) -> list[dict[str, Any]]:
+    """Check the localizer against :data:`REAL_TARGETS`; ``pass`` is None when the figure
+    is missing (e.g. no box frame was benchmarked)."""
+    mine = _real_figures(report, "boxloc")
+    theirs = _real_figures(report, "baseline") if "baseline" in report["summary"] else {}
+    rows = []
+    for t in REAL_TARGETS:
+        v = mine.get(t.key)
+        assert t.value is not None
+        ok = None if v is None else (v >= t.value if t.op == ">=" else v <= t.value)
+        rows.append({"name": t.name, "key": t.key, "target": f"{t.op} {t.value:g}",
+                     "value": v, "baseline": theirs.get(t.key), "unit": t.unit, "pass": ok})
+    return rows
+
+
+def print_real_report(report: dict[str, Any], console: Any) -> None:
+    """Print the report as rich tables: targets and figures per group, frames, timing."""
+    from rich.markup import escape
+    from rich.table import Table
+
+    methods = list(report["summary"])
+    mark = {True: "[green]pass[/]", False: "[red]miss[/]", None: "[dim]n/a[/]"}
+    t = Table(title=escape(f"boxloc bench --real: {report['n_frames']} frames of "
+                           f"{report['data_dir']}, config {report['config_hash']}"))
+    t.add_column("figure")
+    for m in methods:
+        t.add_column(LABELS[m], justify="right")
+    t.add_column("target", justify="right")
+    t.add_column("", justify="center")
+    for row in report["targets"]:
+        cells = [escape(row["name"]), _fmt(row["value"])]
+        if "baseline" in methods:
+            cells.append(_fmt(row["baseline"]))
+        t.add_row(*cells, row["target"], mark[row["pass"]])
+    for g, entry in report["groups"].items():
+        for key, label in (("precision", "precision"), ("recall", "recall"), ("f1", "F1"),
+                           ("tp", "TP"), ("fp", "FP"), ("fn", "FN"),
+                           ("normal_err_median_deg", "normal err median [deg]"),
+                           ("normal_err_p95_deg", "normal err p95 [deg]"),
+                           ("center_err_median_mm", "centre err median [mm]")):
+            cells = [escape(f"{g} ({entry['n_frames']}): {label}")]
+            cells += [_fmt(entry[m].get(key), "mm" if key.endswith("_mm") else "")
+                      for m in methods]
+            t.add_row(*cells, "", "")
+    console.print(t)
+
+    ft = Table(title="per frame: TP / FP / FN (exposed / faces)")
+    ft.add_column("frame")
+    ft.add_column("group")
+    ft.add_column("exposed / faces", justify="right")
+    for m in methods:
+        ft.add_column(LABELS[m], justify="right")
+    for row in report["frames"]:
+        cells = [row["frame"], row["group"],
+                 f"{row['truth']['n_exposed']} / {row['truth']['n_faces']}"]
+        for m in methods:
+            r = row[m]
+            cells.append("[red]crash[/]" if r.get("error") else f"{r['tp']} / {r['fp']} / "
+                         f"{r['fn']}")
+        ft.add_row(*cells)
+    console.print(ft)
+
+    tt = Table(title="time per frame [ms] (median / p95)")
+    tt.add_column("method")
+    tt.add_column("stage")
+    tt.add_column("median / p95", justify="right")
+    for m, tm in report["timing"].items():
+        for stage, v in tm["stages_ms"].items():
+            tt.add_row(LABELS[m], escape(stage),
+                       f"{_fmt(v['median'], 'ms')} / {_fmt(v['p95'], 'ms')}")
+        tot = tm["total_ms"]
+        tt.add_row(LABELS[m], "[b]wall total[/]",
+                   f"{_fmt(tot['median'], 'ms')} / {_fmt(tot['p95'], 'ms')}")
+    console.print(tt)
+    nz = report["noise"]["model"]
+    console.print(escape(f"noise ({report['noise']['source']}): ")
+                  + ", ".join(f"{k} {v:.3g}" for k, v in nz.items()))
+    console.print(escape(f"pose: {report['pose']}"))
+    errs = report["errors"]
+    if errs["total"]:
+        console.print(f"[red]{errs['total']} error(s)[/]: " + ", ".join(
+            f"{k} {v}" for k, v in errs["count"].items() if v))
+        for e in errs["list"][:10]:
+            console.print(escape(f"  {e['frame']} {e['method']}: {e['error']}"))
+    for s in report["skipped"]:
+        console.print(escape(f"skipped {s['file']}: {s['reason']}"))
