@@ -497,7 +497,7 @@ def print_real_report(report: dict[str, Any], console: Any) -> None:
         ft.add_row(*cells)
     console.print(ft)
 
-    tt = Table(title="time per frame [ms] (median / p95)")
+    tt = Table(title=escape("time per frame [ms] (median / p95)"))
     tt.add_column("method")
     tt.add_column("stage")
     tt.add_column("median / p95", justify="right")

@@ -36,6 +36,8 @@ from boxloc.stats import TestKind, TestTable, chi2_critical
 #: Largest angular error region a direction vote may spread over; nearer points carry
 #: almost no direction information and only slow the accumulator down.
 MAX_VOTE_RADIUS = math.radians(8.0)
+#: The fewest points that make a line, however near the sensor.
+MIN_LINE_POINTS = 6
 #: Points voting per trial (a seeded random subset when there are more): the peak's
 #: relative height does not depend on it, the cost does.
 MAX_VOTERS = 300
@@ -265,7 +267,7 @@ def find_lines(scan: Scan, edges: EdgeMap, *, config: Config, rng: np.random.Gen
 
     r_med = float(np.median(np.linalg.norm(P, axis=1))) if N else 1.0
     spacing = r_med * pixel_angle  # expected edge-point spacing along an edge, metres
-    m_min = max(6, int(0.5 * config.min_edge / spacing))
+    m_min = max(MIN_LINE_POINTS, int(0.5 * config.min_edge / spacing))
     eps0 = min(1.0, m_min / max(N, 1))
 
     lut, nbr, dirs = _direction_index(config.direction_granularity)

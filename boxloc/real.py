@@ -15,7 +15,8 @@ Ground truth (:func:`top_faces`)
    is within ``max_top_tilt`` (an object seen only from the side has no visible top). Its
    region is that plane's pixels (connected pieces smaller than a tenth of the largest are
    dropped: stray points of a side face that happen to lie on the top's plane).
-4. The face's centre is the centroid of its region's points, its normal the region's plane;
+4. The face's centre is the centroid of its region (points weighted by the surface area
+   each pixel covers), its normal the region's plane;
    a minimum-area rectangle of the region's points in that plane gives axes and size (used
    for the perfect-prediction check and, indicatively, for dimension errors).
 
@@ -312,7 +313,8 @@ class RealTruth:
         The face's pixels (the region).
     n_pixels : (F,) int64
     centers : (F, 3) float64, metres, sensor frame
-        Centroid of the region's points.
+        Centroid of the region: its points weighted by the surface area each pixel sees
+        (so the sensor's denser sampling of near parts does not bias it).
     normals : (F, 3) float64
         Unit normal of the region's plane, toward the sensor.
     x_axis, y_axis : (F, 3) float64
@@ -408,6 +410,15 @@ def _plane_basis(n: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     u = np.cross(n, a)
     u /= np.linalg.norm(u)
     return u, np.cross(n, u)
+
+
+def _pixel_solid_angle(rays: np.ndarray) -> np.ndarray:
+    """Solid angle of each pixel, steradians, (H, W), from its neighbours' rays (works for
+    pinhole and ray-table sensors; 0 where a ray is missing)."""
+    du = np.gradient(rays, axis=1)
+    dv = np.gradient(rays, axis=0)
+    om = np.linalg.norm(np.cross(du, dv), axis=-1)
+    return np.where(np.isfinite(om), om, 0.0)
 
 
 def _clean_region(pix: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
@@ -525,6 +536,9 @@ def top_faces(
     rng_all = scan.range.reshape(-1)
     valid = scan.valid.reshape(-1)
     pixel_angle = float(scan.sensor.pixel_angle)
+    rays = np.asarray(scan.sensor.rays(), dtype=np.float64)
+    omega = _pixel_solid_angle(rays).reshape(-1)
+    rays = rays.reshape(-1, 3)
 
     masks = object_masks(L)
     # Per object: its plane points (for footprints and heights) and its top face, if any.
@@ -554,7 +568,14 @@ def top_faces(
             no_top.append(k)
             continue
         Q = P_all[region]
-        c, n = _fit_plane(Q)
+        _, n = _fit_plane(Q)
+        # Area-weighted centroid: near pixels sample a surface more densely than far ones,
+        # so the plain mean of the points is pulled toward the sensor (by ~2 cm over a 30 cm
+        # top seen at 50 degrees).
+        d = rays[region]
+        wt = omega[region] * rng_all[region].astype(np.float64) ** 2 / np.maximum(
+            np.abs(d @ n), 0.1)
+        c = (wt[:, None] * Q).sum(axis=0) / wt.sum()
         cell = 3.0 * r_med * pixel_angle / max(abs(float(n @ (c / np.linalg.norm(c)))), 0.3)
         rc, ex, ey, w, ln, frac = _rectangle(Q, c, n, cell)
         tops.append({"k": k, "region": region, "c": c, "n": n, "rc": rc, "ex": ex, "ey": ey,

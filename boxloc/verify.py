@@ -32,6 +32,7 @@ import numpy as np
 from scipy import stats as st
 
 from boxloc.config import Config
+from boxloc.lines import MIN_LINE_POINTS
 from boxloc.products import EdgeKind, EdgeMap, VerifyReason
 from boxloc.scan import Scan
 from boxloc.stats import TestKind, TestTable, chi2_critical
@@ -91,6 +92,39 @@ class VerifyOutcome:
     reason: VerifyReason
     inlier_pixels: np.ndarray
     tests: TestTable
+
+
+def _interior_line(
+    u: np.ndarray, v: np.ndarray, width: float, length: float, spacing: float
+) -> tuple[float, float]:
+    """Strongest straight edge inside a rectangle, parallel to a side, and its p-value.
+
+    Interior edge points vote into 1-D accumulators along x and along y (bins of three
+    point spacings); the highest bin is tested against the points scattered uniformly
+    (Poisson, maximum over the bins). A seam the edge stage saw only in part still makes
+    a significant peak, scattered noise does not.
+
+    Returns
+    -------
+    count : float
+        Points in the highest bin.
+    p_value : float
+        Probability of so high a bin by uniform scatter (1 if no points).
+    """
+    n = len(u)
+    if n == 0:
+        return 0.0, 1.0
+    h = 3.0 * spacing
+    best, best_p = 0.0, 1.0
+    for coord, extent in ((u, width), (v, length)):
+        nb = max(int(np.ceil(extent / h)), 1)
+        acc = np.bincount(np.clip((coord / h).astype(np.int64), 0, nb - 1), minlength=nb)
+        k = float(acc.max())
+        lam = n / nb
+        p = float(min(1.0, nb * st.poisson.sf(k - 1, lam)))
+        if k > best or (k == best and p < best_p):
+            best, best_p = k, p
+    return best, best_p
 
 
 def rectangle_corners(
@@ -196,8 +230,13 @@ def verify(
     inside_e = near_plane & (eu > mi) & (eu < width - mi) & (ev > mi) & (ev < length - mi)
     n_int = int(inside_e.sum())
     crit_int = config.support_fraction * min(width, length) / spacing
-    tests.append(TestTable.decision(TestKind.VERIFY_INTERIOR, attempt_id, -1, n_int, crit_int,
-                                    n_int <= crit_int, alpha))
+    line_count, line_p = _interior_line(eu[inside_e], ev[inside_e], width, length, spacing)
+    min_line = float(MIN_LINE_POINTS)
+    line_ok = not (line_count >= min_line and line_p < alpha)
+    tests.append(TestTable.decision(TestKind.VERIFY_INTERIOR, attempt_id, -1,
+                                    [n_int, line_count], [crit_int, min_line],
+                                    [n_int <= crit_int, line_ok], alpha,
+                                    p_value=[np.nan, line_p]))
     # boundary: every side covered by convex edge evidence (jump, convex crease, groove)
     convex = near_plane & np.isin(ctx.edge_kinds, (EdgeKind.JUMP, EdgeKind.CREASE_CONVEX,
                                                    EdgeKind.GROOVE))
@@ -220,7 +259,7 @@ def verify(
                                     np.array(coverage), config.support_fraction,
                                     np.array(coverage) >= config.support_fraction, alpha))
 
-    if n_int > crit_int:
+    if n_int > crit_int or not line_ok:
         return fail(VerifyReason.INTERIOR_EDGES, n_interior_edges=n_int)
     if not bound_ok:
         return fail(VerifyReason.BOUNDARY, n_interior_edges=n_int)
