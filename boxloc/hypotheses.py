@@ -23,13 +23,20 @@ from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass, field
 
 import numpy as np
+from scipy import stats as st
 from scipy.spatial import cKDTree
 
 from boxloc.config import Config
 from boxloc.products import DimensionSource, EdgeMap, HypothesisSet, Verification, VertexSet
 from boxloc.scan import Scan
 from boxloc.stats import TestKind, TestTable, chi2_critical
-from boxloc.verify import VerifyContext, VerifyOutcome, rectangle_corners, verify
+from boxloc.verify import (
+    BOUNDARY_BAND,
+    VerifyContext,
+    VerifyOutcome,
+    rectangle_corners,
+    verify,
+)
 from boxloc.vertices import normal_covariance
 
 #: Most dimension candidates verified per vertex (bounds the work on cluttered scenes).
@@ -216,12 +223,15 @@ def dimensions_from_edges(R: Rectangle, ctx: _Context, work: _VertexWork) -> lis
     spacing = ctx.verify_ctx.spacing_at(R.origin)
     h = max(spacing, 2.0 * float(np.median(np.concatenate([su[Pc], sv[Pc]]))))
     nbins = int(math.ceil(cfg.max_edge / h)) + 2
-    ax = np.bincount(np.clip((u / h).astype(np.int64), 0, nbins - 1), minlength=nbins)
-    ay = np.bincount(np.clip((v / h).astype(np.int64), 0, nbins - 1), minlength=nbins)
+    # the generating vertex's own sides (v ~ 0 for A_x, u ~ 0 for A_y) say nothing of the
+    # far sides and would spread votes evenly over the accumulator: leave them out
+    band = BOUNDARY_BAND * cfg.min_edge
+    ax = np.bincount(np.clip((u[v > band] / h).astype(np.int64), 0, nbins - 1), minlength=nbins)
+    ay = np.bincount(np.clip((v[u > band] / h).astype(np.int64), 0, nbins - 1), minlength=nbins)
     work.acc_bin, work.acc_x, work.acc_y = h, ax.astype(np.float32), ay.astype(np.float32)
     min_peak = cfg.support_fraction * cfg.min_edge / spacing
-    px = _peaks(ax, h, cfg.min_edge * 0.9, min_peak)
-    py = _peaks(ay, h, cfg.min_edge * 0.9, min_peak)
+    px = _peaks(ax, h, cfg.min_edge * 0.9, min_peak, alpha)
+    py = _peaks(ay, h, cfg.min_edge * 0.9, min_peak, alpha)
     work.peaks_x, work.peaks_y = px, py
     out: list[_Attempt] = []
     sup_tests: list[tuple[float, float, bool]] = []
@@ -245,14 +255,23 @@ def dimensions_from_edges(R: Rectangle, ctx: _Context, work: _VertexWork) -> lis
     return out
 
 
-def _peaks(acc: np.ndarray, h: float, lo: float, min_height: float) -> np.ndarray:
-    """Positions (metres, bin centres refined by the 3-bin centroid) of accumulator peaks."""
+def _peaks(acc: np.ndarray, h: float, lo: float, min_height: float, alpha: float) -> np.ndarray:
+    """Positions (metres) of the significant peaks of a 1-D accumulator.
+
+    A peak is a local maximum of the 3-bin window sum that is at least ``min_height`` (the
+    support of the shortest side) and significantly above the accumulator's uniform vote
+    level (Poisson, maximum over the windows, at level alpha). Its position is the
+    centroid of the three bins.
+    """
     if acc.size < 3:
         return np.zeros(0)
     s3 = np.convolve(acc, [1, 1, 1], mode="same").astype(np.float64)
+    lam = 3.0 * float(acc.sum()) / acc.size
+    # the smallest window sum that uniform votes exceed with probability alpha over all bins
+    k_sig = float(st.poisson.isf(alpha / acc.size, lam)) + 1.0 if lam > 0 else 1.0
     left = np.r_[-1, s3[:-1]]
     right = np.r_[s3[1:], -1]
-    pk = np.flatnonzero((s3 >= left) & (s3 > right) & (s3 >= min_height))
+    pk = np.flatnonzero((s3 >= left) & (s3 > right) & (s3 >= max(min_height, k_sig)))
     out = []
     for i in pk:
         a, b = max(i - 1, 0), min(i + 2, acc.size)
@@ -265,8 +284,6 @@ def _peaks(acc: np.ndarray, h: float, lo: float, min_height: float) -> np.ndarra
 
 
 def _norm_isf(alpha: float) -> float:
-    from scipy import stats as st
-
     return float(st.norm.isf(alpha))
 
 

@@ -43,12 +43,15 @@ Scoring (:func:`score_real`)
 ----------------------------
 A predicted rectangle is projected into the image (its sides densified, so it also works
 for ray-table sensors) and rasterized. Pixels where the scene is seen *in front of* the
-rectangle's plane (by more than ``occlusion_margin``) or that have no return are dropped
-from it: those parts cannot be seen, and the region only holds seen pixels. Its IoU with
-each face's region then enters the same one-to-one assignment as the synthetic benchmark
+rectangle's plane (by more than ``occlusion_margin``, 2 cm) or that have no return are
+dropped from it: those parts cannot be seen, and the region only holds seen pixels. The
+intersection with a region counts only pixels whose point lies on the rectangle's plane
+(within the same margin), so a rectangle floating above a face does not overlap it. The
+IoU then enters the same one-to-one assignment as the synthetic benchmark
 (:func:`boxloc.metrics.match_surfaces`): a true positive needs IoU >= 0.5 with an exposed
 face and a normal within 15 degrees. Centre error is against the region's centroid (which
-is not the face centre when part of the face is hidden).
+is not the face centre when part of the face is hidden). The faces' own fitted rectangles
+score IoU 0.83-0.98 on the mOSD learn frames.
 """
 
 from __future__ import annotations

@@ -18,9 +18,11 @@ rectangle's plane with their propagated uncertainty (point-on-plane, chi2(1) at 
   support a side of the rectangle would need (the paper's threshold p);
 * ``VERIFY_BOUNDARY`` — each of the four sides is a real boundary of a top face: edge
   points where the face drops away (jump, convex crease) or meets an equal neighbour
-  (groove) cover at least the fraction p of it. This extends the paper's |P_f| > p from
-  the two far sides to all four, and rejects a sub-rectangle of a larger face, and the
-  floor or pallet between boxes (bounded by concave creases where the boxes rise).
+  (groove) form a significant line along it (Poisson against the interior's scattered
+  edges, at alpha), and all four together cover the fraction p of the perimeter. This
+  extends the paper's |P_f| > p from the two far sides to all four, and rejects a
+  sub-rectangle of a larger face, and the floor or pallet between boxes (bounded by
+  concave creases where the boxes rise).
 """
 
 from __future__ import annotations
@@ -247,17 +249,29 @@ def verify(
         (np.abs(eu) <= band, ev, length),
         (np.abs(eu - width) <= band, ev, length),
     )
-    coverage = []
+    # background: convex edge points scattered over the interior, per unit area
+    area_in = max((width - 2 * mi) * (length - 2 * mi), spacing * spacing)
+    density = float((convex & inside_e).sum()) / area_in
+    covered, side_p, side_n = [], [], []
     for near, along, L in sides:
         sel = convex & near & (along >= 0) & (along <= L)
         # distinct positions along the side (one per spacing) measure coverage, not density
         bins = np.unique(np.floor(along[sel] / spacing).astype(np.int64))
-        coverage.append(len(bins) * spacing / L)
-    cov_min = float(min(coverage))
-    bound_ok = cov_min >= config.support_fraction
+        k_s = len(bins)
+        lam = density * L * 2 * band
+        covered.append(k_s)
+        side_n.append(L / spacing)
+        side_p.append(float(st.poisson.sf(k_s - 1, lam)) if k_s else 1.0)
+    # each side a significant line of boundary edges; all sides together covering the
+    # fraction p of the perimeter (the paper's |P_f| > p, over all four sides)
+    side_ok = [(k >= MIN_LINE_POINTS and pv < alpha) for k, pv in zip(covered, side_p)]
+    frac = float(sum(covered) / sum(side_n))
+    bound_ok = all(side_ok) and frac >= config.support_fraction
     tests.append(TestTable.decision(TestKind.VERIFY_BOUNDARY, attempt_id, -1,
-                                    np.array(coverage), config.support_fraction,
-                                    np.array(coverage) >= config.support_fraction, alpha))
+                                    np.r_[covered, frac], np.r_[[MIN_LINE_POINTS] * 4,
+                                                                config.support_fraction],
+                                    np.r_[side_ok, frac >= config.support_fraction], alpha,
+                                    p_value=np.r_[side_p, np.nan]))
 
     if n_int > crit_int or not line_ok:
         return fail(VerifyReason.INTERIOR_EDGES, n_interior_edges=n_int)
