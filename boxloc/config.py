@@ -119,6 +119,8 @@ class Config:
 
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> Config:
+        if not isinstance(d, dict):
+            raise InputError(f"config must be a table of key = value, got {type(d).__name__}")
         d = dict(d)
         known = {f.name for f in dataclasses.fields(cls)}
         unknown = sorted(set(d) - known)
@@ -129,12 +131,17 @@ class Config:
         if noise is not None:
             if isinstance(noise, NoiseModel):
                 kw["noise"] = noise
+            elif not isinstance(noise, dict):
+                raise InputError(f"config noise must be a table, got {noise!r:.80}")
             else:
                 nk = {f.name for f in dataclasses.fields(NoiseModel)}
-                bad = sorted(set(noise) - nk)
+                bad = sorted(str(k) for k in set(noise) - nk)
                 if bad:
                     names = ", ".join("noise." + b for b in bad)
                     raise InputError(f"unknown config key(s): {names}")
+                for k, v in noise.items():
+                    if isinstance(v, bool) or not isinstance(v, int | float):
+                        raise InputError(f"config noise.{k} must be a number, got {v!r:.80}")
                 kw["noise"] = NoiseModel(**{k: float(v) for k, v in noise.items()})
         for k, v in d.items():
             default = getattr(cls, k, None)

@@ -349,6 +349,11 @@ def _scan_line_edges(
         elif not (np.isfinite(dA) and np.isfinite(dB)):
             J = abs(np.linalg.norm(P[ib] - P[ia]))
         tstat = J * J / sig2
+        # a jump must also show in the measurements at the break, not only between the
+        # extrapolated lines (a steep side seen at grazing incidence extrapolates badly)
+        dm = math.sqrt(np.dot(P[ib], P[ib])) - math.sqrt(np.dot(P[ia], P[ia]))
+        if dm * dm / sig2 <= jump_crit:
+            tstat = min(tstat, dm * dm / sig2)
         cosang = abs(np.dot(da, db))
         if cosang > 1.0:
             cosang = 1.0

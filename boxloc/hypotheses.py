@@ -344,7 +344,8 @@ def _work_chunk(ids: list[int]) -> list[_VertexWork]:
 
 
 def generate_hypotheses(
-    scan: Scan, edges: EdgeMap, vertices: VertexSet, *, config: Config
+    scan: Scan, edges: EdgeMap, vertices: VertexSet, *, config: Config,
+    up: np.ndarray | None = None,
 ) -> tuple[HypothesisSet, Verification]:
     """One hypothesis per vertex with its dimensions, and the verification of every attempt.
 
@@ -354,17 +355,20 @@ def generate_hypotheses(
     edges : EdgeMap
     vertices : VertexSet
     config : Config
+    up : ndarray (3,), optional
+        Up in the sensor frame (default ``scan.up``), for the tilt prior.
 
     Returns
     -------
     HypothesisSet, Verification
     """
+    up = scan.up if up is None else np.asarray(up, dtype=np.float64)
     ctx = _Context(
         scan=scan, config=config, vertices=vertices,
         normal_cov=normal_covariance(vertices) if len(vertices) else np.zeros((0, 3, 3)),
         edge_points=edges.points, edge_cov=edges.covariances,
         edge_tree=cKDTree(edges.points) if len(edges) else None,
-        verify_ctx=VerifyContext.build(scan, edges, config),
+        verify_ctx=VerifyContext.build(scan, edges, config, up),
     )
     ids = list(range(len(vertices)))
     if config.workers > 1 and len(ids) > 1:
@@ -375,7 +379,7 @@ def generate_hypotheses(
         works = [by_id[i] for i in ids]
     else:
         works = [_work_on_vertex(i, ctx) for i in ids]
-    return _assemble(works, vertices, config, scan)
+    return _assemble(works, vertices, config, up)
 
 
 def _ragged(arrs: list[np.ndarray], dtype: type) -> tuple[np.ndarray, np.ndarray]:
@@ -387,7 +391,7 @@ def _ragged(arrs: list[np.ndarray], dtype: type) -> tuple[np.ndarray, np.ndarray
 
 
 def _assemble(
-    works: list[_VertexWork], vertices: VertexSet, config: Config, scan: Scan
+    works: list[_VertexWork], vertices: VertexSet, config: Config, up: np.ndarray
 ) -> tuple[HypothesisSet, Verification]:
     alpha = config.alpha
     n = len(works)
@@ -442,6 +446,7 @@ def _assemble(
         att_threshold=np.array([a.threshold for _, a in att_rows], np.float64),
         att_verified=np.array([bool(a.outcome and a.outcome.accepted) for _, a in att_rows],
                               bool),
+        up=np.asarray(up, dtype=np.float64).copy(),
         tests=TestTable.concat(tests, alpha),
     )
     outs = [a.outcome for _, a in att_rows]

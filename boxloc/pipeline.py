@@ -22,6 +22,7 @@ from boxloc.products import Result
 from boxloc.scan import Scan
 from boxloc.select import select
 from boxloc.surfaces import make_surfaces
+from boxloc.up import estimate_up
 from boxloc.vertices import find_vertices
 
 T = TypeVar("T")
@@ -89,8 +90,10 @@ def find_graspable_surfaces(
     obs.on_lines(scan, lines)
     vertices = _timed(timing, "vertices", lambda: find_vertices(lines, config=config))
     obs.on_vertices(scan, vertices)
+    up = estimate_up(scan, config, rng)
     hyps, verification = _timed(
-        timing, "hypotheses", lambda: generate_hypotheses(scan, edges, vertices, config=config)
+        timing, "hypotheses",
+        lambda: generate_hypotheses(scan, edges, vertices, config=config, up=up),
     )
     obs.on_hypotheses(scan, hyps)
     obs.on_verification(scan, verification)

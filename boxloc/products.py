@@ -245,6 +245,8 @@ class HypothesisSet:
     att_support, att_threshold : (k,) float64
         |P_f| and the threshold p (edges); the diagonal's test statistic total (vertices).
     att_verified : (k,) bool
+    up : (3,) float64
+        The up direction the tilt prior and the pick order used (see :mod:`boxloc.up`).
     tests : TestTable
         COPLANAR, PARALLEL, FIRST_QUADRANT, POINT_ON_PLANE and EDGE_SUPPORT.
     """
@@ -277,6 +279,7 @@ class HypothesisSet:
     att_support: np.ndarray
     att_threshold: np.ndarray
     att_verified: np.ndarray
+    up: np.ndarray
     tests: TestTable
 
     def __len__(self) -> int:

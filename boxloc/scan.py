@@ -322,14 +322,26 @@ class Scan:
             raise InputError(
                 f"range shape {r.shape} does not match the sensor model's {self.sensor.shape}"
             )
+        if isinstance(self.sensor, RayTableModel):
+            # A pixel without a ray cannot have a return (its point would be NaN while the
+            # range says valid, and the stages would fit planes through NaN).
+            noray = ~np.isfinite(self.sensor.table).all(-1)
+            if noray.any():
+                r = np.where(noray, np.float32(np.nan), r)
         object.__setattr__(self, "range", _readonly(r))
         if self.sensor_to_base is not None:
             T = np.asarray(self.sensor_to_base, dtype=np.float64)
             if T.shape != (4, 4) or not np.isfinite(T).all():
                 raise InputError(f"sensor_to_base must be a finite (4, 4) matrix, got {T.shape}")
             object.__setattr__(self, "sensor_to_base", _readonly(T))
-        object.__setattr__(self, "capture_time_ns", int(self.capture_time_ns))
-        object.__setattr__(self, "index", int(self.index))
+        t, i = int(self.capture_time_ns), int(self.index)
+        # Both are stored as int64 (npz, logs): refuse what would not fit, here, clearly.
+        if not 0 <= t < 2**63:
+            raise InputError(f"capture_time_ns must be in [0, 2**63) nanoseconds, got {t}")
+        if not -(2**63) <= i < 2**63:
+            raise InputError(f"scan index must fit in 64 bits, got {i}")
+        object.__setattr__(self, "capture_time_ns", t)
+        object.__setattr__(self, "index", i)
 
     @property
     def shape(self) -> tuple[int, int]:

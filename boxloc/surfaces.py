@@ -64,7 +64,7 @@ def make_surfaces(
         q = selection.Q[k, k]
         score = float(q / max(config.mdl_k1 * selection.n_points[k], 1e-12))
         rows.append((h, j, c, nf, x, y, w, ln, corners, score, cov))
-    up = scan.up
+    up = hypotheses.up
     heights = np.array([r[2] @ up for r in rows])
     order = np.lexsort((np.array([r[0] for r in rows]), -heights)) if rows else np.zeros(0, int)
     rows = [rows[i] for i in order]

@@ -57,15 +57,17 @@ class VerifyContext:
     edge_points: np.ndarray  # (N, 3)
     edge_kinds: np.ndarray  # (N,) EdgeKind
     pixel_angle: float  # radians per pixel: the edge-point spacing is range * pixel_angle
+    up: np.ndarray  # (3,) the up direction of the tilt prior
 
     @classmethod
-    def build(cls, scan: Scan, edges: EdgeMap, config: Config) -> VerifyContext:
+    def build(cls, scan: Scan, edges: EdgeMap, config: Config, up: np.ndarray) -> VerifyContext:
         P = scan.points.astype(np.float64)
         r = scan.range.astype(np.float64)
         sr = config.noise.sigma_range(r)
         sl = config.noise.sigma_lateral(r, scan.sensor.pixel_angle)
         valid = np.isfinite(r)
-        return cls(P, sr**2, sl**2, valid, edges.points, edges.kinds, scan.sensor.pixel_angle)
+        return cls(P, sr**2, sl**2, valid, edges.points, edges.kinds, scan.sensor.pixel_angle,
+                   np.asarray(up, dtype=np.float64))
 
     def spacing_at(self, point: np.ndarray) -> float:
         """Expected spacing of edge points along an edge at ``point``, metres."""
@@ -211,8 +213,7 @@ def verify(
         base.update(kw)
         return VerifyOutcome(**base)  # type: ignore[arg-type]
 
-    up = scan.up
-    tilt = float(np.arccos(np.clip(normal @ up, -1, 1)))
+    tilt = float(np.arccos(np.clip(normal @ ctx.up, -1, 1)))
     tests.append(TestTable.decision(TestKind.VERIFY_TILT, attempt_id, -1, tilt, config.max_tilt,
                                     tilt <= config.max_tilt, alpha))
     if tilt > config.max_tilt:
@@ -225,7 +226,9 @@ def verify(
     eu, ev, ew = E @ x_axis, E @ y_axis, E @ normal
     r_c = float(np.linalg.norm(centre))
     sig_e = float(np.sqrt(config.noise.sigma_range(r_c) ** 2 + config.flatness**2))
-    near_plane = (ew > -k * sig_e - k * spacing) & (ew < 0.5 * config.min_edge)
+    # a face's boundary, seam and crossing edges lie on its plane (a jump point is placed
+    # half a sample beyond the face's last point, hence the spacing)
+    near_plane = np.abs(ew) <= k * sig_e + spacing
     # interior edges: strictly inside, beyond the band where the boundary's own edges lie
     # (rounded or bevelled cardboard gives a second, parallel edge a few mm inside)
     mi = max(m, BOUNDARY_BAND * config.min_edge)

@@ -165,8 +165,8 @@ def read_sidecar(log_path: str | os.PathLike[str]) -> list[PickOutcome]:
         try:
             d = json.loads(raw)
             out.append(_outcome_from_json(d))
-        except (ValueError, TypeError, KeyError) as e:
-            raise LogError(f"{p}:{no}: bad outcome line: {e}") from None
+        except (ValueError, TypeError, KeyError, RecursionError) as e:
+            raise LogError(f"{p}:{no}: bad outcome line: {str(e)[:200]}") from None
     return out
 
 

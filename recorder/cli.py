@@ -20,7 +20,7 @@ from typing import Any
 import click
 
 from boxloc.cli import config_options, load_config, scan_options
-from boxloc.errors import InputError
+from boxloc.errors import BoxlocError, InputError
 
 # --- --rerun MODE [TARGET] -----------------------------------------------------------------
 
@@ -283,6 +283,18 @@ def _utc(ns: int) -> str:
     return datetime.fromtimestamp(ns / 1e9, UTC).strftime("%Y-%m-%d %H:%M:%S.%f")[:-3] + " UTC"
 
 
+def _sensor_json(text: str | None) -> Any:
+    """The recorded sensor description, or its text when it is not JSON (informational)."""
+    from recorder.encode import parse_json
+
+    if not text:
+        return None
+    try:
+        return parse_json(text, "the recorded sensor")
+    except BoxlocError:
+        return text[:200]
+
+
 def log_info(path: str | Path) -> dict[str, Any]:
     """Everything ``boxloc info`` shows, as plain data."""
     from recorder.log import open_log
@@ -310,7 +322,7 @@ def log_info(path: str | Path) -> dict[str, Any]:
         "session": run.get("session", ""),
         "part": run.get("part", ""),
         "created_utc": run.get("created_utc", ""),
-        "sensor": json.loads(run["sensor"]) if run.get("sensor") else None,
+        "sensor": _sensor_json(run.get("sensor")),
         "recovered": log.metadata.get("boxloc.recovery"),
         "time_span": None if span is None else {
             "start_ns": span[0], "end_ns": span[1], "duration_s": (span[1] - span[0]) / 1e9,

@@ -207,9 +207,15 @@ def msg_to_array(msg: Any, limits: DecodeLimits = DEFAULT_LIMITS) -> np.ndarray:
     if not _DTYPE_RE.match(msg.dtype):
         raise LogError(f"array {name[:64]!r}: dtype {msg.dtype[:32]!r} is not allowed")
     dt = np.dtype(msg.dtype)
+    if dt.itemsize == 0:
+        raise LogError(f"array {name[:64]!r}: dtype {msg.dtype!r} has no size")
     shape = tuple(int(s) for s in msg.shape)
     if len(shape) > limits.max_ndim:
-        raise LogError(f"array {name!r}: {len(shape)} dimensions exceed {limits.max_ndim}")
+        raise LogError(f"array {name[:64]!r}: {len(shape)} dimensions exceed {limits.max_ndim}")
+    if any(s > limits.max_array_bytes for s in shape):
+        # Even an empty array (a zero dimension) may not claim an absurd one.
+        raise LogError(f"array {name[:64]!r}: shape {shape} has a dimension beyond "
+                       f"{limits.max_array_bytes}")
     n = math.prod(shape)
     nbytes = n * dt.itemsize
     if nbytes > limits.max_array_bytes:
@@ -283,6 +289,15 @@ def decode_arrays(
             raise LogError(f"record {record}: array {am.name!r} appears twice")
         out[am.name] = msg_to_array(am, limits)
     return msg, out
+
+
+def parse_json(text: str | bytes, what: str) -> Any:
+    """``json.loads`` for text from a log: bad syntax or nesting too deep for the parser
+    (a ``RecursionError``) is a :class:`LogError` naming ``what``."""
+    try:
+        return json.loads(text)
+    except (ValueError, RecursionError) as e:
+        raise LogError(f"{what} is not valid JSON: {str(e)[:200]}") from None
 
 
 def _parse(name: str, data: bytes) -> Any:
@@ -383,7 +398,7 @@ def decode_product(
             raise LogError(f"{PRODUCT_RECORDS[stage]}: test columns of different lengths {n}")
     try:
         return from_arrays(PRODUCT_TYPES[stage], known)
-    except (TypeError, ValueError, KeyError) as e:
+    except (TypeError, ValueError, KeyError, RecursionError) as e:
         raise LogError(f"{PRODUCT_RECORDS[stage]} record is malformed: {e}") from None
 
 
@@ -508,7 +523,7 @@ def decode_scan_info(data: bytes, limits: DecodeLimits = DEFAULT_LIMITS) -> Scan
     _, a = decode_arrays(data, SCAN_INFO_RECORD, limits)
     try:
         H, W = (int(v) for v in a["shape"])
-        meta = json.loads(str(a["meta"]))
+        meta = parse_json(str(a["meta"]), f"{SCAN_INFO_RECORD} meta")
         T = np.array(a["sensor_to_base"], copy=True) if bool(a["has_pose"]) else None
         if T is not None and T.shape != (4, 4):
             raise ValueError(f"pose has shape {T.shape}")
@@ -853,10 +868,7 @@ def encode_locate_json(scan_index: int, surfaces: SurfaceSet) -> bytes:
 
 
 def decode_locate_json(data: bytes) -> dict[str, Any]:
-    try:
-        doc = json.loads(data)
-    except ValueError as e:
-        raise LogError(f"cannot parse a {LOCATE_RECORD} JSON message: {e}") from None
+    doc = parse_json(data, f"a {LOCATE_RECORD} message")
     if not isinstance(doc, dict):
         raise LogError(f"{LOCATE_RECORD} JSON message is not an object")
     check_record_schema(str(doc.get("schema", "")), LOCATE_RECORD)

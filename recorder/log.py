@@ -18,7 +18,6 @@ rebuilds a complete one.
 from __future__ import annotations
 
 import io
-import json
 import os
 import struct
 import zlib
@@ -119,6 +118,7 @@ def scan_records(
     head = f.read(len(_MAGIC))
     if head != _MAGIC:
         raise LogError("not an MCAP file (bad magic)")
+    size = _file_size(f)
     off = len(_MAGIC)
     state.end_offset = off
     while True:
@@ -130,6 +130,11 @@ def scan_records(
         if length > limits.max_record_bytes:
             state.truncated = f"record at byte {off} claims {length} bytes (corrupt)"
             return
+        if size is not None and off + 9 + length > size:
+            # Checked before reading: a corrupt length must not make us allocate it.
+            state.truncated = (f"file ends at byte {size} inside a record of {length} bytes "
+                               f"starting at byte {off}")
+            return
         body = f.read(length)
         if len(body) < length:
             state.truncated = (f"file ends at byte {off + 9 + len(body)} inside a record of "
@@ -137,17 +142,17 @@ def scan_records(
             return
         rec_off, off = off, off + 9 + length
         reader = _READERS.get(opcode)
-        if opcode == Opcode.MESSAGE:
-            rec: Any = Message.read(ReadDataStream(io.BytesIO(body)), length)
-        elif reader is None:  # message indexes and unknown records: nothing we need
+        if reader is None and opcode != Opcode.MESSAGE:
+            # message indexes and unknown records: nothing we need
             state.end_offset = off
             continue
-        else:
-            try:
-                rec = reader(ReadDataStream(io.BytesIO(body)))
-            except Exception as e:
-                state.truncated = f"record at byte {rec_off} is malformed: {e}"
-                return
+        try:
+            rec: Any = (Message.read(ReadDataStream(io.BytesIO(body)), length)
+                        if opcode == Opcode.MESSAGE else reader(ReadDataStream(io.BytesIO(body))))
+        except Exception as e:  # noqa: BLE001 - the mcap readers raise many kinds
+            why = str(e)[:200] or type(e).__name__
+            state.truncated = f"record at byte {rec_off} is malformed: {why}"
+            return
         if isinstance(rec, Attachment) and not _attachment_crc_ok(body):
             state.damage.append(f"attachment {rec.name!r} at byte {rec_off} fails its CRC")
             state.end_offset = off
@@ -167,6 +172,14 @@ def scan_records(
             state.complete_data = True
             return
         yield rec_off, rec
+
+
+def _file_size(f: IO[bytes]) -> int | None:
+    """Size of the file behind ``f`` (None for a stream without one)."""
+    try:
+        return os.fstat(f.fileno()).st_size
+    except (OSError, AttributeError, ValueError, io.UnsupportedOperation):
+        return None
 
 
 def _attachment_crc_ok(body: bytes) -> bool:
@@ -382,7 +395,9 @@ class Log:
                 raise LogError(f"{self.path} is not an MCAP file")
             f.seek(0)
             try:
-                reader = SeekingReader(f, record_size_limit=limits.max_record_bytes)
+                # No record is larger than the file: a corrupt length never allocates more.
+                reader = SeekingReader(f, record_size_limit=min(limits.max_record_bytes,
+                                                                self.size))
                 self.header: Header = reader.get_header()
             except Exception as e:
                 raise LogError(f"{self.path}: cannot read the MCAP header: {e}") from None
@@ -434,12 +449,18 @@ class Log:
         op, length = struct.unpack("<BQ", hdr)
         if op != opcode or length > self.limits.max_record_bytes:
             raise LogError(f"{self.path}: index points at a wrong record (byte {offset})")
+        if offset + 9 + length > self.size:
+            raise LogError(f"{self.path}: record at byte {offset} is cut short")
         body = f.read(length)
         if len(body) < length:
             raise LogError(f"{self.path}: record at byte {offset} is cut short")
         if op == Opcode.ATTACHMENT and not _attachment_crc_ok(body):
             raise LogError(f"{self.path}: attachment at byte {offset} fails its CRC")
-        return _READERS[op](ReadDataStream(io.BytesIO(body)))
+        try:
+            return _READERS[op](ReadDataStream(io.BytesIO(body)))
+        except Exception as e:  # noqa: BLE001 - the mcap readers raise many kinds
+            raise LogError(f"{self.path}: record at byte {offset} is malformed: "
+                           f"{str(e)[:200]}") from None
 
     # --- provenance ------------------------------------------------------------------------
 
@@ -455,8 +476,8 @@ class Log:
         if not text:
             return None
         try:
-            return Config.from_dict(json.loads(text))
-        except (ValueError, TypeError) as e:
+            return Config.from_dict(E.parse_json(text, "the recorded config"))
+        except (ValueError, TypeError, LogError) as e:
             raise LogError(f"{self.path}: recorded config is invalid: {e}") from None
 
     @property

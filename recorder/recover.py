@@ -174,6 +174,7 @@ def _copy(fh: IO[bytes], tmp: Path, report: RecoveryReport, limits: DecodeLimits
     scan: list[_Msg] | None = None  # the scan being collected
     pre: list[_Msg] = []  # session messages: written in the chunk of the next whole scan
     held: list[_Msg] = []  # the last whole scan, written once we know what follows it
+    topic_schema: dict[str, str] = {}  # one schema per topic in the output, as recorded
     try:
         for _, rec in scan_records(fh, state, limits):
             if isinstance(rec, Header):
@@ -193,6 +194,14 @@ def _copy(fh: IO[bytes], tmp: Path, report: RecoveryReport, limits: DecodeLimits
                     report.damage.append(f"message on unknown channel {rec.channel_id} dropped")
                     continue
                 m = _Msg(ch, schemas.get(ch.schema_id), rec)
+                sname = m.schema.name if m.schema is not None else ""
+                first = topic_schema.setdefault(ch.topic, sname)
+                if sname != first:  # a damaged or foreign log reusing a topic
+                    note = (f"messages on {ch.topic!r} with schema {sname!r} dropped (the "
+                            f"topic has schema {first!r})")
+                    if note not in report.damage:
+                        report.damage.append(note)
+                    continue
                 spec = C.BY_TOPIC.get(ch.topic)
                 if ch.topic == C.START_TOPIC:
                     if scan is not None:

@@ -250,7 +250,7 @@ def make_hypotheses(vertices: VertexSet, rng: np.random.Generator) -> Hypothesis
         att_hypothesis=att_h, att_source=att_src, att_diagonal=att_diag,
         att_width=att_w, att_length=att_l,
         att_support=rng.uniform(0, 30, k), att_threshold=np.full(k, 9.0),
-        att_verified=att_ok, tests=tests,
+        att_verified=att_ok, up=np.array([0.0, 0.0, -1.0]), tests=tests,
     )
 
 

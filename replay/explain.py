@@ -1,0 +1,866 @@
+"""Post-mortem: the chain of decisions behind a surface, or why an expected one is missing.
+
+Everything is read back from a log: every product of the scan and every statistical test
+(:class:`boxloc.stats.TestTable`), so nothing is recomputed and the explanation is exactly
+what the recorded run decided.
+
+For a chosen surface (``surface=K``), the chain of the paper's Fig. 2 backwards:
+
+* the MDL selection (line 9): its q_ii, the candidates it overlapped, those it beat;
+* the hypothesis and its *generating vertex* (line 3), the vertex's two lines (support,
+  Hough trial, votes) and the vertex tests LINES_MEET / LINES_ORTHOGONAL / AT_SEGMENT_ENDS,
+  each as statistic against critical value;
+* where the dimensions came from (lines 4-8): a diagonal vertex with its COPLANAR /
+  PARALLEL / FIRST_QUADRANT tests, or the edge accumulators A_x, A_y with their peaks and
+  the EDGE_SUPPORT tests |P_f| > p;
+* every attempt of that hypothesis and its verification (lines 16, 29): the VERIFY_* tests
+  and the reason of the first failure.
+
+For a place where a surface was expected (``at=(x, y)`` in pixels, or ``(x, y, z)`` in the
+sensor frame, metres), the chain forward, to where it stopped: the region of the range
+image around the point that no edge crosses, the edge points that bound it, the lines those
+edge points support, the vertices of those lines (or the vertex tests their pairs failed),
+the hypotheses whose rectangles contain the point, their verification, and the MDL
+selection they lost (and to what).
+
+:func:`explain` returns plain data (``--json``); :func:`format_explanation` makes it
+readable in a terminal.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from scipy import ndimage
+
+from boxloc.config import Config
+from boxloc.errors import InputError
+from boxloc.products import DimensionSource, EdgeKind, SelectReason, VerifyReason
+from boxloc.stats import TestKind, TestTable
+from replay.diff import _jsonable
+
+#: How a test's statistic is compared with its critical value when the relation holds.
+_SENSE: dict[TestKind, str] = {
+    TestKind.EDGE_SUPPORT: ">", TestKind.FIRST_QUADRANT: ">",
+    TestKind.VERIFY_INLIERS: ">=", TestKind.VERIFY_BOUNDARY: ">=",
+}
+_NEGATE = {"<=": ">", "<": ">=", ">": "<=", ">=": "<"}
+#: what each verify reason's failing test is
+_REASON_TEST: dict[VerifyReason, TestKind] = {
+    VerifyReason.TILTED: TestKind.VERIFY_TILT,
+    VerifyReason.INTERIOR_EDGES: TestKind.VERIFY_INTERIOR,
+    VerifyReason.BOUNDARY: TestKind.VERIFY_BOUNDARY,
+    VerifyReason.NOT_EXPOSED: TestKind.VERIFY_EXPOSED,
+    VerifyReason.INLIERS: TestKind.VERIFY_INLIERS,
+    VerifyReason.MEAN_OFFSET: TestKind.VERIFY_MEAN,
+}
+#: the four sides of a rectangle, in the order of the VERIFY_BOUNDARY rows
+_SIDES = ("side at the vertex along x", "far side along x", "side at the vertex along y",
+          "far side along y")
+#: lists in an explanation are cut to this many items (the JSON says how many there were)
+MAX_ITEMS = 12
+
+
+def _name(enum: type, v: int) -> str:
+    try:
+        return enum(int(v)).name
+    except ValueError:
+        return str(int(v))
+
+
+def _mm(v: Any) -> float | None:
+    f = float(v)
+    return round(f * 1e3, 2) if math.isfinite(f) else None
+
+
+def _vec(v: Any, digits: int = 4) -> list[float | None]:
+    return [round(float(x), digits) if math.isfinite(float(x)) else None for x in v]
+
+
+def _tests(t: TestTable, kinds: Sequence[TestKind], *, a: int | None = None,
+           b: int | None = None, pair: tuple[int, int] | None = None) -> list[dict[str, Any]]:
+    """Rows of ``t`` of the given kinds on the given entities, as plain dicts."""
+    m = np.isin(t.kind, [int(k) for k in kinds])
+    if a is not None:
+        m &= t.a == a
+    if b is not None:
+        m &= t.b == b
+    if pair is not None:
+        x, y = pair
+        m &= ((t.a == x) & (t.b == y)) | ((t.a == y) & (t.b == x))
+    return t.select(m).rows()
+
+
+@dataclass
+class _Ctx:
+    """One recorded scan and what it takes to explain it."""
+
+    log_path: str
+    rec: Any
+    config: Config
+
+    def __post_init__(self) -> None:
+        p = self.rec.products
+        self.edges = p.get("edges")
+        self.lines = p.get("lines")
+        self.vertices = p.get("vertices")
+        self.hyps = p.get("hypotheses")
+        self.ver = p.get("verification")
+        self.sel = p.get("selection")
+        self.surf = p.get("surfaces")
+        self.scan = self.rec.scan
+
+    # -- entities --
+
+    def line(self, i: int) -> dict[str, Any]:
+        L = self.lines
+        return {
+            "id": i, "kind": _name(EdgeKind, L.kinds[i]), "n_support": int(L.n_support[i]),
+            "trial": int(L.trial[i]), "direction_votes": float(L.direction_votes[i]),
+            "position_votes": float(L.position_votes[i]),
+            "length_mm": _mm(np.linalg.norm(L.ends[i] - L.starts[i])),
+            "start": _vec(L.starts[i]), "end": _vec(L.ends[i]),
+            "tests": _tests(L.tests, [TestKind.POINT_ON_LINE], a=i),
+        }
+
+    def vertex(self, v: int) -> dict[str, Any]:
+        V = self.vertices
+        la, lb = int(V.line_a[v]), int(V.line_b[v])
+        return {
+            "id": v, "point": _vec(V.points[v]), "normal": _vec(V.normals[v]),
+            "d1": _vec(V.d1[v]), "d2": _vec(V.d2[v]), "line_a": la, "line_b": lb,
+            "lines": [self.line(la), self.line(lb)] if self.lines is not None else [],
+            "tests": _tests(V.tests, [TestKind.LINES_MEET, TestKind.LINES_ORTHOGONAL,
+                                      TestKind.AT_SEGMENT_ENDS], pair=(la, lb)),
+        }
+
+    def attempts_of(self, h: int) -> list[int]:
+        return [int(j) for j in np.flatnonzero(self.hyps.att_hypothesis == h)]
+
+    def attempt(self, j: int) -> dict[str, Any]:
+        H = self.hyps
+        src = DimensionSource(int(H.att_source[j]))
+        d: dict[str, Any] = {
+            "id": j, "hypothesis": int(H.att_hypothesis[j]), "source": src.name,
+            "diagonal": int(H.att_diagonal[j]), "width_mm": _mm(H.att_width[j]),
+            "length_mm": _mm(H.att_length[j]),
+            # the diagonal's test statistic total (vertices) or |P_f| (edges), and its bound
+            "support": float(H.att_support[j]), "threshold": float(H.att_threshold[j]),
+            "verified": bool(H.att_verified[j]),
+        }
+        V = self.ver
+        if V is not None and j < len(V):
+            reason = VerifyReason(int(V.reason[j]))
+            tests = _tests(V.tests, [k for k in TestKind if k >= TestKind.VERIFY_INLIERS],
+                           a=j)
+            sides = iter(_SIDES)
+            for t in tests:  # one row per side, in the order boxloc.verify tests them
+                if t["kind"] == TestKind.VERIFY_BOUNDARY.name:
+                    t["side"] = next(sides, "")
+            failed = None
+            if reason in _REASON_TEST:
+                failed = next((t for t in tests if t["kind"] == _REASON_TEST[reason].name
+                               and not t["accepted"]), None)
+            d["verification"] = {
+                "accepted": bool(V.accepted[j]), "reason": reason.name,
+                "failed_test": failed,
+                "n_inside": int(V.n_inside[j]), "n_valid": int(V.n_valid[j]),
+                "n_inliers": int(V.n_inliers[j]), "n_front": int(V.n_front[j]),
+                "n_behind": int(V.n_behind[j]),
+                "inlier_fraction": float(V.inlier_fraction[j]),
+                "mean_distance_mm": _mm(V.mean_distance[j]),
+                "sigma_mean_mm": _mm(V.sigma_mean[j]),
+                "n_interior_edges": int(V.n_interior_edges[j]), "rms_mm": _mm(V.rms[j]),
+                "tests": tests,
+            }
+        if self.sel is not None:
+            k = np.flatnonzero(self.sel.candidates == j)
+            if k.size:
+                d["selection"] = self.selection(int(k[0]), brief=True)
+        return d
+
+    def surface_of_attempt(self, j: int) -> int | None:
+        if self.surf is None:
+            return None
+        k = np.flatnonzero(self.surf.attempt == j)
+        return int(k[0]) if k.size else None
+
+    def selection(self, k: int, *, brief: bool = False) -> dict[str, Any]:
+        """Candidate k of the MDL selection: its terms, its fate, its competitors."""
+        S = self.sel
+        j = int(S.candidates[k])
+        order = [int(x) for x in S.order]
+        d: dict[str, Any] = {
+            "candidate": k, "attempt": j, "hypothesis": int(S.hypothesis[k]),
+            "chosen": bool(S.chosen[k]), "reason": _name(SelectReason, S.reason[k]),
+            "q_ii": float(S.Q[k, k]), "n_points": int(S.n_points[k]),
+            "error": float(S.error[k]), "n_params": int(S.n_params[k]),
+            "order": order.index(k) if k in order else None, "n_chosen": len(order),
+        }
+        b = int(S.beaten_by[k])
+        if b >= 0:
+            d["beaten_by"] = {"candidate": b, "attempt": int(S.candidates[b]),
+                              "hypothesis": int(S.hypothesis[b]), "q_ii": float(S.Q[b, b]),
+                              "q_ij": float(S.Q[k, b]),
+                              "surface": self.surface_of_attempt(int(S.candidates[b]))}
+        if brief:
+            return d
+        d.update(k1=S.k1, k2=S.k2, k3=S.k3, objective=float(S.objective))
+        comp = []
+        for c in range(len(S)):
+            if c == k or S.Q[k, c] == 0.0:
+                continue  # q_ij is 0 exactly when the two share no inlier
+            comp.append({
+                "candidate": c, "attempt": int(S.candidates[c]),
+                "hypothesis": int(S.hypothesis[c]), "q_jj": float(S.Q[c, c]),
+                "q_ij": float(S.Q[k, c]), "chosen": bool(S.chosen[c]),
+                "reason": _name(SelectReason, S.reason[c]),
+                "beaten_by_this": int(S.beaten_by[c]) == k,
+                "surface": self.surface_of_attempt(int(S.candidates[c])),
+            })
+        comp.sort(key=lambda x: x["q_ij"])  # most negative: the largest overlap
+        d["n_overlapping"] = len(comp)
+        d["overlapping"] = comp[:MAX_ITEMS]
+        d["beat"] = [x["candidate"] for x in comp if x["beaten_by_this"]]
+        return d
+
+    def dimensions(self, h: int, j: int | None) -> dict[str, Any]:
+        """Where hypothesis h's dimensions (of attempt j, if any) came from."""
+        H = self.hyps
+        t = H.tests
+        diag_tests = _tests(t, [TestKind.COPLANAR, TestKind.PARALLEL,
+                                TestKind.FIRST_QUADRANT], a=h)
+        by_vertex: dict[int, list[dict[str, Any]]] = {}
+        for r in diag_tests:
+            by_vertex.setdefault(int(r["b"]), []).append(r)
+        diag = [{"vertex": v, "passed": all(r["accepted"] for r in rows), "tests": rows}
+                for v, rows in sorted(by_vertex.items())]
+        lo, hi = int(H.peaks_x_offsets[h]), int(H.peaks_x_offsets[h + 1])
+        px = H.peaks_x[lo:hi]
+        lo, hi = int(H.peaks_y_offsets[h]), int(H.peaks_y_offsets[h + 1])
+        py = H.peaks_y[lo:hi]
+        ax = H.acc_x[int(H.acc_x_offsets[h]):int(H.acc_x_offsets[h + 1])]
+        ay = H.acc_y[int(H.acc_y_offsets[h]):int(H.acc_y_offsets[h + 1])]
+        bin_m = float(H.acc_bin[h])
+
+        def votes(acc: np.ndarray, m: float) -> int:
+            if not acc.size or not math.isfinite(bin_m) or bin_m <= 0:
+                return 0
+            i = int(m / bin_m)
+            return int(acc[max(i - 1, 0):i + 2].sum())
+
+        support = _tests(t, [TestKind.EDGE_SUPPORT], a=h)
+        if j is not None and DimensionSource(int(H.att_source[j])) == DimensionSource.EDGES:
+            for r in support:  # the row that made this attempt
+                r["used"] = bool(np.isclose(r["statistic"], H.att_support[j])
+                                 and np.isclose(r["critical"], H.att_threshold[j]))
+        edges = {
+            "n_candidates": int(H.n_candidates[h]),
+            "point_on_plane": _tests(t, [TestKind.POINT_ON_PLANE], a=h),
+            "bin_mm": _mm(bin_m),
+            "peaks_x": [{"at_mm": _mm(m), "votes": votes(ax, m)} for m in px],
+            "peaks_y": [{"at_mm": _mm(m), "votes": votes(ay, m)} for m in py],
+            "edge_support": support,
+        }
+        d: dict[str, Any] = {
+            "source": "NONE" if j is None else DimensionSource(int(H.att_source[j])).name,
+            "diagonal_candidates": diag[:MAX_ITEMS], "n_diagonal_candidates": len(diag),
+            "edges": edges,
+        }
+        if j is not None and int(H.att_diagonal[j]) >= 0 and self.vertices is not None:
+            v = int(H.att_diagonal[j])
+            d["diagonal"] = {"vertex": v, "point": _vec(self.vertices.points[v]),
+                             "tests": by_vertex.get(v, [])}
+        return d
+
+    def hypothesis(self, h: int, focus: int | None = None) -> dict[str, Any]:
+        H = self.hyps
+        kept = int(H.attempt[h])
+        j = focus if focus is not None else (kept if kept >= 0 else None)
+        atts = self.attempts_of(h)
+        v = int(H.vertex[h])
+        return {
+            "id": h, "vertex": self.vertex(v) if self.vertices is not None else {"id": v},
+            "kept_attempt": kept if kept >= 0 else None,
+            "dimensions": self.dimensions(h, j),
+            "n_attempts": len(atts),
+            "attempts": [self.attempt(a) for a in atts],
+        }
+
+    def surface(self, k: int) -> dict[str, Any]:
+        S = self.surf
+        if S is None:
+            raise InputError(f"scan {self.scan.index} has no surfaces (its pipeline stopped: "
+                             f"{(self.rec.error or {}).get('message', 'incomplete')})")
+        if not 0 <= k < len(S):
+            raise InputError(f"scan {self.scan.index} has {len(S)} surface(s); no surface {k}"
+                             + (" (ids are 0-based)" if len(S) else ""))
+        h, j = int(S.hypothesis[k]), int(S.attempt[k])
+        kk = np.flatnonzero(self.sel.candidates == j)
+        return {
+            "surface": k, "pick_order": int(S.pick_order[k]), "center": _vec(S.centers[k]),
+            "normal": _vec(S.normals[k]), "width_mm": _mm(S.width[k]),
+            "length_mm": _mm(S.length[k]), "score": float(S.scores[k]),
+            "hypothesis": self.hypothesis(h, focus=j), "attempt": j,
+            "selection": self.selection(int(kk[0])) if kk.size else None,
+        }
+
+
+# --- a point where a surface was expected ----------------------------------------------------
+
+
+def _parse_at(at: Any) -> tuple[float, ...]:
+    if isinstance(at, str):
+        try:
+            vals = tuple(float(v) for v in at.replace(" ", "").split(","))
+        except ValueError:
+            raise InputError(f"--at must be X,Y (pixels) or X,Y,Z (metres), got {at!r}") from None
+    else:
+        try:
+            vals = tuple(float(v) for v in at)
+        except (TypeError, ValueError):
+            raise InputError(f"at must be (x, y) pixels or (x, y, z) metres, got {at!r}") from None
+    if len(vals) not in (2, 3) or not all(math.isfinite(v) for v in vals):
+        raise InputError(f"--at must be X,Y (pixels) or X,Y,Z (metres), got {at!r}")
+    return vals
+
+
+def _locate(ctx: _Ctx, at: tuple[float, ...]) -> dict[str, Any]:
+    """The pixel (row, col) and the 3D point of ``at``."""
+    scan = ctx.scan
+    H, W = scan.shape
+    P = scan.points
+    if len(at) == 2:
+        x, y = at
+        col, row = int(round(x)), int(round(y))
+        if not (0 <= row < H and 0 <= col < W):
+            raise InputError(f"pixel ({x:g}, {y:g}) is outside the {W}x{H} image")
+        out: dict[str, Any] = {"given": "pixel", "pixel": [col, row]}
+    else:
+        X = np.asarray(at, np.float64)
+        uv = scan.sensor.project(X[None])[0]
+        if not np.isfinite(uv).all() or not (-0.5 <= uv[0] < W - 0.5 and -0.5 <= uv[1] < H - 0.5):
+            raise InputError(f"point {tuple(at)} (sensor frame, metres) is not seen by the "
+                             "sensor")
+        col, row = int(round(uv[0])), int(round(uv[1]))
+        out = {"given": "point", "pixel": [col, row], "point": _vec(X)}
+    if np.isfinite(P[row, col]).all():
+        out["point"] = out.get("point") or _vec(P[row, col])
+        out["range_m"] = float(scan.range[row, col])
+        return out
+    # no return here: the nearest pixel with one, a few pixels away at most
+    r0, r1 = max(row - 3, 0), min(row + 4, H)
+    c0, c1 = max(col - 3, 0), min(col + 4, W)
+    rr, cc = np.nonzero(scan.valid[r0:r1, c0:c1])
+    out["no_return"] = True
+    if rr.size:
+        k = int(np.argmin((rr + r0 - row) ** 2 + (cc + c0 - col) ** 2))
+        out["used_pixel"] = [int(cc[k] + c0), int(rr[k] + r0)]
+        out["point"] = out.get("point") or _vec(P[rr[k] + r0, cc[k] + c0])
+    return out
+
+
+def _region(ctx: _Ctx, row: int, col: int, P0: np.ndarray) -> tuple[np.ndarray, int]:
+    """The face around (row, col): pixels connected to it that no edge crosses and that lie
+    on its plane, within the largest box diagonal. Mask (H, W) and its size.
+
+    The edge map alone does not close a face (its boundary has gaps wherever the edge
+    detector found nothing), so the region is also held to the plane fitted to the 5x5
+    pixels around the point: a neighbouring box top at another height, or the floor, is
+    not part of it.
+    """
+    scan, cfg = ctx.scan, ctx.config
+    H, W = scan.shape
+    P = scan.points.astype(np.float64)
+    r0, r1, c0, c1 = max(row - 2, 0), min(row + 3, H), max(col - 2, 0), min(col + 3, W)
+    win = P[r0:r1, c0:c1].reshape(-1, 3)
+    win = win[np.isfinite(win).all(axis=1)]
+    if win.shape[0] < 3:
+        return np.zeros((H, W), bool), 0
+    c = win.mean(axis=0)
+    n = np.linalg.eigh((win - c).T @ (win - c))[1][:, 0]
+    rng = float(np.linalg.norm(P0))
+    # on the plane: a few sigma of range noise, plus the flatness prior and one pixel's
+    # footprint of the plane's tilt (a coarse sensor's neighbours differ by that much)
+    tol = 4.0 * float(np.sqrt(cfg.noise.sigma_range(rng) ** 2 + cfg.flatness ** 2)) + \
+        rng * float(scan.sensor.pixel_angle)
+    with np.errstate(invalid="ignore"):
+        on_plane = np.abs((P - c) @ n) <= tol
+        near = np.linalg.norm(P - P0, axis=-1) <= math.sqrt(2.0) * cfg.max_edge
+    free = scan.valid & on_plane & near & (ctx.edges.labels == 0)
+    if not free[row, col]:  # on an edge or a hole: start from a free neighbour
+        for dr, dc in sorted(((a, b) for a in (-2, -1, 0, 1, 2) for b in (-2, -1, 0, 1, 2)),
+                             key=lambda t: t[0] ** 2 + t[1] ** 2):
+            r, cc = row + dr, col + dc
+            if 0 <= r < H and 0 <= cc < W and free[r, cc]:
+                row, col = r, cc
+                break
+        else:
+            return np.zeros((H, W), bool), 0
+    comp, _ = ndimage.label(free)
+    mask = comp == comp[row, col]
+    return mask, int(mask.sum())
+
+
+def _extent_mm(ctx: _Ctx, mask: np.ndarray) -> list[float | None]:
+    """Length and width of a region along its principal axes, mm (a region much larger
+    than one box means the face's own boundary was not found where it meets others)."""
+    Q = ctx.scan.points[mask].astype(np.float64)
+    Q = Q[np.isfinite(Q).all(axis=1)]
+    if Q.shape[0] < 3:
+        return [None, None]
+    c = Q.mean(axis=0)
+    axes = np.linalg.eigh((Q - c).T @ (Q - c))[1][:, ::-1][:, :2]
+    t = (Q - c) @ axes
+    ext = t.max(axis=0) - t.min(axis=0)
+    return [_mm(ext[0]), _mm(ext[1])]
+
+
+def _contains(ctx: _Ctx, P: np.ndarray) -> list[dict[str, Any]]:
+    """Attempts whose rectangle contains P (in its plane, within half the shortest box edge)."""
+    H = ctx.hyps
+    out = []
+    tol_w = 0.5 * ctx.config.min_edge  # a box top is never closer than this to another's
+    for j in range(H.n_attempts):
+        h = int(H.att_hypothesis[j])
+        D = P - H.origins[h]
+        u, v, w = float(D @ H.x_axis[h]), float(D @ H.y_axis[h]), float(D @ H.normals[h])
+        W_, L_ = float(H.att_width[j]), float(H.att_length[j])
+        if 0 <= u <= W_ and 0 <= v <= L_ and abs(w) <= tol_w:
+            out.append({"attempt": j, "hypothesis": h, "u_mm": _mm(u), "v_mm": _mm(v),
+                        "off_plane_mm": _mm(w)})
+    return out
+
+
+def explain_at(ctx: _Ctx, at: Any) -> dict[str, Any]:
+    """Follow the chain at a point where a surface was expected, up to where it stopped."""
+    where = _locate(ctx, _parse_at(at))
+    out: dict[str, Any] = {"where": where}
+    if where.get("no_return") and "used_pixel" not in where:
+        out.update(stopped_at="scan", why="the sensor has no return at this pixel (nor within "
+                   "3 pixels): there is nothing to localize here")
+        return out
+    if ctx.edges is None:
+        out.update(stopped_at="edges", why="the pipeline stopped before the edge stage")
+        return out
+    P = np.asarray(where["point"], np.float64)
+    col, row = where.get("used_pixel", where["pixel"])
+    cfg = ctx.config
+    mask, n_region = _region(ctx, row, col, P)
+    # the edge points bounding that region (one pixel around it), near enough to matter
+    ring = ndimage.binary_dilation(mask, iterations=2) & ~mask
+    E = ctx.edges
+    on_ring = ring[E.pixels[:, 0], E.pixels[:, 1]] if len(E) else np.zeros(0, bool)
+    near = np.linalg.norm(E.points - P, axis=1) <= math.sqrt(2) * cfg.max_edge if len(E) \
+        else np.zeros(0, bool)
+    bound = np.flatnonzero(on_ring & near)
+    kinds = {EdgeKind(int(k)).name: int(n) for k, n in
+             zip(*np.unique(E.kinds[bound], return_counts=True))} if bound.size else {}
+    out["region"] = {"n_pixels": n_region, "n_boundary_edges": int(bound.size),
+                     "boundary_edge_kinds": kinds, "extent_mm": _extent_mm(ctx, mask)}
+    # everything whose rectangle contains the point, whatever generated it
+    contain = _contains(ctx, P) if ctx.hyps is not None else []
+    out["containing_attempts"] = contain[:MAX_ITEMS]
+    out["n_containing_attempts"] = len(contain)
+    chosen = [c for c in contain if ctx.surface_of_attempt(c["attempt"]) is not None]
+    if chosen:
+        k = ctx.surface_of_attempt(chosen[0]["attempt"])
+        assert k is not None
+        out.update(stopped_at="chosen", surface=k,
+                   why=f"surface #{k} (pick {int(ctx.surf.pick_order[k])}) contains this point",
+                   explanation=ctx.surface(k))
+        return out
+    verified = [c for c in contain if bool(ctx.hyps.att_verified[c["attempt"]])]
+    if verified:
+        j = verified[0]["attempt"]
+        a = ctx.attempt(j)
+        s = a.get("selection", {})
+        why = (f"hypothesis {a['hypothesis']} (attempt {j}, {a['width_mm']} x "
+               f"{a['length_mm']} mm) was verified but lost the MDL selection: {s.get('reason')}"
+               f" (q_ii = {s.get('q_ii', float('nan')):.1f})")
+        if "beaten_by" in s:
+            b = s["beaten_by"]
+            sf = f", surface #{b['surface']}" if b.get("surface") is not None else ""
+            why += (f", to attempt {b['attempt']} (hypothesis {b['hypothesis']}{sf}, "
+                    f"q_jj = {b['q_ii']:.1f}, q_ij = {b['q_ij']:.1f})")
+        out.update(stopped_at="selection", why=why,
+                   attempts=[ctx.attempt(c["attempt"]) for c in verified[:MAX_ITEMS]])
+        return out
+    if contain:
+        parts = []
+        for c in contain[:4]:
+            a = ctx.attempt(c["attempt"])
+            v = a.get("verification", {})
+            ft = v.get("failed_test")
+            parts.append(f"attempt {a['id']} of hypothesis {a['hypothesis']} "
+                         f"({a['source']}, {a['width_mm']} x {a['length_mm']} mm): "
+                         f"{v.get('reason')}" + (f" ({_test_text(ft)})" if ft else ""))
+        out.update(stopped_at="verification",
+                   why="the rectangles that contain this point failed verification: "
+                       + "; ".join(parts),
+                   attempts=[ctx.attempt(c["attempt"]) for c in contain[:MAX_ITEMS]])
+        return out
+    # nothing contains the point: walk forward from the edges
+    if not bound.size:
+        out.update(stopped_at="edges", why=(
+            f"no edge point bounds the region around this point ({n_region} pixels without "
+            "an edge): its boundary was not detected, so no line, vertex or rectangle can "
+            "come from it"))
+        return out
+    L = ctx.lines
+    bset = set(int(i) for i in bound)
+    line_ids = []
+    if L is not None:
+        for i in range(len(L)):
+            shared = len(bset.intersection(int(s) for s in L.support_of(i)))
+            if shared:
+                line_ids.append((i, shared))
+    line_ids.sort(key=lambda t: -t[1])
+    out["lines"] = [{**ctx.line(i), "boundary_support": n} for i, n in line_ids[:MAX_ITEMS]]
+    if not line_ids:
+        n_trials = int(L.n_trials) if L is not None else 0
+        out.update(stopped_at="lines", why=(
+            f"{bound.size} edge point(s) bound the region ({_kinds_text(kinds)}), but no line "
+            f"was fitted to them in {n_trials} Hough trial(s): too few collinear points, or "
+            "a line shorter than half of min_edge"))
+        return out
+    lid = [i for i, _ in line_ids]
+    V = ctx.vertices
+    vids = [] if V is None else [int(v) for v in range(len(V))
+                                 if int(V.line_a[v]) in lid or int(V.line_b[v]) in lid]
+    if not vids:
+        pair_tests = []
+        if V is not None:
+            for x in range(len(lid)):
+                for y in range(x + 1, len(lid)):
+                    rows = _tests(V.tests, [TestKind.LINES_MEET, TestKind.LINES_ORTHOGONAL,
+                                            TestKind.AT_SEGMENT_ENDS], pair=(lid[x], lid[y]))
+                    failed = [r for r in rows if not r["accepted"]]
+                    pair_tests.append({"lines": [lid[x], lid[y]], "tests": rows,
+                                       "failed": [r["kind"] for r in failed]})
+        # the pair that came closest first: fewest failed tests, then the smallest excess
+        def closeness(p: dict[str, Any]) -> tuple[int, float]:
+            ratios = [r["statistic"] / r["critical"] for r in p["tests"]
+                      if not r["accepted"] and r["critical"]]
+            return len(p["failed"]), min(ratios, default=math.inf)
+
+        pair_tests.sort(key=closeness)
+        out["line_pairs"] = pair_tests[:MAX_ITEMS]
+        first = next((p for p in pair_tests if p["failed"]), None)
+        why = (f"the bounding lines {', '.join(f'L{i}' for i in lid[:6])} form no vertex")
+        if len(lid) == 1:
+            why += ": only one line bounds this region, a vertex needs two"
+        elif first is not None:
+            r = next(t for t in first["tests"] if not t["accepted"])
+            why += (f": the closest pair, L{first['lines'][0]} and L{first['lines'][1]}, "
+                    f"failed {_test_text(r)}")
+        out.update(stopped_at="vertices", why=why)
+        return out
+    out["vertices"] = [ctx.vertex(v) for v in vids[:MAX_ITEMS]]
+    hyps = [int(h) for h in np.flatnonzero(np.isin(ctx.hyps.vertex, vids))] \
+        if ctx.hyps is not None else []
+    out["hypotheses"] = [ctx.hypothesis(h) for h in hyps[:MAX_ITEMS]]
+    parts = []
+    for hd in out["hypotheses"][:4]:
+        dims = hd["dimensions"]
+        if hd["n_attempts"] == 0:
+            n_diag = dims["n_diagonal_candidates"]
+            sup = dims["edges"]["edge_support"]
+            best = max(sup, key=lambda r: r["statistic"] - r["critical"], default=None)
+            txt = (f"hypothesis {hd['id']} (vertex V{hd['vertex']['id']}): no dimensions: "
+                   f"{n_diag} diagonal vertex candidate(s) "
+                   f"({sum(1 for c in dims['diagonal_candidates'] if c['passed'])} passed), "
+                   f"|P_c| = {dims['edges']['n_candidates']} coplanar edge points")
+            if best is not None:
+                txt += f", best {_test_text(best)}"
+            parts.append(txt)
+        else:
+            rects = ", ".join(f"{a['width_mm']} x {a['length_mm']} mm" for a in
+                              hd["attempts"][:3])
+            parts.append(f"hypothesis {hd['id']} (vertex V{hd['vertex']['id']}): its "
+                         f"rectangles ({rects}) do not contain this point")
+    out.update(stopped_at="dimensions", why="vertices of the bounding lines gave no rectangle "
+               "over this point: " + "; ".join(parts))
+    return out
+
+
+def _kinds_text(kinds: dict[str, int]) -> str:
+    return ", ".join(f"{n} {k.lower()}" for k, n in kinds.items()) or "none"
+
+
+# --- the entry point -------------------------------------------------------------------------
+
+
+def explain(log: Any, scan: int, surface: int | None = None, at: Any = None,
+            failed_picks: bool = False) -> dict[str, Any]:
+    """The chain of decisions for a surface of a recorded scan (see the module notes).
+
+    Parameters
+    ----------
+    log : path or recorder.log.Log
+        A boxloc log (a truncated one is read up to its last good record).
+    scan : int
+        The scan index.
+    surface : int, optional
+        A surface id (its row in the scan's surfaces; 0 = first picked).
+    at : str or sequence, optional
+        ``"X,Y"`` / ``(x, y)`` pixels (column, row), or ``"X,Y,Z"`` / ``(x, y, z)`` metres
+        in the sensor frame: a place where a surface was expected.
+    failed_picks : bool
+        Explain every surface of the scan whose (latest) pick outcome is a failure.
+
+    With none of ``surface``, ``at``, ``failed_picks``: every surface of the scan.
+
+    Returns
+    -------
+    dict
+        JSON-ready (NaN as None).
+
+    Raises
+    ------
+    InputError
+        More than one of surface / at / failed_picks, no such surface, a bad ``at``.
+    LogError
+        The log cannot be read or has no such scan.
+    """
+    from recorder.log import Log, open_log
+
+    modes = sum(x for x in (surface is not None, at is not None, bool(failed_picks)))
+    if modes > 1:
+        raise InputError("give only one of --surface, --at, --failed-picks")
+    lg = log if isinstance(log, Log) else open_log(os.fspath(log), allow_truncated=True)
+    rec = lg.scan(int(scan))
+    ctx = _Ctx(str(lg.path), rec, lg.config or Config())
+    S = ctx.surf
+    out: dict[str, Any] = {
+        "log": str(lg.path), "scan": int(scan), "alpha": ctx.config.alpha,
+        "n_surfaces": None if S is None else len(S),
+        "pipeline_error": rec.error,
+    }
+    if failed_picks:
+        out["mode"] = "failed_picks"
+        outcomes = [o for (si, _), o in sorted(lg.latest_outcomes().items())
+                    if si == int(scan) and not o.ok]
+        out["surfaces"] = []
+        for o in outcomes:
+            e = ctx.surface(int(o.surface_id))
+            e["pick"] = {"ok": False, "reason": o.reason, "source": o.source}
+            out["surfaces"].append(e)
+    elif at is not None:
+        out["mode"] = "at"
+        out["at"] = explain_at(ctx, at)
+    else:
+        out["mode"] = "surface"
+        ids = [int(surface)] if surface is not None else list(range(len(S) if S else 0))
+        out["surfaces"] = [ctx.surface(k) for k in ids]
+    return _jsonable(out)
+
+
+# --- text ------------------------------------------------------------------------------------
+
+
+def _num(v: Any) -> str:
+    if v is None:
+        return "n/a"
+    f = float(v)
+    if not math.isfinite(f):
+        return "n/a"
+    if f == int(f) and abs(f) < 1e9:
+        return str(int(f))
+    return f"{f:.4g}"
+
+
+def _test_text(t: dict[str, Any] | None) -> str:
+    """``KIND a,b: T = s <= c (dof, p): accepted``."""
+    if not t:
+        return ""
+    kind = TestKind[t["kind"]]
+    sense = _SENSE.get(kind, "<=")
+    rel = sense if t["accepted"] else _NEGATE[sense]
+    extra = []
+    if t.get("dof"):
+        extra.append(f"chi2 {_num(t['dof'])} dof")
+    p = t.get("p_value")
+    if p is not None and math.isfinite(float(p)):
+        extra.append(f"p = {_num(p)}")
+    tail = f" ({', '.join(extra)})" if extra else ""
+    verdict = "accepted" if t["accepted"] else "REJECTED"
+    side = f" [{t['side']}]" if t.get("side") else ""
+    return (f"{t['kind']} {t['a']},{t['b']}{side}: {_num(t['statistic'])} {rel} "
+            f"{_num(t['critical'])}{tail}: {verdict}")
+
+
+def _p(v: list[Any] | None) -> str:
+    if not v:
+        return "n/a"
+    return "(" + ", ".join("n/a" if x is None else f"{x:+.3f}" for x in v) + ") m"
+
+
+def _line_text(ln: dict[str, Any]) -> str:
+    return (f"L{ln['id']}: {ln['length_mm']} mm, {ln['kind'].lower()}, support "
+            f"{ln['n_support']} edge points, Hough trial {ln['trial']}, votes "
+            f"{_num(ln['direction_votes'])} (direction) / {_num(ln['position_votes'])} "
+            "(position)")
+
+
+def _vertex_lines(v: dict[str, Any], ind: str) -> list[str]:
+    out = [f"{ind}generating vertex V{v['id']} at {_p(v.get('point'))}, normal "
+           f"{_p(v.get('normal'))[:-2]}"]
+    for ln in v.get("lines", []):
+        out.append(f"{ind}  line {_line_text(ln)}")
+        out += [f"{ind}    {_test_text(t)}" for t in ln["tests"]]
+    if v.get("tests"):
+        out.append(f"{ind}  vertex tests:")
+        out += [f"{ind}    {_test_text(t)}" for t in v["tests"]]
+    return out
+
+
+def _dims_lines(d: dict[str, Any], ind: str) -> list[str]:
+    out = [f"{ind}dimensions from {d['source']}"]
+    if "diagonal" in d:
+        g = d["diagonal"]
+        out.append(f"{ind}  diagonal vertex V{g['vertex']} at {_p(g['point'])}")
+        out += [f"{ind}    {_test_text(t)}" for t in g["tests"]]
+    e = d["edges"]
+    if d["source"] == "EDGES" or d["source"] == "NONE":
+        if d["source"] == "NONE":
+            out.append(f"{ind}  {d['n_diagonal_candidates']} diagonal vertex candidate(s)")
+            for c in d["diagonal_candidates"][:4]:
+                failed = [t for t in c["tests"] if not t["accepted"]]
+                out.append(f"{ind}    V{c['vertex']}: " + ("passed" if c["passed"] else
+                                                           "; ".join(_test_text(t) for t in
+                                                                     failed)))
+        out.append(f"{ind}  |P_c| = {e['n_candidates']} edge points coplanar and in the first "
+                   f"quadrant; accumulator bin {e['bin_mm']} mm")
+        px = ", ".join(f"{p['at_mm']} mm ({p['votes']} votes)" for p in e["peaks_x"]) or "none"
+        py = ", ".join(f"{p['at_mm']} mm ({p['votes']} votes)" for p in e["peaks_y"]) or "none"
+        out.append(f"{ind}  A_x peaks (width): {px}")
+        out.append(f"{ind}  A_y peaks (length): {py}")
+        for t in e["edge_support"][:MAX_ITEMS]:
+            mark = "  <- used" if t.get("used") else ""
+            out.append(f"{ind}    |P_f| vs p: {_test_text(t)}{mark}")
+    return out
+
+
+def _attempt_lines(a: dict[str, Any], ind: str, *, focus: int | None = None) -> list[str]:
+    v = a.get("verification", {})
+    mark = "  <- this surface" if focus == a["id"] else ""
+    head = (f"{ind}attempt {a['id']}: {a['source'].lower()}"
+            + (f" (diagonal V{a['diagonal']})" if a["diagonal"] >= 0 else "")
+            + f", {a['width_mm']} x {a['length_mm']} mm -> {v.get('reason', 'not verified')}"
+            + mark)
+    out = [head]
+    if v and v["n_inside"]:
+        out.append(f"{ind}  {v['n_inside']} pixels inside, {v['n_valid']} with a return, "
+                   f"{v['n_inliers']} on the plane ({v['inlier_fraction']:.2f}), "
+                   f"{v['n_front']} in front, {v['n_behind']} behind; mean distance "
+                   f"{_num(v['mean_distance_mm'])} mm, rms {_num(v['rms_mm'])} mm, "
+                   f"{v['n_interior_edges']} interior edge points")
+    if v:
+        out += [f"{ind}  {_test_text(t)}" for t in v["tests"]]
+        if v.get("failed_test"):
+            out.append(f"{ind}  failed: {_test_text(v['failed_test'])}")
+    s = a.get("selection")
+    if s:
+        out.append(f"{ind}  MDL: {s['reason'].lower()}, q_ii = {s['q_ii']:.1f}")
+    return out
+
+
+def _selection_lines(s: dict[str, Any] | None, ind: str) -> list[str]:
+    if not s:
+        return [f"{ind}not in the MDL selection"]
+    order = s["order"]
+    pos = f", added {order + 1} of {s['n_chosen']}" if order is not None else ""
+    out = [f"{ind}MDL selection: {s['reason'].lower()}, q_ii = {s['q_ii']:.1f} = "
+           f"K1 n - K2 xi - K3 N with n = {s['n_points']} points, xi = {s['error']:.1f}, "
+           f"N = {s['n_params']} (K = {_num(s['k1'])}, {_num(s['k2'])}, {_num(s['k3'])})"
+           f"{pos}; objective {s['objective']:.1f}"]
+    if s["n_overlapping"]:
+        out.append(f"{ind}  overlapping candidates ({s['n_overlapping']}):")
+        for c in s["overlapping"]:
+            what = "beaten by this one" if c["beaten_by_this"] else c["reason"].lower()
+            sf = f", surface #{c['surface']}" if c["surface"] is not None else ""
+            out.append(f"{ind}    attempt {c['attempt']} (hypothesis {c['hypothesis']}{sf}): "
+                       f"q_jj = {c['q_jj']:.1f}, q_ij = {c['q_ij']:.1f}: {what}")
+    else:
+        out.append(f"{ind}  it overlapped no other candidate")
+    return out
+
+
+def _surface_lines(e: dict[str, Any], ind: str = "") -> list[str]:
+    out = [f"{ind}surface #{e['surface']} (pick {e['pick_order']}): centre {_p(e['center'])}, "
+           f"{e['width_mm']} x {e['length_mm']} mm, normal {_p(e['normal'])[:-2]}, score "
+           f"{e['score']:.3f}"]
+    if "pick" in e:
+        out.append(f"{ind}  pick FAILED" + (f": {e['pick']['reason']}" if e["pick"]["reason"]
+                                            else ""))
+    out += _selection_lines(e.get("selection"), ind + "  ")
+    h = e["hypothesis"]
+    out.append(f"{ind}  hypothesis {h['id']}")
+    out += _vertex_lines(h["vertex"], ind + "    ")
+    out += _dims_lines(h["dimensions"], ind + "    ")
+    out.append(f"{ind}    attempts of hypothesis {h['id']} ({h['n_attempts']}), in the order "
+               "tried:")
+    for a in h["attempts"]:
+        out += _attempt_lines(a, ind + "      ", focus=e["attempt"])
+    return out
+
+
+def format_explanation(d: dict[str, Any]) -> str:
+    """The explanation as indented plain text for a terminal."""
+    lines = [f"scan {d['scan']} of {d['log']} (alpha {d['alpha']}): "
+             f"{_num(d['n_surfaces'])} surface(s)"]
+    if d.get("pipeline_error"):
+        e = d["pipeline_error"]
+        lines.append(f"the pipeline failed on this scan: {e.get('error_type')} in "
+                     f"{e.get('stage')}: {e.get('message')}")
+    if d["mode"] in ("surface", "failed_picks"):
+        if not d["surfaces"]:
+            lines.append("no failed pick recorded for this scan" if d["mode"] == "failed_picks"
+                         else "no surface to explain")
+        for e in d["surfaces"]:
+            lines.append("")
+            lines += _surface_lines(e)
+        return "\n".join(lines) + "\n"
+    a = d["at"]
+    w = a["where"]
+    loc = f"pixel (x {w['pixel'][0]}, y {w['pixel'][1]})"
+    if w.get("point"):
+        loc += f", point {_p(w['point'])}"
+    lines.append(f"at {loc}")
+    if w.get("no_return"):
+        lines.append("  no return at that pixel" + (
+            f"; using pixel {w['used_pixel']}" if "used_pixel" in w else ""))
+    lines.append(f"the chain stopped at: {a['stopped_at'].upper()}")
+    lines.append(f"  {a['why']}")
+    if "region" in a:
+        r = a["region"]
+        ext = r.get("extent_mm") or [None, None]
+        size = (f" ({_num(ext[0])} x {_num(ext[1])} mm)" if ext[0] is not None else "")
+        lines.append(f"  region on the point's plane that no edge crosses: {r['n_pixels']} "
+                     f"pixels{size}, bounded by {r['n_boundary_edges']} edge points "
+                     f"({_kinds_text(r['boundary_edge_kinds'])})")
+    for ln in a.get("lines", [])[:6]:
+        lines.append(f"  bounding line {_line_text(ln)}; {ln['boundary_support']} of its "
+                     "points bound the region")
+    for p in a.get("line_pairs", [])[:6]:
+        lines.append(f"  pair L{p['lines'][0]}, L{p['lines'][1]}:")
+        lines += [f"    {_test_text(t)}" for t in p["tests"]]
+    for v in a.get("vertices", [])[:4] if a["stopped_at"] == "dimensions" else []:
+        lines += _vertex_lines(v, "  ")
+    for h in a.get("hypotheses", [])[:4] if a["stopped_at"] == "dimensions" else []:
+        lines.append(f"  hypothesis {h['id']} of vertex V{h['vertex']['id']}:")
+        lines += _dims_lines(h["dimensions"], "    ")
+        for at in h["attempts"][:4]:
+            lines += _attempt_lines(at, "    ")
+    for at in a.get("attempts", [])[:6]:
+        lines += _attempt_lines(at, "  ")
+    if a.get("explanation"):
+        lines.append("")
+        lines += _surface_lines(a["explanation"])
+    return "\n".join(lines) + "\n"

@@ -1,0 +1,581 @@
+"""Replay one log: re-run the pipeline on the scans it stores and record a new log.
+
+The replay unit is a plain function over one log, :func:`replay_log`, with picklable
+arguments and result, so any executor (in-process, local processes, a Dask cluster) runs it
+(after openpilot's ``process_replay``). It reads only the *inputs* of the original run (the
+sensor model, the scan info and the range image of each scan, never a product), runs
+:func:`boxloc.pipeline.find_graspable_surfaces` with the log's recorded config (or a given
+one) plus overrides, and records everything with :class:`recorder.mcap_sink.McapRecorder`.
+
+Guarantees
+----------
+- The input log is only ever opened for reading.
+- An existing file is never overwritten: the new log is written under a temporary name in
+  the output directory and published by a hard link (which fails if the name is taken).
+  A retried task (a lost worker) therefore never sees a half-written file of its own.
+- Output log times derive from the input scans' capture times, never from the clock
+  (:func:`recorder.channels.scan_log_time`), so the same replay gives the same products
+  and the same times.
+- A stage that raises on one scan becomes that scan's recorded result (``/boxloc/error``)
+  and its :class:`ScanStatus`; the other scans are still replayed.
+- A log that cannot be read (not MCAP, truncated, damaged, unknown schema) becomes the
+  outcome's ``error``, naming the log; nothing is published for it. A log with no scans
+  is skipped with a warning.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import glob
+import hashlib
+import json
+import os
+import secrets
+import time
+import traceback
+from collections.abc import Iterable, Iterator, Sequence
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+from boxloc.config import Config
+from boxloc.errors import BoxlocError, InputError, LogError
+
+if TYPE_CHECKING:
+    from boxloc.scan import Scan
+    from recorder.log import Log
+    from replay.versions import Version
+
+#: Metadata record of a replayed log: what it was made from and how.
+REPLAY_METADATA = "boxloc.replay"
+#: Suffix of the temporary files new logs are written to before they are published.
+PARTIAL_SUFFIX = ".partial.mcap"
+
+
+# --- outcome ---------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class ScanStatus:
+    """What the replay of one scan gave.
+
+    Attributes
+    ----------
+    index : int
+        The scan's index in its log.
+    capture_time_ns : int
+        Its capture time, integer nanoseconds (0 when unknown).
+    ok : bool
+        The pipeline finished.
+    n_surfaces : int
+        Graspable surfaces found (0 when not ``ok``).
+    error : str or None
+        ``"<ExceptionType>: <message> (<file>:<line>)"`` when the pipeline raised (the log
+        records the stage).
+    """
+
+    index: int
+    capture_time_ns: int
+    ok: bool
+    n_surfaces: int = 0
+    error: str | None = None
+
+
+@dataclass(frozen=True)
+class ReplayOutcome:
+    """The result of :func:`replay_log` on one log (plain data: picklable, JSON-able).
+
+    Attributes
+    ----------
+    input : str
+        The log replayed.
+    output : str or None
+        The new log, or None if nothing was published (error, or no scans).
+    n_scans : int
+        Scans replayed.
+    scans : tuple of ScanStatus
+        One per scan, in log order.
+    error : str or None
+        Why the log could not be replayed (one line, naming the log).
+    warnings : tuple of str
+        Things worth saying that are not errors (e.g. a log with no scans).
+    version : dict
+        What ran: ``kind`` (``current`` or ``git``), ``boxloc_version``, ``git_commit``,
+        ``git_dirty``, and for a revision ``ref`` and ``mode``.
+    config_hash : str or None
+        Hash of the config the scans were run with.
+    seconds : float
+        Wall-clock duration (informational; never part of a result).
+    """
+
+    input: str
+    output: str | None = None
+    n_scans: int = 0
+    scans: tuple[ScanStatus, ...] = ()
+    error: str | None = None
+    warnings: tuple[str, ...] = ()
+    version: dict[str, Any] = field(default_factory=dict)
+    config_hash: str | None = None
+    seconds: float = 0.0
+
+    @property
+    def status(self) -> str:
+        """``"error"`` (unreadable log), ``"skipped"`` (no scans) or ``"ok"``."""
+        if self.error is not None:
+            return "error"
+        if self.output is None:
+            return "skipped"
+        return "ok"
+
+    @property
+    def n_failed(self) -> int:
+        """Scans whose pipeline raised (recorded as such in the new log)."""
+        return sum(not s.ok for s in self.scans)
+
+    def to_dict(self) -> dict[str, Any]:
+        d = asdict(self)
+        d["scans"] = [asdict(s) for s in self.scans]
+        d["warnings"] = list(self.warnings)
+        return d
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any]) -> ReplayOutcome:
+        d = dict(d)
+        d["scans"] = tuple(ScanStatus(**s) for s in d.get("scans", ()))
+        d["warnings"] = tuple(d.get("warnings", ()))
+        return cls(**d)
+
+
+# --- inputs ----------------------------------------------------------------------------------
+
+
+def collect_logs(args: Iterable[str | os.PathLike[str]]) -> list[Path]:
+    """The logs named by ``args``: files as given, directories' ``*.mcap`` (sorted, not
+    recursive; temporary ``*.partial.mcap`` files are left out).
+
+    Raises
+    ------
+    InputError
+        A path that does not exist, or a directory without logs.
+    """
+    out: list[Path] = []
+    for a in args:
+        p = Path(a)
+        if p.is_dir():
+            found = sorted(q for q in p.glob("*.mcap")
+                           if q.is_file() and not q.name.endswith(PARTIAL_SUFFIX))
+            if not found:
+                raise InputError(f"no .mcap logs in directory {p}")
+            out.extend(found)
+        elif p.exists():
+            out.append(p)
+        else:
+            raise InputError(f"log not found: {p}")
+    if not out:
+        raise InputError("no logs given")
+    seen: set[Path] = set()
+    unique = []
+    for p in out:  # the same log named twice is replayed once
+        r = p.resolve()
+        if r not in seen:
+            seen.add(r)
+            unique.append(p)
+    return unique
+
+
+def plan_outputs(paths: Sequence[Path], out_dir: Path) -> list[str]:
+    """One output file name per input log: ``<stem>.mcap``, ``<stem>-1.mcap``, ... when two
+    inputs share a stem.
+
+    Raises
+    ------
+    InputError
+        If an output file already exists (it is never overwritten) or would be an input.
+    """
+    names: list[str] = []
+    taken: set[str] = set()
+    inputs = {Path(p).resolve() for p in paths}
+    for p in paths:
+        stem, k = Path(p).stem, 0
+        name = f"{stem}.mcap"
+        while name in taken:
+            k += 1
+            name = f"{stem}-{k}.mcap"
+        taken.add(name)
+        target = Path(out_dir) / name
+        if target.resolve() in inputs:
+            raise InputError(f"--out {out_dir} would write {target} over an input log; "
+                             "choose another output directory")
+        if target.exists():
+            raise InputError(f"{target} exists; refusing to overwrite it (choose another --out)")
+        names.append(name)
+    return names
+
+
+def check_schema(log: Log) -> None:
+    """Refuse a log whose schema major version this code does not read, with a clear message.
+
+    Raises
+    ------
+    LogError
+        Naming the log, the version found and the version read.
+    """
+    from recorder import channels as C
+    from recorder import encode as E
+
+    run = log.run
+    found = run.get("schema_version")
+    if found is not None:
+        major = found.split(".", 1)[0]
+        if major != str(E.SCHEMA_MAJOR):
+            raise LogError(
+                f"{log.path} was written with log schema version {found}; this boxloc reads "
+                f"version {E.SCHEMA_MAJOR}.x only (replay it with the boxloc version that "
+                f"wrote it: --rev {run.get('git_commit', 'COMMIT')})")
+    layout = run.get("layout_version")
+    if layout is not None and layout != C.LAYOUT_VERSION:
+        raise LogError(f"{log.path} has log layout version {layout}; this boxloc reads layout "
+                       f"version {C.LAYOUT_VERSION} only")
+
+
+def iter_input_scans(log: Log) -> Iterator[Scan]:
+    """The scans stored in ``log``, bit for bit, reading only the inputs of the run.
+
+    Only the ``/scan/sensor``, ``/scan/info`` and ``/scan/range`` records are decoded: the
+    recorded products are never read (a replay must not depend on them).
+
+    Raises
+    ------
+    LogError
+        A malformed record, a scan without its range or sensor model, or (at the end of
+        the iteration) damage found in the log.
+    """
+    from recorder import channels as C
+    from recorder import encode as E
+
+    lim = log.limits
+    sensors: dict[str, Any] = {}
+    info: Any = None
+    problem: LogError | None = None
+    for m in log.messages({C.SCAN_SENSOR, C.SCAN_INFO, C.SCAN_RANGE}):
+        if problem is not None:
+            # Read on: if the log is damaged (a skipped chunk explains the problem), the
+            # reader says so at the end, which is the better message.
+            continue
+        try:
+            if m.topic == C.SCAN_INFO:
+                if info is not None:
+                    raise LogError(f"{log.path}: scan {info.index} has no range image")
+                info = E.decode_scan_info(m.data, lim)
+                continue
+            scan = _take(m, sensors, info, log, lim)
+        except LogError as e:
+            problem = e
+            continue
+        if scan is not None:
+            info = None
+            yield scan
+    if problem is not None:
+        raise problem
+    if info is not None:
+        raise LogError(f"{log.path}: scan {info.index} has no range image")
+
+
+def _take(m: Any, sensors: dict[str, Any], info: Any, log: Log, lim: Any) -> Scan | None:
+    """Take a sensor model (None) or a range image, which completes a scan (the scan)."""
+    from recorder import channels as C
+    from recorder import encode as E
+
+    if m.topic == C.SCAN_SENSOR:
+        digest, model = E.decode_sensor(m.data, lim)
+        sensors[digest] = model
+        return None
+    if info is None:
+        raise LogError(f"{log.path}: a range image outside any scan")
+    if m.sequence != info.index & 0xFFFFFFFF:
+        raise LogError(f"{log.path}: range image of sequence {m.sequence} inside scan "
+                       f"{info.index}")
+    sensor = sensors.get(info.sensor_hash)
+    if sensor is None:
+        raise LogError(f"{log.path}: scan {info.index} uses sensor model "
+                       f"{info.sensor_hash}, which is not in the log")
+    return E.build_scan(info, E.decode_range(m.data, lim), sensor)
+
+
+def resolve_config(log: Log, config: Config | None,
+                   overrides: Sequence[str] | dict[str, Any] = ()) -> tuple[Config, str]:
+    """The config to replay ``log`` with and where it came from.
+
+    ``config`` when given, else the log's recorded config (``Log.config``), else the
+    defaults; then ``overrides`` (``key=value`` strings or a dict).
+    """
+    if config is not None:
+        cfg, source = config, "given"
+    else:
+        recorded = log.config
+        cfg, source = (recorded, "log") if recorded is not None else (Config(), "default")
+    if overrides:
+        cfg = cfg.with_overrides(list(overrides) if not isinstance(overrides, dict)
+                                 else overrides)
+    return cfg, source
+
+
+# --- the replay ------------------------------------------------------------------------------
+
+
+def replay_log(
+    path: str | os.PathLike[str],
+    *,
+    out_dir: str | os.PathLike[str],
+    config: Config | None = None,
+    overrides: Sequence[str] = (),
+    version: Version | None = None,
+    out_name: str | None = None,
+) -> ReplayOutcome:
+    """Re-run the pipeline on every scan stored in one log and record a new log.
+
+    Parameters
+    ----------
+    path : path
+        The input log (``.mcap``); opened read-only.
+    out_dir : path
+        Directory of the new log (created if needed).
+    config : Config, optional
+        Run with this config instead of the one recorded in the log.
+    overrides : sequence of str
+        ``key=value`` config overrides applied on top (``alpha=0.05``, ``noise.k2=0.001``).
+    version : Version, optional
+        :data:`replay.versions.CURRENT` (default: this code, in this process), a
+        :class:`replay.versions.GitRevision` (prepared for this call and removed after)
+        or a prepared :class:`replay.versions.Worktree` (run in its subprocess).
+    out_name : str, optional
+        File name of the new log; default ``<input stem>.mcap``.
+
+    Returns
+    -------
+    ReplayOutcome
+        Never raises for a bad log or a failing scan: those are the outcome's ``error`` and
+        per-scan statuses.
+
+    Raises
+    ------
+    InputError
+        Only for a bad ``config``/``overrides`` with a version that cannot report it
+        per log (never for the current code: there it is the outcome's error).
+    """
+    from replay.versions import CURRENT, CurrentVersion
+
+    v = CURRENT if version is None else version
+    if not isinstance(v, CurrentVersion):
+        return v.replay(Path(path), out_dir=Path(out_dir), config=config,
+                        overrides=tuple(overrides), out_name=out_name)
+    return _replay_here(Path(path), Path(out_dir), config, tuple(overrides), out_name)
+
+
+def _one_line(e: BaseException) -> str:
+    msg = str(e).splitlines()[0] if str(e) else ""
+    return msg or type(e).__name__
+
+
+def _named(path: Path, msg: str) -> str:
+    """A log error message that names the log (once)."""
+    return msg if str(path) in msg else f"{path}: {msg}"
+
+
+def _diagnose(path: Path, e: LogError) -> str:
+    """The one-line message for a log that does not open: says "truncated" when it is."""
+    from recorder.log import open_log
+
+    try:
+        partial = open_log(path, allow_truncated=True)
+    except Exception:  # noqa: BLE001 - not even that: the original message says why
+        return _named(path, _one_line(e))
+    if partial.complete:
+        return _named(path, _one_line(e))
+    return (f"{path}: truncated log ({partial.truncated or 'it has no summary section'}; its "
+            f"recorder was killed or the disk filled up); `boxloc recover {path}` saves the "
+            "scans it holds")
+
+
+def _current_version() -> dict[str, Any]:
+    import boxloc
+    from recorder.mcap_sink import git_info
+
+    commit, dirty = git_info()
+    return {"kind": "current", "boxloc_version": boxloc.__version__, "git_commit": commit,
+            "git_dirty": dirty, "source": str(Path(boxloc.__file__).resolve().parent.parent)}
+
+
+def _sha256(path: Path) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()
+
+
+def _replay_metadata(path: Path, log: Log, cfg: Config, source: str,
+                     overrides: Sequence[str], version: dict[str, Any]) -> dict[str, str]:
+    run = log.run
+    return {
+        "input": str(path.resolve()),
+        "input_sha256": _sha256(path),
+        "input_git_commit": run.get("git_commit", "unknown"),
+        "input_boxloc_version": run.get("boxloc_version", "unknown"),
+        "input_config_hash": run.get("config_hash", "unknown"),
+        "config_source": source,
+        "config_hash": cfg.hash,
+        "overrides": json.dumps(list(overrides)),
+        "replay_version": json.dumps(version, sort_keys=True),
+    }
+
+
+def _stage_error(e: BaseException) -> str:
+    tb = traceback.extract_tb(e.__traceback__)
+    where = f" ({Path(tb[-1].filename).name}:{tb[-1].lineno})" if tb else ""
+    return f"{type(e).__name__}: {_one_line(e)}{where}"
+
+
+def _replay_here(path: Path, out_dir: Path, config: Config | None,
+                 overrides: tuple[str, ...], out_name: str | None) -> ReplayOutcome:
+    """:func:`replay_log` with the code of this process."""
+    from boxloc.pipeline import find_graspable_surfaces
+    from recorder.log import open_log
+    from recorder.mcap_sink import McapRecorder, RecordingError
+
+    t0 = time.perf_counter()
+    version = _current_version()
+    base = {"input": str(path), "version": version}
+
+    def failed(msg: str, **kw: Any) -> ReplayOutcome:
+        return ReplayOutcome(**base, error=msg, seconds=time.perf_counter() - t0, **kw)
+
+    try:
+        log = open_log(path)
+        check_schema(log)
+    except LogError as e:
+        return failed(_diagnose(path, e))
+    except OSError as e:
+        return failed(f"{path}: cannot read: {e.strerror or e}")
+    except Exception as e:  # noqa: BLE001 - whatever a hostile file does, name the log
+        return failed(f"{path}: cannot read: {type(e).__name__}: {_one_line(e)}")
+    try:
+        cfg, source = resolve_config(log, config, overrides)
+    except BoxlocError as e:
+        return failed(_named(path, _one_line(e)))
+    warnings: list[str] = []
+    if not log.run:
+        warnings.append(f"{path}: no boxloc.run metadata; replayed with the default config")
+
+    out_dir.mkdir(parents=True, exist_ok=True)
+    final = out_dir / (out_name or f"{path.stem}.mcap")
+    # A private temporary name per attempt: a retried task never meets its own leftovers.
+    tmp = out_dir / f".{final.stem}.{os.getpid()}-{secrets.token_hex(4)}{PARTIAL_SUFFIX}"
+    rec: McapRecorder | None = None
+    statuses: list[ScanStatus] = []
+    error: str | None = None
+    try:
+        for scan in iter_input_scans(log):
+            if rec is None:  # created at the first scan: a log without scans leaves nothing
+                rec = McapRecorder(
+                    tmp, config=cfg, session=f"replay-{path.stem}", fsync=False,
+                    extra_metadata={REPLAY_METADATA: _replay_metadata(
+                        path, log, cfg, source, overrides, version)})
+            try:
+                result = find_graspable_surfaces(scan, cfg, observer=rec)
+            except RecordingError:
+                raise
+            except Exception as e:  # noqa: BLE001 - the scan's failure is its result
+                rec.on_error(scan, e)
+                statuses.append(ScanStatus(scan.index, scan.capture_time_ns, False,
+                                           error=_stage_error(e)))
+            else:
+                statuses.append(ScanStatus(scan.index, scan.capture_time_ns, True,
+                                           n_surfaces=len(result.surfaces)))
+    except LogError as e:
+        error = _named(path, _one_line(e))
+    except BoxlocError as e:  # the recorder could not write
+        error = f"{path}: {_one_line(e)}"
+    except Exception as e:  # noqa: BLE001 - a reader bug on a hostile file: name the log
+        error = f"{path}: cannot read: {type(e).__name__}: {_one_line(e)}"
+    finally:  # also on an interrupt: close the file (the CLI removes it)
+        if rec is not None:
+            try:
+                rec.finish()
+            except Exception as e:  # noqa: BLE001 - e.g. the disk filled up
+                error = error or f"{path}: cannot write the new log: {_one_line(e)}"
+    if error is not None or rec is None:
+        with contextlib.suppress(OSError):
+            tmp.unlink()
+        if error is not None:
+            return failed(error, n_scans=len(statuses), scans=tuple(statuses),
+                          config_hash=cfg.hash, warnings=tuple(warnings))
+        warnings.append(f"{path}: no scans in this log; skipped")
+        return ReplayOutcome(**base, warnings=tuple(warnings), config_hash=cfg.hash,
+                             seconds=time.perf_counter() - t0)
+    try:
+        _publish(tmp, final)
+    except InputError as e:
+        return failed(str(e), n_scans=len(statuses), scans=tuple(statuses),
+                      config_hash=cfg.hash, warnings=tuple(warnings))
+    return ReplayOutcome(**base, output=str(final), n_scans=len(statuses),
+                         scans=tuple(statuses), warnings=tuple(warnings), config_hash=cfg.hash,
+                         seconds=time.perf_counter() - t0)
+
+
+def _publish(tmp: Path, final: Path) -> None:
+    """Give the finished temporary log its name, never replacing an existing file."""
+    try:
+        os.link(tmp, final)  # atomic, and fails if ``final`` exists
+    except FileExistsError:
+        tmp.unlink()
+        raise InputError(f"{final} exists; refusing to overwrite it") from None
+    except OSError:  # a file system without hard links: check, then rename
+        if final.exists():
+            tmp.unlink()
+            raise InputError(f"{final} exists; refusing to overwrite it") from None
+        os.replace(tmp, final)
+        return
+    tmp.unlink()
+
+
+def remove_partials(out_dir: Path, names: Iterable[str]) -> int:
+    """Remove temporary files left in ``out_dir`` by killed attempts at ``names``.
+
+    Call it only when no replay into ``out_dir`` is running. Returns how many were removed.
+    """
+    n = 0
+    for name in names:
+        stem = Path(name).stem
+        for p in Path(out_dir).glob(f".{glob.escape(stem)}.*{PARTIAL_SUFFIX}"):
+            with contextlib.suppress(OSError):
+                p.unlink()
+                n += 1
+    return n
+
+
+@dataclass(frozen=True)
+class ReplayJob:
+    """``replay_log`` with everything but the log fixed: the picklable ``fn(path)`` the
+    executors run.
+
+    Attributes
+    ----------
+    out_dir : str
+    config : Config or None
+    overrides : tuple of str
+    version : Version or None
+    names : dict
+        Output file name per input path (as given), from :func:`plan_outputs`.
+    """
+
+    out_dir: str
+    config: Config | None = None
+    overrides: tuple[str, ...] = ()
+    version: Any = None
+    names: dict[str, str] = field(default_factory=dict)
+
+    def __call__(self, path: str | os.PathLike[str]) -> ReplayOutcome:
+        return replay_log(path, out_dir=self.out_dir, config=self.config,
+                          overrides=self.overrides, version=self.version,
+                          out_name=self.names.get(str(path)))

@@ -1,0 +1,388 @@
+"""Which code a replay runs: the current code, or a git revision in an isolated worktree.
+
+:data:`CURRENT` runs :func:`replay.replay.replay_log` in this process, with this code.
+
+:class:`GitRevision` names another version. :meth:`GitRevision.prepare` resolves the ref
+(``git rev-parse --verify REF^{commit}``), checks it out with ``git worktree add --detach``
+into a temporary directory, checks that it can run, and yields a :class:`Worktree`; on exit
+the worktree is removed. Everything fails with a one-line :class:`InputError` *before* any
+replay starts.
+
+A :class:`Worktree` runs each log in a subprocess of the current interpreter (so with the
+current environment: the same Python and installed packages), with ``PYTHONPATH`` pointing
+at the revision, started as ``python -P -m replay.worker --serve`` and kept alive between
+logs (one per executor process and thread), speaking JSON lines (:mod:`replay.worker`).
+
+Two layouts, decided by what the revision contains:
+
+``own``
+    The revision has ``replay/worker.py``: its own replay, recorder and algorithm run,
+    ``PYTHONPATH=<worktree>``.
+``compat``
+    An older revision without it: the revision's ``boxloc`` (the algorithm under test)
+    runs under *this* checkout's ``replay`` and ``recorder`` (the infrastructure), through
+    a directory of symlinks (``boxloc -> <worktree>/boxloc``, ``recorder``, ``replay`` ->
+    here) on ``PYTHONPATH``. The new log is then written in the current log layout. If the
+    revision's ``boxloc`` is too old for this recorder, the check fails before any work.
+
+In both, the new log's ``boxloc.run`` metadata records the revision's commit (the recorder
+asks git in the worktree), and ``boxloc.replay`` says how it was made.
+
+Notes
+-----
+numba caches compiled kernels next to the sources, so a fresh worktree compiles them once
+(seconds to tens of seconds, once per worker process at most) before its first scan.
+
+With a Dask cluster the workers must see the worktree, the logs and the output directory
+at the same paths (a shared file system, or a ``LocalCluster``).
+"""
+
+from __future__ import annotations
+
+import atexit
+import contextlib
+import json
+import os
+import shutil
+import subprocess
+import sys
+import tempfile
+import threading
+from collections.abc import Iterator, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+from boxloc.errors import InputError
+
+if TYPE_CHECKING:
+    from boxloc.config import Config
+    from replay.replay import ReplayOutcome
+
+#: Version of the JSON-lines protocol between this module and ``replay.worker``.
+PROTOCOL = 1
+#: Seconds allowed for the start-up check of a revision (imports only, no JIT).
+CHECK_TIMEOUT_S = 300.0
+_GIT_TIMEOUT_S = 120.0
+
+
+@dataclass(frozen=True)
+class CurrentVersion:
+    """The code of this process."""
+
+    def describe(self) -> str:
+        return "current code"
+
+
+#: The current code (the default version of :func:`replay.replay.replay_log`).
+CURRENT = CurrentVersion()
+
+
+def _git(repo: Path, *args: str, check: bool = True) -> subprocess.CompletedProcess[str]:
+    try:
+        return subprocess.run(["git", "-C", str(repo), *args], capture_output=True, text=True,
+                              timeout=_GIT_TIMEOUT_S, check=check)
+    except FileNotFoundError:
+        raise InputError("--rev needs git, which is not installed") from None
+    except subprocess.CalledProcessError as e:
+        msg = (e.stderr or e.stdout or "").strip().splitlines()
+        raise InputError(f"git {args[0]} failed: {msg[-1] if msg else e.returncode}") from None
+    except subprocess.TimeoutExpired:
+        raise InputError(f"git {args[0]} did not finish in {_GIT_TIMEOUT_S:.0f} s") from None
+
+
+def default_repo() -> Path:
+    """The git checkout this code lives in, else the current directory."""
+    here = Path(__file__).resolve().parent.parent
+    return here if (here / ".git").exists() else Path.cwd()
+
+
+@dataclass(frozen=True)
+class GitRevision:
+    """Another version of the code: a git ref (commit, branch, tag, ``HEAD~3``).
+
+    Parameters
+    ----------
+    ref : str
+        Anything ``git rev-parse`` resolves to a commit.
+    repo : str, optional
+        The repository; default the checkout this code lives in (else the current
+        directory).
+    """
+
+    ref: str
+    repo: str | None = None
+
+    def describe(self) -> str:
+        return f"git revision {self.ref}"
+
+    @property
+    def repo_path(self) -> Path:
+        return Path(self.repo) if self.repo else default_repo()
+
+    def resolve(self) -> str:
+        """The full commit hash of ``ref``.
+
+        Raises
+        ------
+        InputError
+            No git, not a repository, or no such revision.
+        """
+        ref = self.ref.strip()
+        if not ref or ref.startswith("-"):
+            raise InputError(f"--rev {self.ref!r} is not a git revision")
+        repo = self.repo_path
+        top = _git(repo, "rev-parse", "--show-toplevel", check=False)
+        if top.returncode != 0:
+            raise InputError(f"--rev needs a git repository; {repo} is not one")
+        r = _git(repo, "rev-parse", "--verify", "--quiet", f"{ref}^{{commit}}", check=False)
+        sha = r.stdout.strip()
+        if r.returncode != 0 or not sha:
+            raise InputError(f"--rev {self.ref}: no such revision in {top.stdout.strip()}")
+        return sha
+
+    @contextlib.contextmanager
+    def prepare(self) -> Iterator[Worktree]:
+        """Check the revision out in a temporary worktree, check it runs, yield it, remove it.
+
+        Raises
+        ------
+        InputError
+            The revision does not exist, cannot be checked out, or cannot run (its
+            ``boxloc`` is missing or does not import with this environment).
+        """
+        sha = self.resolve()
+        repo = Path(_git(self.repo_path, "rev-parse", "--show-toplevel").stdout.strip())
+        tmp = Path(tempfile.mkdtemp(prefix=f"boxloc-rev-{sha[:12]}-"))
+        src = tmp / "src"
+        added = False
+        wt: Worktree | None = None
+        try:
+            # Hooks off: an isolated checkout must not run the user's post-checkout scripts.
+            _git(repo, "-c", "core.hooksPath=/dev/null", "worktree", "add", "--detach",
+                 "--quiet", str(src), sha)
+            added = True
+            wt = _layout(self.ref, sha, src, tmp)
+            wt = _check(wt)
+            yield wt
+        finally:
+            if wt is not None:
+                close_workers(wt.root)
+            if added:
+                _git(repo, "worktree", "remove", "--force", str(src), check=False)
+            shutil.rmtree(tmp, ignore_errors=True)
+            if added:
+                _git(repo, "worktree", "prune", check=False)
+
+
+@dataclass(frozen=True)
+class Worktree:
+    """A prepared :class:`GitRevision`: a checkout that runs replays in a subprocess.
+
+    Plain data (picklable), so executors can ship it to their workers; each worker process
+    starts its own ``replay.worker`` subprocess on first use.
+
+    Attributes
+    ----------
+    ref, commit : str
+        The ref as given and the commit it resolved to.
+    root : str
+        The worktree.
+    pythonpath : tuple of str
+        Prepended to ``PYTHONPATH`` of the subprocess.
+    mode : str
+        ``own`` or ``compat`` (see the module docstring).
+    info : dict
+        What the start-up check reported (versions, where each package was imported from).
+    tmp : str
+        The temporary directory holding the worktree (and the subprocesses' stderr logs).
+    """
+
+    ref: str
+    commit: str
+    root: str
+    pythonpath: tuple[str, ...]
+    mode: str
+    info: dict[str, Any] = field(default_factory=dict, compare=False)
+    tmp: str = ""
+
+    def describe(self) -> str:
+        return f"git revision {self.ref} ({self.commit[:12]}, {self.mode} layout)"
+
+    def version_info(self) -> dict[str, Any]:
+        return {"kind": "git", "ref": self.ref, "commit": self.commit, "mode": self.mode}
+
+    def env(self) -> dict[str, str]:
+        env = dict(os.environ)
+        old = env.get("PYTHONPATH")
+        env["PYTHONPATH"] = os.pathsep.join([*self.pythonpath, *([old] if old else [])])
+        return env
+
+    def command(self, *args: str) -> list[str]:
+        # -P: never put the working directory first on sys.path (it may hold a boxloc/).
+        return [sys.executable, "-P", "-m", "replay.worker", *args]
+
+    def replay(self, path: Path, *, out_dir: Path, config: Config | None,
+               overrides: Sequence[str], out_name: str | None) -> ReplayOutcome:
+        """Replay one log with this revision (see :func:`replay.replay.replay_log`)."""
+        from replay.replay import ReplayOutcome
+
+        req = {"protocol": PROTOCOL, "path": str(Path(path).resolve()),
+               "out_dir": str(Path(out_dir).resolve()),
+               "config": None if config is None else config.to_dict(),
+               "overrides": list(overrides), "out_name": out_name}
+        try:
+            resp = _worker_for(self).request(req)
+        except _WorkerDied as e:
+            return ReplayOutcome(input=str(path), error=f"{path}: {e}",
+                                 version=self.version_info())
+        if not resp.get("ok"):
+            return ReplayOutcome(input=str(path), error=f"{path}: {resp.get('error')}",
+                                 version=self.version_info())
+        d = dict(resp["outcome"])
+        d["input"] = str(path)  # the paths as given here, not as the subprocess saw them
+        if d.get("output"):
+            d["output"] = str(Path(out_dir) / Path(d["output"]).name)
+        d["version"] = {**d.get("version", {}), **self.version_info()}
+        return ReplayOutcome.from_dict(d)
+
+
+#: Any version :func:`replay.replay.replay_log` accepts.
+Version = CurrentVersion | GitRevision | Worktree
+
+
+def _layout(ref: str, sha: str, src: Path, tmp: Path) -> Worktree:
+    """Decide how the checkout runs: its own replay, or its boxloc under this replay."""
+    if not (src / "boxloc" / "__init__.py").is_file():
+        raise InputError(f"--rev {ref} ({sha[:12]}) cannot run: it has no boxloc package")
+    if (src / "replay" / "worker.py").is_file():
+        return Worktree(ref, sha, str(src), (str(src),), "own", tmp=str(tmp))
+    here = Path(__file__).resolve().parent.parent
+    shim = tmp / "path"
+    shim.mkdir()
+    (shim / "boxloc").symlink_to(src / "boxloc", target_is_directory=True)
+    for pkg in ("recorder", "replay"):
+        (shim / pkg).symlink_to(here / pkg, target_is_directory=True)
+    return Worktree(ref, sha, str(src), (str(shim),), "compat", tmp=str(tmp))
+
+
+def _last_line(text: str) -> str:
+    lines = [ln.strip() for ln in (text or "").strip().splitlines() if ln.strip()]
+    return lines[-1][:500] if lines else ""
+
+
+def _check(wt: Worktree) -> Worktree:
+    """Start the revision's worker once with ``--check``: it imports the pipeline and the
+    recorder and says where they came from. Fails before any work if it cannot run."""
+    what = f"--rev {wt.ref} ({wt.commit[:12]})"
+    try:
+        r = subprocess.run(wt.command("--check"), capture_output=True, text=True,
+                           env=wt.env(), cwd=wt.tmp, timeout=CHECK_TIMEOUT_S)
+    except subprocess.TimeoutExpired:
+        raise InputError(f"{what} cannot run: its start-up check took over "
+                         f"{CHECK_TIMEOUT_S:.0f} s") from None
+    if r.returncode != 0:
+        raise InputError(f"{what} cannot run: {_last_line(r.stderr) or r.returncode}")
+    try:
+        info = json.loads(_last_line(r.stdout))
+    except ValueError:
+        raise InputError(f"{what} cannot run: its replay worker answered "
+                         f"{_last_line(r.stdout)[:80]!r}") from None
+    if info.get("protocol") != PROTOCOL:
+        raise InputError(f"{what} cannot run: its replay worker speaks protocol "
+                         f"{info.get('protocol')}, this replay speaks {PROTOCOL}")
+    # The point of a worktree is to run *its* algorithm: make sure that is what imported.
+    roots = [Path(p).resolve() for p in (wt.root, *wt.pythonpath)]
+    got = Path(str(info.get("boxloc_file", ""))).resolve()
+    if not any(got.is_relative_to(r) for r in roots):
+        raise InputError(f"{what} cannot run: boxloc was imported from {got}, not from the "
+                         "worktree")
+    return Worktree(wt.ref, wt.commit, wt.root, wt.pythonpath, wt.mode, info, wt.tmp)
+
+
+# --- the worker subprocesses -----------------------------------------------------------------
+
+
+class _WorkerDied(Exception):
+    """The revision's worker subprocess ended while replaying a log."""
+
+
+class _Worker:
+    """One ``replay.worker --serve`` subprocess of a worktree."""
+
+    def __init__(self, wt: Worktree) -> None:
+        self.wt = wt
+        fd, err = tempfile.mkstemp(prefix=f"worker-{os.getpid()}-", suffix=".log",
+                                   dir=wt.tmp if wt.tmp and Path(wt.tmp).is_dir() else None)
+        self.err_path = Path(err)
+        self._err = os.fdopen(fd, "wb")
+        self.proc = subprocess.Popen(wt.command("--serve"), stdin=subprocess.PIPE,
+                                     stdout=subprocess.PIPE, stderr=self._err, env=wt.env(),
+                                     cwd=wt.tmp or None, text=True, bufsize=1)
+
+    def alive(self) -> bool:
+        return self.proc.poll() is None
+
+    def request(self, req: dict[str, Any]) -> dict[str, Any]:
+        assert self.proc.stdin is not None and self.proc.stdout is not None
+        try:
+            self.proc.stdin.write(json.dumps(req) + "\n")
+            self.proc.stdin.flush()
+            line = self.proc.stdout.readline()
+        except (BrokenPipeError, OSError):
+            line = ""
+        if not line:
+            rc = self.proc.wait(timeout=30)
+            self.close()
+            tail = ""
+            with contextlib.suppress(OSError):
+                tail = _last_line(self.err_path.read_text(errors="replace"))
+            raise _WorkerDied(f"the replay process of --rev {self.wt.ref} died (exit code {rc})"
+                              + (f": {tail}" if tail else ""))
+        try:
+            return dict(json.loads(line))
+        except ValueError:
+            return {"ok": False, "error": f"bad answer from the replay process: {line[:80]!r}"}
+
+    def close(self) -> None:
+        with contextlib.suppress(Exception):
+            if self.proc.stdin is not None:
+                self.proc.stdin.close()  # EOF: the worker's loop ends
+        try:
+            self.proc.wait(timeout=30)
+        except subprocess.TimeoutExpired:
+            self.proc.kill()
+            self.proc.wait()
+        with contextlib.suppress(Exception):
+            if self.proc.stdout is not None:
+                self.proc.stdout.close()
+        with contextlib.suppress(Exception):
+            self._err.close()
+
+
+_WORKERS: dict[tuple[str, int], _Worker] = {}
+_LOCK = threading.Lock()
+
+
+def _worker_for(wt: Worktree) -> _Worker:
+    """This thread's live worker for ``wt`` (one per process and thread: requests on one
+    pipe are sequential)."""
+    key = (wt.root, threading.get_ident())
+    with _LOCK:
+        w = _WORKERS.get(key)
+        if w is None or not w.alive():
+            w = _Worker(wt)
+            _WORKERS[key] = w
+    return w
+
+
+def close_workers(root: str | None = None) -> None:
+    """Stop this process's worker subprocesses (of worktree ``root``, or all)."""
+    with _LOCK:
+        keys = [k for k in _WORKERS if root is None or k[0] == root]
+        workers = [_WORKERS.pop(k) for k in keys]
+    for w in workers:
+        w.close()
+
+
+atexit.register(close_workers)

@@ -1,0 +1,220 @@
+"""``replay.explain`` / ``boxloc explain``: the decision chain of a surface, read from a log.
+
+The chain is checked against the products of the log itself (every id and test in an
+explanation must be the log's), on small simulated scans (tests/replay_helpers.py).
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+from click.testing import CliRunner
+
+from boxloc.cli import cli
+from boxloc.errors import InputError, LogError
+from boxloc.products import DimensionSource
+from boxloc.stats import TestKind
+from recorder.annotate import append_outcome
+from recorder.log import open_log
+from replay.explain import explain, format_explanation
+
+helpers = pytest.importorskip("replay_helpers")
+
+VERTEX_TESTS = {"LINES_MEET", "LINES_ORTHOGONAL", "AT_SEGMENT_ENDS"}
+DIAGONAL_TESTS = {"COPLANAR", "PARALLEL", "FIRST_QUADRANT"}
+STOPS = {"scan", "edges", "lines", "vertices", "dimensions", "verification", "selection"}
+
+
+@pytest.fixture(scope="module")
+def log(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    return helpers.record(tmp_path_factory.mktemp("explain") / "base.mcap")
+
+
+@pytest.fixture(scope="module")
+def records(log: Path) -> dict[int, Any]:
+    recs = {r.index: r for r in open_log(log).scans()}
+    assert sum(len(r.surfaces) for r in recs.values()) >= 1, "no surface found in the scenes"
+    return recs
+
+
+def _surfaces(records: dict[int, Any]) -> list[tuple[int, int]]:
+    return [(i, k) for i, r in sorted(records.items()) for k in range(len(r.surfaces))]
+
+
+def test_chosen_surface_chain_matches_the_log(log: Path, records: dict[int, Any]) -> None:
+    sources = set()
+    for i, k in _surfaces(records):
+        r = records[i]
+        H, V, L, S = (r.products[s] for s in ("hypotheses", "vertices", "lines", "surfaces"))
+        sel = r.products["selection"]
+        d = explain(log, i, surface=k)
+        assert d["mode"] == "surface" and len(d["surfaces"]) == 1
+        e = d["surfaces"][0]
+        h, j = int(S.hypothesis[k]), int(S.attempt[k])
+        assert e["hypothesis"]["id"] == h and e["attempt"] == j
+        # the generating vertex and its two lines, with support, trial and votes
+        v = e["hypothesis"]["vertex"]
+        assert v["id"] == int(H.vertex[h])
+        assert {ln["id"] for ln in v["lines"]} == {int(V.line_a[v["id"]]),
+                                                  int(V.line_b[v["id"]])}
+        for ln in v["lines"]:
+            assert ln["n_support"] == int(L.n_support[ln["id"]]) > 0
+            assert ln["trial"] == int(L.trial[ln["id"]])
+            assert ln["direction_votes"] == pytest.approx(float(L.direction_votes[ln["id"]]))
+        # the vertex tests: all three kinds, on this pair, all accepted (it is a vertex)
+        assert {t["kind"] for t in v["tests"]} == VERTEX_TESTS
+        assert all(t["accepted"] for t in v["tests"])
+        assert all({t["a"], t["b"]} == {v["line_a"], v["line_b"]} for t in v["tests"])
+        # where the dimensions came from
+        dims = e["hypothesis"]["dimensions"]
+        src = DimensionSource(int(H.att_source[j])).name
+        sources.add(src)
+        assert dims["source"] == src
+        if src == "VERTICES":
+            g = dims["diagonal"]
+            assert g["vertex"] == int(H.att_diagonal[j])
+            assert {t["kind"] for t in g["tests"]} == DIAGONAL_TESTS
+            assert all(t["accepted"] for t in g["tests"])
+        else:
+            used = [t for t in dims["edges"]["edge_support"] if t.get("used")]
+            assert len(used) == 1 and used[0]["accepted"]
+            assert used[0]["statistic"] > used[0]["critical"]  # |P_f| > p
+            assert dims["edges"]["peaks_x"] and dims["edges"]["peaks_y"]
+        # every attempt of the hypothesis, the surface's own one accepted with its tests
+        atts = {a["id"]: a for a in e["hypothesis"]["attempts"]}
+        assert set(atts) == set(np.flatnonzero(H.att_hypothesis == h).tolist())
+        mine = atts[j]["verification"]
+        assert mine["accepted"] and mine["reason"] == "ACCEPTED"
+        kinds = {t["kind"] for t in mine["tests"]}
+        assert {"VERIFY_INLIERS", "VERIFY_MEAN", "VERIFY_BOUNDARY"} <= kinds
+        for t in mine["tests"]:
+            assert t["a"] == j and TestKind[t["kind"]] >= TestKind.VERIFY_INLIERS
+        for a in atts.values():
+            if not a["verified"]:
+                assert a["verification"]["reason"] != "ACCEPTED"
+        # the MDL: q_ii and the competition, as in the log's Selection
+        s = e["selection"]
+        c = int(np.flatnonzero(sel.candidates == j)[0])
+        assert s["chosen"] and s["q_ii"] == pytest.approx(float(sel.Q[c, c]))
+        for o in s["overlapping"]:
+            assert o["q_ij"] == pytest.approx(float(sel.Q[c, o["candidate"]])) != 0.0
+            assert o["beaten_by_this"] == (int(sel.beaten_by[o["candidate"]]) == c)
+        # and the text says all of it
+        text = format_explanation(d)
+        assert f"generating vertex V{v['id']}" in text
+        assert all(f"L{ln['id']}" in text for ln in v["lines"])
+        assert f"dimensions from {src}" in text and "MDL selection" in text
+        assert "LINES_ORTHOGONAL" in text and "VERIFY_INLIERS" in text
+    assert sources  # at least one source covered (both, with the current scenes)
+
+
+def test_every_surface_by_default(log: Path, records: dict[int, Any]) -> None:
+    i = next(i for i, r in records.items() if len(r.surfaces))
+    d = explain(log, i)
+    assert [e["surface"] for e in d["surfaces"]] == list(range(len(records[i].surfaces)))
+
+
+def test_at_a_missed_box_says_where_the_chain_stopped(log: Path) -> None:
+    missed = helpers.missed_faces(log)
+    assert missed, "every exposed face was found: the test needs a missed one"
+    stops = set()
+    for i, f, sim in missed[:6]:
+        uv = sim.scan.sensor.project(sim.truth.centers[f][None])[0]
+        d = explain(log, i, at=f"{uv[0]:.1f},{uv[1]:.1f}")
+        a = d["at"]
+        assert a["where"]["pixel"] == [int(round(uv[0])), int(round(uv[1]))]
+        assert a["stopped_at"] in STOPS | {"chosen"} and a["why"]
+        stops.add(a["stopped_at"])
+        text = format_explanation(d)
+        assert f"the chain stopped at: {a['stopped_at'].upper()}" in text
+        assert a["why"][:40] in text
+        if a["stopped_at"] == "verification":
+            assert all(not at["verified"] for at in a["attempts"])
+            assert "failed verification" in a["why"]
+        if a["stopped_at"] == "vertices":
+            assert a["lines"] and "form no vertex" in a["why"]
+        if a["stopped_at"] == "selection":
+            assert "lost the MDL selection" in a["why"]
+        # the same place given as a point in the sensor frame: the same answer
+        P = sim.truth.centers[f]
+        d3 = explain(log, i, at=tuple(float(x) for x in P))
+        assert d3["at"]["stopped_at"] == a["stopped_at"]
+    assert stops - {"chosen"}, "no missed face was explained as missed"
+
+
+def test_at_a_chosen_surface(log: Path, records: dict[int, Any]) -> None:
+    i, k = _surfaces(records)[0]
+    r = records[i]
+    c = r.surfaces.centers[k]
+    uv = r.scan.sensor.project(c[None])[0]
+    d = explain(log, i, at=(float(uv[0]), float(uv[1])))
+    assert d["at"]["stopped_at"] == "chosen" and d["at"]["surface"] == k
+    assert d["at"]["explanation"]["surface"] == k
+
+
+def test_json_output_is_valid(log: Path, records: dict[int, Any]) -> None:
+    i, k = _surfaces(records)[0]
+    run = CliRunner().invoke
+    r = run(cli, ["explain", str(log), "--scan", str(i), "--surface", str(k), "--json"])
+    assert r.exit_code == 0, r.output
+    d = json.loads(r.stdout)
+    assert d["surfaces"][0]["surface"] == k
+    missed = helpers.missed_faces(log)[0]
+    r = run(cli, ["explain", str(log), "--scan", str(missed[0]), "--at", "80,60", "--json"])
+    assert r.exit_code == 0, r.output
+    assert json.loads(r.stdout)["at"]["stopped_at"]
+    r = run(cli, ["explain", str(log), "--scan", str(i), "--surface", str(k)])
+    assert r.exit_code == 0 and "generating vertex" in r.stdout
+
+
+def test_failed_picks(log: Path, records: dict[int, Any], tmp_path: Path) -> None:
+    i, k = _surfaces(records)[0]
+    lg = tmp_path / "picked.mcap"
+    shutil.copyfile(log, lg)
+    d = explain(lg, i, failed_picks=True)
+    assert d["surfaces"] == []
+    assert "no failed pick" in format_explanation(d)
+    append_outcome(lg, i, k, False, "suction lost")
+    d = explain(lg, i, failed_picks=True)
+    assert [e["surface"] for e in d["surfaces"]] == [k]
+    assert d["surfaces"][0]["pick"]["reason"] == "suction lost"
+    assert "pick FAILED: suction lost" in format_explanation(d)
+
+
+def test_bad_requests(log: Path, records: dict[int, Any]) -> None:
+    i = next(iter(records))
+    n = len(records[i].surfaces)
+    with pytest.raises(InputError, match=f"has {n} surface"):
+        explain(log, i, surface=n)
+    with pytest.raises(InputError, match="only one of"):
+        explain(log, i, surface=0, at="1,2")
+    with pytest.raises(InputError, match="outside"):
+        explain(log, i, at="1000,1000")
+    with pytest.raises(InputError, match="X,Y"):
+        explain(log, i, at="1,2,3,4")
+    with pytest.raises(InputError, match="not seen"):
+        explain(log, i, at=(0.0, 0.0, -1.0))  # behind the sensor
+    with pytest.raises(LogError, match="no scan 99"):
+        explain(log, 99)
+
+
+@pytest.mark.parametrize("args", [
+    ["--scan", "0", "--surface", "50"],
+    ["--scan", "0", "--at", "nope"],
+    ["--scan", "0", "--surface", "0", "--failed-picks"],
+    ["--scan", "99"],
+])
+def test_cli_errors_are_one_line(log: Path, args: list[str]) -> None:
+    r = CliRunner().invoke(cli, ["explain", str(log), *args])
+    assert r.exit_code == 2
+    assert len(r.stderr.strip().splitlines()) == 1 and "Traceback" not in r.output
+
+
+def test_cli_missing_log(tmp_path: Path) -> None:
+    r = CliRunner().invoke(cli, ["explain", str(tmp_path / "x.mcap"), "--scan", "0"])
+    assert r.exit_code == 2 and "not found" in r.stderr
