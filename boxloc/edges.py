@@ -9,7 +9,9 @@ Every row and every column of the organized cloud is approximated by 3D line seg
 * **crease** — the lines meet at an angle of at least ``min_crease_angle``; the edge point
   is their intersection (closest approach), convex or concave as seen from the sensor;
 * **groove** — the lines are continuous and collinear but the samples between them lie
-  significantly behind both (the seam between two touching boxes of equal height).
+  significantly behind both (the seam between two touching boxes of equal height); or,
+  inside one segment, a short run of samples lies behind its line with the samples around
+  it back on the line, and the deepest of them passes the single-sample test.
 
 Each edge point carries a covariance: the sensor noise at the point plus the localization
 uncertainty along the scan line. Where a row scan and a column scan find an edge at the
@@ -303,11 +305,13 @@ def _scan_line_edges(
                 ctx = 0.0
                 for q in range(1, GROOVE_CONTEXT + 1):
                     ctx = max(ctx, z[i - q], z[e + q])
-                if ctx < t_run:
-                    kd = i
-                    for q in range(i, e + 1):
-                        if z[q] > z[kd]:
-                            kd = q
+                kd = i
+                for q in range(i, e + 1):
+                    if z[q] > z[kd]:
+                        kd = q
+                # the deepest sample must pass the single-sample test too: runs alone are
+                # evidence only for white noise, and real sensors' noise is correlated
+                if ctx < t_run and z[kd] > thr[n_seg]:
                     ip = s0 + kd
                     u = P[ip] / math.sqrt(np.dot(P[ip], P[ip]))
                     rl = _range_on_line(u, cs[j], ds[j])

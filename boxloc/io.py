@@ -788,6 +788,29 @@ def _parse_ply_header(p: Path) -> _PlyHeader:
     return _PlyHeader(fmt, elements, info, nl + 1)
 
 
+#: Vertex properties Open3D reads into one array: their types must agree (Open3D writes
+#: past its buffer when, say, ``x`` is float and ``z`` double).
+_PLY_GROUPS = (("x", "y", "z"), ("nx", "ny", "nz"), ("red", "green", "blue"))
+
+
+def _ply_check_vertex(p: Path, h: _PlyHeader) -> None:
+    """Refuse vertex properties that Open3D would misread: positions that are not float
+    scalars, repeated names, and groups (x y z, nx ny nz, red green blue) of mixed types."""
+    e = next(e for e in h.elements if e.name == "vertex")
+    names = [pr[-1] for pr in e.props]
+    if len(set(names)) != len(names):
+        raise InputError(f"{p}: PLY vertex element repeats a property ({' '.join(names)})")
+    kinds = {pr[-1]: pr[:-1] for pr in e.props}
+    for c in "xyz":
+        if kinds.get(c) not in (("scalar", "f4"), ("scalar", "f8")):
+            raise InputError(f"{p}: PLY vertex property '{c}' must be a float or double scalar")
+    for group in _PLY_GROUPS:
+        found = {kinds[n] for n in group if n in kinds}
+        if len(found) > 1:
+            raise InputError(f"{p}: PLY vertex properties {' '.join(group)} must have one type, "
+                             f"got {', '.join(sorted(' '.join(k) for k in found))}")
+
+
 def _ply_element_dtype(h: _PlyHeader, e: _PlyElement) -> np.dtype[Any] | None:
     """Structured dtype of a binary element with only scalar properties; else None."""
     if any(pr[0] == "list" for pr in e.props):
@@ -952,6 +975,7 @@ def _read_cloud(p: Path, max_pixels: int, *, want_labels: bool) -> _Cloud:
         H, W, n_expected = h.height, h.width, h.points
     else:
         ph = _parse_ply_header(p)
+        _ply_check_vertex(p, ph)
         n_expected = next(e.count for e in ph.elements if e.name == "vertex")
         H, W, grid = _ply_organization(p, ph, n_expected)
         if H <= 1:
