@@ -179,6 +179,8 @@ def _print_surfaces(result: Any) -> None:
 @click.option("--replay", "replay_only", is_flag=True,
               help="Run only the replay section: `boxloc replay` throughput on 50 logs, "
                    "1 worker against 2 (from the replay package).")
+@click.option("--section", "sections", multiple=True, metavar="NAME",
+              help="Run only these extra sections (repeatable): recording, replay, fuzz, …")
 @click.option("--real", "real_dir", type=click.Path(), default=None, metavar="DIR",
               help="Benchmark on real labelled scans (organized PCD/PLY with a 'label' field, "
                    "e.g. mOSD) instead of simulated scenes; --out gets bench_real.json.")
@@ -195,6 +197,7 @@ def bench(
     n: int, seed: int, out: str | None, no_baseline: bool, real_dir: str | None,
     frames: str | None, noise_source: str, pose: str,
     config_path: str | None, overrides: tuple[str, ...], replay_only: bool = False,
+    sections: tuple[str, ...] = (),
 ) -> None:
     """Benchmark the localizer against the open3d baseline on N simulated scenes.
 
@@ -208,10 +211,11 @@ def bench(
     for var in ("OMP_NUM_THREADS", "NUMBA_NUM_THREADS", "OPENBLAS_NUM_THREADS"):
         os.environ.setdefault(var, "1")
     cfg = load_config(config_path, overrides)
-    if replay_only:  # selected by name: boxloc does not import replay
+    only = [*sections, *(["replay"] if replay_only else [])]
+    if only:  # selected by name: boxloc does not import replay or recorder
         from boxloc.bench import run_sections
 
-        run_sections(["replay"], n, seed, config=cfg, out=Path(out) if out else None)
+        run_sections(only, n, seed, config=cfg, out=Path(out) if out else None)
         return
     if real_dir is not None:
         from boxloc.bench_real import run_real_bench
