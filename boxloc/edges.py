@@ -288,10 +288,16 @@ def _scan_line_edges(
             continue
         t_run = run_thr[n_seg]
         z = np.empty(n_seg)
+        cx, cy, cz = cs[j, 0], cs[j, 1], cs[j, 2]
+        dx, dy, dz = ds[j, 0], ds[j, 1], ds[j, 2]
+        dc = dx * cx + dy * cy + dz * cz
         for i in range(s0, s1 + 1):
-            u = P[i] / math.sqrt(np.dot(P[i], P[i]))
-            rl = _range_on_line(u, cs[j], ds[j])
-            z[i - s0] = (math.sqrt(np.dot(P[i], P[i])) - rl) / S[i] if np.isfinite(rl) else 0.0
+            # the line's range along this sample's ray (as _range_on_line, in scalars)
+            r = math.sqrt(P[i, 0] ** 2 + P[i, 1] ** 2 + P[i, 2] ** 2)
+            ud = (P[i, 0] * dx + P[i, 1] * dy + P[i, 2] * dz) / r
+            uc = (P[i, 0] * cx + P[i, 1] * cy + P[i, 2] * cz) / r
+            den = 1.0 - ud * ud
+            z[i - s0] = (r - (uc - ud * dc) / den) / S[i] if den > 1e-12 else 0.0
         i = GROOVE_CONTEXT
         while i < n_seg - GROOVE_CONTEXT:
             if z[i] <= t_run:
