@@ -8,8 +8,9 @@ processes, and reports logs/s and the speed-up (target >= :data:`TARGET_SPEEDUP`
 
 Both runs use worker processes (``run_local(..., pool=True)``), so both pay the same
 start-up; the times are wall clock of the whole run, start-up included. On a machine
-whose cores are busy with other work the speed-up is lower: ``cpu_count`` and the load
-average are reported with it.
+whose cores are busy with other work the speed-up is lower: ``cpu_count``, the load
+average before the runs and ``core_share`` (CPU time of the replays / (wall time x
+workers): the share of a core each worker actually got) are reported with it.
 """
 
 from __future__ import annotations
@@ -80,6 +81,10 @@ def measure(paths: list[Path], out_dir: Path, jobs: int) -> dict[str, Any]:
         "scans_per_s": round(sum(o.n_scans for o in outcomes) / wall, 3),
         # the work itself, summed over logs: what a perfect pool would divide by its size
         "work_s": round(sum(o.seconds for o in outcomes), 3),
+        "cpu_s": round(sum(o.cpu_seconds for o in outcomes), 3),
+        # the share of a core each worker got while replaying (1.0: a core of its own; less
+        # when other processes compete for the cores)
+        "core_share": round(sum(o.cpu_seconds for o in outcomes) / (wall * jobs), 3),
         "errors": sum(o.error is not None for o in outcomes),
         "failed_scans": sum(o.n_failed for o in outcomes),
     }
@@ -91,7 +96,8 @@ def replay_section(ctx: Any) -> dict[str, Any]:
     root = Path(tempfile.mkdtemp(prefix="boxloc-replay-bench-"))
     try:
         t0 = time.perf_counter()
-        logs = make_logs(root / "logs", seed=ctx.seed, config=ctx.config)
+        logs = make_logs(root / "logs", n_logs=N_LOGS, scans_per_log=SCANS_PER_LOG,
+                         seed=ctx.seed, config=ctx.config)
         make_s = time.perf_counter() - t0
         load = os.getloadavg()[0] if hasattr(os, "getloadavg") else None
         one = measure(logs, root / "jobs1", 1)

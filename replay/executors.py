@@ -74,6 +74,19 @@ def run_serial(paths: Sequence[Path], fn: ReplayFn, *,
     return out
 
 
+#: Thread pools pinned to one thread in worker processes (one process per core already).
+_THREAD_VARS = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS",
+                "NUMBA_NUM_THREADS")
+
+
+def _pin_threads() -> None:
+    """One thread per BLAS/OpenMP/numba pool in the processes started from here on (unless
+    the user chose): ``jobs`` processes with a pool of ``cores`` threads each would fight
+    over the cores. The environment is inherited by the forkserver when it starts."""
+    for var in _THREAD_VARS:
+        os.environ.setdefault(var, "1")
+
+
 def _context() -> Any:
     # forkserver, not fork: the parent runs a progress thread (and maybe Dask or numba
     # threads), and forking a threaded process can deadlock the child. The server imports
@@ -200,18 +213,24 @@ def run_local(paths: Sequence[Path], fn: ReplayFn, jobs: int | None = None, *,
         return []
     if not (pool if pool is not None else min(jobs, len(paths)) > 1):
         return run_serial(paths, fn, progress=progress)
+    _pin_threads()
     results: dict[int, ReplayOutcome] = {}
     tries = dict.fromkeys(range(len(paths)), 0)
     queue = deque(range(len(paths)))
     workers = _Pool(fn, min(jobs, len(paths)))
 
     def feed(slot: _Slot) -> None:
-        if queue:
+        while queue:
             slot.task = queue.popleft()
-            slot.conn.send((slot.task, paths[slot.task]))
-        else:
-            slot.task = None
-            workers.retire(slot)
+            try:
+                slot.conn.send((slot.task, paths[slot.task]))
+                return
+            except OSError:  # it died between two logs: not the log's fault
+                queue.appendleft(slot.task)
+                workers.retire(slot)
+                slot = workers.start()
+        slot.task = None
+        workers.retire(slot)
 
     try:
         with progress_bar(len(paths), f"replay ({jobs} jobs)", progress) as advance:
@@ -230,6 +249,7 @@ def run_local(paths: Sequence[Path], fn: ReplayFn, jobs: int | None = None, *,
                     except (EOFError, OSError):  # the worker died with the log in hand
                         tries[i] += 1
                         workers.retire(s)
+                        s.proc.join(timeout=5)  # for its exit code
                         if tries[i] > retries:
                             results[i] = _crashed(paths[i], f"its worker process died "
                                                   f"{tries[i]} times (exit code "

@@ -34,7 +34,7 @@ import secrets
 import time
 import traceback
 from collections.abc import Iterable, Iterator, Sequence
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -106,6 +106,9 @@ class ReplayOutcome:
         Hash of the config the scans were run with.
     seconds : float
         Wall-clock duration (informational; never part of a result).
+    cpu_seconds : float
+        CPU time of the process that replayed it (for a revision: of its subprocess);
+        with ``seconds``, shows how much of a core the replay got.
     """
 
     input: str
@@ -117,6 +120,7 @@ class ReplayOutcome:
     version: dict[str, Any] = field(default_factory=dict)
     config_hash: str | None = None
     seconds: float = 0.0
+    cpu_seconds: float = 0.0
 
     @property
     def status(self) -> str:
@@ -140,7 +144,10 @@ class ReplayOutcome:
 
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> ReplayOutcome:
-        d = dict(d)
+        """Inverse of :meth:`to_dict`; keys this version does not know are ignored (an
+        outcome may come from another revision's worker)."""
+        known = {f.name for f in fields(cls)}
+        d = {k: v for k, v in d.items() if k in known}
         d["scans"] = tuple(ScanStatus(**s) for s in d.get("scans", ()))
         d["warnings"] = tuple(d.get("warnings", ()))
         return cls(**d)
@@ -443,12 +450,15 @@ def _replay_here(path: Path, out_dir: Path, config: Config | None,
     from recorder.log import open_log
     from recorder.mcap_sink import McapRecorder, RecordingError
 
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), time.process_time()
     version = _current_version()
     base = {"input": str(path), "version": version}
 
+    def took() -> dict[str, float]:
+        return {"seconds": time.perf_counter() - t0, "cpu_seconds": time.process_time() - c0}
+
     def failed(msg: str, **kw: Any) -> ReplayOutcome:
-        return ReplayOutcome(**base, error=msg, seconds=time.perf_counter() - t0, **kw)
+        return ReplayOutcome(**base, error=msg, **took(), **kw)
 
     try:
         log = open_log(path)
@@ -511,8 +521,7 @@ def _replay_here(path: Path, out_dir: Path, config: Config | None,
             return failed(error, n_scans=len(statuses), scans=tuple(statuses),
                           config_hash=cfg.hash, warnings=tuple(warnings))
         warnings.append(f"{path}: no scans in this log; skipped")
-        return ReplayOutcome(**base, warnings=tuple(warnings), config_hash=cfg.hash,
-                             seconds=time.perf_counter() - t0)
+        return ReplayOutcome(**base, warnings=tuple(warnings), config_hash=cfg.hash, **took())
     try:
         _publish(tmp, final)
     except InputError as e:
@@ -520,7 +529,7 @@ def _replay_here(path: Path, out_dir: Path, config: Config | None,
                       config_hash=cfg.hash, warnings=tuple(warnings))
     return ReplayOutcome(**base, output=str(final), n_scans=len(statuses),
                          scans=tuple(statuses), warnings=tuple(warnings), config_hash=cfg.hash,
-                         seconds=time.perf_counter() - t0)
+                         **took())
 
 
 def _publish(tmp: Path, final: Path) -> None:
