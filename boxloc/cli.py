@@ -179,6 +179,9 @@ def _print_surfaces(result: Any) -> None:
 @click.option("--replay", "replay_only", is_flag=True,
               help="Run only the replay section: `boxloc replay` throughput on 50 logs, "
                    "1 worker against 2 (from the replay package).")
+@click.option("--fuzz", "fuzz_cases", type=click.IntRange(min=1), default=None, metavar="N",
+              help="Run only the fuzz section with N cases (as --section fuzz --n N): bad "
+                   "inputs to the scan and log readers; failing cases go to OUT/fuzz/failures.")
 @click.option("--section", "sections", multiple=True, metavar="NAME",
               help="Run only these extra sections (repeatable): recording, replay, fuzz, …")
 @click.option("--real", "real_dir", type=click.Path(), default=None, metavar="DIR",
@@ -197,7 +200,7 @@ def bench(
     n: int, seed: int, out: str | None, no_baseline: bool, real_dir: str | None,
     frames: str | None, noise_source: str, pose: str,
     config_path: str | None, overrides: tuple[str, ...], replay_only: bool = False,
-    sections: tuple[str, ...] = (),
+    sections: tuple[str, ...] = (), fuzz_cases: int | None = None,
 ) -> None:
     """Benchmark the localizer against the open3d baseline on N simulated scenes.
 
@@ -211,11 +214,12 @@ def bench(
     for var in ("OMP_NUM_THREADS", "NUMBA_NUM_THREADS", "OPENBLAS_NUM_THREADS"):
         os.environ.setdefault(var, "1")
     cfg = load_config(config_path, overrides)
-    only = [*sections, *(["replay"] if replay_only else [])]
+    only = [*sections, *(["replay"] if replay_only else []),
+            *(["fuzz"] if fuzz_cases and "fuzz" not in sections else [])]
     if only:  # selected by name: boxloc does not import replay or recorder
         from boxloc.bench import run_sections
 
-        run_sections(only, n, seed, config=cfg, out=Path(out) if out else None)
+        run_sections(only, fuzz_cases or n, seed, config=cfg, out=Path(out) if out else None)
         return
     if real_dir is not None:
         from boxloc.bench_real import run_real_bench

@@ -37,7 +37,6 @@ import os
 import re
 import struct
 import zipfile
-import zlib
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -344,8 +343,9 @@ def _read_npz(
         keys = [k for k in _NPZ_KEYS if k in members]
         try:
             heads = {k: _npy_header(zf, members[k]) for k in keys}
-        except (ValueError, EOFError, OSError, zipfile.BadZipFile, zlib.error,
-                NotImplementedError, RuntimeError) as e:
+        except MemoryError:
+            raise
+        except Exception as e:  # zip, zlib and numpy's header parser raise many kinds
             raise InputError(f"{p}: corrupt .npz member: {_one_line(e)}") from None
         _check_npz_headers(p, heads, max_pixels)
         if "range" not in heads and "points" not in heads:
@@ -355,8 +355,9 @@ def _read_npz(
                                         and ("intrinsics" in heads or intr is not None))]
         try:
             arrs = {k: _npz_member(zf, members[k]) for k in use}
-        except (ValueError, EOFError, OSError, zipfile.BadZipFile, zlib.error,
-                NotImplementedError, RuntimeError) as e:
+        except MemoryError:
+            raise
+        except Exception as e:  # as above
             raise InputError(f"{p}: corrupt or truncated .npz member: {_one_line(e)}") from None
     return _scan_from_npz(p, arrs, intr, index)
 
@@ -495,8 +496,13 @@ def write_npz(scan: Scan, path: PathLike) -> None:
 # --- depth images -----------------------------------------------------------------------
 
 
-def _image_size_from_header(p: Path) -> tuple[int, int] | None:
-    """(height, width) of a PNG or classic TIFF from its header; None if not found there."""
+def _image_size_from_header(p: Path) -> tuple[int, int]:
+    """(height, width) of a PNG, TIFF or BigTIFF from its header.
+
+    The size is checked before OpenCV decodes anything (it would allocate whatever a header
+    claims), so a file whose size cannot be read here, or that is another format under a
+    depth-image name (OpenCV goes by content, not by suffix), is refused.
+    """
     with open(p, "rb") as f:
         head = f.read(32)
         if head[:8] == b"\x89PNG\r\n\x1a\n":
@@ -505,34 +511,46 @@ def _image_size_from_header(p: Path) -> tuple[int, int] | None:
             w, h = struct.unpack(">II", head[16:24])
             return int(h), int(w)
         if head[:4] in (b"II*\x00", b"MM\x00*"):
-            return _tiff_size(f, "<" if head[:2] == b"II" else ">", p)
-    return None
+            return _tiff_size(f, "<" if head[:2] == b"II" else ">", p, big=False)
+        if head[:4] in (b"II+\x00", b"MM\x00+"):
+            return _tiff_size(f, "<" if head[:2] == b"II" else ">", p, big=True)
+    raise InputError(f"{p}: not a PNG or TIFF image")
 
 
-def _tiff_size(f: BinaryIO, bo: str, p: Path) -> tuple[int, int] | None:
-    """Image width and length tags of the first IFD of a classic TIFF."""
+def _tiff_size(f: BinaryIO, bo: str, p: Path, *, big: bool) -> tuple[int, int]:
+    """Image width and length tags of the first IFD of a classic TIFF or a BigTIFF."""
     f.seek(4)
-    (ifd,) = struct.unpack(bo + "I", f.read(4))
+    if big:
+        off_size, _ = struct.unpack(bo + "HH", f.read(4))
+        if off_size != 8:
+            raise InputError(f"{p}: corrupt BigTIFF header")
+        (ifd,) = struct.unpack(bo + "Q", f.read(8))
+        cfmt, elen, voff = "Q", 20, 12
+    else:
+        (ifd,) = struct.unpack(bo + "I", f.read(4))
+        cfmt, elen, voff = "H", 12, 8
     f.seek(ifd)
-    raw = f.read(2)
-    if len(raw) < 2:
+    raw = f.read(struct.calcsize(cfmt))
+    if len(raw) < struct.calcsize(cfmt):
         raise InputError(f"{p}: truncated TIFF (no image directory)")
-    (n,) = struct.unpack(bo + "H", raw)
-    entries = f.read(12 * n)
-    if len(entries) < 12 * n:
+    (n,) = struct.unpack(bo + cfmt, raw)
+    if n > 4096:  # real directories hold a few dozen tags
+        raise InputError(f"{p}: corrupt TIFF (image directory of {n} entries)")
+    entries = f.read(elen * n)
+    if len(entries) < elen * n:
         raise InputError(f"{p}: truncated TIFF (short image directory)")
     size: dict[int, int] = {}
     for i in range(n):
-        tag, typ, _count = struct.unpack(bo + "HHI", entries[12 * i : 12 * i + 8])
+        e = entries[elen * i : elen * (i + 1)]
+        tag, typ = struct.unpack(bo + "HH", e[:4])
         if tag in (256, 257):
-            fmt = {3: "H", 4: "I"}.get(typ)
+            fmt = {3: "H", 4: "I", 16: "Q"}.get(typ)
             if fmt is None:
-                return None
-            val = entries[12 * i + 8 : 12 * i + 8 + struct.calcsize(fmt)]
-            (size[tag],) = struct.unpack(bo + fmt, val)
-    if 256 in size and 257 in size:
-        return size[257], size[256]
-    return None
+                raise InputError(f"{p}: TIFF image size has an unsupported type {typ}")
+            (size[tag],) = struct.unpack(bo + fmt, e[voff : voff + struct.calcsize(fmt)])
+    if 256 not in size or 257 not in size:
+        raise InputError(f"{p}: TIFF has no image width and length in its first directory")
+    return size[257], size[256]
 
 
 @contextlib.contextmanager
@@ -562,8 +580,7 @@ def _read_depth_image(
         hw = _image_size_from_header(p)
     except struct.error:
         raise InputError(f"{p}: corrupt or truncated image header") from None
-    if hw is not None:
-        _check_size(p, hw[0], hw[1], max_pixels)
+    _check_size(p, hw[0], hw[1], max_pixels)
     with _quiet_cv2() as cv2:
         try:
             img = cv2.imread(str(p), cv2.IMREAD_UNCHANGED | cv2.IMREAD_ANYDEPTH)
@@ -785,6 +802,16 @@ def _parse_ply_header(p: Path) -> _PlyHeader:
         raise InputError(f"{p}: unknown PLY format {fmt!r}")
     if not any(e.name == "vertex" for e in elements):
         raise InputError(f"{p}: PLY has no vertex element")
+    names = [e.name for e in elements]
+    if len(set(names)) != len(names):
+        raise InputError(f"{p}: PLY repeats an element ({' '.join(names)})")
+    size = p.stat().st_size
+    for e in elements:
+        # Every entry takes at least a byte (a line in ascii), so a larger count is corrupt;
+        # Open3D would otherwise loop over it (even over entries without properties).
+        if e.count < 0 or e.count > size:
+            raise InputError(f"{p}: PLY element {e.name!r} claims {e.count} entries in a file "
+                             f"of {size} bytes")
     return _PlyHeader(fmt, elements, info, nl + 1)
 
 
@@ -1001,7 +1028,10 @@ def _read_cloud(p: Path, max_pixels: int, *, want_labels: bool) -> _Cloud:
         if lab.dtype.kind not in "iu" or lab.shape[0] != n_expected:
             raise InputError(f"{p}: 'label' field must be an integer scalar per point")
         labels = lab.reshape(-1).astype(np.int64)
-    pts = pos.astype(np.float64)
+    if pos.dtype.kind != "f":
+        raise InputError(f"{p}: point positions decode as {pos.dtype}, not floats (corrupt?)")
+    with np.errstate(invalid="ignore"):  # signalling NaNs from the file become quiet ones
+        pts = pos.astype(np.float64)
     if grid is not None:
         full = np.full((H * W, 3), np.nan)
         ok = grid >= 0

@@ -124,7 +124,10 @@ class RayTableModel:
     kind = "raytable"
 
     def __post_init__(self) -> None:
-        t = np.asarray(self.table, dtype=np.float64)
+        t = np.asarray(self.table)
+        if not (np.issubdtype(t.dtype, np.floating) or np.issubdtype(t.dtype, np.integer)):
+            raise InputError(f"ray table must be a real number array, got dtype {t.dtype}")
+        t = t.astype(np.float64)
         if t.ndim != 3 or t.shape[2] != 3:
             raise InputError(f"ray table must have shape (H, W, 3), got {t.shape}")
         if np.isinf(t).any():
@@ -274,7 +277,8 @@ def _check_range(range_: npt.ArrayLike) -> np.ndarray:
         raise InputError(f"range must not be empty, got shape {a.shape}")
     if not np.issubdtype(a.dtype, np.floating):
         raise InputError(f"range must be a float array, got dtype {a.dtype}")
-    a = a.astype(np.float32, copy=False)
+    with np.errstate(over="ignore"):  # an overflow becomes inf, refused just below
+        a = a.astype(np.float32, copy=False)
     if np.isinf(a).any():
         raise InputError("range must be finite or NaN, found inf")
     if (a < 0).any():

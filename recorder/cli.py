@@ -245,7 +245,7 @@ def run(source: str, count: int, seed: int | None, record: str | None, rerun: st
                         rec.on_error(scan, e)
                     msg = str(e).splitlines()[0] if str(e) else ""
                     progress.console.print(f"scan {scan.index}: failed: "
-                                           f"{type(e).__name__}: {msg}")
+                                           f"{type(e).__name__}: {msg}", markup=False)
                 else:
                     n_ok += 1
                     n_surfaces += len(result.surfaces)
@@ -349,10 +349,27 @@ def log_info(path: str | Path) -> dict[str, Any]:
     return info
 
 
+def _escaped(x: Any) -> Any:
+    """Every string of ``x`` with Rich markup escaped: a log's names and metadata are data,
+    never markup (``[/]`` would raise, ``[link=...]`` would make a link)."""
+    from rich.markup import escape
+
+    if isinstance(x, str):
+        return escape(x)
+    if isinstance(x, dict):
+        return {k: _escaped(v) for k, v in x.items()}
+    if isinstance(x, list):
+        return [_escaped(v) for v in x]
+    return x
+
+
 def _print_info(info: dict[str, Any]) -> None:
     from rich.console import Console
+    from rich.markup import escape
     from rich.table import Table
 
+    sensor = escape(json.dumps(info["sensor"])) if info["sensor"] else ""
+    info = _escaped(info)
     con = Console()
     v = info["versions"]
     state = "complete" if info["complete"] else "TRUNCATED (no summary): `boxloc recover` it"
@@ -365,8 +382,8 @@ def _print_info(info: dict[str, Any]) -> None:
               f"config {info['config_hash']}")
     con.print(f"  recorded on {info['host']} at {info['created_utc']} "
               f"(session {info['session']}, part {info['part']}); {info['library']}")
-    if info["sensor"]:
-        con.print(f"  sensor: {json.dumps(info['sensor'])}")
+    if sensor:
+        con.print(f"  sensor: {sensor}")
     if info["recovered"]:
         r = info["recovered"]
         con.print(f"  recovered from {r.get('source')}: {r.get('scans')} scan(s) kept, "

@@ -212,16 +212,16 @@ def msg_to_array(msg: Any, limits: DecodeLimits = DEFAULT_LIMITS) -> np.ndarray:
     shape = tuple(int(s) for s in msg.shape)
     if len(shape) > limits.max_ndim:
         raise LogError(f"array {name[:64]!r}: {len(shape)} dimensions exceed {limits.max_ndim}")
-    if any(s > limits.max_array_bytes for s in shape):
-        # Even an empty array (a zero dimension) may not claim an absurd one.
-        raise LogError(f"array {name[:64]!r}: shape {shape} has a dimension beyond "
-                       f"{limits.max_array_bytes}")
     n = math.prod(shape)
     nbytes = n * dt.itemsize
     if nbytes > limits.max_array_bytes:
         raise LogError(
-            f"array {name!r}: {nbytes} bytes exceed the limit of {limits.max_array_bytes}"
+            f"array {name[:64]!r}: {nbytes} bytes exceed the limit of {limits.max_array_bytes}"
         )
+    if any(s > limits.max_array_bytes for s in shape):
+        # An empty array (a zero dimension) may not claim an absurd other one either.
+        raise LogError(f"array {name[:64]!r}: shape {shape} has a dimension beyond the limit "
+                       f"of {limits.max_array_bytes}")
     data = msg.data
     stored = nbytes
     if msg.filter == _FILTER_SYMMETRIC_SHUFFLE:
@@ -449,11 +449,12 @@ def decode_sensor(
     except (KeyError, ValueError, TypeError) as e:
         raise LogError(f"{SENSOR_RECORD} record is malformed: {e}") from None
     if not (0 < H * W <= limits.max_pixels):
-        raise LogError(f"sensor size {H}x{W} is out of bounds")
+        raise LogError(f"sensor size {H}x{W} is out of bounds (0 < pixels <= "
+                       f"{limits.max_pixels})")
     sensor: SensorModel
     try:
         if kind == "pinhole":
-            fx, fy, cx, cy = (float(v) for v in a["intrinsics"])
+            fx, fy, cx, cy = (float(v) for v in np.asarray(a["intrinsics"]).reshape(-1))
             sensor = PinholeModel(fx, fy, cx, cy, W, H)
         elif kind == "raytable":
             sensor = _raytable_exact(a["table"], H, W)
@@ -461,7 +462,7 @@ def decode_sensor(
             raise LogError(f"unknown sensor kind {kind[:32]!r}")
     except KeyError as e:
         raise LogError(f"{SENSOR_RECORD} record lacks {e}") from None
-    except ValueError as e:  # InputError from the model's own checks
+    except (ValueError, TypeError) as e:  # InputError from the model's own checks
         raise LogError(f"recorded sensor model is invalid: {e}") from None
     if sensor_hash(sensor) != digest:
         raise LogError("recorded sensor model does not match its hash (corrupt log)")

@@ -221,7 +221,12 @@ def build_corpus(d: Path, sample_logs: Sequence[str | os.PathLike[str]] = ()) ->
         q = d / f"cloud-{fmt}.ply"
         q.write_bytes(ply_bytes(P, fmt, labels=labels))
         clouds.append(q)
-    logs = [Path(x) for x in sample_logs if Path(x).is_file()]
+    # Copies: the originals may be regenerated while a long run reads them.
+    logs = []
+    for x in sample_logs:
+        if Path(x).is_file():
+            logs.append(d / f"sample-{len(logs)}-{Path(x).name}")
+            shutil.copyfile(x, logs[-1])
     return {
         "small_logs": [str(x) for x in small],
         "logs": [str(x) for x in small + logs],
@@ -510,9 +515,12 @@ def log_steps(path: Path, d: Path) -> list[Step]:
         _drain(log)
 
     def info() -> None:
-        from recorder.cli import log_info
+        from recorder.cli import _print_info, log_info
 
-        json.dumps(log_info(path))
+        data = log_info(path)
+        json.dumps(data)
+        with contextlib.redirect_stdout(io.StringIO()):
+            _print_info(data)  # what `boxloc info` prints, Rich markup and all
 
     return [("open_log", strict), ("open_log(allow_truncated)", lenient),
             ("recover_log", recover), ("log_info", info)]
@@ -558,7 +566,7 @@ def _gen_log_bytes(rng: np.random.Generator, corpus: dict[str, Any], d: Path) ->
 
 
 @dataclass
-class _LogModel:
+class LogModel:
     """A log as plain data, to be mutated and written back as valid MCAP."""
 
     library: str
@@ -567,10 +575,14 @@ class _LogModel:
     messages: list[dict[str, Any]]
 
 
-_LOG_CACHE: dict[str, _LogModel] = {}
+_LOG_CACHE: dict[str, LogModel] = {}
 
 
-def _read_model(path: str) -> _LogModel:
+def read_log_model(path: str | os.PathLike[str]) -> LogModel:
+    """A (valid) log as a :class:`LogModel`: header library, metadata, attachments and
+    messages in file order (each a dict: topic, encoding, ch_meta, schema, log_time,
+    publish_time, sequence, data). Cached per path; a fresh copy is returned."""
+    path = str(path)
     if path not in _LOG_CACHE:
         from mcap.reader import make_reader
 
@@ -588,13 +600,14 @@ def _read_model(path: str) -> _LogModel:
             md = [(m.name, dict(m.metadata)) for m in r.iter_metadata()]
             att = [[a.create_time, a.log_time, a.name, a.media_type, a.data]
                    for a in r.iter_attachments()]
-        _LOG_CACHE[path] = _LogModel(hdr.library, md, att, msgs)
+        _LOG_CACHE[path] = LogModel(hdr.library, md, att, msgs)
     m = _LOG_CACHE[path]
-    return _LogModel(m.library, [(n, dict(v)) for n, v in m.metadata],
+    return LogModel(m.library, [(n, dict(v)) for n, v in m.metadata],
                      [list(a) for a in m.attachments], [dict(x) for x in m.messages])
 
 
-def _write_model(m: _LogModel, path: Path) -> None:
+def write_log_model(m: LogModel, path: Path) -> None:
+    """Write a :class:`LogModel` as a valid MCAP file (whatever its content)."""
     from mcap.writer import CompressionType, Writer
 
     with open(path, "wb") as f:
@@ -621,13 +634,13 @@ def _write_model(m: _LogModel, path: Path) -> None:
 
 _BAD_NAMES = ("", "../../../../tmp/boxloc-fuzz-escape", "/tmp/boxloc-fuzz-abs", "a\x00b",
               "x" * 5000, "..", ".", "nested/../../up", "C:\\windows\\evil", "\u202etxt.exe",
-              "config.toml", "tests/kind")
+              "config.toml", "tests/kind", "[/]", "[bold red]x", "[link=file:///etc/passwd]x")
 _BAD_DTYPES = ("|O", "<c16", "<f2", "|b1", "<i8", ">f8", "<M8[ns]", "|V8", "|U0", "<U0",
                "|S4", "<U999999", "", "garbage", "<f4", "<u8", "|u1", "<f16", "<U1")
 _BAD_JSON = ("", "{", "[]", "null", "1e999", '{"alpha": "x"}', '{"noise": "abc"}',
              '{"noise": [1, 2]}', '{"noise": {"sigma0": "a"}}', '{"workers": 1e300}',
              '{"max_pixels": -1}', '{"alpha": NaN}', '{"kind": "pinhole", "fx": "nan"}',
-             '{"kind": "raytable"}', "[" * 50_000 + "]" * 50_000,
+             '{"kind": "raytable"}', "[" * 50_000 + "]" * 50_000, "[/]", "[bold]",
              '{"a":' * 20_000 + "1" + "}" * 20_000, '"\\ud800"')
 
 
@@ -734,7 +747,8 @@ def _mutate_rows(rng: np.random.Generator, data: bytes, topic: str) -> tuple[byt
         s = msg.stages.add()
         s.stage, s.ms = "x" * int(rng.integers(0, 5000)), float("nan")
     elif name == "ScanError":
-        msg.stage, msg.message = "\x00" * 10, "line one\nline two"
+        msg.stage = str(_pick(rng, ["\x00" * 10, "[/]", "[bold]"]))
+        msg.message = str(_pick(rng, ["line one\nline two", "[/]", "x" * 5000]))
     else:
         msg.surface_id = int(_pick(rng, [-1, 2**31 - 1]))
         msg.scan_index = int(_pick(rng, [-1, 2**63 - 1]))
@@ -749,7 +763,7 @@ _PRODUCT_TOPICS = ("/scan/sensor", "/scan/info", "/boxloc/edges", "/boxloc/lines
 
 def _gen_log_records(rng: np.random.Generator, corpus: dict[str, Any], d: Path) -> Job:
     small = corpus["small_logs"]
-    m = _read_model(small[int(rng.integers(0, len(small)))])
+    m = read_log_model(small[int(rng.integers(0, len(small)))])
     what = str(_pick(rng, ["payload"] * 6 + ["metadata", "attachment", "topic", "order"]))
     kind = what
     if what == "payload":
@@ -768,7 +782,8 @@ def _gen_log_records(rng: np.random.Generator, corpus: dict[str, Any], d: Path) 
         kind = f"{t}:{kind}"
     elif what == "metadata":
         name, md = m.metadata[0] if m.metadata else ("boxloc.run", {})
-        key = str(_pick(rng, ["config", "sensor", "session", "boxloc_version", "new"]))
+        key = str(_pick(rng, ["config", "sensor", "session", "boxloc_version", "new", "host",
+                              "git_commit", "git_dirty", "created_utc", "part"]))
         md[key] = _deep_json() if rng.random() < 0.2 else str(_pick(rng, _BAD_JSON))
         m.metadata[0:1] = [(name, md)]
         if rng.random() < 0.2:
@@ -809,7 +824,7 @@ def _gen_log_records(rng: np.random.Generator, corpus: dict[str, Any], d: Path) 
             m.messages[i]["log_time"] = int(_pick(rng, [0, 2**64 - 1, 1]))
         kind = f"order-{op}"
     out = d / "fuzzed.mcap"
-    _write_model(m, out)
+    write_log_model(m, out)
     return Job(kind, log_steps(out, d))
 
 
@@ -1180,7 +1195,8 @@ def _gen_cloud(rng: np.random.Generator, corpus: dict[str, Any], d: Path) -> Job
                    f"element vertex {rng.choice(_PCD_VALUES)}", "property list uchar int x",
                    "property double y", "element camera 1", "format binary_little_endian 2.0",
                    "property float64 z", "element range_grid 3",
-                   "property list uint8 int vertex_indices", "comment " + "c" * 70_000]
+                   "property list uint8 int vertex_indices", "comment " + "c" * 70_000,
+                   "element face 4000000000", f"element vertex {H * W}"]
             lines[i] = str(_pick(rng, bad))
             kind += f"-line{i}"
         data = ply_bytes(P, fmt, labels=labels, header_lines=lines)
@@ -1368,7 +1384,7 @@ def _reset_peak() -> bool:
         return False
 
 
-def _one_line_tb(e: BaseException) -> str:
+def _traceback(e: BaseException) -> str:
     return "".join(traceback.format_exception(type(e), e, e.__traceback__))[-4000:]
 
 
@@ -1382,16 +1398,16 @@ def run_step(fn: Callable[[], Any]) -> tuple[str, str | None, str, str]:
         msg = str(e)
         if not msg.strip() or "\n" in msg or "\r" in msg:
             return ("failure", "message", f"{type(e).__name__} whose message is not one line: "
-                    f"{msg[:300]!r}", _one_line_tb(e))
+                    f"{msg[:300]!r}", _traceback(e))
         if "not enough memory" in msg:
-            return "failure", "memory", f"{type(e).__name__}: {msg[:300]}", _one_line_tb(e)
+            return "failure", "memory", f"{type(e).__name__}: {msg[:300]}", _traceback(e)
         return "error", None, f"{type(e).__name__}: {msg[:300]}", ""
     except MemoryError as e:
-        return "failure", "memory", f"MemoryError: {str(e)[:300]}", _one_line_tb(e)
+        return "failure", "memory", f"MemoryError: {str(e)[:300]}", _traceback(e)
     except KeyboardInterrupt:
         raise
     except BaseException as e:  # noqa: BLE001 - every other exception is a finding
-        return "failure", "exception", f"{type(e).__name__}: {str(e)[:300]}", _one_line_tb(e)
+        return "failure", "exception", f"{type(e).__name__}: {str(e)[:300]}", _traceback(e)
     return "ok", None, "", ""
 
 
@@ -1413,7 +1429,7 @@ def run_case(case: Case, corpus: dict[str, Any], tmp: Path, *, mem_bound_mb: flo
         job = generate(case, corpus, d)
     except Exception as e:  # noqa: BLE001 - a harness bug: reported, never hidden
         out.update(status="failure", what="harness", step="generate",
-                   detail=f"{type(e).__name__}: {e}"[:300], traceback=_one_line_tb(e))
+                   detail=f"{type(e).__name__}: {e}"[:300], traceback=_traceback(e))
         job = Job("generate-failed")
     out["kind"] = job.kind
     out["read_kw"] = job.read_kw
@@ -1485,6 +1501,9 @@ def _worker_main(conn: Any, corpus: dict[str, Any], workdir: str, slot: int,
     logf = os.open(str(wd / f"worker-{slot}.log"), os.O_WRONLY | os.O_CREAT | os.O_APPEND)
     os.dup2(logf, 1)
     os.dup2(logf, 2)
+    import faulthandler
+
+    faulthandler.enable()  # a native crash leaves the Python stack in the worker's log
     _warm_up(corpus, tmp)
     base_rss = _proc_kb("VmRSS") or 0
     vm = _proc_kb("VmSize")
@@ -1506,6 +1525,7 @@ def _worker_main(conn: Any, corpus: dict[str, Any], workdir: str, slot: int,
         if msg is None:
             return
         case = Case(**msg)
+        os.write(2, f"case {case.index} ({case.category})\n".encode())
         out = run_case(case, corpus, tmp, mem_bound_mb=mem_bound_mb, failures_dir=failures)
         rss = _proc_kb("VmRSS") or 0
         out["restart"] = (rss - base_rss) / 1024 > _RESTART_GROWTH_MB
@@ -1526,6 +1546,7 @@ class _Slot:
     case: Case | None = None
     t0: float = 0.0
     info: dict[str, Any] = field(default_factory=dict)
+    history: deque[int] = field(default_factory=lambda: deque(maxlen=5))
 
 
 class _Pool:
@@ -1582,6 +1603,7 @@ class _Pool:
                         self._start(s)
                     if s.state == "idle" and todo:
                         s.case = todo.popleft()
+                        s.history.append(s.case.index)
                         s.conn.send(dataclasses.asdict(s.case))
                         s.state, s.t0 = "busy", time.monotonic()
                 live = [s.conn for s in self.slots if s.state in ("starting", "busy")]
@@ -1619,13 +1641,17 @@ class _Pool:
 
     def _died(self, s: _Slot, on_result: Callable[[dict[str, Any]], None]) -> None:
         case, state = s.case, s.state
+        before = [i for i in s.history if case is None or i != case.index]
+        s.history.clear()
         code = s.proc.exitcode if s.proc is not None else None
         self._stop(s, kill=True)
         if state == "starting":
             raise RuntimeError(f"a fuzz worker died while starting (exit code {code}); see "
                                f"{self.workdir}/worker-{s.index}.log")
         if case is not None:
-            on_result(self._lost(case, "crash", f"the worker process died (exit code {code})"))
+            on_result(self._lost(case, "crash", f"the worker process died (exit code {code}); "
+                                 f"its previous cases (a native memory error can surface "
+                                 f"later): {before}"))
 
     def _lost(self, case: Case, what: str, detail: str) -> dict[str, Any]:
         out = {"case": case.index, "category": case.category, "kind": "", "status": "failure",

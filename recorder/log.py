@@ -183,6 +183,8 @@ def _file_size(f: IO[bytes]) -> int | None:
 
 
 def _attachment_crc_ok(body: bytes) -> bool:
+    if len(body) < 4:
+        return False
     (crc,) = struct.unpack("<I", body[-4:])
     return crc == 0 or crc == zlib.crc32(body[:-4])
 

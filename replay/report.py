@@ -229,7 +229,7 @@ def print_table(diffs: Sequence[LogDiff], console: Any = None, *,
             t.add_column(col, justify="right")
         for stage, v in timing.items():
             b, c = v.get("base", {}), v.get("candidate", {})
-            t.add_row(stage, _fmt(b.get("median"), 1), _fmt(c.get("median"), 1),
+            t.add_row(escape(stage), _fmt(b.get("median"), 1), _fmt(c.get("median"), 1),
                       _fmt(b.get("p95"), 1), _fmt(c.get("p95"), 1))
         con.print(t)
     code = exit_code(diffs, tol)
