@@ -678,18 +678,7 @@ def print_report(report: dict[str, Any], console: Any) -> None:
         pk.add_row(*cells)
     console.print(pk)
 
-    tt = Table(title=escape("time per scan [ms] (median / p95)"))
-    tt.add_column("method")
-    tt.add_column("stage")
-    tt.add_column("median / p95", justify="right")
-    for m, tm in report["timing"].items():
-        for stage, v in tm["stages_ms"].items():
-            tt.add_row(LABELS[m], escape(stage),
-                       f"{_fmt(v['median'], 'ms')} / {_fmt(v['p95'], 'ms')}")
-        tot = tm["total_ms"]
-        tt.add_row(LABELS[m], "[b]wall total[/]",
-                   f"{_fmt(tot['median'], 'ms')} / {_fmt(tot['p95'], 'ms')}")
-    console.print(tt)
+    print_timing(console, report["timing"], "scan")
     mem = report["memory"]
     console.print(escape("peak RSS [MB]: ") + ", ".join(f"{k.removesuffix('_mb')} {_fmt(v, 'MB')}"
                                                 for k, v in mem.items()))
@@ -722,6 +711,25 @@ def _flatten(d: dict[str, Any], prefix: str = "") -> list[tuple[str, Any]]:
         else:
             out.append((f"{prefix}{k}", v))
     return out
+
+
+def print_timing(console: Any, timing: dict[str, Any], unit: str = "scan") -> None:
+    """The per-stage time table (median / p95, ms) of each method of a report."""
+    from rich.markup import escape
+    from rich.table import Table
+
+    tt = Table(title=escape(f"time per {unit} [ms] (median / p95)"))
+    tt.add_column("method")
+    tt.add_column("stage")
+    tt.add_column("median / p95", justify="right")
+    for m, tm in timing.items():
+        for stage, v in tm["stages_ms"].items():
+            tt.add_row(LABELS[m], escape(stage),
+                       f"{_fmt(v['median'], 'ms')} / {_fmt(v['p95'], 'ms')}")
+        tot = tm["total_ms"]
+        tt.add_row(LABELS[m], "[b]wall total[/]",
+                   f"{_fmt(tot['median'], 'ms')} / {_fmt(tot['p95'], 'ms')}")
+    console.print(tt)
 
 
 def run_sections(

@@ -59,6 +59,7 @@ from boxloc.bench import (
     _fmt,
     _jsonable,
     _limit_threads,
+    print_timing,
     process_max_rss_mb,
 )
 from boxloc.config import Config
@@ -497,18 +498,7 @@ def print_real_report(report: dict[str, Any], console: Any) -> None:
         ft.add_row(*cells)
     console.print(ft)
 
-    tt = Table(title=escape("time per frame [ms] (median / p95)"))
-    tt.add_column("method")
-    tt.add_column("stage")
-    tt.add_column("median / p95", justify="right")
-    for m, tm in report["timing"].items():
-        for stage, v in tm["stages_ms"].items():
-            tt.add_row(LABELS[m], escape(stage),
-                       f"{_fmt(v['median'], 'ms')} / {_fmt(v['p95'], 'ms')}")
-        tot = tm["total_ms"]
-        tt.add_row(LABELS[m], "[b]wall total[/]",
-                   f"{_fmt(tot['median'], 'ms')} / {_fmt(tot['p95'], 'ms')}")
-    console.print(tt)
+    print_timing(console, report["timing"], "frame")
     nz = report["noise"]["model"]
     console.print(escape(f"noise ({report['noise']['source']}): ")
                   + ", ".join(f"{k} {v:.3g}" for k, v in nz.items()))
