@@ -11,17 +11,15 @@ missing=""
 for p in $DEB_PKGS; do
   dpkg -s "$p" >/dev/null 2>&1 || missing="$missing $p"
 done
-if [ -n "$missing" ]; then
-  if [ "$(id -u)" = 0 ]; then
-    echo "setup: installing Debian packages:$missing" >&2
-    export DEBIAN_FRONTEND=noninteractive
-    apt-get update -qq >/dev/null
-    apt-get install -y -qq $missing >/dev/null
-  else
-    echo "setup: missing Debian packages:$missing" >&2
-    echo "setup: run as root: apt-get update && apt-get install -y$missing" >&2
-    exit 2
-  fi
+if [ "$(id -u)" = 0 ]; then
+  # as root (CI, a fresh machine): always update and install; a no-op when present
+  export DEBIAN_FRONTEND=noninteractive
+  apt-get update -qq >/dev/null
+  apt-get install -y -qq $DEB_PKGS >/dev/null
+elif [ -n "$missing" ]; then
+  echo "setup: missing Debian packages:$missing" >&2
+  echo "setup: run as root: apt-get update && apt-get install -y$missing" >&2
+  exit 2
 fi
 
 if [ ! -x "$VENV/bin/python" ]; then
