@@ -132,20 +132,32 @@ def open_source(source: str, *, count: int, seed: int | None, intrinsics: str | 
 
 
 @contextmanager
-def _sigterm_as_interrupt() -> Iterator[None]:
-    """SIGTERM stops a run like Ctrl-C does: the log is finished cleanly."""
-    def handler(signum: int, frame: Any) -> None:
-        raise KeyboardInterrupt
+def _stop_requests() -> Iterator[list[int]]:
+    """SIGINT and SIGTERM ask the run to stop after the scan in progress.
 
+    The first signal only sets a flag (the yielded list gets the signal number), so the
+    pipeline is never interrupted inside a stage (a KeyboardInterrupt raised inside a numba
+    kernel surfaces as a SystemError); the loop stops at the next scan boundary and the log
+    is finished cleanly. A second signal interrupts at once.
+    """
+    requested: list[int] = []
+
+    def handler(signum: int, frame: Any) -> None:
+        if requested:
+            raise KeyboardInterrupt
+        requested.append(signum)
+
+    old: dict[int, Any] = {}
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        try:
+            old[sig] = signal.signal(sig, handler)
+        except (ValueError, OSError):  # not the main thread
+            pass
     try:
-        old = signal.signal(signal.SIGTERM, handler)
-    except (ValueError, OSError):
-        yield
-        return
-    try:
-        yield
+        yield requested
     finally:
-        signal.signal(signal.SIGTERM, old)
+        for sig, h in old.items():
+            signal.signal(sig, h)
 
 
 def _progress(enabled: bool, total: int | None) -> Any:
@@ -228,7 +240,7 @@ def run(source: str, count: int, seed: int | None, record: str | None, rerun: st
                 stack.callback(sink.close)
                 observers.append(sink)
         obs = FanOut(*observers)
-        stack.enter_context(_sigterm_as_interrupt())
+        stop = stack.enter_context(_stop_requests())
         show = not quiet and (src.total is None or src.total > 1)
         progress = stack.enter_context(_progress(show, src.total))
         task = progress.add_task("scans", total=src.total)
@@ -254,6 +266,8 @@ def run(source: str, count: int, seed: int | None, record: str | None, rerun: st
                             f"scan {scan.index}: {len(result.surfaces)} surface(s) in "
                             f"{time.perf_counter() - t0:.1f} s")
                 progress.advance(task)
+                if stop:
+                    raise KeyboardInterrupt
         except KeyboardInterrupt:
             progress.console.print("interrupted: closing the log")
             raise
