@@ -59,6 +59,7 @@ from boxloc.bench import (
     _fmt,
     _jsonable,
     _limit_threads,
+    _max,
     print_timing,
     process_max_rss_mb,
 )
@@ -392,11 +393,6 @@ def run_real_bench(
         if out is not None:
             con.print(f"wrote {Path(out) / 'bench_real.json'}")
     return report
-
-
-def _max(vals: Sequence[float | None]) -> float | None:
-    v = [x for x in vals if x is not None]
-    return max(v) if v else None
 
 
 def _timing(runs: Sequence[_Run]) -> dict[str, Any]:
