@@ -413,14 +413,7 @@ def run_bench(
         from rich.console import Console
 
         con = Console(stderr=True)
-    bar = None
-    if progress:
-        from rich.progress import BarColumn, MofNCompleteColumn, Progress, TimeElapsedColumn
-
-        bar = Progress("[progress.description]{task.description}", BarColumn(),
-                       MofNCompleteColumn(), TimeElapsedColumn(), console=con, transient=True)
-        bar.start()
-        task = bar.add_task("bench", total=len(specs))
+    bar, task = progress_bar(con, "bench", len(specs)) if progress else (None, None)
     try:
         if warmup and specs:
             _warm_up(specs[0], loc, cfg, baseline)
@@ -711,6 +704,16 @@ def _flatten(d: dict[str, Any], prefix: str = "") -> list[tuple[str, Any]]:
         else:
             out.append((f"{prefix}{k}", v))
     return out
+
+
+def progress_bar(console: Any, label: str, total: int) -> tuple[Any, Any]:
+    """A started rich progress bar and its task (stop it with ``bar.stop()``)."""
+    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TimeElapsedColumn
+
+    bar = Progress("[progress.description]{task.description}", BarColumn(),
+                   MofNCompleteColumn(), TimeElapsedColumn(), console=console, transient=True)
+    bar.start()
+    return bar, bar.add_task(label, total=total)
 
 
 def print_timing(console: Any, timing: dict[str, Any], unit: str = "scan") -> None:

@@ -62,6 +62,7 @@ from boxloc.bench import (
     _max,
     print_timing,
     process_max_rss_mb,
+    progress_bar,
 )
 from boxloc.config import Config
 from boxloc.errors import InputError
@@ -321,14 +322,7 @@ def run_real_bench(
     methods = METHODS if baseline else METHODS[:1]
     runs: dict[str, list[_Run]] = {m: [] for m in methods}
     rows: list[dict[str, Any]] = []
-    bar = None
-    if progress:
-        from rich.progress import BarColumn, MofNCompleteColumn, Progress, TimeElapsedColumn
-
-        bar = Progress("[progress.description]{task.description}", BarColumn(),
-                       MofNCompleteColumn(), TimeElapsedColumn(), console=con, transient=True)
-        bar.start()
-        task = bar.add_task("bench --real", total=len(scored))
+    bar, task = progress_bar(con, "bench --real", len(scored)) if progress else (None, None)
     try:
         if warmup and scored:
             for m in methods:

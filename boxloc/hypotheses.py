@@ -37,7 +37,7 @@ from boxloc.verify import (
     rectangle_corners,
     verify,
 )
-from boxloc.vertices import normal_covariance
+from boxloc.vertices import _skew, normal_covariance
 
 #: Most dimension candidates verified per vertex (bounds the work on cluttered scenes).
 MAX_ATTEMPTS = 6
@@ -285,12 +285,6 @@ def _peaks(acc: np.ndarray, h: float, lo: float, min_height: float, alpha: float
 
 def _norm_isf(alpha: float) -> float:
     return float(st.norm.isf(alpha))
-
-
-def _skew(v: np.ndarray) -> np.ndarray:
-    from boxloc.vertices import _skew as sk
-
-    return sk(v)
 
 
 def _pinv_quad(e: np.ndarray, S: np.ndarray, rank: int) -> float:

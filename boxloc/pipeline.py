@@ -90,7 +90,7 @@ def find_graspable_surfaces(
     obs.on_lines(scan, lines)
     vertices = _timed(timing, "vertices", lambda: find_vertices(lines, config=config))
     obs.on_vertices(scan, vertices)
-    up = estimate_up(scan, config, rng)
+    up = _timed(timing, "up", lambda: estimate_up(scan, config, rng))
     hyps, verification = _timed(
         timing, "hypotheses",
         lambda: generate_hypotheses(scan, edges, vertices, config=config, up=up),

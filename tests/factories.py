@@ -11,6 +11,10 @@ Everything is seeded: the same arguments give the same products, bit for bit.
 
 from __future__ import annotations
 
+import errno
+import os
+from pathlib import Path
+
 import numpy as np
 
 from boxloc.products import (
@@ -384,3 +388,37 @@ def feed(observer: object, scan: Scan, result: Result, config: object = None, *,
                   "surfaces"):
         getattr(observer, f"on_{stage}")(scan, getattr(result, stage))
     observer.on_result(scan, result)  # type: ignore[attr-defined]
+
+
+class FullDisk:
+    """A file that takes ``limit`` bytes, then fails like a full disk: a partial write, then
+    ENOSPC (and ENOSPC for every later write, and for fsync)."""
+
+    def __init__(self, path: Path, limit: int) -> None:
+        self.f = open(path, "xb")
+        self.limit, self.n, self.full = limit, 0, False
+
+    def write(self, b: bytes) -> int:
+        b = bytes(b)
+        if self.full or self.n + len(b) > self.limit:
+            k = max(0, self.limit - self.n)
+            self.f.write(b[:k])
+            self.f.flush()
+            self.n += k
+            self.full = True
+            raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+        self.f.write(b)
+        self.n += len(b)
+        return len(b)
+
+    def tell(self) -> int:
+        return self.n
+
+    def flush(self) -> None:
+        self.f.flush()
+
+    def fileno(self) -> int:
+        return self.f.fileno()
+
+    def close(self) -> None:
+        self.f.close()

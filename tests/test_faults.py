@@ -9,7 +9,6 @@ recovered, lost) go to ``DIR/faults.json`` for ``docs/reliability.md``.
 from __future__ import annotations
 
 import dataclasses
-import errno
 import os
 import queue
 import signal
@@ -25,6 +24,7 @@ from typing import Any
 
 import numpy as np
 import pytest
+from factories import FullDisk
 from figures import record
 
 from boxloc.config import Config
@@ -302,40 +302,6 @@ def test_the_cli_on_a_real_full_disk_prints_one_line(small_tmpfs: Path, tmp_path
     assert report.scan_indices == list(range(report.scans))
 
 
-class FullAt:
-    """A file that takes ``limit`` bytes, then fails like a full disk: a partial write, then
-    ENOSPC (and ENOSPC for every later write, and for fsync)."""
-
-    def __init__(self, path: Path, limit: int) -> None:
-        self.f = open(path, "xb")
-        self.limit, self.n, self.full = limit, 0, False
-
-    def write(self, b: bytes) -> int:
-        b = bytes(b)
-        if self.full or self.n + len(b) > self.limit:
-            k = max(0, self.limit - self.n)
-            self.f.write(b[:k])
-            self.f.flush()
-            self.n += k
-            self.full = True
-            raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
-        self.f.write(b)
-        self.n += len(b)
-        return len(b)
-
-    def tell(self) -> int:
-        return self.n
-
-    def flush(self) -> None:
-        self.f.flush()
-
-    def fileno(self) -> int:
-        return self.f.fileno()
-
-    def close(self) -> None:
-        self.f.close()
-
-
 def test_simulated_enospc_at_random_points(tmp_path: Path) -> None:
     """The disk fills at a random byte: inside the header, a chunk, or the summary."""
     rng = np.random.default_rng(7)
@@ -345,7 +311,7 @@ def test_simulated_enospc_at_random_points(tmp_path: Path) -> None:
         path = tmp_path / f"e{t}.mcap"
         from boxloc.pipeline import find_graspable_surfaces
 
-        rec = McapRecorder(path, opener=lambda p, lim=limit: FullAt(p, lim))  # type: ignore[misc]
+        rec = McapRecorder(path, opener=lambda p, lim=limit: FullDisk(p, lim))  # type: ignore[misc]
         written: list[int] = []
         msg = ""
         try:

@@ -3,9 +3,7 @@ error and readable earlier scans. Recovery never modifies its input."""
 
 from __future__ import annotations
 
-import errno
 import hashlib
-import os
 import signal
 import subprocess
 import sys
@@ -14,7 +12,7 @@ import time
 from pathlib import Path
 
 import pytest
-from factories import feed, make_result, make_scan
+from factories import FullDisk, feed, make_result, make_scan
 from test_recorder_readers import doctor, rerun_check
 
 from boxloc.errors import InputError, LogError
@@ -31,7 +29,7 @@ SHAPE = (96, 128)
 _CHILD = textwrap.dedent("""
     import sys, time
     sys.path.insert(0, {tests!r})
-    from factories import feed, make_result, make_scan
+    from factories import FullDisk, feed, make_result, make_scan
     from recorder.mcap_sink import McapRecorder
     rec = McapRecorder({path!r})
     i = 0
@@ -118,40 +116,6 @@ def test_sigint_finishes_the_log_cleanly(tmp_path: Path) -> None:
     assert last.complete or last.error["error_type"] == "Interrupted"
     doctor(path)
     rerun_check(path)
-
-
-class FullDisk:
-    """A file that takes ``limit`` bytes, then fails like a full disk (a partial write, then
-    ENOSPC)."""
-
-    def __init__(self, path: Path, limit: int) -> None:
-        self.f = open(path, "xb")
-        self.limit = limit
-        self.n = 0
-
-    def write(self, b: bytes) -> int:
-        b = bytes(b)
-        if self.n + len(b) > self.limit:
-            k = self.limit - self.n
-            self.f.write(b[:k])
-            self.n += k
-            self.f.flush()
-            raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
-        self.f.write(b)
-        self.n += len(b)
-        return len(b)
-
-    def tell(self) -> int:
-        return self.n
-
-    def flush(self) -> None:
-        self.f.flush()
-
-    def fileno(self) -> int:
-        return self.f.fileno()
-
-    def close(self) -> None:
-        self.f.close()
 
 
 def test_a_full_disk_fails_clearly_and_keeps_earlier_scans(tmp_path: Path) -> None:
