@@ -12,6 +12,11 @@ The paper returns after verifying the first candidate; here a candidate that fai
 verification is followed by the next one (at most ``MAX_ATTEMPTS``), and every attempt is
 recorded, so a post-mortem sees what else was tried.
 
+Where the edge stage saw the seam between two touching boxes of equal height only in part,
+the edge accumulators have no peak there; seams found in the range points of the region
+(:mod:`boxloc.seams`) are added as far-side candidates (``DimensionSource.SEAMS``), and
+verification tests the seam itself instead of counting edge points along it.
+
 Per-vertex work is independent (the paper's parallel implementation); with
 ``config.workers > 1`` it runs in processes and the result is identical to serial.
 """
@@ -29,6 +34,7 @@ from scipy.spatial import cKDTree
 from boxloc.config import Config
 from boxloc.products import DimensionSource, EdgeMap, HypothesisSet, Verification, VertexSet
 from boxloc.scan import Scan
+from boxloc.seams import face_points, find_seams
 from boxloc.stats import TestKind, TestTable, chi2_critical
 from boxloc.verify import (
     BOUNDARY_BAND,
@@ -233,8 +239,15 @@ def dimensions_from_edges(R: Rectangle, ctx: _Context, work: _VertexWork) -> lis
     px = _peaks(ax, h, cfg.min_edge * 0.9, min_peak, alpha)
     py = _peaks(ay, h, cfg.min_edge * 0.9, min_peak, alpha)
     work.peaks_x, work.peaks_y = px, py
+    sx, sy = _seam_peaks(R, ctx, work, px, py, spacing, band)
     out: list[_Attempt] = []
     sup_tests: list[tuple[float, float, bool]] = []
+    # a seam for a far side: no edge support to count, verification tests the seam
+    for Mx in np.r_[px, sx]:
+        for My in np.r_[py, sy]:
+            if Mx in sx or My in sy:
+                out.append(_Attempt(DimensionSource.SEAMS, -1, float(Mx), float(My),
+                                    np.nan, np.nan))
     for Mx in px:
         for My in py:
             on_x = np.abs(u - Mx) <= 1.5 * h
@@ -253,6 +266,34 @@ def dimensions_from_edges(R: Rectangle, ctx: _Context, work: _VertexWork) -> lis
                                              s[:, 1], s[:, 2].astype(bool), alpha))
     out.sort(key=lambda a: a.width * a.length)
     return out
+
+
+def _seam_peaks(R: Rectangle, ctx: _Context, work: _VertexWork, px: np.ndarray,
+                py: np.ndarray, spacing: float, band: float) -> tuple[np.ndarray, np.ndarray]:
+    """Seams inside the region the edge peaks span: extra candidates for the far sides.
+
+    Where the edge stage saw a seam between touching boxes only in part, its accumulator
+    has no peak there; the range points of the region, binned across each axis, still show
+    the groove (:func:`boxloc.seams.find_seams`, at alpha over the positions). The region
+    runs to the farthest edge peak on each axis (``max_edge`` where there is none).
+    """
+    cfg = ctx.config
+    U = float(px.max()) if len(px) else cfg.max_edge
+    V = float(py.max()) if len(py) else cfg.max_edge
+    vc = ctx.verify_ctx
+    fp = face_points(vc.points, vc.valid, vc.sigma, vc.project, R.origin, R.x_axis, R.y_axis,
+                     R.normal, (0.0, U), (0.0, V), spacing, cfg.alpha)
+    lo = 0.9 * cfg.min_edge
+    found = []
+    for b, (coord, other, ext) in enumerate(((fp.u, fp.v, U), (fp.v, fp.u, V))):
+        sel = other > band
+        pos, z, crit = find_seams(coord[sel], fp.w[sel], fp.scale, lo, ext - lo, spacing,
+                                  cfg.alpha)
+        found.append(pos)
+        if len(pos):
+            work.tests.append(TestTable.decision(TestKind.SEAM_PEAK, R.vertex, b, z, crit,
+                                                 True, cfg.alpha))
+    return found[0], found[1]
 
 
 def _peaks(acc: np.ndarray, h: float, lo: float, min_height: float, alpha: float) -> np.ndarray:

@@ -43,6 +43,8 @@ class DimensionSource(IntEnum):
     NONE = 0
     VERTICES = 1
     EDGES = 2
+    #: from the edge accumulators and a seam (:mod:`boxloc.seams`) for a far side
+    SEAMS = 3
 
 
 class VerifyReason(IntEnum):
@@ -58,6 +60,8 @@ class VerifyReason(IntEnum):
     OUTSIDE_IMAGE = 7
     #: a side of the rectangle is not a convex boundary (jump, convex crease, groove)
     BOUNDARY = 8
+    #: a seam (a line of points behind the plane) crosses the interior: two faces, not one
+    INTERIOR_SEAM = 9
 
 
 class SelectReason(IntEnum):

@@ -56,6 +56,15 @@ class TestKind(IntEnum):
     VERIFY_EXPOSED = 16
     #: verification: one side of hypothesis a is covered by convex edge points (fraction)
     VERIFY_BOUNDARY = 17
+    #: verification: a side of hypothesis a with no line of boundary edges is a seam
+    #: (b = side 0-3: v=0, v=length, u=0, u=width; statistic z, one-sided)
+    VERIFY_SEAM_SIDE = 18
+    #: verification: no seam crosses the interior of hypothesis a (b = 0 along x, 1 along
+    #: y; statistic = the largest z inside)
+    VERIFY_SEAM_INTERIOR = 19
+    #: hypothesis stage: seams in vertex a's region, extra dimension candidates (b = 0
+    #: along x, 1 along y; one row per seam found, statistic z)
+    SEAM_PEAK = 20
 
 
 @lru_cache(maxsize=256)

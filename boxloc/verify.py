@@ -22,11 +22,17 @@ rectangle's plane with their propagated uncertainty (point-on-plane, chi2(1) at 
   edges, at alpha), and all four together cover the fraction p of the perimeter. This
   extends the paper's |P_f| > p from the two far sides to all four, and rejects a
   sub-rectangle of a larger face, and the floor or pallet between boxes (bounded by
-  concave creases where the boxes rise).
+  concave creases where the boxes rise). A side with no such line is still a boundary if
+  it is a seam (``VERIFY_SEAM_SIDE``: the range points along it, binned across it, show a
+  groove behind the plane; :mod:`boxloc.seams`), which is how two touching boxes of equal
+  height part where the edge stage saw their seam only in part;
+* ``VERIFY_SEAM_INTERIOR`` — no seam crosses the interior, at alpha Bonferroni-corrected
+  over the positions (a rectangle over two touching boxes is two faces).
 """
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import cv2
@@ -37,6 +43,7 @@ from boxloc.config import Config
 from boxloc.lines import MIN_LINE_POINTS
 from boxloc.products import EdgeKind, EdgeMap, VerifyReason
 from boxloc.scan import Scan
+from boxloc.seams import SEAM_FLANK, face_points, find_seams, seam_at
 from boxloc.stats import TestKind, TestTable, chi2_critical
 
 #: Edges within this fraction of the shortest box edge from a side belong to that side: a
@@ -52,12 +59,14 @@ class VerifyContext:
 
     points: np.ndarray  # (H, W, 3) float64
     sigma2: np.ndarray  # (H, W) float64: range variance, NaN where no return
+    sigma: np.ndarray  # (H, W) float64: its square root
     lateral2: np.ndarray  # (H, W) float64: lateral variance
     valid: np.ndarray  # (H, W) bool
     edge_points: np.ndarray  # (N, 3)
     edge_kinds: np.ndarray  # (N,) EdgeKind
     pixel_angle: float  # radians per pixel: the edge-point spacing is range * pixel_angle
     up: np.ndarray  # (3,) the up direction of the tilt prior
+    project: Callable[[np.ndarray], np.ndarray]  # the sensor's projection to pixels
 
     @classmethod
     def build(cls, scan: Scan, edges: EdgeMap, config: Config, up: np.ndarray) -> VerifyContext:
@@ -66,8 +75,9 @@ class VerifyContext:
         sr = config.noise.sigma_range(r)
         sl = config.noise.sigma_lateral(r, scan.sensor.pixel_angle)
         valid = np.isfinite(r)
-        return cls(P, sr**2, sl**2, valid, edges.points, edges.kinds, scan.sensor.pixel_angle,
-                   np.asarray(up, dtype=np.float64))
+        return cls(P, sr**2, sr, sl**2, valid, edges.points, edges.kinds,
+                   scan.sensor.pixel_angle, np.asarray(up, dtype=np.float64),
+                   scan.sensor.project)
 
     def spacing_at(self, point: np.ndarray) -> float:
         """Expected spacing of edge points along an edge at ``point``, metres."""
@@ -255,16 +265,19 @@ def verify(
     # background: convex edge points scattered over the interior, per unit area
     area_in = max((width - 2 * mi) * (length - 2 * mi), spacing * spacing)
     density = float((convex & inside_e).sum()) / area_in
-    covered, side_p, side_n = [], [], []
-    for near, along, L in sides:
-        sel = convex & near & (along >= 0) & (along <= L)
-        # distinct positions along the side (one per spacing) measure coverage, not density
-        bins = np.unique(np.floor(along[sel] / spacing).astype(np.int64))
-        k_s = len(bins)
-        lam = density * L * 2 * band
-        covered.append(k_s)
-        side_n.append(L / spacing)
-        side_p.append(float(st.poisson.sf(k_s - 1, lam)) if k_s else 1.0)
+
+    def side_lines(kind_mask: np.ndarray, dens: float) -> tuple[list[int], list[float]]:
+        cov_, p_ = [], []
+        for near, along, L in sides:
+            sel = kind_mask & near & (along >= 0) & (along <= L)
+            # distinct positions along the side (one per spacing): coverage, not density
+            k_s = len(np.unique(np.floor(along[sel] / spacing).astype(np.int64)))
+            cov_.append(k_s)
+            p_.append(float(st.poisson.sf(k_s - 1, dens * L * 2 * band)) if k_s else 1.0)
+        return cov_, p_
+
+    covered, side_p = side_lines(convex, density)
+    side_n = [s[2] / spacing for s in sides]
     # each side a significant line of boundary edges; all sides together covering the
     # fraction p of the perimeter (the paper's |P_f| > p, over all four sides)
     side_ok = [(k >= MIN_LINE_POINTS and pv < alpha) for k, pv in zip(covered, side_p)]
@@ -278,6 +291,52 @@ def verify(
 
     if n_int > crit_int or not line_ok:
         return fail(VerifyReason.INTERIOR_EDGES, n_interior_edges=n_int)
+
+    # seams, from the range points of the rectangle and a margin around it (the flanks)
+    B = (SEAM_FLANK[1] + 1.0) * spacing
+    fp = face_points(ctx.points, ctx.valid, ctx.sigma, ctx.project, origin, x_axis, y_axis,
+                     normal, (-B, width + B), (-B, length + B), spacing, alpha)
+    seam_stat, seam_crit, seam_ok, seam_side = [], [], [], []
+    if not all(side_ok) and len(fp):
+        in_u = (fp.u >= 0) & (fp.u <= width)
+        in_v = (fp.v >= 0) & (fp.v <= length)
+        side_frames = ((in_u, fp.v, 0.0, fp.u, width), (in_u, fp.v, length, fp.u, width),
+                       (in_v, fp.u, 0.0, fp.v, length), (in_v, fp.u, width, fp.v, length))
+        for si, (sel, coord, at, along, L) in enumerate(side_frames):
+            if side_ok[si]:
+                continue
+            zs, zc = seam_at(coord[sel], fp.w[sel], fp.scale, at, spacing, alpha)
+            # a seam runs the whole side: both halves must show it (a local dent does not)
+            for half in (sel & (along < 0.5 * L), sel & (along >= 0.5 * L)):
+                zh, _ = seam_at(coord[half], fp.w[half], fp.scale, at, spacing, alpha)
+                if zh <= 0:
+                    zs = min(zs, zh)
+            seam_stat.append(zs)
+            seam_crit.append(zc)
+            seam_ok.append(zs > zc)
+            seam_side.append(si)
+            if zs > zc:
+                side_ok[si] = True
+                covered[si] = int(side_n[si])
+        tests.append(TestTable.decision(TestKind.VERIFY_SEAM_SIDE, attempt_id, seam_side,
+                                        seam_stat, seam_crit, seam_ok, alpha))
+        frac = float(sum(covered) / sum(side_n))
+        bound_ok = all(side_ok) and frac >= config.support_fraction
+    # no seam inside: the points of the interior, binned along x and along y
+    int_z, int_crit = [], []
+    if len(fp):
+        for coord, other, lo_hi, ext in ((fp.u, fp.v, (mi, width - mi), length),
+                                         (fp.v, fp.u, (mi, length - mi), width)):
+            sel = (other >= mi) & (other <= ext - mi)
+            _, zz, zc = find_seams(coord[sel], fp.w[sel], fp.scale, lo_hi[0], lo_hi[1],
+                                   spacing, alpha)
+            int_z.append(float(zz.max()) if len(zz) else 0.0)
+            int_crit.append(zc)
+        tests.append(TestTable.decision(TestKind.VERIFY_SEAM_INTERIOR, attempt_id, [0, 1],
+                                        int_z, int_crit,
+                                        [z <= c for z, c in zip(int_z, int_crit)], alpha))
+    if any(z > c for z, c in zip(int_z, int_crit)):
+        return fail(VerifyReason.INTERIOR_SEAM, n_interior_edges=n_int)
     if not bound_ok:
         return fail(VerifyReason.BOUNDARY, n_interior_edges=n_int)
 

@@ -48,6 +48,7 @@ from replay.diff import _jsonable
 _SENSE: dict[TestKind, str] = {
     TestKind.EDGE_SUPPORT: ">", TestKind.FIRST_QUADRANT: ">",
     TestKind.VERIFY_INLIERS: ">=", TestKind.VERIFY_BOUNDARY: ">=",
+    TestKind.VERIFY_SEAM_SIDE: ">", TestKind.SEAM_PEAK: ">",
 }
 _NEGATE = {"<=": ">", "<": ">=", ">": "<=", ">=": "<"}
 #: what each verify reason's failing test is
@@ -55,6 +56,7 @@ _REASON_TEST: dict[VerifyReason, TestKind] = {
     VerifyReason.TILTED: TestKind.VERIFY_TILT,
     VerifyReason.INTERIOR_EDGES: TestKind.VERIFY_INTERIOR,
     VerifyReason.BOUNDARY: TestKind.VERIFY_BOUNDARY,
+    VerifyReason.INTERIOR_SEAM: TestKind.VERIFY_SEAM_INTERIOR,
     VerifyReason.NOT_EXPOSED: TestKind.VERIFY_EXPOSED,
     VerifyReason.INLIERS: TestKind.VERIFY_INLIERS,
     VerifyReason.MEAN_OFFSET: TestKind.VERIFY_MEAN,
@@ -156,8 +158,8 @@ class _Ctx:
         V = self.ver
         if V is not None and j < len(V):
             reason = VerifyReason(int(V.reason[j]))
-            tests = _tests(V.tests, [k for k in TestKind if k >= TestKind.VERIFY_INLIERS],
-                           a=j)
+            tests = _tests(V.tests, [k for k in TestKind if k >= TestKind.VERIFY_INLIERS
+                                     and k != TestKind.SEAM_PEAK], a=j)
             sides = iter(_SIDES)
             for t in tests:  # one row per side, in the order boxloc.verify tests them
                 if t["kind"] == TestKind.VERIFY_BOUNDARY.name:
@@ -266,6 +268,8 @@ class _Ctx:
             "peaks_x": [{"at_mm": _mm(m), "votes": votes(ax, m)} for m in px],
             "peaks_y": [{"at_mm": _mm(m), "votes": votes(ay, m)} for m in py],
             "edge_support": support,
+            # seams (lines of range points behind the plane) that gave extra candidates
+            "seams": _tests(t, [TestKind.SEAM_PEAK], a=h),
         }
         d: dict[str, Any] = {
             "source": "NONE" if j is None else DimensionSource(int(H.att_source[j])).name,

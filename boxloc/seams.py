@@ -1,0 +1,273 @@
+"""Seams: straight lines of range points lying behind a face's plane.
+
+Two boxes of equal height that touch leave a seam between their tops: their bevelled or
+rounded edges and the gap form a groove a few millimetres deep and wide. Seen from 2-3 m
+that groove is shallower than the noise of one sample, so the edge stage, which tests each
+scan line on its own, finds it only in part. Along a *known* direction the evidence adds
+up: the points of a whole side, binned by their distance across it, give a profile whose
+groove bin is significantly behind its flanks. This module supplies that profile test to
+
+* :func:`boxloc.hypotheses.dimensions_from_edges` — seams inside the region a vertex's
+  edge accumulators span are extra dimension candidates (the paper's 1-D accumulators,
+  with range points as voters where edge points are missing);
+* :func:`boxloc.verify.verify` — a side with no line of boundary edges is still a boundary
+  if it is a seam, and a rectangle with a seam inside is two faces, not one.
+
+The statistic compares the mean residual of the points within ``SEAM_INNER`` spacings of a
+position with the mean of the two flanks ``SEAM_FLANK`` spacings away (their average, so a
+tilt of the reference plane cancels): z = (flanks - groove) / sd, positive when the groove
+lies behind; and the groove must lie behind each flank on its own (a step or a ridge beside
+the window lifts only one flank). A ridge standing well above the noise can still lift one
+flank enough to pass both conditions a flank's distance beside it; verification's
+interior test then errs toward rejecting, never toward merging two faces. The variance comes from the points' own scatter (a robust scale of their
+residuals, at least the noise model's), so a sensor noisier than its model does not make
+seams out of noise.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+from scipy import stats as st
+
+#: Half-width of the groove window, in point spacings (the groove plus the uncertainty of
+#: where a side is).
+SEAM_INNER = 1.0
+#: Inner and outer distance of each flank window from the groove, in point spacings
+#: (beyond the bevels of both boxes).
+SEAM_FLANK = (2.5, 5.0)
+
+
+@dataclass(frozen=True)
+class FacePoints:
+    """Range points of one face's region, in the face's frame.
+
+    Attributes
+    ----------
+    u, v : (n,) float64
+        Coordinates along the rectangle's x and y axes, metres.
+    w : (n,) float64
+        Signed distance to the plane refitted to the region's points (positive toward
+        the sensor), metres.
+    scale : float
+        Standard deviation of one residual: the robust scatter of ``w`` (1.4826 MAD), at
+        least the noise model's median sigma there, metres.
+    spacing : float
+        Point spacing at the region's centre, metres.
+    """
+
+    u: np.ndarray
+    v: np.ndarray
+    w: np.ndarray
+    scale: float
+    spacing: float
+
+    def __len__(self) -> int:
+        return int(self.u.shape[0])
+
+
+def _raster_clipped(project, shape: tuple[int, int], corners: np.ndarray) -> np.ndarray:
+    """Flat indices of the pixels inside the projected polygon, clipped to the image."""
+    uv = project(corners)
+    if not np.isfinite(uv).all():
+        return np.zeros(0, np.int64)
+    H, W = shape
+    x0, y0 = np.floor(uv.min(0)).astype(int)
+    x1, y1 = np.ceil(uv.max(0)).astype(int)
+    x0, y0, x1, y1 = max(x0, 0), max(y0, 0), min(x1, W - 1), min(y1, H - 1)
+    if x1 < x0 or y1 < y0:
+        return np.zeros(0, np.int64)
+    mask = np.zeros((y1 - y0 + 1, x1 - x0 + 1), np.uint8)
+    shift = 4
+    pts = np.round((uv - [x0, y0]) * (1 << shift)).astype(np.int32)
+    cv2.fillPoly(mask, [pts], 1, lineType=cv2.LINE_8, shift=shift)
+    rr, cc = np.nonzero(mask)
+    return (rr + y0) * W + (cc + x0)
+
+
+def face_points(
+    points: np.ndarray,
+    valid: np.ndarray,
+    sigma: np.ndarray,
+    project,
+    origin: np.ndarray,
+    x_axis: np.ndarray,
+    y_axis: np.ndarray,
+    normal: np.ndarray,
+    u_range: tuple[float, float],
+    v_range: tuple[float, float],
+    spacing: float,
+    alpha: float,
+) -> FacePoints:
+    """The range points of a rectangular region of a face's plane, with their residuals.
+
+    Parameters
+    ----------
+    points : (H, W, 3) float64
+        Organized cloud, metres.
+    valid : (H, W) bool
+    sigma : (H, W) float64
+        Per-point noise along the ray, metres (the first inlier test's scale).
+    project : callable
+        The sensor's projection, (n, 3) -> (n, 2) pixels.
+    origin, x_axis, y_axis, normal : (3,) float64
+        The face's frame.
+    u_range, v_range : (float, float)
+        The region, metres along x_axis and y_axis (clipped to the image).
+    spacing : float
+        Point spacing there, metres.
+    alpha : float
+        Significance level; a point is on the face if its distance to the plane passes a
+        z test Bonferroni-corrected over the region's points (a groove a few sigma deep
+        stays in, another surface does not).
+
+    Returns
+    -------
+    FacePoints
+    """
+    (u0, u1), (v0, v1) = u_range, v_range
+    corners = np.array([origin + u0 * x_axis + v0 * y_axis, origin + u1 * x_axis + v0 * y_axis,
+                        origin + u1 * x_axis + v1 * y_axis, origin + u0 * x_axis + v1 * y_axis])
+    flat = _raster_clipped(project, valid.shape, corners)
+    empty = FacePoints(np.zeros(0), np.zeros(0), np.zeros(0), np.nan, spacing)
+    if len(flat) == 0:
+        return empty
+    flat = flat[valid.reshape(-1)[flat]]
+    if len(flat) < 3:
+        return empty
+    P = points.reshape(-1, 3)[flat]
+    s = sigma.reshape(-1)[flat]
+    D = P - origin
+    w = D @ normal
+    zc = float(st.norm.isf(alpha / (2.0 * len(flat))))
+    # the face's own points first (relative to the given plane, tilt allowed for by the
+    # median), then the plane refitted to them
+    on = np.abs(w - np.median(w)) <= zc * s + 3.0 * 1.4826 * np.median(np.abs(w - np.median(w)))
+    if on.sum() < 3:
+        return empty
+    Q = P[on]
+    c = Q.mean(0)
+    _, V = np.linalg.eigh((Q - c).T @ (Q - c))
+    nf = V[:, 0] if V[:, 0] @ normal > 0 else -V[:, 0]
+    wf = (P - c) @ nf
+    on = np.abs(wf) <= zc * s
+    if on.sum() < 3:
+        return empty
+    wf = wf[on]
+    # the points' own scatter, but never below the noise model (a noise-free or quantized
+    # surface would otherwise make seams of rounding)
+    scale = max(float(1.4826 * np.median(np.abs(wf - np.median(wf)))),
+                float(np.median(s[on])), 1e-9)
+    return FacePoints(D[on] @ x_axis, D[on] @ y_axis, wf, scale, spacing)
+
+
+def _windows(coord: np.ndarray, w: np.ndarray, centres: np.ndarray, h: float
+             ) -> tuple[np.ndarray, ...]:
+    """Count and sum of w in the groove window and in each flank, per centre."""
+    a, b = SEAM_FLANK[0] * h, SEAM_FLANK[1] * h
+    order = np.argsort(coord)
+    cs = coord[order]
+    cum = np.r_[0.0, np.cumsum(w[order])]
+
+    def win(lo: np.ndarray, hi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        i0 = np.searchsorted(cs, lo, "left")
+        i1 = np.searchsorted(cs, hi, "right")
+        return (i1 - i0).astype(np.float64), cum[i1] - cum[i0]
+
+    ni, si = win(centres - SEAM_INNER * h, centres + SEAM_INNER * h)
+    nl, sl = win(centres - b, centres - a)
+    nr, sr = win(centres + a, centres + b)
+    return ni, si, nl, sl, nr, sr
+
+
+def seam_z(coord: np.ndarray, w: np.ndarray, scale: float, centres: np.ndarray, h: float
+           ) -> np.ndarray:
+    """Seam statistic at each centre: flanks minus groove over its standard deviation.
+
+    Parameters
+    ----------
+    coord : (n,) float64
+        The points' coordinate across the candidate seam, metres.
+    w : (n,) float64
+        Their residuals to the face's plane, metres (positive toward the sensor).
+    scale : float
+        Standard deviation of one residual, metres.
+    centres : (m,) float64
+        Candidate seam positions, metres.
+    h : float
+        Point spacing, metres.
+
+    Returns
+    -------
+    z : (m,) float64
+        Standard normal under "no seam" where the groove window lies behind both flanks;
+        -inf where it does not, or a window is empty.
+    """
+    ni, si, nl, sl, nr, sr = _windows(coord, w, centres, h)
+    ok = (ni > 0) & (nl > 0) & (nr > 0)
+    z = np.full(len(centres), -np.inf)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        mi = si / ni
+        d = 0.5 * (sl / nl + sr / nr) - mi
+        sd = scale * np.sqrt(1.0 / ni + 0.25 / nl + 0.25 / nr)
+        both = (sl / nl > mi) & (sr / nr > mi)
+    # behind *both* flanks: a ridge or a step beside the window lifts only one
+    ok &= both
+    z[ok] = d[ok] / sd[ok]
+    return z
+
+
+def find_seams(coord: np.ndarray, w: np.ndarray, scale: float, lo: float, hi: float,
+               h: float, alpha: float) -> tuple[np.ndarray, np.ndarray, float]:
+    """Significant seams between ``lo`` and ``hi`` (local maxima of :func:`seam_z`).
+
+    The critical value is Bonferroni-corrected over the independent positions (one per
+    groove window) in [lo, hi].
+
+    Returns
+    -------
+    positions : (k,) float64
+        Metres along ``coord``.
+    z : (k,) float64
+        Their statistics.
+    critical : float
+    """
+    if hi <= lo or len(coord) == 0:
+        return np.zeros(0), np.zeros(0), np.inf
+    step = 0.5 * h
+    centres = np.arange(lo, hi + 0.5 * step, step)
+    n_indep = max((hi - lo) / (2.0 * SEAM_INNER * h), 1.0)
+    crit = float(st.norm.isf(alpha / n_indep))
+    z = seam_z(coord, w, scale, centres, h)
+    left = np.r_[-np.inf, z[:-1]]
+    right = np.r_[z[1:], -np.inf]
+    pk = np.flatnonzero((z > crit) & (z >= left) & (z > right))
+    # one seam per groove window: the strongest of maxima closer than the window
+    keep: list[int] = []
+    for i in pk[np.argsort(-z[pk], kind="stable")]:
+        if all(abs(centres[i] - centres[j]) > 2.0 * SEAM_INNER * h for j in keep):
+            keep.append(int(i))
+    pk = np.array(sorted(keep), np.int64)
+    return centres[pk], z[pk], crit
+
+
+def seam_at(coord: np.ndarray, w: np.ndarray, scale: float, position: float, h: float,
+            alpha: float) -> tuple[float, float]:
+    """The strongest seam statistic within one groove window of ``position``.
+
+    Returns
+    -------
+    z : float
+        -inf where the windows hold no points.
+    critical : float
+        Bonferroni-corrected over the three positions tried.
+    """
+    centres = position + np.array([-SEAM_INNER, 0.0, SEAM_INNER]) * h
+    z = seam_z(coord, w, scale, centres, h)
+    return float(z.max()), float(st.norm.isf(alpha / len(centres)))
+
+
+__all__ = ["FacePoints", "face_points", "find_seams", "seam_at", "seam_z", "SEAM_FLANK",
+           "SEAM_INNER"]
