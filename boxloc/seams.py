@@ -182,8 +182,8 @@ def _windows(coord: np.ndarray, w: np.ndarray, centres: np.ndarray, h: float
     return ni, si, nl, sl, nr, sr
 
 
-def seam_z(coord: np.ndarray, w: np.ndarray, scale: float, centres: np.ndarray, h: float
-           ) -> np.ndarray:
+def seam_z(coord: np.ndarray, w: np.ndarray, scale: float, centres: np.ndarray, h: float,
+           *, raw: bool = False) -> np.ndarray | tuple[np.ndarray, np.ndarray]:
     """Seam statistic at each centre: flanks minus groove over its standard deviation.
 
     Parameters
@@ -214,9 +214,10 @@ def seam_z(coord: np.ndarray, w: np.ndarray, scale: float, centres: np.ndarray, 
         sd = scale * np.sqrt(1.0 / ni + 0.25 / nl + 0.25 / nr)
         both = (sl / nl > mi) & (sr / nr > mi)
     # behind *both* flanks: a ridge or a step beside the window lifts only one
+    zr = np.where(ok, d / np.where(ok, sd, 1.0), np.nan)
     ok &= both
-    z[ok] = d[ok] / sd[ok]
-    return z
+    z[ok] = zr[ok]
+    return (z, zr) if raw else z
 
 
 def find_seams(coord: np.ndarray, w: np.ndarray, scale: float, lo: float, hi: float,
@@ -240,7 +241,12 @@ def find_seams(coord: np.ndarray, w: np.ndarray, scale: float, lo: float, hi: fl
     centres = np.arange(lo, hi + 0.5 * step, step)
     n_indep = max((hi - lo) / (2.0 * SEAM_INNER * h), 1.0)
     crit = float(st.norm.isf(alpha / n_indep))
-    z = seam_z(coord, w, scale, centres, h)
+    z, zr = seam_z(coord, w, scale, centres, h, raw=True)
+    # correlated noise (e.g. structured-light depth) spreads the statistic beyond N(0, 1):
+    # measure its spread over the positions (robustly: seams are few) and divide it out
+    fin = zr[np.isfinite(zr)]
+    if len(fin) >= 8:
+        z = z / max(1.0, float(1.4826 * np.median(np.abs(fin - np.median(fin)))))
     left = np.r_[-np.inf, z[:-1]]
     right = np.r_[z[1:], -np.inf]
     pk = np.flatnonzero((z > crit) & (z >= left) & (z > right))
