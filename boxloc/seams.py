@@ -19,9 +19,12 @@ tilt of the reference plane cancels): z = (flanks - groove) / sd, positive when 
 lies behind; and the groove must lie behind each flank on its own (a step or a ridge beside
 the window lifts only one flank). A ridge standing well above the noise can still lift one
 flank enough to pass both conditions a flank's distance beside it; verification's
-interior test then errs toward rejecting, never toward merging two faces. The variance comes from the points' own scatter (a robust scale of their
-residuals, at least the noise model's), so a sensor noisier than its model does not make
-seams out of noise.
+interior test then errs toward rejecting, never toward merging two faces.
+
+The variance comes from the points' own scatter (a robust scale of their residuals, at
+least the noise model's), so a sensor noisier than its model does not make seams out of
+noise; where the noise is correlated (structured-light depth), the statistic's own spread
+over the positions is divided out as well.
 """
 
 from __future__ import annotations
