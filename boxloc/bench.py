@@ -38,7 +38,6 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import json
-import math
 import os
 import resource
 import sys
@@ -57,6 +56,7 @@ import numpy as np
 from boxloc import __version__
 from boxloc.config import Config
 from boxloc.errors import InputError
+from boxloc.jsonable import jsonable as _jsonable
 from boxloc.metrics import (
     Match,
     aggregate_edges,
@@ -292,25 +292,6 @@ def _spec_text(spec: Any) -> str | None:
         return str(format_spec(spec))
     except Exception:  # noqa: BLE001 - informational only
         return None
-
-
-def _jsonable(x: Any) -> Any:
-    """Strict-JSON form: numpy -> python, NaN/inf -> None, tuples -> lists."""
-    if isinstance(x, dict):
-        return {str(k): _jsonable(v) for k, v in x.items()}
-    if isinstance(x, list | tuple):
-        return [_jsonable(v) for v in x]
-    if isinstance(x, np.ndarray):
-        return _jsonable(x.tolist())
-    if isinstance(x, np.generic):
-        return _jsonable(x.item())
-    if isinstance(x, float):
-        return x if math.isfinite(x) else None
-    if x is None or isinstance(x, bool | int | str):
-        return x
-    if dataclasses.is_dataclass(x) and not isinstance(x, type):
-        return _jsonable(dataclasses.asdict(x))
-    return repr(x)  # a section returned something JSON cannot hold: keep it readable
 
 
 def _limit_threads() -> dict[str, Any]:

@@ -243,11 +243,9 @@ def dimensions_from_edges(R: Rectangle, ctx: _Context, work: _VertexWork) -> lis
     out: list[_Attempt] = []
     sup_tests: list[tuple[float, float, bool]] = []
     # a seam for a far side: no edge support to count, verification tests the seam
-    for Mx in np.r_[px, sx]:
-        for My in np.r_[py, sy]:
-            if Mx in sx or My in sy:
-                out.append(_Attempt(DimensionSource.SEAMS, -1, float(Mx), float(My),
-                                    np.nan, np.nan))
+    seam_pairs = [(a, b) for a in sx for b in np.r_[py, sy]] + [(a, b) for a in px for b in sy]
+    out += [_Attempt(DimensionSource.SEAMS, -1, float(a), float(b), np.nan, np.nan)
+            for a, b in seam_pairs]
     for Mx in px:
         for My in py:
             on_x = np.abs(u - Mx) <= 1.5 * h

@@ -29,11 +29,13 @@ over the positions is divided out as well.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
-import cv2
 import numpy as np
 from scipy import stats as st
+
+from boxloc.raster import fill_polygon
 
 #: Half-width of the groove window, in point spacings (the groove plus the uncertainty of
 #: where a side is).
@@ -71,30 +73,11 @@ class FacePoints:
         return int(self.u.shape[0])
 
 
-def _raster_clipped(project, shape: tuple[int, int], corners: np.ndarray) -> np.ndarray:
-    """Flat indices of the pixels inside the projected polygon, clipped to the image."""
-    uv = project(corners)
-    if not np.isfinite(uv).all():
-        return np.zeros(0, np.int64)
-    H, W = shape
-    x0, y0 = np.floor(uv.min(0)).astype(int)
-    x1, y1 = np.ceil(uv.max(0)).astype(int)
-    x0, y0, x1, y1 = max(x0, 0), max(y0, 0), min(x1, W - 1), min(y1, H - 1)
-    if x1 < x0 or y1 < y0:
-        return np.zeros(0, np.int64)
-    mask = np.zeros((y1 - y0 + 1, x1 - x0 + 1), np.uint8)
-    shift = 4
-    pts = np.round((uv - [x0, y0]) * (1 << shift)).astype(np.int32)
-    cv2.fillPoly(mask, [pts], 1, lineType=cv2.LINE_8, shift=shift)
-    rr, cc = np.nonzero(mask)
-    return (rr + y0) * W + (cc + x0)
-
-
 def face_points(
     points: np.ndarray,
     valid: np.ndarray,
     sigma: np.ndarray,
-    project,
+    project: Callable[[np.ndarray], np.ndarray],
     origin: np.ndarray,
     x_axis: np.ndarray,
     y_axis: np.ndarray,
@@ -133,11 +116,13 @@ def face_points(
     (u0, u1), (v0, v1) = u_range, v_range
     corners = np.array([origin + u0 * x_axis + v0 * y_axis, origin + u1 * x_axis + v0 * y_axis,
                         origin + u1 * x_axis + v1 * y_axis, origin + u0 * x_axis + v1 * y_axis])
-    flat = _raster_clipped(project, valid.shape, corners)
     empty = FacePoints(np.zeros(0), np.zeros(0), np.zeros(0), np.nan, spacing)
-    if len(flat) == 0:
+    uv = project(corners)
+    if not np.isfinite(uv).all():
         return empty
-    flat = flat[valid.reshape(-1)[flat]]
+    rr, cc = fill_polygon(uv, valid.shape)
+    keep = valid[rr, cc]
+    flat = rr[keep] * valid.shape[1] + cc[keep]
     if len(flat) < 3:
         return empty
     P = points.reshape(-1, 3)[flat]
@@ -185,8 +170,23 @@ def _windows(coord: np.ndarray, w: np.ndarray, centres: np.ndarray, h: float
     return ni, si, nl, sl, nr, sr
 
 
-def seam_z(coord: np.ndarray, w: np.ndarray, scale: float, centres: np.ndarray, h: float,
-           *, raw: bool = False) -> np.ndarray | tuple[np.ndarray, np.ndarray]:
+def _seam_stats(coord: np.ndarray, w: np.ndarray, scale: float, centres: np.ndarray,
+                h: float) -> tuple[np.ndarray, np.ndarray]:
+    """Flanks minus groove over its standard deviation (NaN where a window is empty), and
+    whether the groove lies behind each flank on its own."""
+    ni, si, nl, sl, nr, sr = _windows(coord, w, centres, h)
+    ok = (ni > 0) & (nl > 0) & (nr > 0)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        mi = si / ni
+        d = 0.5 * (sl / nl + sr / nr) - mi
+        sd = scale * np.sqrt(1.0 / ni + 0.25 / nl + 0.25 / nr)
+        both = ok & (sl / nl > mi) & (sr / nr > mi)
+        z = np.where(ok, d / sd, np.nan)
+    return z, both
+
+
+def seam_z(coord: np.ndarray, w: np.ndarray, scale: float, centres: np.ndarray, h: float
+           ) -> np.ndarray:
     """Seam statistic at each centre: flanks minus groove over its standard deviation.
 
     Parameters
@@ -206,21 +206,11 @@ def seam_z(coord: np.ndarray, w: np.ndarray, scale: float, centres: np.ndarray, 
     -------
     z : (m,) float64
         Standard normal under "no seam" where the groove window lies behind both flanks;
-        -inf where it does not, or a window is empty.
+        -inf where it does not, or a window is empty (a ridge or a step beside the window
+        lifts only one flank).
     """
-    ni, si, nl, sl, nr, sr = _windows(coord, w, centres, h)
-    ok = (ni > 0) & (nl > 0) & (nr > 0)
-    z = np.full(len(centres), -np.inf)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        mi = si / ni
-        d = 0.5 * (sl / nl + sr / nr) - mi
-        sd = scale * np.sqrt(1.0 / ni + 0.25 / nl + 0.25 / nr)
-        both = (sl / nl > mi) & (sr / nr > mi)
-    # behind *both* flanks: a ridge or a step beside the window lifts only one
-    zr = np.where(ok, d / np.where(ok, sd, 1.0), np.nan)
-    ok &= both
-    z[ok] = zr[ok]
-    return (z, zr) if raw else z
+    z, both = _seam_stats(coord, w, scale, centres, h)
+    return np.where(both, z, -np.inf)
 
 
 def find_seams(coord: np.ndarray, w: np.ndarray, scale: float, lo: float, hi: float,
@@ -244,12 +234,13 @@ def find_seams(coord: np.ndarray, w: np.ndarray, scale: float, lo: float, hi: fl
     centres = np.arange(lo, hi + 0.5 * step, step)
     n_indep = max((hi - lo) / (2.0 * SEAM_INNER * h), 1.0)
     crit = float(st.norm.isf(alpha / n_indep))
-    z, zr = seam_z(coord, w, scale, centres, h, raw=True)
+    zr, both = _seam_stats(coord, w, scale, centres, h)
     # correlated noise (e.g. structured-light depth) spreads the statistic beyond N(0, 1):
     # measure its spread over the positions (robustly: seams are few) and divide it out
     fin = zr[np.isfinite(zr)]
     if len(fin) >= 8:
-        z = z / max(1.0, float(1.4826 * np.median(np.abs(fin - np.median(fin)))))
+        zr = zr / max(1.0, float(1.4826 * np.median(np.abs(fin - np.median(fin)))))
+    z = np.where(both, zr, -np.inf)
     left = np.r_[-np.inf, z[:-1]]
     right = np.r_[z[1:], -np.inf]
     pk = np.flatnonzero((z > crit) & (z >= left) & (z > right))

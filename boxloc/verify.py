@@ -35,13 +35,13 @@ from __future__ import annotations
 from collections.abc import Callable
 from dataclasses import dataclass
 
-import cv2
 import numpy as np
 from scipy import stats as st
 
 from boxloc.config import Config
 from boxloc.lines import MIN_LINE_POINTS
 from boxloc.products import EdgeKind, EdgeMap, VerifyReason
+from boxloc.raster import fill_polygon
 from boxloc.scan import Scan
 from boxloc.seams import SEAM_FLANK, face_points, find_seams, seam_at
 from boxloc.stats import TestKind, TestTable, chi2_critical
@@ -58,8 +58,7 @@ class VerifyContext:
     """Per-scan arrays the verification of every hypothesis reads (built once)."""
 
     points: np.ndarray  # (H, W, 3) float64
-    sigma2: np.ndarray  # (H, W) float64: range variance, NaN where no return
-    sigma: np.ndarray  # (H, W) float64: its square root
+    sigma: np.ndarray  # (H, W) float64: range sigma, NaN where no return
     lateral2: np.ndarray  # (H, W) float64: lateral variance
     valid: np.ndarray  # (H, W) bool
     edge_points: np.ndarray  # (N, 3)
@@ -75,7 +74,7 @@ class VerifyContext:
         sr = config.noise.sigma_range(r)
         sl = config.noise.sigma_lateral(r, scan.sensor.pixel_angle)
         valid = np.isfinite(r)
-        return cls(P, sr**2, sr, sl**2, valid, edges.points, edges.kinds,
+        return cls(P, sr, sl**2, valid, edges.points, edges.kinds,
                    scan.sensor.pixel_angle, np.asarray(up, dtype=np.float64),
                    scan.sensor.project)
 
@@ -161,16 +160,7 @@ def rasterize(scan: Scan, corners: np.ndarray) -> tuple[np.ndarray, np.ndarray] 
         uv[:, 1] > H - 0.5
     ).any():
         return None
-    x0, y0 = np.floor(uv.min(0)).astype(int)
-    x1, y1 = np.ceil(uv.max(0)).astype(int)
-    x0, y0 = max(x0, 0), max(y0, 0)
-    x1, y1 = min(x1, W - 1), min(y1, H - 1)
-    mask = np.zeros((y1 - y0 + 1, x1 - x0 + 1), np.uint8)
-    shift = 4  # sub-pixel vertex precision for fillPoly
-    pts = np.round((uv - [x0, y0]) * (1 << shift)).astype(np.int32)
-    cv2.fillPoly(mask, [pts], 1, lineType=cv2.LINE_8, shift=shift)
-    rr, cc = np.nonzero(mask)
-    return rr + y0, cc + x0
+    return fill_polygon(uv, (H, W))
 
 
 def verify(
@@ -358,7 +348,7 @@ def verify(
     # each point's noise along the normal; the flatness prior covers cardboard bulge
     ray = P / np.linalg.norm(P, axis=1, keepdims=True)
     cn2 = (ray @ normal) ** 2
-    var_pt = ctx.sigma2[rv, cv] * cn2 + ctx.lateral2[rv, cv] * (1 - cn2) + config.flatness**2
+    var_pt = ctx.sigma[rv, cv] ** 2 * cn2 + ctx.lateral2[rv, cv] * (1 - cn2) + config.flatness**2
     # 1) points on the plane of R, with R's own uncertainty
     So, Sn = plane_cov[:3, :3], plane_cov[3:, 3:]
     var_pl = normal @ So @ normal + np.einsum("ni,ij,nj->n", D, Sn, D)

@@ -39,6 +39,7 @@ import numpy as np
 from scipy.optimize import linear_sum_assignment
 
 from boxloc.errors import BoxlocError, InputError, LogError
+from boxloc.jsonable import jsonable as _jsonable
 from boxloc.products import (
     STAGES,
     DimensionSource,
@@ -503,24 +504,6 @@ def regression(diff: LogDiff | ScanDiff | Iterable[LogDiff],
 
 
 # --- helpers ---------------------------------------------------------------------------------
-
-
-def _jsonable(x: Any) -> Any:
-    """Plain JSON values: numpy scalars and arrays converted, NaN and infinities to None."""
-    if isinstance(x, dict):
-        return {str(k): _jsonable(v) for k, v in x.items()}
-    if isinstance(x, list | tuple):
-        return [_jsonable(v) for v in x]
-    if isinstance(x, np.ndarray):
-        return _jsonable(x.tolist())
-    if isinstance(x, np.bool_ | bool):
-        return bool(x)
-    if isinstance(x, np.integer):
-        return int(x)
-    if isinstance(x, float | np.floating):
-        f = float(x)
-        return f if math.isfinite(f) else None
-    return x
 
 
 def _angle_deg(a: np.ndarray, b: np.ndarray, *, unsigned: bool = False) -> np.ndarray:

@@ -40,9 +40,9 @@ from scipy import ndimage
 
 from boxloc.config import Config
 from boxloc.errors import InputError
+from boxloc.jsonable import jsonable as _jsonable
 from boxloc.products import DimensionSource, EdgeKind, SelectReason, VerifyReason
 from boxloc.stats import TestKind, TestTable
-from replay.diff import _jsonable
 
 #: How a test's statistic is compared with its critical value when the relation holds.
 _SENSE: dict[TestKind, str] = {
