@@ -6,8 +6,9 @@ parameters; they are recovered in two 2-D Hough transforms:
 
 1. **direction** — every other edge point p_i near p0 votes for the direction
    (p_i - p0)/|p_i - p0| on an icosahedral tessellation of the hemisphere (Jeltsch, Dalitz
-   & Pohle-Fröhlich 2016), spread over every cell inside its propagated error region
-   (chi2(2) at alpha): far points vote sharply, near points broadly;
+   & Pohle-Fröhlich 2016), for every cell inside its propagated error region (chi2(2) at
+   alpha; bounded-error voting): far points vote sharply, near points broadly, and the
+   peak counts the points consistent with one direction;
 2. **position** — the points are projected on the plane perpendicular to the found
    direction and vote for the line's offset from p0 in a 2-D accumulator, again spread by
    their propagated error, so p0's own noise does not fix the line.
@@ -126,7 +127,13 @@ def _direction_index(granularity: int) -> tuple[np.ndarray, np.ndarray, np.ndarr
 @nb.njit(cache=True)
 def _vote_directions(d: np.ndarray, rad: np.ndarray, lut: np.ndarray, nbr: np.ndarray,
                      D: np.ndarray) -> np.ndarray:
-    """Each direction d_i votes (weight 1, spread evenly) for every cell within rad_i of +-d_i."""
+    """Each direction d_i votes 1 for every cell within rad_i of +-d_i.
+
+    Bounded-error voting as Olson (2001): a cell's count is the number of points whose
+    error region contains it, so every point of a short line counts fully at its
+    direction. (Spreading one vote evenly over the region instead lets a few far points
+    with sharp regions outvote a short line whose points all lie near p0.)
+    """
     nc = D.shape[0]
     acc = np.zeros(nc)
     P, A = lut.shape
@@ -153,9 +160,8 @@ def _vote_directions(d: np.ndarray, rad: np.ndarray, lut: np.ndarray, nbr: np.nd
         if n == 0:
             cells[0] = c0
             n = 1
-        w = 1.0 / n
         for k in range(n):
-            acc[cells[k]] += w
+            acc[cells[k]] += 1.0
     return acc
 
 
@@ -333,7 +339,7 @@ def _trial(
     vi = np.flatnonzero(use)
     if len(vi) > MAX_VOTERS:
         vi = np.sort(rng.choice(vi, MAX_VOTERS, replace=False))
-    # each vote is spread evenly over its error region: one point, one vote
+    # each point votes for every cell of its error region
     acc = _vote_directions(d[vi], rad[vi], lut, nbr, dirs)
     peak = int(np.argmax(acc))
     b = dirs[peak]
