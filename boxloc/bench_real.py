@@ -12,6 +12,9 @@ Inputs both methods get, and the report says which:
 * **noise** -- ``"estimate"`` (default): the range-noise model fitted to the frames
   themselves with :func:`boxloc.noise.estimate_noise` (flat tiles, kept inside one label
   segment); ``"config"``: the config's ``noise`` as given (e.g. from a calibrated TOML).
+* **squareness** -- ``"estimate"`` (default): the prior ``angle_tolerance`` measured on
+  the frames with :func:`boxloc.squareness.estimate_angle_tolerance` (after the noise
+  model; the Kinect shears receding box sides by degrees); ``"config"``: as given.
 * **pose** -- ``"plane"`` (default): ``sensor_to_base`` from each frame's dominant plane
   (:func:`boxloc.real.support_plane_pose`, no labels), the stand-in for a robot cell's
   camera calibration. mOSD's Kinect looks down at ~50 degrees, so without it "up" is the
@@ -20,7 +23,8 @@ Inputs both methods get, and the report says which:
 Layout of ``bench_real.json`` (lengths in mm, angles in degrees, times in ms):
 
 - ``version``, ``data_dir``, ``n_frames``, ``config`` (as run, noise included),
-  ``config_hash``, ``noise`` (source, model, fit summary), ``pose``, ``threads``,
+  ``config_hash``, ``noise`` (source, model, fit summary), ``squareness`` (source,
+  ``angle_tolerance_deg``, corners used, spread), ``pose``, ``threads``,
   ``warmup``, ``crash_policy``, ``truth_rule``
 - ``summary``: pooled figures per method (:func:`boxloc.metrics.aggregate_matches`)
 - ``groups``: the same per frame group (``boxes`` = learn0-16, ``stacked`` = learn17-24,
@@ -40,6 +44,7 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import json
+import math
 import re
 import time
 from collections.abc import Callable, Sequence
@@ -228,6 +233,22 @@ def _noise(frames: list[_Frame], config: Config, source: str) -> tuple[Config, d
     return dataclasses.replace(config, noise=model), info
 
 
+def _squareness(frames: list[_Frame], config: Config,
+                source: str) -> tuple[Config, dict[str, Any]]:
+    if source == "config":
+        return config, {"source": "config", "angle_tolerance_deg":
+                        math.degrees(config.angle_tolerance)}
+    if source != "estimate":
+        raise InputError(f"squareness must be 'estimate' or 'config', got {source!r}")
+    from boxloc.squareness import estimate_angle_tolerance
+
+    tol, rep = estimate_angle_tolerance([f.scan for f in frames], config)
+    info = {"source": "estimate_angle_tolerance on the benchmarked frames (no labels)",
+            "angle_tolerance_deg": math.degrees(tol),
+            **{k: v for k, v in rep.items() if k != "per_scan"}}
+    return dataclasses.replace(config, angle_tolerance=tol), info
+
+
 def _pose(frames: list[_Frame], config: Config, pose: str) -> str:
     if pose == "none":
         return "none: scans as read (up = sensor -z unless the file has a pose)"
@@ -249,6 +270,7 @@ def run_real_bench(
     baseline: bool = True,
     progress: bool = True,
     noise: str = "estimate",
+    squareness: str = "estimate",
     pose: str = "plane",
     frames: Sequence[str] | None = None,
     localizer: Callable[[Scan, Config], Any] | None = None,
@@ -271,6 +293,8 @@ def run_real_bench(
         Show a progress bar and print the report (rich, on stderr).
     noise : {"estimate", "config"}
         Where the noise model comes from (module docstring).
+    squareness : {"estimate", "config"}
+        Where ``angle_tolerance`` comes from (module docstring).
     pose : {"plane", "none"}
         Whether to give each scan a ``sensor_to_base`` from its dominant plane.
     frames : sequence of str, optional
@@ -307,6 +331,7 @@ def run_real_bench(
         con.print(f"reading {len(paths)} frame(s) from {data_dir}")
     loaded = _load(paths, cfg, skipped)
     cfg_run, noise_info = _noise(loaded, cfg, noise)
+    cfg_run, square_info = _squareness(loaded, cfg_run, squareness)
     pose_info = _pose(loaded, cfg_run, pose)
     scored: list[_Frame] = []
     for f in loaded:
@@ -360,6 +385,7 @@ def run_real_bench(
         "config": cfg_run.to_dict(),
         "config_hash": cfg_run.hash,
         "noise": noise_info,
+        "squareness": square_info,
         "pose": pose_info,
         "threads": threads,
         "warmup": warmup,
@@ -492,6 +518,13 @@ def print_real_report(report: dict[str, Any], console: Any) -> None:
     nz = report["noise"]["model"]
     console.print(escape(f"noise ({report['noise']['source']}): ")
                   + ", ".join(f"{k} {v:.3g}" for k, v in nz.items()))
+    sq = report.get("squareness", {})
+    if sq:
+        console.print(escape(f"angle_tolerance ({sq['source']}): "
+                             f"{sq['angle_tolerance_deg']:.2f} deg"
+                             + (f" from {sq['n_corners']} corners, spread "
+                                f"{sq['sigma_deg']:.2f} deg, propagated "
+                                f"{sq['propagated_deg']:.2f} deg" if "n_corners" in sq else "")))
     console.print(escape(f"pose: {report['pose']}"))
     errs = report["errors"]
     if errs["total"]:

@@ -192,13 +192,16 @@ def _print_surfaces(result: Any) -> None:
 @click.option("--noise", "noise_source", type=click.Choice(["estimate", "config"]),
               default="estimate", show_default=True,
               help="With --real: fit the noise model to the frames, or use the config's.")
+@click.option("--squareness", type=click.Choice(["estimate", "config"]), default="estimate",
+              show_default=True,
+              help="With --real: measure angle_tolerance on the frames, or use the config's.")
 @click.option("--pose", type=click.Choice(["plane", "none"]), default="plane",
               show_default=True,
               help="With --real: sensor pose from each frame's dominant plane, or none.")
 @config_options
 def bench(
     n: int, seed: int, out: str | None, no_baseline: bool, real_dir: str | None,
-    frames: str | None, noise_source: str, pose: str,
+    frames: str | None, noise_source: str, squareness: str, pose: str,
     config_path: str | None, overrides: tuple[str, ...], replay_only: bool = False,
     sections: tuple[str, ...] = (), fuzz_cases: int | None = None,
 ) -> None:
@@ -226,7 +229,8 @@ def bench(
 
         names = [f.strip() for f in frames.split(",") if f.strip()] if frames else None
         run_real_bench(real_dir, config=cfg, out=Path(out) if out else None,
-                       baseline=not no_baseline, noise=noise_source, pose=pose, frames=names)
+                       baseline=not no_baseline, noise=noise_source, squareness=squareness,
+                       pose=pose, frames=names)
         return
     from boxloc.bench import run_bench
 
@@ -293,6 +297,41 @@ def calibrate_noise(
     if output:
         Path(output).write_text(text)
     _print_noise_report(report)
+
+
+@cli.command("calibrate-angles")
+@click.argument("scan_paths", metavar="SCAN...", nargs=-1, required=True, type=click.Path())
+@scan_options
+@config_options
+def calibrate_angles(
+    scan_paths: tuple[str, ...], intrinsics: str | None, depth_scale: float | None,
+    config_path: str | None, overrides: tuple[str, ...],
+) -> None:
+    """Measure how square the sensor sees box corners: the prior angle_tolerance.
+
+    Runs the edge, line and vertex stages on SCAN files (or directories) of boxes, with the
+    config's noise model (calibrate that first), and takes the robust spread of the
+    departures from 90 degrees of lines that meet at corners, less what their propagated
+    error explains (see boxloc.squareness). Prints `angle_tolerance = ...` (radians, usable
+    in a --config TOML) on stdout and the figures on stderr.
+    """
+    import math
+
+    from rich.console import Console
+
+    from boxloc.io import read_scans
+    from boxloc.squareness import estimate_angle_tolerance
+
+    cfg = load_config(config_path, overrides)
+    scans = [s for p in scan_paths
+             for s in read_scans(p, intrinsics=intrinsics, depth_scale=depth_scale)]
+    tol, rep = estimate_angle_tolerance(scans, cfg)
+    click.echo(f"angle_tolerance = {tol:.6g}  # {math.degrees(tol):.2f} deg")
+    Console(stderr=True).print(
+        f"{rep['n_scans']} scan(s): {rep['n_pairs']} line pairs meeting near their ends, "
+        f"{rep['n_corners']} within {rep['critical']:.2f} sigma of square; spread "
+        f"{rep['sigma_deg']:.2f} deg, propagated {rep['propagated_deg']:.2f} deg, "
+        f"tolerance {rep['tolerance_deg']:.2f} deg")
 
 
 def _print_noise_report(report: dict[str, Any]) -> None:

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import math
 from pathlib import Path
 
 import numpy as np
@@ -382,6 +383,10 @@ def test_real_bench_harness_on_constructed_frames(tmp_path: Path) -> None:
         "crashes (all frames)": True}
     assert "baseline" in rep["summary"] and rep["groups"]["boxes"]["baseline"]["n_exposed"] == 3
     assert [f["frame"] for f in rep["frames"]] == ["learn2", "learn10", "learn17"]
+    # angle_tolerance measured on the frames (rendered square: no more than the default)
+    sq = rep["squareness"]
+    assert sq["source"].startswith("estimate") and sq["n_corners"] > 0
+    assert math.radians(sq["angle_tolerance_deg"]) == rep["config"]["angle_tolerance"]
 
 
 def test_real_bench_counts_a_crash(tmp_path: Path) -> None:
