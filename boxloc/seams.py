@@ -31,6 +31,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 from scipy import stats as st
@@ -213,8 +214,22 @@ def seam_z(coord: np.ndarray, w: np.ndarray, scale: float, centres: np.ndarray, 
     return np.where(both, z, -np.inf)
 
 
+class Seams(NamedTuple):
+    """Result of :func:`find_seams`."""
+
+    #: (k,) float64, metres along the binned coordinate.
+    positions: np.ndarray
+    #: (k,) float64, their statistics.
+    z: np.ndarray
+    #: Bonferroni-corrected critical value.
+    critical: float
+    #: The largest statistic over all positions, significant or not (-inf if none was
+    #: computable): what a post-mortem reads when no seam was found.
+    z_max: float
+
+
 def find_seams(coord: np.ndarray, w: np.ndarray, scale: float, lo: float, hi: float,
-               h: float, alpha: float) -> tuple[np.ndarray, np.ndarray, float]:
+               h: float, alpha: float) -> Seams:
     """Significant seams between ``lo`` and ``hi`` (local maxima of :func:`seam_z`).
 
     The critical value is Bonferroni-corrected over the independent positions (one per
@@ -222,14 +237,11 @@ def find_seams(coord: np.ndarray, w: np.ndarray, scale: float, lo: float, hi: fl
 
     Returns
     -------
-    positions : (k,) float64
-        Metres along ``coord``.
-    z : (k,) float64
-        Their statistics.
-    critical : float
+    Seams
+        positions, z, critical, z_max.
     """
     if hi <= lo or len(coord) == 0:
-        return np.zeros(0), np.zeros(0), np.inf
+        return Seams(np.zeros(0), np.zeros(0), np.inf, -np.inf)
     step = 0.5 * h
     centres = np.arange(lo, hi + 0.5 * step, step)
     n_indep = max((hi - lo) / (2.0 * SEAM_INNER * h), 1.0)
@@ -250,7 +262,8 @@ def find_seams(coord: np.ndarray, w: np.ndarray, scale: float, lo: float, hi: fl
         if all(abs(centres[i] - centres[j]) > 2.0 * SEAM_INNER * h for j in keep):
             keep.append(int(i))
     pk = np.array(sorted(keep), np.int64)
-    return centres[pk], z[pk], crit
+    fin_z = z[np.isfinite(z)]
+    return Seams(centres[pk], z[pk], crit, float(fin_z.max()) if len(fin_z) else -np.inf)
 
 
 def seam_at(coord: np.ndarray, w: np.ndarray, scale: float, position: float, h: float,
@@ -269,5 +282,5 @@ def seam_at(coord: np.ndarray, w: np.ndarray, scale: float, position: float, h: 
     return float(z.max()), float(st.norm.isf(alpha / len(centres)))
 
 
-__all__ = ["FacePoints", "face_points", "find_seams", "seam_at", "seam_z", "SEAM_FLANK",
+__all__ = ["FacePoints", "Seams", "face_points", "find_seams", "seam_at", "seam_z", "SEAM_FLANK",
            "SEAM_INNER"]

@@ -318,13 +318,14 @@ def verify(
         for coord, other, lo_hi, ext in ((fp.u, fp.v, (mi, width - mi), length),
                                          (fp.v, fp.u, (mi, length - mi), width)):
             sel = (other >= mi) & (other <= ext - mi)
-            _, zz, zc = find_seams(coord[sel], fp.w[sel], fp.scale, lo_hi[0], lo_hi[1],
-                                   spacing, alpha)
-            int_z.append(float(zz.max()) if len(zz) else 0.0)
-            int_crit.append(zc)
+            found = find_seams(coord[sel], fp.w[sel], fp.scale, lo_hi[0], lo_hi[1],
+                               spacing, alpha)
+            # the strongest groove anywhere inside, significant or not (NaN: none measurable)
+            int_z.append(found.z_max if np.isfinite(found.z_max) else np.nan)
+            int_crit.append(found.critical)
         tests.append(TestTable.decision(TestKind.VERIFY_SEAM_INTERIOR, attempt_id, [0, 1],
                                         int_z, int_crit,
-                                        [z <= c for z, c in zip(int_z, int_crit)], alpha))
+                                        [not z > c for z, c in zip(int_z, int_crit)], alpha))
     if any(z > c for z, c in zip(int_z, int_crit)):
         return fail(VerifyReason.INTERIOR_SEAM, n_interior_edges=n_int)
     if not bound_ok:

@@ -31,20 +31,23 @@ def _face(rng: np.random.Generator, groove_at: float | None, depth: float = 0.00
 
 def test_a_groove_shallower_than_the_noise_is_found_along_its_length():
     u, w = _face(np.random.default_rng(1), 0.30)
-    pos, z, crit = find_seams(u, w, SIGMA, 0.1, 0.5, H, 0.01)
+    pos, z, crit, z_max = find_seams(u, w, SIGMA, 0.1, 0.5, H, 0.01)
     assert len(pos) == 1 and abs(pos[0] - 0.30) <= H
     assert z[0] > crit > 3.0
+    assert z_max == z[0]  # the strongest position is the seam
 
 
 def test_a_tilted_plane_is_no_seam():
     u, w = _face(np.random.default_rng(2), None, trend=0.02)
-    pos, _, _ = find_seams(u, w, SIGMA, 0.1, 0.5, H, 0.01)
+    pos, _, crit, z_max = find_seams(u, w, SIGMA, 0.1, 0.5, H, 0.01)
     assert len(pos) == 0
+    # the strongest statistic is still reported (for a post-mortem), below the critical
+    assert np.isfinite(z_max) and z_max <= crit
 
 
 def test_a_ridge_in_front_is_no_seam():
     u, w = _face(np.random.default_rng(3), 0.30, depth=-0.003)
-    pos, _, _ = find_seams(u, w, SIGMA, 0.1, 0.5, H, 0.01)
+    pos, _, _, _ = find_seams(u, w, SIGMA, 0.1, 0.5, H, 0.01)
     # not at the ridge; a strong ridge can still lift one flank of a window a flank's
     # distance away (a known side lobe of the statistic), never a window of its own
     assert not np.any(np.abs(pos - 0.30) <= 2 * H)
