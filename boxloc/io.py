@@ -478,6 +478,15 @@ def write_npz(scan: Scan, path: PathLike) -> None:
         arrays["intrinsics"] = scan.sensor.K
     if scan.sensor_to_base is not None:
         arrays["sensor_to_base"] = np.asarray(scan.sensor_to_base, dtype=np.float64)
+    write_arrays_npz(path, arrays)
+
+
+def write_arrays_npz(path: str | os.PathLike[str], arrays: dict[str, np.ndarray]) -> None:
+    """Write arrays as an ``.npz``, deterministically and atomically.
+
+    Zip entries carry a fixed timestamp (same arrays, same bytes); the file appears under
+    its name only when complete (temporary file + rename); nothing is pickled.
+    """
     p = Path(path)
     tmp = p.with_name(f".{p.name}.tmp{os.getpid()}")
     try:
@@ -486,7 +495,7 @@ def write_npz(scan: Scan, path: PathLike) -> None:
                 info = zipfile.ZipInfo(f"{name}.npy", date_time=(1980, 1, 1, 0, 0, 0))
                 info.compress_type = zipfile.ZIP_DEFLATED
                 with zf.open(info, "w", force_zip64=True) as f:
-                    np.lib.format.write_array(f, a, allow_pickle=False)
+                    np.lib.format.write_array(f, np.asarray(a, order="C"), allow_pickle=False)
         os.replace(tmp, p)
     finally:
         with contextlib.suppress(FileNotFoundError):

@@ -31,7 +31,6 @@ Example
 
 from __future__ import annotations
 
-import contextlib
 import dataclasses
 import functools
 import json
@@ -1386,19 +1385,9 @@ def save_npz(sim: SimulatedScan, path: str | os.PathLike[str]) -> None:
         "spec": np.asarray(json.dumps(sim.spec.to_dict(), sort_keys=True, separators=_JSON_SEP)),
     }
     arrays.update(to_arrays(sim.truth, prefix=_TRUTH))
-    p = Path(path)
-    tmp = p.with_name(f".{p.name}.tmp{os.getpid()}")
-    try:
-        with zipfile.ZipFile(tmp, "w", compression=zipfile.ZIP_DEFLATED, compresslevel=1) as zf:
-            for name, a in arrays.items():
-                info = zipfile.ZipInfo(f"{name}.npy", date_time=(1980, 1, 1, 0, 0, 0))
-                info.compress_type = zipfile.ZIP_DEFLATED
-                with zf.open(info, "w", force_zip64=True) as fh:
-                    np.lib.format.write_array(fh, np.asarray(a, order="C"), allow_pickle=False)
-        os.replace(tmp, p)
-    finally:
-        with contextlib.suppress(FileNotFoundError):
-            tmp.unlink()
+    from boxloc.io import write_arrays_npz  # io reads scans; it does not need the simulator
+
+    write_arrays_npz(path, arrays)
 
 
 def load_truth(path: str | os.PathLike[str]) -> GroundTruth | None:
