@@ -62,6 +62,9 @@ class VerifyReason(IntEnum):
     BOUNDARY = 8
     #: a seam (a line of points behind the plane) crosses the interior: two faces, not one
     INTERIOR_SEAM = 9
+    #: the face's plane continues beyond a side that is not a seam: the rectangle is cut
+    #: short inside a larger face
+    CONTINUES = 10
 
 
 class SelectReason(IntEnum):

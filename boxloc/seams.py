@@ -266,21 +266,57 @@ def find_seams(coord: np.ndarray, w: np.ndarray, scale: float, lo: float, hi: fl
     return Seams(centres[pk], z[pk], crit, float(fin_z.max()) if len(fin_z) else -np.inf)
 
 
+def gap_z(coord: np.ndarray, centres: np.ndarray, h: float) -> np.ndarray:
+    """Gap statistic at each centre: too few face points in the groove window.
+
+    Boxes that stand a few millimetres apart leave a gap, not a groove: its samples fall
+    far behind the plane (or return nothing), so the face's points thin out there while
+    both flanks keep theirs. The window's count is tested against the flanks' density
+    (Poisson, lower tail) and returned as a standard normal z, comparable to
+    :func:`seam_z`.
+
+    Returns
+    -------
+    z : (m,) float64
+        -inf where a flank is empty (the face does not continue on both sides).
+    """
+    ni, _, nl, _, nr, _ = _windows(coord, np.zeros_like(coord), centres, h)
+    lam = (nl + nr) * SEAM_INNER / (SEAM_FLANK[1] - SEAM_FLANK[0])
+    p = st.poisson.cdf(ni, np.maximum(lam, 1e-12))
+    return np.where((nl > 0) & (nr > 0), st.norm.isf(p), -np.inf)
+
+
 def seam_at(coord: np.ndarray, w: np.ndarray, scale: float, position: float, h: float,
-            alpha: float) -> tuple[float, float]:
-    """The strongest seam statistic within one groove window of ``position``.
+            alpha: float, reach: float | None = None, gaps: bool = False
+            ) -> tuple[float, float]:
+    """The strongest seam (or gap) statistic near ``position``.
+
+    Parameters
+    ----------
+    reach : float, optional
+        Search from ``position - reach`` to ``position + reach`` (metres) in groove-window
+        steps; default one groove window (``SEAM_INNER * h``).
+    gaps : bool
+        Count a gap (:func:`gap_z`) as a seam. Only where the face is known to continue
+        beyond ``position``: elsewhere a shadow or a dropout also thins the points out.
 
     Returns
     -------
     z : float
-        -inf where the windows hold no points.
+        The largest :func:`seam_z` (or :func:`gap_z`) over the positions tried; -inf
+        where the windows hold no points.
     critical : float
-        Bonferroni-corrected over the three positions tried.
+        Bonferroni-corrected over the positions tried (independent ones: one per groove
+        window, at least three).
     """
-    centres = position + np.array([-SEAM_INNER, 0.0, SEAM_INNER]) * h
+    r = SEAM_INNER * h if reach is None else max(float(reach), SEAM_INNER * h)
+    centres = position + np.arange(-r, r + 0.25 * SEAM_INNER * h, SEAM_INNER * h)
+    n_indep = max(3.0, 2.0 * r / (SEAM_INNER * h) + 1.0)
     z = seam_z(coord, w, scale, centres, h)
-    return float(z.max()), float(st.norm.isf(alpha / len(centres)))
+    if gaps:
+        z = np.maximum(z, gap_z(coord, centres, h))
+    return float(z.max()), float(st.norm.isf(alpha / n_indep))
 
 
-__all__ = ["FacePoints", "Seams", "face_points", "find_seams", "seam_at", "seam_z", "SEAM_FLANK",
-           "SEAM_INNER"]
+__all__ = ["FacePoints", "Seams", "face_points", "find_seams", "gap_z", "seam_at", "seam_z",
+           "SEAM_FLANK", "SEAM_INNER"]

@@ -54,7 +54,9 @@ class TestKind(IntEnum):
     VERIFY_TILT = 15
     #: verification: points in front of hypothesis a's face are no more than behind (sign test)
     VERIFY_EXPOSED = 16
-    #: verification: one side of hypothesis a is covered by convex edge points (fraction)
+    #: verification: the sides of hypothesis a are lines of convex edge points (rows 0-3:
+    #: distinct positions covered per side, critical = MIN_LINE_POINTS or the side's
+    #: concave-crease count if larger; row 4: the perimeter fraction covered, critical p)
     VERIFY_BOUNDARY = 17
     #: verification: a side of hypothesis a with no line of boundary edges is a seam
     #: (b = side 0-3: v=0, v=length, u=0, u=width; statistic z, one-sided)
@@ -65,6 +67,10 @@ class TestKind(IntEnum):
     #: hypothesis stage: seams in vertex a's region, extra dimension candidates (b = 0
     #: along x, 1 along y; one row per seam found, statistic z)
     SEAM_PEAK = 20
+    #: verification: the face's plane ends at side b of hypothesis a (b = side 0-3;
+    #: statistic = fraction of the pixels just beyond the side on the plane, critical =
+    #: min_inlier_fraction), or the side is a seam (a VERIFY_SEAM_SIDE row)
+    VERIFY_CONTINUATION = 21
 
 
 @lru_cache(maxsize=256)

@@ -22,12 +22,20 @@ rectangle's plane with their propagated uncertainty (point-on-plane, chi2(1) at 
   edges, at alpha), and all four together cover the fraction p of the perimeter. This
   extends the paper's |P_f| > p from the two far sides to all four, and rejects a
   sub-rectangle of a larger face, and the floor or pallet between boxes (bounded by
-  concave creases where the boxes rise). A side with no such line is still a boundary if
+  concave creases where the boxes rise: a side needs more convex than concave edge
+  points). A side with no such line is still a boundary if
   it is a seam (``VERIFY_SEAM_SIDE``: the range points along it, binned across it, show a
   groove behind the plane; :mod:`boxloc.seams`), which is how two touching boxes of equal
   height part where the edge stage saw their seam only in part;
 * ``VERIFY_SEAM_INTERIOR`` — no seam crosses the interior, at alpha Bonferroni-corrected
-  over the positions (a rectangle over two touching boxes is two faces).
+  over the positions (a rectangle over two touching boxes is two faces);
+* ``VERIFY_CONTINUATION`` — the face ends at each side: fewer than
+  ``min_inlier_fraction`` of the pixels in a strip just beyond the side lie on the face's
+  refitted plane (:func:`continuation`), or the side is a seam or a gap between equal
+  neighbours (``VERIFY_SEAM_SIDE``, searched across the band where the side's edges are
+  counted). Edge evidence alone does not make a side where the plane runs on: sensor
+  artefacts (structured-light depth) put short lines of jump edges inside faces, and a
+  rectangle cut short there would be accepted first and hide the whole face.
 """
 
 from __future__ import annotations
@@ -43,7 +51,7 @@ from boxloc.lines import MIN_LINE_POINTS
 from boxloc.products import EdgeKind, EdgeMap, VerifyReason
 from boxloc.raster import fill_polygon
 from boxloc.scan import Scan
-from boxloc.seams import SEAM_FLANK, face_points, find_seams, seam_at
+from boxloc.seams import SEAM_FLANK, FacePoints, face_points, find_seams, seam_at
 from boxloc.stats import TestKind, TestTable, chi2_critical
 
 #: Edges within this fraction of the shortest box edge from a side belong to that side: a
@@ -138,6 +146,101 @@ def _interior_line(
         if k > best or (k == best and p < best_p):
             best, best_p = k, p
     return best, best_p
+
+
+def _side_seam(fp: FacePoints, side: int, width: float, length: float, spacing: float,
+               alpha: float, reach: float | None = None, gaps: bool = False
+               ) -> tuple[float, float]:
+    """Seam statistic along one side of a rectangle, and its critical value.
+
+    ``side`` is 0-3: v=0, v=length, u=0, u=width; ``reach`` and ``gaps`` as in
+    :func:`boxloc.seams.seam_at`. A seam
+    runs the whole side: both halves must show a groove or gap (a local dent does not), so
+    the weaker half caps the statistic.
+    """
+    if side < 2:
+        sel = (fp.u >= 0) & (fp.u <= width)
+        coord, along, at, L = fp.v, fp.u, (0.0, length)[side], width
+    else:
+        sel = (fp.v >= 0) & (fp.v <= length)
+        coord, along, at, L = fp.u, fp.v, (0.0, width)[side - 2], length
+    zs, zc = seam_at(coord[sel], fp.w[sel], fp.scale, at, spacing, alpha, reach,
+                     gaps)
+    for half in (sel & (along < 0.5 * L), sel & (along >= 0.5 * L)):
+        zh, _ = seam_at(coord[half], fp.w[half], fp.scale, at, spacing, alpha, reach,
+                     gaps)
+        if zh <= 0:
+            zs = min(zs, zh)
+    return zs, zc
+
+
+def continuation(
+    ctx: VerifyContext,
+    origin: np.ndarray,
+    x_axis: np.ndarray,
+    y_axis: np.ndarray,
+    width: float,
+    length: float,
+    plane_point: np.ndarray,
+    plane_normal: np.ndarray,
+    margin: float,
+    depth: float,
+    k: float,
+) -> tuple[np.ndarray, np.ndarray]:
+    """How far a face's plane continues beyond each side of a rectangle.
+
+    For each side, the pixels of a strip outside it (from ``margin`` to ``margin + depth``
+    beyond the side, the corners' margins left out) are tested against the plane with
+    their own noise (point-on-plane, z at ``k``; no flatness prior: the strip is a few
+    spacings from the face's own edge, so a bulge has not yet departed from it). Beyond a
+    true side lie another surface, the face's own side wall or nothing; beyond a side cut
+    through a face, the same plane.
+
+    Parameters
+    ----------
+    origin, x_axis, y_axis : (3,) float64
+        The rectangle's frame.
+    width, length : float
+        Metres.
+    plane_point, plane_normal : (3,) float64
+        The face's refitted plane.
+    margin, depth : float
+        Metres.
+    k : float
+        Critical |z| of one point.
+
+    Returns
+    -------
+    fraction : (4,) float64
+        Fraction of the strip's valid pixels on the plane, sides 0-3 (v=0, v=length, u=0,
+        u=width); NaN where the strip has fewer than ``MIN_LINE_POINTS`` valid pixels or
+        leaves the image.
+    n_valid : (4,) int64
+    """
+    m, d = margin, depth
+    strips = (((m, width - m), (-m - d, -m)), ((m, width - m), (length + m, length + m + d)),
+              ((-m - d, -m), (m, length - m)), ((width + m, width + m + d), (m, length - m)))
+    frac = np.full(4, np.nan)
+    n_valid = np.zeros(4, np.int64)
+    for si, ((u0, u1), (v0, v1)) in enumerate(strips):
+        corners = np.array([origin + u0 * x_axis + v0 * y_axis, origin + u1 * x_axis + v0 * y_axis,
+                            origin + u1 * x_axis + v1 * y_axis, origin + u0 * x_axis + v1 * y_axis])
+        uv = ctx.project(corners)
+        if not np.isfinite(uv).all():
+            continue
+        rr, cc = fill_polygon(uv, ctx.valid.shape)
+        keep = ctx.valid[rr, cc]
+        rr, cc = rr[keep], cc[keep]
+        n_valid[si] = len(rr)
+        if len(rr) < MIN_LINE_POINTS:
+            continue
+        P = ctx.points[rr, cc]
+        ray = P / np.linalg.norm(P, axis=1, keepdims=True)
+        cn2 = (ray @ plane_normal) ** 2
+        var = ctx.sigma[rr, cc] ** 2 * cn2 + ctx.lateral2[rr, cc] * (1 - cn2)
+        z = ((P - plane_point) @ plane_normal) / np.sqrt(var)
+        frac[si] = float((np.abs(z) <= k).mean())
+    return frac, n_valid
 
 
 def rectangle_corners(
@@ -267,14 +370,19 @@ def verify(
         return cov_, p_
 
     covered, side_p = side_lines(convex, density)
+    # concave creases along a side: the face meets a wall rising from it (the pallet or a
+    # lower box beside a taller one), which a top face's side never does
+    concave, _ = side_lines(near_plane & (ctx.edge_kinds == EdgeKind.CREASE_CONCAVE), density)
+    side_min = [max(MIN_LINE_POINTS, kc) for kc in concave]
     side_n = [s[2] / spacing for s in sides]
-    # each side a significant line of boundary edges; all sides together covering the
-    # fraction p of the perimeter (the paper's |P_f| > p, over all four sides)
-    side_ok = [(k >= MIN_LINE_POINTS and pv < alpha) for k, pv in zip(covered, side_p)]
+    # each side a significant line of boundary edges, outnumbering any concave ones; all
+    # sides together covering the fraction p of the perimeter (the paper's |P_f| > p, over
+    # all four sides)
+    side_ok = [(k >= kmin and pv < alpha) for k, kmin, pv in zip(covered, side_min, side_p)]
     frac = float(sum(covered) / sum(side_n))
     bound_ok = all(side_ok) and frac >= config.support_fraction
     tests.append(TestTable.decision(TestKind.VERIFY_BOUNDARY, attempt_id, -1,
-                                    np.r_[covered, frac], np.r_[[MIN_LINE_POINTS] * 4,
+                                    np.r_[covered, frac], np.r_[side_min,
                                                                 config.support_fraction],
                                     np.r_[side_ok, frac >= config.support_fraction], alpha,
                                     p_value=np.r_[side_p, np.nan]))
@@ -288,19 +396,10 @@ def verify(
                      normal, (-B, width + B), (-B, length + B), spacing, alpha)
     seam_stat, seam_crit, seam_ok, seam_side = [], [], [], []
     if not all(side_ok) and len(fp):
-        in_u = (fp.u >= 0) & (fp.u <= width)
-        in_v = (fp.v >= 0) & (fp.v <= length)
-        side_frames = ((in_u, fp.v, 0.0, fp.u, width), (in_u, fp.v, length, fp.u, width),
-                       (in_v, fp.u, 0.0, fp.v, length), (in_v, fp.u, width, fp.v, length))
-        for si, (sel, coord, at, along, L) in enumerate(side_frames):
+        for si in range(4):
             if side_ok[si]:
                 continue
-            zs, zc = seam_at(coord[sel], fp.w[sel], fp.scale, at, spacing, alpha)
-            # a seam runs the whole side: both halves must show it (a local dent does not)
-            for half in (sel & (along < 0.5 * L), sel & (along >= 0.5 * L)):
-                zh, _ = seam_at(coord[half], fp.w[half], fp.scale, at, spacing, alpha)
-                if zh <= 0:
-                    zs = min(zs, zh)
+            zs, zc = _side_seam(fp, si, width, length, spacing, alpha)
             seam_stat.append(zs)
             seam_crit.append(zc)
             seam_ok.append(zs > zc)
@@ -400,6 +499,29 @@ def verify(
         mean, s2_mean, T_mean = np.nan, np.nan, np.inf
     mean_t = TestTable.chi2(TestKind.VERIFY_MEAN, attempt_id, n_in, T_mean, 1.0, alpha)
     tests.append(mean_t)
+    # the face ends at each side: its plane does not continue beyond, unless the side is a
+    # seam with an equal neighbour (a rectangle cut short inside a face is not a face)
+    cont, _ = continuation(ctx, origin, x_axis, y_axis, width, length, c, nf, m,
+                           B - m, k)
+    continues = cont >= config.min_inlier_fraction
+    ends = ~continues
+    extra_seam: list[tuple[int, float, float]] = []
+    for si in np.flatnonzero(continues):
+        if si in seam_side and seam_ok[seam_side.index(si)]:
+            ends[si] = True
+            continue
+        # anywhere in the band where the side's boundary edges are counted
+        zs, zc = (_side_seam(fp, int(si), width, length, spacing, alpha, band, True) if len(fp)
+                  else (-np.inf, np.inf))
+        extra_seam.append((int(si), zs, zc))
+        ends[si] = zs > zc
+    if extra_seam:
+        es = np.array(extra_seam)
+        tests.append(TestTable.decision(TestKind.VERIFY_SEAM_SIDE, attempt_id,
+                                        es[:, 0].astype(int), es[:, 1], es[:, 2],
+                                        es[:, 1] > es[:, 2], alpha))
+    tests.append(TestTable.decision(TestKind.VERIFY_CONTINUATION, attempt_id, [0, 1, 2, 3],
+                                    cont, config.min_inlier_fraction, ends, alpha))
 
     if not exposed:
         reason = VerifyReason.NOT_EXPOSED
@@ -407,6 +529,8 @@ def verify(
         reason = VerifyReason.INLIERS
     elif not bool(mean_t.accepted[0]):
         reason = VerifyReason.MEAN_OFFSET
+    elif not ends.all():
+        reason = VerifyReason.CONTINUES
     else:
         reason = VerifyReason.ACCEPTED
     H, W = scan.shape

@@ -695,7 +695,8 @@ def _test_keys(t: TestTable, maps: Mapping[str, Mapping[int, int] | None]) -> di
             # between hypotheses whose peaks agree ("peaks": those pairs)
             x = m("peaks", a)
             key = None if x is None else (kind, x)
-        elif TestKind.VERIFY_INLIERS <= kind <= TestKind.VERIFY_SEAM_INTERIOR:
+        elif (TestKind.VERIFY_INLIERS <= kind <= TestKind.VERIFY_SEAM_INTERIOR
+              or kind == TestKind.VERIFY_CONTINUATION):
             x = m("attempts", a)
             key = None if x is None else (kind, x)
         elif kind == TestKind.SEAM_PEAK:

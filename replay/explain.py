@@ -49,6 +49,7 @@ _SENSE: dict[TestKind, str] = {
     TestKind.EDGE_SUPPORT: ">", TestKind.FIRST_QUADRANT: ">",
     TestKind.VERIFY_INLIERS: ">=", TestKind.VERIFY_BOUNDARY: ">=",
     TestKind.VERIFY_SEAM_SIDE: ">", TestKind.SEAM_PEAK: ">",
+    TestKind.VERIFY_CONTINUATION: "<",
 }
 _NEGATE = {"<=": ">", "<": ">=", ">": "<=", ">=": "<"}
 #: what each verify reason's failing test is
@@ -60,6 +61,7 @@ _REASON_TEST: dict[VerifyReason, TestKind] = {
     VerifyReason.NOT_EXPOSED: TestKind.VERIFY_EXPOSED,
     VerifyReason.INLIERS: TestKind.VERIFY_INLIERS,
     VerifyReason.MEAN_OFFSET: TestKind.VERIFY_MEAN,
+    VerifyReason.CONTINUES: TestKind.VERIFY_CONTINUATION,
 }
 #: the four sides of a rectangle, in the order of the VERIFY_BOUNDARY rows
 _SIDES = ("side at the vertex along x", "far side along x", "side at the vertex along y",

@@ -10,7 +10,7 @@ from boxloc.config import Config
 from boxloc.metrics import match_surfaces
 from boxloc.pipeline import find_graspable_surfaces
 from boxloc.products import DimensionSource, VerifyReason
-from boxloc.seams import find_seams, seam_at, seam_z
+from boxloc.seams import find_seams, gap_z, seam_at, seam_z
 from boxloc.stats import TestKind
 from tests.scenes import box, scene
 
@@ -74,6 +74,35 @@ def test_seam_at_looks_one_window_either_side():
     assert z > crit
     z_far, _ = seam_at(u, w, SIGMA, 0.45, H, 0.01)
     assert z_far < crit
+
+
+def test_a_gap_between_faces_is_found_where_asked_for():
+    # two faces 10 mm apart: the gap's samples fall far behind and are not face points
+    u, w = _face(np.random.default_rng(6), None)
+    keep = np.abs(u - 0.30) > 0.005
+    u, w = u[keep], w[keep]
+    z, crit = seam_at(u, w, SIGMA, 0.30, H, 0.01, gaps=True)
+    assert z > crit
+    # without gaps=True only a groove counts (a shadow also thins points out)
+    z_groove, _ = seam_at(u, w, SIGMA, 0.30, H, 0.01)
+    assert z_groove < z
+    # a continuous face has no gap
+    u2, w2 = _face(np.random.default_rng(7), None)
+    z_none, _ = seam_at(u2, w2, SIGMA, 0.30, H, 0.01, gaps=True)
+    assert z_none < crit
+
+
+def test_a_gap_needs_the_face_on_both_sides():
+    u, _ = _face(np.random.default_rng(8), None)
+    u = u[u < 0.30]  # the face ends: nothing beyond is a gap
+    assert np.isneginf(gap_z(u, np.array([0.30]), H)).all()
+
+
+def test_seam_at_reach_widens_the_search_and_its_critical_value():
+    u, w = _face(np.random.default_rng(9), 0.30 + 3 * H, depth=0.004)
+    z1, c1 = seam_at(u, w, SIGMA, 0.30, H, 0.01)
+    z3, c3 = seam_at(u, w, SIGMA, 0.30, H, 0.01, reach=3 * H)
+    assert z1 < c1 < c3 < z3
 
 
 def test_empty_windows_give_no_evidence():
