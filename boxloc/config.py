@@ -49,7 +49,9 @@ class Config:
         must cover in ``dimensions_from_edges``.
     min_inlier_fraction : float
         Prior: the fraction of the range points inside a fully exposed face that lie on its
-        plane (the rest are dropouts, bulge and mixed pixels at its border).
+        plane (the rest are dropouts, bulge and mixed pixels at its border). Verification's
+        continuation test uses it too: a strip beyond a side with this fraction on the
+        face's plane is more of the same face.
     flatness : float
         Prior: how far a box top may depart from a plane (cardboard bulge), metres; added
         in quadrature to the point noise when points are tested against a face, and to
