@@ -58,8 +58,9 @@ class TestKind(IntEnum):
     #: distinct positions covered per side, critical = MIN_LINE_POINTS or the side's
     #: concave-crease count if larger; row 4: the perimeter fraction covered, critical p)
     VERIFY_BOUNDARY = 17
-    #: verification: a side of hypothesis a with no line of boundary edges is a seam
-    #: (b = side 0-3: v=0, v=length, u=0, u=width; statistic z, one-sided)
+    #: verification: a side of hypothesis a with no line of boundary edges, or beyond which
+    #: the face's plane continues, is a seam (or, in the latter case, a gap) (b = side 0-3:
+    #: v=0, v=length, u=0, u=width; statistic z, one-sided)
     VERIFY_SEAM_SIDE = 18
     #: verification: no seam crosses the interior of hypothesis a (b = 0 along x, 1 along
     #: y; statistic = the largest z inside)
