@@ -250,6 +250,22 @@ def _lzf_literal(data: bytes) -> bytes:
     return bytes(out)
 
 
+def _xyz_records(P: np.ndarray, labels: np.ndarray | None, byte_order: str, label_type: str
+                 ) -> tuple[np.ndarray, list[tuple[str, str]]]:
+    """The (H, W, 3) cloud ``P`` (and optional labels) as one flat record array, with its
+    fields: float32 x, y, z and ``label`` of ``label_type``, in ``byte_order``."""
+    fields = [(c, byte_order + "f4") for c in "xyz"]
+    if labels is not None:
+        fields.append(("label", byte_order + label_type))
+    rec = np.zeros(P.shape[0] * P.shape[1], dtype=fields)
+    flat = P.reshape(-1, 3)
+    for i, c in enumerate("xyz"):
+        rec[c] = flat[:, i]
+    if labels is not None:
+        rec["label"] = labels.reshape(-1)
+    return rec, fields
+
+
 def pcd_bytes(P: np.ndarray, data: str, *, labels: np.ndarray | None = None,
               header: dict[str, str] | None = None) -> bytes:
     """An organized PCD file of the (H, W, 3) float32 cloud ``P`` (``data``: ascii, binary or
@@ -257,15 +273,7 @@ def pcd_bytes(P: np.ndarray, data: str, *, labels: np.ndarray | None = None,
     header lines by key."""
     H, W = P.shape[:2]
     n = H * W
-    fields = [("x", "<f4"), ("y", "<f4"), ("z", "<f4")]
-    if labels is not None:
-        fields.append(("label", "<u4"))
-    rec = np.zeros(n, dtype=fields)
-    flat = P.reshape(-1, 3)
-    for i, c in enumerate("xyz"):
-        rec[c] = flat[:, i]
-    if labels is not None:
-        rec["label"] = labels.reshape(-1)
+    rec, fields = _xyz_records(P, labels, "<", "u4")
     head = {
         "VERSION": "0.7", "FIELDS": " ".join(f for f, _ in fields),
         "SIZE": " ".join("4" for _ in fields),
@@ -293,15 +301,7 @@ def ply_bytes(P: np.ndarray, fmt: str, *, labels: np.ndarray | None = None,
     H, W = P.shape[:2]
     n = H * W
     bo = ">" if fmt == "binary_big_endian" else "<"
-    fields = [("x", bo + "f4"), ("y", bo + "f4"), ("z", bo + "f4")]
-    if labels is not None:
-        fields.append(("label", bo + "i4"))
-    rec = np.zeros(n, dtype=fields)
-    flat = P.reshape(-1, 3)
-    for i, c in enumerate("xyz"):
-        rec[c] = flat[:, i]
-    if labels is not None:
-        rec["label"] = labels.reshape(-1)
+    rec, _ = _xyz_records(P, labels, bo, "i4")
     lines = header_lines or [
         f"format {fmt} 1.0", f"obj_info num_cols {W}", f"obj_info num_rows {H}",
         f"element vertex {n}", "property float x", "property float y", "property float z",
