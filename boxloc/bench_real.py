@@ -11,7 +11,9 @@ Inputs both methods get, and the report says which:
 
 * **noise** -- ``"estimate"`` (default): the range-noise model fitted to the frames
   themselves with :func:`boxloc.noise.estimate_noise` (flat tiles, kept inside one label
-  segment); ``"config"``: the config's ``noise`` as given (e.g. from a calibrated TOML).
+  segment), then its ``edge_px`` measured on them with
+  :func:`boxloc.edgeblur.estimate_edge_px` (no labels); ``"config"``: the config's ``noise``
+  as given (e.g. from a calibrated TOML).
 * **squareness** -- ``"estimate"`` (default): the prior ``angle_tolerance`` measured on
   the frames with :func:`boxloc.squareness.estimate_angle_tolerance` (after the noise
   model; the Kinect shears receding box sides by degrees); ``"config"``: as given.
@@ -23,7 +25,7 @@ Inputs both methods get, and the report says which:
 Layout of ``bench_real.json`` (lengths in mm, angles in degrees, times in ms):
 
 - ``version``, ``data_dir``, ``n_frames``, ``config`` (as run, noise included),
-  ``config_hash``, ``noise`` (source, model, fit summary), ``squareness`` (source,
+  ``config_hash``, ``noise`` (source, model, fit summary, ``edge_blur``), ``squareness`` (source,
   ``angle_tolerance_deg``, corners used, spread), ``pose``, ``threads``,
   ``warmup``, ``crash_policy``, ``truth_rule``
 - ``summary``: pooled figures per method (:func:`boxloc.metrics.aggregate_matches`)
@@ -230,6 +232,15 @@ def _noise(frames: list[_Frame], config: Config, source: str) -> tuple[Config, d
                   "model_mm": r["model_std"] * 1e3, "used": r["used"]}
                  for r in rep.get("rows", [])],
     }
+    # the edge blur, with the range noise just fitted (it is what the blur is measured over)
+    from boxloc.edgeblur import estimate_edge_px
+
+    cfg = dataclasses.replace(config, noise=model)
+    edge_px, erep = estimate_edge_px([f.scan for f in frames], cfg)
+    model = dataclasses.replace(model, edge_px=edge_px)
+    info["model"] = model.to_dict()
+    info["edge_blur"] = {"source": "estimate_edge_px on the benchmarked frames (no labels)",
+                         **erep}
     return dataclasses.replace(config, noise=model), info
 
 

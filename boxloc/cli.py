@@ -334,6 +334,39 @@ def calibrate_angles(
         f"tolerance {rep['tolerance_deg']:.2f} deg")
 
 
+@cli.command("calibrate-edges")
+@click.argument("scan_paths", metavar="SCAN...", nargs=-1, required=True, type=click.Path())
+@scan_options
+@config_options
+def calibrate_edges(
+    scan_paths: tuple[str, ...], intrinsics: str | None, depth_scale: float | None,
+    config_path: str | None, overrides: tuple[str, ...],
+) -> None:
+    """Measure how far the sensor blurs depth edges: the noise parameter edge_px.
+
+    Runs the edge and line stages on SCAN files (or directories) of boxes, with the
+    config's range-noise model (calibrate that first), and takes the robust spread of the
+    edge points around their lines in pixels, less what their covariance explains (see
+    boxloc.edgeblur). Prints `edge_px = ...` (pixels; the [noise] table of a --config TOML,
+    or --set noise.edge_px=...) on stdout and the figures on stderr.
+    """
+    from rich.console import Console
+
+    from boxloc.edgeblur import estimate_edge_px
+    from boxloc.io import read_scans
+
+    cfg = load_config(config_path, overrides)
+    scans = [s for p in scan_paths
+             for s in read_scans(p, intrinsics=intrinsics, depth_scale=depth_scale)]
+    edge_px, rep = estimate_edge_px(scans, cfg)
+    click.echo(f"edge_px = {edge_px:.4g}  # pixels, in [noise]")
+    Console(stderr=True).print(
+        f"{rep['n_scans']} scan(s): {rep['n_points']} edge points along lines, "
+        f"{rep['n_kept']} within {rep['critical']:.2f} sigma; spread "
+        f"{rep['spread_px']:.3f} px, modelled {rep['modelled_px']:.3f} px, "
+        f"edge_px {rep['edge_px']:.3f} px")
+
+
 def _print_noise_report(report: dict[str, Any]) -> None:
     from rich.console import Console
     from rich.table import Table

@@ -194,6 +194,7 @@ class Config:
         Values are parsed as TOML scalars (``alpha=0.05``, ``workers=2``).
         """
         d = self.to_dict()
+        d["noise"] = dataclasses.asdict(self.noise)  # every key, those left out at defaults too
         items = assignments.items() if isinstance(assignments, dict) else None
         if items is None:
             parsed = []

@@ -232,8 +232,9 @@ def dimensions_from_edges(R: Rectangle, ctx: _Context, work: _VertexWork) -> lis
     # the generating vertex's own sides (v ~ 0 for A_x, u ~ 0 for A_y) say nothing of the
     # far sides and would spread votes evenly over the accumulator: leave them out
     band = BOUNDARY_BAND * cfg.min_edge
-    ax = np.bincount(np.clip((u[v > band] / h).astype(np.int64), 0, nbins - 1), minlength=nbins)
-    ay = np.bincount(np.clip((v[u > band] / h).astype(np.int64), 0, nbins - 1), minlength=nbins)
+    su, sv = su[Pc], sv[Pc]
+    ax = _soft_votes(u[v > band], su[v > band], h, nbins)
+    ay = _soft_votes(v[u > band], sv[u > band], h, nbins)
     work.acc_bin, work.acc_x, work.acc_y = h, ax.astype(np.float32), ay.astype(np.float32)
     min_peak = cfg.support_fraction * cfg.min_edge / spacing
     px = _peaks(ax, h, cfg.min_edge * 0.9, min_peak, alpha)
@@ -248,11 +249,15 @@ def dimensions_from_edges(R: Rectangle, ctx: _Context, work: _VertexWork) -> lis
             for a, b in seam_pairs]
     for Mx in px:
         for My in py:
-            on_x = np.abs(u - Mx) <= 1.5 * h
-            on_y = np.abs(v - My) <= 1.5 * h
+            # on a side: within the bin window, or the point's own localization at alpha
+            on_x = np.abs(u - Mx) <= np.maximum(1.5 * h, kq * su)
+            on_y = np.abs(v - My) <= np.maximum(1.5 * h, kq * sv)
             Pi = on_x | on_y
             Pf = Pi & (u <= Mx + 1.5 * h) & (v <= My + 1.5 * h)
-            p = cfg.support_fraction * (Mx + My) / spacing
+            far = R.origin + Mx * R.x_axis + My * R.y_axis
+            p = cfg.support_fraction * (
+                ctx.verify_ctx.samples_along(R.origin + Mx * R.x_axis, far)
+                + ctx.verify_ctx.samples_along(R.origin + My * R.y_axis, far))
             n_f = int(Pf.sum())
             sup_tests.append((n_f, p, n_f > p))
             if n_f > p:
@@ -292,6 +297,21 @@ def _seam_peaks(R: Rectangle, ctx: _Context, work: _VertexWork, px: np.ndarray,
             work.tests.append(TestTable.decision(TestKind.SEAM_PEAK, R.vertex, b, z, crit,
                                                  True, cfg.alpha))
     return found[0], found[1]
+
+
+def _soft_votes(x: np.ndarray, sx: np.ndarray, h: float, nbins: int) -> np.ndarray:
+    """1-D accumulator of bin width h: each point's vote spread over the bins by its own
+    localization error (a normal of std ``sx`` at ``x``), so a blurred edge votes where it
+    may lie; a point much sharper than a bin votes into its bin alone (a histogram)."""
+    if len(x) == 0:
+        return np.zeros(nbins)
+    x = np.clip(x, 0.0, nbins * h - 1e-9)
+    edges = np.arange(nbins + 1) * h
+    s = np.maximum(sx, 1e-3 * h)[:, None]
+    cdf = st.norm.cdf((edges[None, :] - x[:, None]) / s)
+    # mass beyond the ends stays in the end bins (as the clipped histogram did)
+    cdf[:, 0], cdf[:, -1] = 0.0, 1.0
+    return np.diff(cdf, axis=1).sum(0)
 
 
 def _peaks(acc: np.ndarray, h: float, lo: float, min_height: float, alpha: float) -> np.ndarray:

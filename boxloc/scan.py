@@ -221,6 +221,11 @@ class NoiseModel:
         Beam pointing jitter, radians.
     min_cos : float
         Floor on the cosine of the incidence angle, so grazing points stay finite.
+    edge_px : float
+        Standard deviation of an edge's position along the scan line that crosses it, beyond
+        the pixel grid's own quantization, pixels. Structured-light sensors blur and shift
+        depth edges by about a pixel (their correlation window); an ideal scanner has 0.
+        On a surface seen at grazing incidence one pixel is several millimetres.
     """
 
     sigma0: float = 0.0010
@@ -228,9 +233,10 @@ class NoiseModel:
     k2: float = 0.0006
     sigma_angle: float = 0.0003
     min_cos: float = 0.2
+    edge_px: float = 0.0
 
     def __post_init__(self) -> None:
-        for name in ("sigma0", "k1", "k2", "sigma_angle", "min_cos"):
+        for name in ("sigma0", "k1", "k2", "sigma_angle", "min_cos", "edge_px"):
             v = getattr(self, name)
             if not np.isfinite(v) or v < 0:
                 raise InputError(f"noise parameter {name} must be finite and >= 0, got {v}")
@@ -265,8 +271,13 @@ class NoiseModel:
         return (sr**2)[:, None, None] * ddT + (sl**2)[:, None, None] * (eye - ddT)
 
     def to_dict(self) -> dict[str, float]:
-        return {"sigma0": self.sigma0, "k1": self.k1, "k2": self.k2,
-                "sigma_angle": self.sigma_angle, "min_cos": self.min_cos}
+        d = {"sigma0": self.sigma0, "k1": self.k1, "k2": self.k2,
+             "sigma_angle": self.sigma_angle, "min_cos": self.min_cos}
+        # edge_px came later: left out at its default, so configs (and their hashes) from
+        # before it are unchanged and versions that predate it can replay new logs
+        if self.edge_px:
+            d["edge_px"] = self.edge_px
+        return d
 
 
 def _check_range(range_: npt.ArrayLike) -> np.ndarray:

@@ -90,6 +90,17 @@ class VerifyContext:
         """Expected spacing of edge points along an edge at ``point``, metres."""
         return float(np.linalg.norm(point)) * self.pixel_angle
 
+    def samples_along(self, a: np.ndarray, b: np.ndarray) -> float:
+        """Edge points expected along the 3D segment a-b: its length in the image, pixels.
+
+        A side seen at grazing incidence is foreshortened in the image and gets fewer edge
+        points than its length over :meth:`spacing_at` (one per pixel it crosses).
+        """
+        q = self.project(np.stack([np.asarray(a, np.float64), np.asarray(b, np.float64)]))
+        n = float(np.hypot(*(q[1] - q[0])))
+        return n if np.isfinite(n) else float(np.linalg.norm(np.subtract(b, a))) / (
+            self.spacing_at(0.5 * (np.asarray(a) + np.asarray(b))))
+
 
 @dataclass
 class VerifyOutcome:
@@ -374,7 +385,9 @@ def verify(
     # lower box beside a taller one), which a top face's side never does
     concave, _ = side_lines(near_plane & (ctx.edge_kinds == EdgeKind.CREASE_CONCAVE), density)
     side_min = [max(MIN_LINE_POINTS, kc) for kc in concave]
-    side_n = [s[2] / spacing for s in sides]
+    c0, c1 = origin, origin + width * x_axis
+    c2, c3 = c1 + length * y_axis, origin + length * y_axis
+    side_n = [ctx.samples_along(a, b) for a, b in ((c0, c1), (c3, c2), (c0, c3), (c1, c2))]
     # each side a significant line of boundary edges, outnumbering any concave ones; all
     # sides together covering the fraction p of the perimeter (the paper's |P_f| > p, over
     # all four sides)
