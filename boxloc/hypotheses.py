@@ -191,10 +191,13 @@ def dimensions_from_edges(R: Rectangle, ctx: _Context, work: _VertexWork) -> lis
     """Candidate dimensions from edge points and two 1-D accumulators (Fig. 2, lines 18-28).
 
     ``preprocess`` keeps the edge points on R's plane (point-on-plane, chi2(1)) in its
-    first quadrant (P_c); their coordinates along x and y vote into A_x and A_y. For each
-    pair of peaks (M_x, M_y), P_f are the points of both peaks inside the rectangle; the
-    pair is supported if |P_f| > p, with p = support_fraction of the far sides' expected
-    edge points.
+    first quadrant (P_c); their coordinates along x and y vote into A_x and A_y, each vote
+    spread over the bins by the point's own localization error (a sensor that blurs its
+    edges, ``noise.edge_px``, gives wide votes). For each pair of peaks (M_x, M_y), P_f are
+    the points of both peaks inside the rectangle (on a peak: within the bin window or the
+    point's own error at alpha); the pair is supported if |P_f| > p, with p =
+    support_fraction of the far sides' expected edge points, one per pixel each side
+    covers in the image (a side seen at grazing incidence is foreshortened).
     """
     cfg = ctx.config
     alpha = cfg.alpha
