@@ -319,13 +319,10 @@ def calibrate_angles(
 
     from rich.console import Console
 
-    from boxloc.io import read_scans
     from boxloc.squareness import estimate_angle_tolerance
 
     cfg = load_config(config_path, overrides)
-    scans = [s for p in scan_paths
-             for s in read_scans(p, intrinsics=intrinsics, depth_scale=depth_scale)]
-    tol, rep = estimate_angle_tolerance(scans, cfg)
+    tol, rep = estimate_angle_tolerance(_read_all(scan_paths, intrinsics, depth_scale), cfg)
     click.echo(f"angle_tolerance = {tol:.6g}  # {math.degrees(tol):.2f} deg")
     Console(stderr=True).print(
         f"{rep['n_scans']} scan(s): {rep['n_pairs']} line pairs meeting near their ends, "
@@ -353,18 +350,24 @@ def calibrate_edges(
     from rich.console import Console
 
     from boxloc.edgeblur import estimate_edge_px
-    from boxloc.io import read_scans
 
     cfg = load_config(config_path, overrides)
-    scans = [s for p in scan_paths
-             for s in read_scans(p, intrinsics=intrinsics, depth_scale=depth_scale)]
-    edge_px, rep = estimate_edge_px(scans, cfg)
+    edge_px, rep = estimate_edge_px(_read_all(scan_paths, intrinsics, depth_scale), cfg)
     click.echo(f"edge_px = {edge_px:.4g}  # pixels, in [noise]")
     Console(stderr=True).print(
         f"{rep['n_scans']} scan(s): {rep['n_points']} edge points along lines, "
         f"{rep['n_kept']} within {rep['critical']:.2f} sigma; spread "
         f"{rep['spread_px']:.3f} px, modelled {rep['modelled_px']:.3f} px, "
         f"edge_px {rep['edge_px']:.3f} px")
+
+
+def _read_all(paths: tuple[str, ...], intrinsics: str | None,
+              depth_scale: float | None) -> list[Any]:
+    """Every scan of the given files and directories, in order."""
+    from boxloc.io import read_scans
+
+    return [s for p in paths
+            for s in read_scans(p, intrinsics=intrinsics, depth_scale=depth_scale)]
 
 
 def _print_noise_report(report: dict[str, Any]) -> None:

@@ -14,8 +14,7 @@ the edge and line stages run with the config's noise model; for every line with 
 support, the edge points of its kind along its extent give their distance from the line in
 units of the pixel's footprint on the surface in that direction. Points on the line give
 a half-normal distance, other edges a broad background, so the spread is estimated robustly
-(the half-normal median, iterated within the two-sided critical value at alpha, as
-:mod:`boxloc.squareness` does for angles); what the points' own covariance already
+(:func:`boxloc.stats.half_normal_sigma`, as :mod:`boxloc.squareness` does for angles); what the points' own covariance already
 explains is subtracted: ``edge_px = sqrt(max(spread^2 - median(modelled^2), 0))``.
 
 On the simulator, whose edges have no sensor blur, the estimate is about 0.35 px (the
@@ -31,20 +30,18 @@ from collections.abc import Sequence
 from typing import Any
 
 import numpy as np
-import scipy.stats as st
 from scipy.spatial import cKDTree
 
 from boxloc.config import Config
 from boxloc.edges import detect_edges
 from boxloc.lines import find_lines
 from boxloc.scan import Scan
+from boxloc.stats import half_normal_sigma
 
 #: Lines with fewer support points say little about the scatter around them.
 MIN_SUPPORT = 20
 #: Edge points farther than this (pixels) from a line are other structure, not its scatter.
 CORRIDOR_PX = 4.0
-#: The half-normal's median is this many sigmas.
-HALF_NORMAL_MEDIAN = float(st.halfnorm.ppf(0.5))
 
 
 def edge_offsets(scan: Scan, config: Config) -> tuple[np.ndarray, np.ndarray]:
@@ -140,15 +137,7 @@ def estimate_edge_px(
     if len(off) < 100:
         raise InputError(f"too few edge points along lines to estimate edge_px ({len(off)} "
                          f"in {len(scans)} scan(s)); scan boxes with straight edges")
-    k = float(st.norm.isf(config.alpha / 2.0))
-    sigma = float(np.median(off)) / HALF_NORMAL_MEDIAN
-    kept = np.ones(len(off), bool)
-    for _ in range(max_iter):
-        kept = off <= k * sigma
-        new = float(np.median(off[kept])) / HALF_NORMAL_MEDIAN
-        if abs(new - sigma) <= 1e-9:
-            break
-        sigma = new
+    sigma, kept, k = half_normal_sigma(off, config.alpha, max_iter)
     modelled = float(np.median(mod[kept]))
     edge_px = math.sqrt(max(sigma**2 - modelled**2, 0.0))
     report = {"n_scans": len(scans), "n_points": int(len(off)), "n_kept": int(kept.sum()),

@@ -25,19 +25,16 @@ from collections.abc import Sequence
 from typing import Any
 
 import numpy as np
-import scipy.stats as st
 
 from boxloc.config import Config
 from boxloc.edges import detect_edges
 from boxloc.lines import find_lines
 from boxloc.scan import Scan
-from boxloc.stats import TestKind
+from boxloc.stats import TestKind, half_normal_sigma
 from boxloc.vertices import find_vertices
 
 #: Pairs farther than this from square are not corners (collinear pieces, diagonals).
 MAX_DEPARTURE = math.radians(45.0)
-#: The half-normal's median is this many sigmas.
-HALF_NORMAL_MEDIAN = float(st.halfnorm.ppf(0.5))
 
 
 def corner_departures(scan: Scan, config: Config) -> tuple[np.ndarray, np.ndarray]:
@@ -121,15 +118,7 @@ def estimate_angle_tolerance(
     if len(delta) < 5:
         raise InputError(f"too few line pairs meeting at corners to estimate angle_tolerance "
                          f"({len(delta)} in {len(scans)} scan(s)); scan more boxes")
-    k = float(st.norm.isf(config.alpha / 2.0))
-    sigma = float(np.median(delta)) / HALF_NORMAL_MEDIAN
-    kept = np.ones(len(delta), bool)
-    for _ in range(max_iter):
-        kept = delta <= k * sigma
-        new = float(np.median(delta[kept])) / HALF_NORMAL_MEDIAN
-        if abs(new - sigma) <= 1e-9:
-            break
-        sigma = new
+    sigma, kept, k = half_normal_sigma(delta, config.alpha, max_iter)
     prop = float(np.median(var[kept]))
     tol = math.sqrt(max(sigma**2 - prop, 0.0))
     report = {

@@ -80,6 +80,35 @@ def chi2_critical(dof: float, alpha: float) -> float:
     return float(_st.chi2.ppf(1.0 - alpha, dof))
 
 
+def half_normal_sigma(x: np.ndarray, alpha: float,
+                      max_iter: int = 50) -> tuple[float, np.ndarray, float]:
+    """Robust sigma of the half-normal part of magnitudes ``x`` among a broad background.
+
+    The median of |N(0, sigma)| is 0.6745 sigma; the estimate is iterated on the values
+    within the two-sided critical value at alpha until it no longer changes.
+
+    Returns
+    -------
+    sigma : float
+    kept : (n,) bool
+        The values within ``k * sigma``.
+    k : float
+        The two-sided critical value (z at alpha / 2).
+    """
+    x = np.asarray(x, dtype=np.float64)
+    med = float(_st.halfnorm.ppf(0.5))
+    k = float(_st.norm.isf(alpha / 2.0))
+    sigma = float(np.median(x)) / med
+    kept = np.ones(len(x), bool)
+    for _ in range(max_iter):
+        kept = x <= k * sigma
+        new = float(np.median(x[kept])) / med
+        if abs(new - sigma) <= 1e-9:
+            break
+        sigma = new
+    return sigma, kept, k
+
+
 def chi2_test(
     statistic: npt.ArrayLike, dof: float, alpha: float
 ) -> tuple[np.ndarray, float, np.ndarray, np.ndarray]:

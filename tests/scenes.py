@@ -26,3 +26,10 @@ def scene(
     top = float((b[:, 2] + b[:, 5] / 2).max()) if len(b) else TOP
     T = look_down_pose([0.0, 0.0, top], distance, tilt=tilt, azimuth=0.7, roll=0.3)
     return simulate_boxes(b, T, spec=SceneSpec(kind="single", **spec), seed=seed)  # type: ignore[arg-type]
+
+
+def wall(distance: float = 1.5) -> np.ndarray:
+    """A flat wall ``distance`` ahead seen by a 64 x 48 pinhole: (48, 64, 3) points, no edges."""
+    v, u = np.mgrid[0:48, 0:64].astype(np.float64)
+    z = np.full_like(u, distance)
+    return np.stack([(u - 31.5) / 50 * z, (v - 23.5) / 50 * z, z], -1)

@@ -9,7 +9,7 @@ import tomllib
 
 import numpy as np
 import pytest
-from scenes import box, scene
+from scenes import box, scene, wall
 
 from boxloc.config import Config
 from boxloc.edgeblur import edge_offsets, estimate_edge_px
@@ -76,11 +76,8 @@ def test_the_estimate_ignores_the_configs_own_edge_px(boxes):
 
 
 def test_a_scan_without_edges_is_an_input_error():
-    v, u = np.mgrid[0:48, 0:64].astype(np.float64)
-    z = np.full_like(u, 1.5)
-    wall = np.stack([(u - 31.5) / 50 * z, (v - 23.5) / 50 * z, z], -1)
     with pytest.raises(InputError, match="too few edge points"):
-        estimate_edge_px([Scan.from_points(wall)], Config())
+        estimate_edge_px([Scan.from_points(wall())], Config())
 
 
 def test_edge_px_widens_covariances_along_the_scan_line_only(boxes):

@@ -10,7 +10,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from scenes import box, scene
+from scenes import box, scene, wall
 
 from boxloc.config import Config
 from boxloc.errors import InputError
@@ -63,11 +63,8 @@ def test_departures_are_within_the_bound_and_propagated_variances_positive(boxes
 
 def test_a_scan_without_corners_is_an_input_error():
     # a wall 1.5 m ahead, seen by a 64 x 48 pinhole: no edges, no corners
-    v, u = np.mgrid[0:48, 0:64].astype(np.float64)
-    z = np.full_like(u, 1.5)
-    wall = np.stack([(u - 31.5) / 50 * z, (v - 23.5) / 50 * z, z], -1)
     with pytest.raises(InputError, match="too few line pairs"):
-        estimate_angle_tolerance([Scan.from_points(wall)], Config())
+        estimate_angle_tolerance([Scan.from_points(wall())], Config())
 
 
 def test_cli_prints_a_toml_line(tmp_path, boxes):

@@ -74,3 +74,14 @@ def test_vertex_tests_false_alarm_rate_is_alpha(kind):
     rate = rejected / trials
     lo, hi = st.binom.interval(0.999, trials, alpha)
     assert lo / trials <= rate <= hi / trials, rate
+
+
+def test_half_normal_sigma_ignores_a_broad_background():
+    from boxloc.stats import half_normal_sigma
+
+    rng = np.random.default_rng(5)
+    x = np.r_[np.abs(rng.normal(0.0, 0.7, 4000)), rng.uniform(0.0, 20.0, 400)]
+    sigma, kept, k = half_normal_sigma(x, 0.01)
+    assert sigma == pytest.approx(0.7, rel=0.05)
+    assert k == pytest.approx(2.5758, abs=1e-3)
+    assert kept.sum() < len(x) and np.all(x[kept] <= k * sigma)
