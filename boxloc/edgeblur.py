@@ -15,7 +15,8 @@ support, the edge points of its kind along its extent give their distance from t
 units of the pixel's footprint on the surface in that direction. Points on the line give
 a half-normal distance, other edges a broad background, so the spread is estimated robustly
 (:func:`boxloc.stats.half_normal_sigma`, as :mod:`boxloc.squareness` does for angles);
-what the points' own covariance already explains is subtracted: ``edge_px = sqrt(max(spread^2 - median(modelled^2), 0))``.
+what the points' own covariance already explains is subtracted:
+``edge_px = sqrt(max(spread^2 - median(modelled)^2, 0))``.
 
 On the simulator, whose edges have no sensor blur, the estimate is about 0.35 px (the
 line fits' own error and the mixed pixels at jumps): values that small are within what
