@@ -220,9 +220,14 @@ def _noise(frames: list[_Frame], config: Config, source: str) -> tuple[Config, d
         return config, {"source": "config", "model": config.noise.to_dict()}
     if source != "estimate":
         raise InputError(f"noise must be 'estimate' or 'config', got {source!r}")
+    from boxloc.edgeblur import estimate_edge_px
     from boxloc.noise import estimate_noise
 
-    model, rep = estimate_noise([f.scan for f in frames], labels=[f.labels for f in frames])
+    scans = [f.scan for f in frames]
+    model, rep = estimate_noise(scans, labels=[f.labels for f in frames])
+    # the edge blur, over the range noise just fitted (what the covariances already explain)
+    edge_px, erep = estimate_edge_px(scans, dataclasses.replace(config, noise=model))
+    model = dataclasses.replace(model, edge_px=edge_px)
     info = {
         "source": "estimate_noise on the benchmarked frames (tiles within one label segment)",
         "model": model.to_dict(),
@@ -231,16 +236,9 @@ def _noise(frames: list[_Frame], config: Config, source: str) -> tuple[Config, d
         "bins": [{"range_m": r["range"], "std_mm": r["std"] * 1e3,
                   "model_mm": r["model_std"] * 1e3, "used": r["used"]}
                  for r in rep.get("rows", [])],
+        "edge_blur": {"source": "estimate_edge_px on the benchmarked frames (no labels)",
+                      **erep},
     }
-    # the edge blur, with the range noise just fitted (it is what the blur is measured over)
-    from boxloc.edgeblur import estimate_edge_px
-
-    cfg = dataclasses.replace(config, noise=model)
-    edge_px, erep = estimate_edge_px([f.scan for f in frames], cfg)
-    model = dataclasses.replace(model, edge_px=edge_px)
-    info["model"] = model.to_dict()
-    info["edge_blur"] = {"source": "estimate_edge_px on the benchmarked frames (no labels)",
-                         **erep}
     return dataclasses.replace(config, noise=model), info
 
 

@@ -171,8 +171,15 @@ class Config:
         text = json.dumps(d, sort_keys=True, separators=(",", ":"))
         return hashlib.sha256(text.encode()).hexdigest()[:16]
 
+    def _all_keys(self) -> dict[str, Any]:
+        """``to_dict`` with the keys it leaves out at their defaults (``noise.edge_px``)."""
+        d = self.to_dict()
+        d["noise"] = dataclasses.asdict(self.noise)
+        return d
+
     def to_toml(self) -> str:
-        return tomli_w.dumps(self.to_dict())
+        """Every parameter as TOML (``boxloc config``), those left out of ``to_dict`` too."""
+        return tomli_w.dumps(self._all_keys())
 
     @classmethod
     def from_toml(cls, text: str) -> Config:
@@ -193,8 +200,7 @@ class Config:
 
         Values are parsed as TOML scalars (``alpha=0.05``, ``workers=2``).
         """
-        d = self.to_dict()
-        d["noise"] = dataclasses.asdict(self.noise)  # every key, those left out at defaults too
+        d = self._all_keys()
         items = assignments.items() if isinstance(assignments, dict) else None
         if items is None:
             parsed = []

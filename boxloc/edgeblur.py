@@ -69,14 +69,15 @@ def edge_offsets(scan: Scan, config: Config) -> tuple[np.ndarray, np.ndarray]:
         return np.zeros(0), np.zeros(0)
     tree = cKDTree(edges.points)
     pixel_angle = scan.sensor.pixel_angle
-    min_cos = config.noise.min_cos
     offs, mods = [], []
     for i in np.flatnonzero(lines.n_support >= MIN_SUPPORT):
         c, d = lines.points[i], lines.directions[i]
         t0, t1 = sorted(((lines.starts[i] - c) @ d, (lines.ends[i] - c) @ d))
         mid = c + 0.5 * (t0 + t1) * d
-        nb = np.asarray(tree.query_ball_point(mid, 0.5 * (t1 - t0) + 4 * config.min_edge),
-                        np.int64)
+        # the corridor at its widest: CORRIDOR_PX footprints at the far end, at min_cos
+        half = 0.5 * (t1 - t0)
+        reach = CORRIDOR_PX * (np.linalg.norm(mid) + half) * pixel_angle / config.noise.min_cos
+        nb = np.asarray(tree.query_ball_point(mid, half + reach), np.int64)
         nb = nb[edges.kinds[nb] == lines.kinds[i]]
         X = edges.points[nb] - c
         t = X @ d
@@ -85,12 +86,7 @@ def edge_offsets(scan: Scan, config: Config) -> tuple[np.ndarray, np.ndarray]:
         e = X - t[:, None] * d
         dist = np.linalg.norm(e, axis=1)
         m = e / np.maximum(dist, 1e-12)[:, None]
-        P = edges.points[nb]
-        r = np.linalg.norm(P, axis=1)
-        # one pixel's footprint along m: the pixel's angle at range r, foreshortened by the
-        # angle between m and the ray
-        cos_mr = np.einsum("ij,ij->i", m, P) / r
-        foot = r * pixel_angle / np.maximum(np.sqrt(np.clip(1 - cos_mr**2, 0, 1)), min_cos)
+        foot = config.noise.pixel_footprint(edges.points[nb], m, pixel_angle)
         off = dist / foot
         mod = np.sqrt(np.einsum("ni,nij,nj->n", m, edges.covariances[nb], m)) / foot
         keep = off < CORRIDOR_PX

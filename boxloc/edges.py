@@ -659,10 +659,8 @@ def detect_edges(scan: Scan, *, config: Config) -> EdgeMap:
 
     cov = config.noise.covariance(pt, scan.sensor.pixel_angle)
     if config.noise.edge_px > 0:
-        # the sensor's own edge blur, one pixel's footprint along the scan line on the surface
-        rn = np.linalg.norm(pt, axis=1)
-        sin_t = np.sqrt(np.clip(1.0 - (np.einsum("ij,ij->i", al, pt) / rn) ** 2, 0.0, 1.0))
-        step = rn * scan.sensor.pixel_angle / np.maximum(sin_t, config.noise.min_cos)
+        # the sensor's own edge blur, in pixel footprints along the scan line on the surface
+        step = config.noise.pixel_footprint(pt, al, scan.sensor.pixel_angle)
         sg = np.sqrt(sg**2 + (config.noise.edge_px * step) ** 2)
     cov += (sg**2)[:, None, None] * (al[:, :, None] * al[:, None, :])
 

@@ -270,6 +270,18 @@ class NoiseModel:
         eye = np.eye(3)[None]
         return (sr**2)[:, None, None] * ddT + (sl**2)[:, None, None] * (eye - ddT)
 
+    def pixel_footprint(self, P_sensor: FloatArray, directions: FloatArray,
+                        pixel_angle: float) -> np.ndarray:
+        """Length on the surface of one pixel step along unit ``directions`` (N, 3) at points
+        (N, 3), metres, shape (N,): the pixel's angle at the point's range, foreshortened by
+        the angle between the direction and the ray (floored at ``min_cos``)."""
+        P = np.asarray(P_sensor, dtype=np.float64).reshape(-1, 3)
+        d = np.asarray(directions, dtype=np.float64).reshape(-1, 3)
+        r = np.linalg.norm(P, axis=1)
+        cos = np.einsum("ij,ij->i", d, P) / np.maximum(r, 1e-12)
+        sin = np.sqrt(np.clip(1.0 - cos**2, 0.0, 1.0))
+        return r * pixel_angle / np.maximum(sin, self.min_cos)
+
     def to_dict(self) -> dict[str, float]:
         d = {"sigma0": self.sigma0, "k1": self.k1, "k2": self.k2,
              "sigma_angle": self.sigma_angle, "min_cos": self.min_cos}

@@ -96,10 +96,12 @@ class VerifyContext:
         A side seen at grazing incidence is foreshortened in the image and gets fewer edge
         points than its length over :meth:`spacing_at` (one per pixel it crosses).
         """
-        q = self.project(np.stack([np.asarray(a, np.float64), np.asarray(b, np.float64)]))
+        a, b = np.asarray(a, np.float64), np.asarray(b, np.float64)
+        q = self.project(np.stack([a, b]))
         n = float(np.hypot(*(q[1] - q[0])))
-        return n if np.isfinite(n) else float(np.linalg.norm(np.subtract(b, a))) / (
-            self.spacing_at(0.5 * (np.asarray(a) + np.asarray(b))))
+        # off the image (a ray table has no ray there): its length over the spacing
+        return n if np.isfinite(n) else float(np.linalg.norm(b - a)) / self.spacing_at(
+            0.5 * (a + b))
 
 
 @dataclass
@@ -385,8 +387,7 @@ def verify(
     # lower box beside a taller one), which a top face's side never does
     concave, _ = side_lines(near_plane & (ctx.edge_kinds == EdgeKind.CREASE_CONCAVE), density)
     side_min = [max(MIN_LINE_POINTS, kc) for kc in concave]
-    c0, c1 = origin, origin + width * x_axis
-    c2, c3 = c1 + length * y_axis, origin + length * y_axis
+    c0, c1, c2, c3 = rectangle_corners(origin, x_axis, y_axis, width, length)
     side_n = [ctx.samples_along(a, b) for a, b in ((c0, c1), (c3, c2), (c0, c3), (c1, c2))]
     # each side a significant line of boundary edges, outnumbering any concave ones; all
     # sides together covering the fraction p of the perimeter (the paper's |P_f| > p, over

@@ -3,21 +3,12 @@
 from __future__ import annotations
 
 import json
-import subprocess
-import sys
-from pathlib import Path
 
 import numpy as np
 import pytest
+from cli_run import run
 
 from boxloc.simulate import save_npz, simulate
-
-BOXLOC = [sys.executable, "-m", "boxloc.cli"]
-
-
-def run(*args: str, cwd: Path | None = None) -> subprocess.CompletedProcess[str]:
-    return subprocess.run([*BOXLOC, *args], capture_output=True, text=True, timeout=300,
-                          cwd=cwd)
 
 
 @pytest.fixture(scope="module")

@@ -3,13 +3,12 @@
 from __future__ import annotations
 
 import math
-import subprocess
-import sys
 import tomllib
 from pathlib import Path
 
 import numpy as np
 import pytest
+from cli_run import run
 from scenes import box, scene, wall
 
 from boxloc.config import Config
@@ -70,15 +69,12 @@ def test_a_scan_without_corners_is_an_input_error():
 def test_cli_prints_a_toml_line(tmp_path, boxes):
     p = tmp_path / "pallet.npz"
     save_npz(simulate("pallet", seed=1), p)
-    r = subprocess.run([sys.executable, "-m", "boxloc.cli", "calibrate-angles", str(p)],
-                       capture_output=True, text=True, timeout=300)
+    r = run("calibrate-angles", str(p))
     assert r.returncode == 0, r.stderr
     tol = tomllib.loads(r.stdout)["angle_tolerance"]
     assert 0.0 <= tol < Config().angle_tolerance
     Config().with_overrides([f"angle_tolerance={tol}"])  # usable as given
-    bad = subprocess.run([sys.executable, "-m", "boxloc.cli", "calibrate-angles",
-                          str(tmp_path / "missing.npz")], capture_output=True, text=True,
-                         timeout=300)
+    bad = run("calibrate-angles", str(tmp_path / "missing.npz"))
     assert bad.returncode == 2
     assert "missing.npz" in bad.stderr and "Traceback" not in bad.stderr
 
