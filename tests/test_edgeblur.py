@@ -143,3 +143,21 @@ def test_cli_prints_a_usable_line(tmp_path, boxes):
     bad = run("calibrate-edges", str(tmp_path / "missing.npz"))
     assert bad.returncode == 2
     assert "missing.npz" in bad.stderr and "Traceback" not in bad.stderr
+
+
+def test_pixel_footprint_grows_toward_grazing_and_is_floored():
+    nm = Config().noise
+    P = np.array([[0.0, 0.0, 2.0]] * 3)
+    d = np.array([[1.0, 0.0, 0.0], [0.0, np.sin(1.2), np.cos(1.2)], [0.0, 0.0, 1.0]])
+    f = nm.pixel_footprint(P, d, 0.002)
+    assert f[0] == pytest.approx(2.0 * 0.002)
+    assert f[1] == pytest.approx(2.0 * 0.002 / np.sin(1.2))
+    assert f[2] == pytest.approx(2.0 * 0.002 / nm.min_cos)  # along the ray: the floor
+
+
+def test_edge_px_is_printed_by_config_but_left_out_of_the_hash_at_zero():
+    cfg = Config()
+    assert tomllib.loads(cfg.to_toml())["noise"]["edge_px"] == 0.0
+    assert "edge_px" not in cfg.to_dict()["noise"]
+    assert Config.from_toml(cfg.to_toml()).hash == cfg.hash
+    assert cfg.with_overrides(["noise.edge_px=0.5"]).hash != cfg.hash
