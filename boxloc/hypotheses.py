@@ -17,6 +17,13 @@ the edge accumulators have no peak there; seams found in the range points of the
 (:mod:`boxloc.seams`) are added as far-side candidates (``DimensionSource.SEAMS``), and
 verification tests the seam itself instead of counting edge points along it.
 
+A far side with too few edge points for a peak (a sensor that rounds the corners of a
+face, or a side seen at grazing incidence) leaves the accumulators without the right
+candidate; the face's extent along each arm, how far its plane runs in a strip beside the
+arm (:func:`boxloc.verify.face_extent`), gives one (``DimensionSource.EXTENT``). These
+candidates are tried after those from the edges, with a budget of their own
+(``MAX_EXTENT_ATTEMPTS``), so the paper's candidates always come first.
+
 Per-vertex work is independent (the paper's parallel implementation); with
 ``config.workers > 1`` it runs in processes and the result is identical to serial.
 """
@@ -41,6 +48,7 @@ from boxloc.verify import (
     BOUNDARY_BAND,
     VerifyContext,
     VerifyOutcome,
+    face_extent,
     rectangle_corners,
     verify,
 )
@@ -48,6 +56,8 @@ from boxloc.vertices import _skew, normal_covariance
 
 #: Most dimension candidates verified per vertex (bounds the work on cluttered scenes).
 MAX_ATTEMPTS = 6
+#: Most candidates from the face's extent verified per vertex, after the others.
+MAX_EXTENT_ATTEMPTS = 3
 
 
 @dataclass
@@ -100,6 +110,17 @@ class _Context:
     edge_cov: np.ndarray
     edge_tree: cKDTree | None
     verify_ctx: VerifyContext
+
+    @classmethod
+    def build(cls, scan: Scan, edges: EdgeMap, vertices: VertexSet, config: Config,
+              up: np.ndarray) -> _Context:
+        return cls(
+            scan=scan, config=config, vertices=vertices,
+            normal_cov=normal_covariance(vertices) if len(vertices) else np.zeros((0, 3, 3)),
+            edge_points=edges.points, edge_cov=edges.covariances,
+            edge_tree=cKDTree(edges.points) if len(edges) else None,
+            verify_ctx=VerifyContext.build(scan, edges, config, up),
+        )
 
 
 def align(vertices: VertexSet, i: int, normal_cov: np.ndarray) -> Rectangle:
@@ -273,6 +294,40 @@ def dimensions_from_edges(R: Rectangle, ctx: _Context, work: _VertexWork) -> lis
     return out
 
 
+def dimensions_from_extent(R: Rectangle, ctx: _Context, work: _VertexWork) -> list[_Attempt]:
+    """Candidate dimensions from how far R's plane runs along each arm.
+
+    The extent along x is measured in a strip beside the x arm, from ``BOUNDARY_BAND``
+    to 0.9 ``min_edge`` across it (inside any box the vertex can belong to, clear of the
+    arm's own edge), and likewise along y. The two extents together are the first
+    candidate; then each with the other axis's accumulator peaks, smallest area first.
+    """
+    cfg = ctx.config
+    k = math.sqrt(chi2_critical(1.0, cfg.alpha))
+    lo = 0.9 * cfg.min_edge
+    strip = (BOUNDARY_BAND * cfg.min_edge, lo)
+    ext, gaps = [], []
+    for along, across in ((R.x_axis, R.y_axis), (R.y_axis, R.x_axis)):
+        e, g = face_extent(ctx.verify_ctx, R.origin, along, across, R.normal, R.plane_cov,
+                           strip, cfg.max_edge, k, cfg.flatness)
+        ext.append(e)
+        gaps.append(g)
+    ext_a = np.array(ext)
+    usable = np.isfinite(ext_a) & (ext_a >= lo) & (ext_a <= cfg.max_edge)
+    work.tests.append(TestTable.decision(TestKind.FACE_EXTENT, R.vertex, [0, 1], ext_a,
+                                         np.array(gaps), usable, cfg.alpha))
+    ex = ext_a[:1][usable[:1]]
+    ey = ext_a[1:][usable[1:]]
+    both = [(float(a), float(b)) for a in ex for b in ey]
+    pairs = {(float(a), float(b)) for a in ex for b in work.peaks_y}
+    pairs |= {(float(a), float(b)) for a in work.peaks_x for b in ey}
+    pairs -= set(both)
+    # the extent on both arms first; then one arm's extent with the other's peaks
+    out = [_Attempt(DimensionSource.EXTENT, -1, a, b, np.nan, np.nan)
+           for a, b in both + sorted(pairs, key=lambda ab: (ab[0] * ab[1], ab[0]))]
+    return out
+
+
 def _seam_peaks(R: Rectangle, ctx: _Context, work: _VertexWork, px: np.ndarray,
                 py: np.ndarray, spacing: float, band: float) -> tuple[np.ndarray, np.ndarray]:
     """Seams inside the region the edge peaks span: extra candidates for the far sides.
@@ -384,6 +439,20 @@ def _work_on_vertex(i: int, ctx: _Context) -> _VertexWork:
         work.attempts.append(att)
         if att.outcome is not None and att.outcome.accepted:
             return work
+    # the same rectangle again is no new evidence
+    seen = [(a.width, a.length) for a in work.attempts]
+    tol = work.acc_bin if np.isfinite(work.acc_bin) else 0.0
+    tried = 0
+    for att in dimensions_from_extent(R, ctx, work):
+        if tried >= MAX_EXTENT_ATTEMPTS:
+            break
+        if any(abs(att.width - w) <= tol and abs(att.length - h) <= tol for w, h in seen):
+            continue
+        tried += 1
+        _verify(R, att, ctx)
+        work.attempts.append(att)
+        if att.outcome is not None and att.outcome.accepted:
+            return work
     return work
 
 
@@ -424,13 +493,7 @@ def generate_hypotheses(
     HypothesisSet, Verification
     """
     up = scan.up if up is None else np.asarray(up, dtype=np.float64)
-    ctx = _Context(
-        scan=scan, config=config, vertices=vertices,
-        normal_cov=normal_covariance(vertices) if len(vertices) else np.zeros((0, 3, 3)),
-        edge_points=edges.points, edge_cov=edges.covariances,
-        edge_tree=cKDTree(edges.points) if len(edges) else None,
-        verify_ctx=VerifyContext.build(scan, edges, config, up),
-    )
+    ctx = _Context.build(scan, edges, vertices, config, up)
     ids = list(range(len(vertices)))
     if config.workers > 1 and len(ids) > 1:
         chunks = [ids[k :: config.workers] for k in range(config.workers)]

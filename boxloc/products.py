@@ -45,6 +45,9 @@ class DimensionSource(IntEnum):
     EDGES = 2
     #: from the edge accumulators and a seam (:mod:`boxloc.seams`) for a far side
     SEAMS = 3
+    #: from how far the face's plane runs along each arm (:func:`boxloc.verify.face_extent`)
+    #: for a far side the edge accumulators did not show
+    EXTENT = 4
 
 
 class VerifyReason(IntEnum):
@@ -57,6 +60,8 @@ class VerifyReason(IntEnum):
     INLIERS = 4
     MEAN_OFFSET = 5
     INTERIOR_EDGES = 6
+    #: the rectangle, or the strip beyond one of its sides, leaves the image: the face
+    #: may run on out of sight
     OUTSIDE_IMAGE = 7
     #: a side of the rectangle is not a convex boundary (jump, convex crease, groove)
     BOUNDARY = 8

@@ -52,7 +52,9 @@ class TestKind(IntEnum):
     VERIFY_INTERIOR = 14
     #: verification: hypothesis a's normal is within max_tilt of up (a prior, not chi2)
     VERIFY_TILT = 15
-    #: verification: points in front of hypothesis a's face are no more than behind (sign test)
+    #: verification: points in front of hypothesis a's face, in its core, are no more than
+    #: behind (row 0: sign test, b = points off the plane) or than the noise model's
+    #: alpha/2 (row 1: binomial, b = points in the core); covered only if both reject
     VERIFY_EXPOSED = 16
     #: verification: the sides of hypothesis a are lines of convex edge points (rows 0-3:
     #: distinct positions covered per side, critical = MIN_LINE_POINTS or the side's
@@ -70,8 +72,13 @@ class TestKind(IntEnum):
     SEAM_PEAK = 20
     #: verification: the face's plane ends at side b of hypothesis a (b = side 0-3;
     #: statistic = fraction of the pixels just beyond the side on the plane, critical =
-    #: min_inlier_fraction), or the side is a seam (a VERIFY_SEAM_SIDE row)
+    #: min_inlier_fraction), or the side is a seam (a VERIFY_SEAM_SIDE row); a side whose
+    #: strip leaves the image is not accepted (the face may run on out of sight)
     VERIFY_CONTINUATION = 21
+    #: hypothesis stage: how far vertex a's plane runs along arm b (0 = x, 1 = y):
+    #: statistic = the extent, critical = the gap that ends it (metres); accepted if the
+    #: extent is a box edge (min_edge to max_edge) and so a far-side candidate
+    FACE_EXTENT = 22
 
 
 @lru_cache(maxsize=256)

@@ -7,9 +7,11 @@ rectangle's plane with their propagated uncertainty (point-on-plane, chi2(1) at 
 * ``VERIFY_TILT`` — the face's normal is within ``max_tilt`` of up (a prior: graspable
   faces are tops);
 * ``VERIFY_EXPOSED`` — points significantly *in front* of the face's refitted plane
-  (something resting on it or hanging over it) are not more frequent than points
-  significantly behind it: noise is symmetric, occluders are not (a sign test at alpha,
-  which does not depend on the noise model being exact);
+  (something resting on it or hanging over it), counted in the core beyond twice the
+  border margin, are not more frequent than points significantly behind it (noise is symmetric,
+  occluders are not: a sign test at alpha, which does not depend on the noise model being
+  exact; row 0), or not more frequent than the noise model puts there (alpha/2 of the
+  points; row 1). The face is covered only if both reject;
 * ``VERIFY_INLIERS`` — at least ``min_inlier_fraction`` of the pixels inside are on the
   plane (the rest are dropouts and noise);
 * ``VERIFY_MEAN`` — the inliers' mean signed distance is zero within the propagated
@@ -54,6 +56,10 @@ from boxloc.scan import Scan
 from boxloc.seams import SEAM_FLANK, FacePoints, face_points, find_seams, seam_at
 from boxloc.stats import TestKind, TestTable, chi2_critical
 
+#: A run of this many pixels without a point on a face's plane ends the face (a sensor's
+#: dropouts inside a face are shorter; the gap beyond a box's side is longer).
+EXTENT_GAP_PX = 4
+
 #: Edges within this fraction of the shortest box edge from a side belong to that side: a
 #: seam that splits a rectangle into two boxes lies at least min_edge from a side, while
 #: the side's own second edges (bevel, rounded cardboard) and the error of the estimated
@@ -89,6 +95,13 @@ class VerifyContext:
     def spacing_at(self, point: np.ndarray) -> float:
         """Expected spacing of edge points along an edge at ``point``, metres."""
         return float(np.linalg.norm(point)) * self.pixel_angle
+
+    def var_along(self, rr: np.ndarray, cc: np.ndarray, direction: np.ndarray) -> np.ndarray:
+        """Variance of the points at pixels (rr, cc) along a unit direction, m^2: range
+        noise along the ray, lateral noise across it."""
+        P = self.points[rr, cc]
+        cn2 = (P @ direction) ** 2 / np.einsum("ij,ij->i", P, P)
+        return self.sigma[rr, cc] ** 2 * cn2 + self.lateral2[rr, cc] * (1 - cn2)
 
     def samples_along(self, a: np.ndarray, b: np.ndarray) -> float:
         """Edge points expected along the 3D segment a-b: its length in the image, pixels.
@@ -229,31 +242,113 @@ def continuation(
         u=width); NaN where the strip has fewer than ``MIN_LINE_POINTS`` valid pixels or
         leaves the image.
     n_valid : (4,) int64
+    in_image : (4,) bool
+        At least half of the strip's area lies inside the image: only then can it show
+        that the face ends (a face that runs out of the image may continue beyond it).
     """
     m, d = margin, depth
     strips = (((m, width - m), (-m - d, -m)), ((m, width - m), (length + m, length + m + d)),
               ((-m - d, -m), (m, length - m)), ((width + m, width + m + d), (m, length - m)))
     frac = np.full(4, np.nan)
     n_valid = np.zeros(4, np.int64)
-    for si, ((u0, u1), (v0, v1)) in enumerate(strips):
-        corners = np.array([origin + u0 * x_axis + v0 * y_axis, origin + u1 * x_axis + v0 * y_axis,
-                            origin + u1 * x_axis + v1 * y_axis, origin + u0 * x_axis + v1 * y_axis])
-        uv = ctx.project(corners)
-        if not np.isfinite(uv).all():
+    in_image = np.zeros(4, bool)
+    for si, (u_range, v_range) in enumerate(strips):
+        pix = strip_pixels(ctx, origin, x_axis, y_axis, u_range, v_range)
+        if pix is None:
             continue
-        rr, cc = fill_polygon(uv, ctx.valid.shape)
-        keep = ctx.valid[rr, cc]
-        rr, cc = rr[keep], cc[keep]
+        rr, cc, inside = pix
+        # most of the strip must be in the image to show anything of the side
+        in_image[si] = inside >= 0.5
         n_valid[si] = len(rr)
         if len(rr) < MIN_LINE_POINTS:
             continue
         P = ctx.points[rr, cc]
-        ray = P / np.linalg.norm(P, axis=1, keepdims=True)
-        cn2 = (ray @ plane_normal) ** 2
-        var = ctx.sigma[rr, cc] ** 2 * cn2 + ctx.lateral2[rr, cc] * (1 - cn2)
+        var = ctx.var_along(rr, cc, plane_normal)
         z = ((P - plane_point) @ plane_normal) / np.sqrt(var)
         frac[si] = float((np.abs(z) <= k).mean())
-    return frac, n_valid
+    return frac, n_valid, in_image
+
+
+def strip_pixels(
+    ctx: VerifyContext, origin: np.ndarray, x_axis: np.ndarray, y_axis: np.ndarray,
+    u_range: tuple[float, float], v_range: tuple[float, float],
+) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+    """Rows and columns of the valid pixels of a rectangle u_range x v_range (metres
+    along x_axis and y_axis from origin) projected into the image, and the fraction of
+    its projected area inside the image; None where a corner has no projection."""
+    (u0, u1), (v0, v1) = u_range, v_range
+    corners = np.array([origin + u0 * x_axis + v0 * y_axis, origin + u1 * x_axis + v0 * y_axis,
+                        origin + u1 * x_axis + v1 * y_axis, origin + u0 * x_axis + v1 * y_axis])
+    uv = ctx.project(corners)
+    if not np.isfinite(uv).all():
+        return None
+    rr, cc = fill_polygon(uv, ctx.valid.shape)
+    keep = ctx.valid[rr, cc]
+    du, dv = uv[:, 0], uv[:, 1]
+    area = 0.5 * abs(float(du @ np.roll(dv, -1) - dv @ np.roll(du, -1)))  # shoelace
+    return rr[keep], cc[keep], min(len(rr) / max(area, 1.0), 1.0)
+
+
+def face_extent(
+    ctx: VerifyContext, origin: np.ndarray, along: np.ndarray, across: np.ndarray,
+    normal: np.ndarray, plane_cov: np.ndarray, strip: tuple[float, float], reach: float,
+    k: float, flatness: float,
+) -> tuple[float, float]:
+    """How far a face's plane runs from ``origin`` along ``along``, in a strip beside it.
+
+    The valid pixels of the strip (``strip`` metres across, out to ``reach`` along) are
+    tested against the plane (point-on-plane at ``k``, with the points' noise, the
+    flatness prior and the plane's own uncertainty); the face ends where the points on it
+    first leave a gap of ``EXTENT_GAP_PX`` pixels (dropouts are shorter). The end is
+    placed half a pixel beyond its last point, where the edge stage puts a jump.
+
+    Parameters
+    ----------
+    origin, along, across, normal : (3,) float64
+        The face's vertex, the axis to measure along, the axis across the strip, and the
+        plane's normal.
+    plane_cov : (6, 6) float64
+        Covariance of (origin, normal).
+    strip : (float, float)
+        The strip's extent across, metres from the arm (inside the face).
+    reach : float
+        How far to look along the axis, metres.
+    k : float
+        Critical |z| of one point.
+    flatness : float
+        The flatness prior, metres.
+
+    Returns
+    -------
+    extent : float
+        Metres along the axis (NaN: fewer than two points on the plane, or the strip
+        leaves the image).
+    gap : float
+        The gap that ends the face there, metres.
+    """
+    pix = strip_pixels(ctx, origin, along, across, (0.0, reach), strip)
+    # metres per pixel along the axis near the vertex, foreshortening included
+    near = strip[1]
+    step = near / max(ctx.samples_along(origin, origin + near * along), 1.0)
+    gap = EXTENT_GAP_PX * step
+    if pix is None:
+        return np.nan, gap
+    rr, cc, _ = pix
+    P = ctx.points[rr, cc]
+    D = P - origin
+    So, Sn = plane_cov[:3, :3], plane_cov[3:, 3:]
+    var = (ctx.var_along(rr, cc, normal) + flatness**2 + normal @ So @ normal
+           + np.einsum("ni,ij,nj->n", D, Sn, D))
+    on = np.abs(D @ normal) <= k * np.sqrt(var)
+    t = np.sort(D[on] @ along)
+    t = t[t >= 0.0]
+    # the face starts at the vertex, give or take the arm's own edge artefacts (as far
+    # out as the strip is from the arm)
+    if len(t) < 2 or t[0] > strip[0]:
+        return np.nan, gap
+    jumps = np.flatnonzero(np.diff(t) > gap)
+    last = t[jumps[0]] if len(jumps) else t[-1]
+    return float(last + 0.5 * step), gap
 
 
 def rectangle_corners(
@@ -344,7 +439,11 @@ def verify(
     sig_e = float(np.sqrt(config.noise.sigma_range(r_c) ** 2 + config.flatness**2))
     # a face's boundary, seam and crossing edges lie on its plane (a jump point is placed
     # half a sample beyond the face's last point, hence the spacing)
-    near_plane = np.abs(ew) <= k * sig_e + spacing
+    # ... and the rectangle's own plane is uncertain: a small error of its normal moves
+    # the far sides' edges off it by the error times their distance from the vertex
+    So, Sn = plane_cov[:3, :3], plane_cov[3:, 3:]
+    var_pe = normal @ So @ normal + np.einsum("ni,ij,nj->n", E, Sn, E)
+    near_plane = np.abs(ew) <= k * np.sqrt(sig_e**2 + var_pe) + spacing
     # interior edges: strictly inside, beyond the band where the boundary's own edges lie
     # (rounded or bevelled cardboard gives a second, parallel edge a few mm inside)
     mi = max(m, BOUNDARY_BAND * config.min_edge)
@@ -460,9 +559,7 @@ def verify(
     D = P - origin
     w0 = D @ normal
     # each point's noise along the normal; the flatness prior covers cardboard bulge
-    ray = P / np.linalg.norm(P, axis=1, keepdims=True)
-    cn2 = (ray @ normal) ** 2
-    var_pt = ctx.sigma[rv, cv] ** 2 * cn2 + ctx.lateral2[rv, cv] * (1 - cn2) + config.flatness**2
+    var_pt = ctx.var_along(rv, cv, normal) + config.flatness**2
     # 1) points on the plane of R, with R's own uncertainty
     So, Sn = plane_cov[:3, :3], plane_cov[3:, 3:]
     var_pl = normal @ So @ normal + np.einsum("ni,ij,nj->n", D, Sn, D)
@@ -477,8 +574,18 @@ def verify(
     # 3) inliers, front and behind against the refitted plane (point noise only)
     z = ((P - c) @ nf) / np.sqrt(var_pt)
     inl = np.abs(z) <= k
-    front = z > k
-    behind = z < -k
+    # front and behind count in the core only, beyond twice the border margin: next to
+    # a jump edge structured-light sensors pull the points toward the sensor by up to a
+    # centimetre, a few pixels further in than the margin; an occluder resting on the
+    # face reaches into the core (a strip of a face hidden by a taller neighbour is
+    # wider than those pixels)
+    du, dv = D @ x_axis, D @ y_axis
+    mc = 2.0 * m
+    core = (du > mc) & (du < width - mc) & (dv > mc) & (dv < length - mc)
+    if not core.any():
+        core[:] = True
+    front = (z > k) & core
+    behind = (z < -k) & core
     n_in, n_front, n_behind = int(inl.sum()), int(front.sum()), int(behind.sum())
     s2 = float(max(lam[0] / max(int(on0.sum()) - 3, 1), np.median(var_pt[on0])))
     cov = np.zeros((6, 6))
@@ -491,11 +598,16 @@ def verify(
     # exposed: a sign test, front vs behind outliers
     m_out = n_front + n_behind
     p_front = float(st.binom.sf(n_front - 1, m_out, 0.5)) if n_front else 1.0
-    exposed = p_front >= alpha
+    # ... and more frequent than the noise model puts in front (alpha/2 of the points:
+    # z > k), so that a handful of stray points, with none behind, is no occluder
+    n_core = int(core.sum())
+    p_rate = float(st.binom.sf(n_front - 1, n_core, alpha / 2)) if n_front else 1.0
+    exposed = p_front >= alpha or p_rate >= alpha
     tests.append(TestTable.decision(
-        TestKind.VERIFY_EXPOSED, attempt_id, m_out, n_front,
-        float(st.binom.isf(alpha, m_out, 0.5)) if m_out else 0.0, exposed, alpha,
-        p_value=p_front))
+        TestKind.VERIFY_EXPOSED, attempt_id, [m_out, n_core], [n_front, n_front],
+        [float(st.binom.isf(alpha, m_out, 0.5)) if m_out else 0.0,
+         float(st.binom.isf(alpha, n_core, alpha / 2))],
+        [p_front >= alpha, p_rate >= alpha], alpha, p_value=[p_front, p_rate]))
     frac = n_in / max(n_inside, 1)
     tests.append(TestTable.decision(TestKind.VERIFY_INLIERS, attempt_id, n_inside, frac,
                                     config.min_inlier_fraction,
@@ -515,8 +627,8 @@ def verify(
     tests.append(mean_t)
     # the face ends at each side: its plane does not continue beyond, unless the side is a
     # seam with an equal neighbour (a rectangle cut short inside a face is not a face)
-    cont, _ = continuation(ctx, origin, x_axis, y_axis, width, length, c, nf, m,
-                           B - m, k)
+    cont, _, in_image = continuation(ctx, origin, x_axis, y_axis, width, length, c, nf, m,
+                                     B - m, k)
     continues = cont >= config.min_inlier_fraction
     ends = ~continues
     extra_seam: list[tuple[int, float, float]] = []
@@ -534,6 +646,12 @@ def verify(
         tests.append(TestTable.decision(TestKind.VERIFY_SEAM_SIDE, attempt_id,
                                         es[:, 0].astype(int), es[:, 1], es[:, 2],
                                         es[:, 1] > es[:, 2], alpha))
+    # a side whose strip leaves the image cannot show that the face ends there (unless
+    # the side is a seam): the face may run on out of sight
+    seams_found = {si for si, ok in zip(seam_side, seam_ok) if ok}
+    seams_found |= {si for si, zs, zc in extra_seam if zs > zc}
+    cut = np.array([not in_image[si] and si not in seams_found for si in range(4)])
+    ends &= ~cut
     tests.append(TestTable.decision(TestKind.VERIFY_CONTINUATION, attempt_id, [0, 1, 2, 3],
                                     cont, config.min_inlier_fraction, ends, alpha))
 
@@ -543,8 +661,10 @@ def verify(
         reason = VerifyReason.INLIERS
     elif not bool(mean_t.accepted[0]):
         reason = VerifyReason.MEAN_OFFSET
-    elif not ends.all():
+    elif not (ends | cut).all():
         reason = VerifyReason.CONTINUES
+    elif cut.any():
+        reason = VerifyReason.OUTSIDE_IMAGE
     else:
         reason = VerifyReason.ACCEPTED
     H, W = scan.shape

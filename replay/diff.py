@@ -699,7 +699,7 @@ def _test_keys(t: TestTable, maps: Mapping[str, Mapping[int, int] | None]) -> di
               or kind == TestKind.VERIFY_CONTINUATION):
             x = m("attempts", a)
             key = None if x is None else (kind, x)
-        elif kind == TestKind.SEAM_PEAK:
+        elif kind in (TestKind.SEAM_PEAK, TestKind.FACE_EXTENT):
             x = m("hypotheses", a)
             key = None if x is None else (kind, x, b)
         else:

@@ -62,6 +62,7 @@ _REASON_TEST: dict[VerifyReason, TestKind] = {
     VerifyReason.INLIERS: TestKind.VERIFY_INLIERS,
     VerifyReason.MEAN_OFFSET: TestKind.VERIFY_MEAN,
     VerifyReason.CONTINUES: TestKind.VERIFY_CONTINUATION,
+    VerifyReason.OUTSIDE_IMAGE: TestKind.VERIFY_CONTINUATION,
 }
 #: the four sides of a rectangle, in the order of the VERIFY_BOUNDARY rows
 _SIDES = ("side at the vertex along x", "far side along x", "side at the vertex along y",
@@ -161,7 +162,8 @@ class _Ctx:
         if V is not None and j < len(V):
             reason = VerifyReason(int(V.reason[j]))
             tests = _tests(V.tests, [k for k in TestKind if k >= TestKind.VERIFY_INLIERS
-                                     and k != TestKind.SEAM_PEAK], a=j)
+                                     and k not in (TestKind.SEAM_PEAK, TestKind.FACE_EXTENT)],
+                           a=j)
             sides = iter(_SIDES)
             for t in tests:  # one row per side, in the order boxloc.verify tests them
                 if t["kind"] == TestKind.VERIFY_BOUNDARY.name:
@@ -272,6 +274,8 @@ class _Ctx:
             "edge_support": support,
             # seams (lines of range points behind the plane) that gave extra candidates
             "seams": _tests(t, [TestKind.SEAM_PEAK], a=h),
+            # how far the face's plane runs along each arm (candidates of their own)
+            "extent": _tests(t, [TestKind.FACE_EXTENT], a=h),
         }
         d: dict[str, Any] = {
             "source": "NONE" if j is None else DimensionSource(int(H.att_source[j])).name,

@@ -277,7 +277,9 @@ def make_verification(scan: Scan, hyps: HypothesisSet,
          _decision(rng, TestKind.VERIFY_INTERIOR, k, k),
          _decision(rng, TestKind.VERIFY_TILT, k, k),
          _chi2(rng, TestKind.VERIFY_EXPOSED, k, k, 1.0)]
-        + [_decision(rng, kind, k, k) for kind in TestKind if kind > TestKind.VERIFY_EXPOSED],
+        # FACE_EXTENT is the hypothesis stage's (and after it: the draws stay as they were)
+        + [_decision(rng, kind, k, k) for kind in TestKind
+           if TestKind.VERIFY_EXPOSED < kind < TestKind.FACE_EXTENT],
         ALPHA,
     )
     return Verification(

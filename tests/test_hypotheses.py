@@ -86,3 +86,24 @@ def test_verification_rejects_a_face_with_a_box_on_it():
     reasons = set(ver.reason.tolist())
     assert reasons & {VerifyReason.NOT_EXPOSED, VerifyReason.INTERIOR_EDGES,
                       VerifyReason.INLIERS, VerifyReason.BOUNDARY}
+
+
+def test_dimensions_from_extent_measure_the_face(one_box):
+    from boxloc.hypotheses import _Context, _VertexWork, align, dimensions_from_extent
+    from boxloc.stats import TestTable
+
+    sim, (e, _, V, H, _) = one_box
+    cfg = Config()
+    ctx = _Context.build(sim.scan, e, V, cfg, H.up)
+    ok = np.flatnonzero(H.attempt >= 0)
+    assert len(ok)
+    for h in ok:
+        work = _VertexWork(vertex=int(h))
+        atts = dimensions_from_extent(align(V, int(h), ctx.normal_cov), ctx, work)
+        # the extents on both arms are the first candidate: the verified top's size
+        assert atts[0].source == DimensionSource.EXTENT
+        assert abs(atts[0].width - H.width[h]) < 0.01
+        assert abs(atts[0].length - H.length[h]) < 0.01
+        rows = TestTable.concat(work.tests, cfg.alpha).of_kind(TestKind.FACE_EXTENT)
+        assert list(rows.b) == [0, 1] and rows.accepted.all()
+        assert np.allclose(rows.statistic, [atts[0].width, atts[0].length])
