@@ -421,39 +421,36 @@ def _work_on_vertex(i: int, ctx: _Context) -> _VertexWork:
     """Lines 3-8 of findgraspablesurfaces for one vertex."""
     work = _VertexWork(vertex=i)
     R = align(ctx.vertices, i, ctx.normal_cov)
-    cands = dimensions_from_vertices(R, ctx, work)
+    ok, tried = _try_in_turn(R, ctx, work, dimensions_from_vertices(R, ctx, work), MAX_ATTEMPTS)
+    if not ok:
+        ok, _ = _try_in_turn(R, ctx, work, dimensions_from_edges(R, ctx, work),
+                             MAX_ATTEMPTS - tried)
+    if not ok:
+        # the same rectangle again (within a bin) is no new evidence
+        tol = work.acc_bin if np.isfinite(work.acc_bin) else 0.0
+        _try_in_turn(R, ctx, work, dimensions_from_extent(R, ctx, work), MAX_EXTENT_ATTEMPTS,
+                     tol)
+    return work
+
+
+def _try_in_turn(R: Rectangle, ctx: _Context, work: _VertexWork, cands: list[_Attempt],
+                 budget: int, same: float = -1.0) -> tuple[bool, int]:
+    """Verify candidates in order until one is accepted or ``budget`` were verified; a
+    candidate within ``same`` metres of one already tried in both dimensions is skipped.
+    Returns whether one was accepted, and how many were verified."""
     tried = 0
     for att in cands:
-        if tried >= MAX_ATTEMPTS:
+        if tried >= budget:
             break
-        tried += 1
-        _verify(R, att, ctx)
-        work.attempts.append(att)
-        if att.outcome is not None and att.outcome.accepted:
-            return work
-    for att in dimensions_from_edges(R, ctx, work):
-        if tried >= MAX_ATTEMPTS:
-            break
-        tried += 1
-        _verify(R, att, ctx)
-        work.attempts.append(att)
-        if att.outcome is not None and att.outcome.accepted:
-            return work
-    # the same rectangle again is no new evidence
-    seen = [(a.width, a.length) for a in work.attempts]
-    tol = work.acc_bin if np.isfinite(work.acc_bin) else 0.0
-    tried = 0
-    for att in dimensions_from_extent(R, ctx, work):
-        if tried >= MAX_EXTENT_ATTEMPTS:
-            break
-        if any(abs(att.width - w) <= tol and abs(att.length - h) <= tol for w, h in seen):
+        if any(abs(att.width - a.width) <= same and abs(att.length - a.length) <= same
+               for a in work.attempts):
             continue
         tried += 1
         _verify(R, att, ctx)
         work.attempts.append(att)
         if att.outcome is not None and att.outcome.accepted:
-            return work
-    return work
+            return True, tried
+    return False, tried
 
 
 def _verify(R: Rectangle, att: _Attempt, ctx: _Context) -> None:
