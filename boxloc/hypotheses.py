@@ -49,6 +49,7 @@ from boxloc.verify import (
     VerifyContext,
     VerifyOutcome,
     face_extent,
+    plane_var,
     rectangle_corners,
     verify,
 )
@@ -164,8 +165,8 @@ def dimensions_from_vertices(R: Rectangle, ctx: _Context, work: _VertexWork) -> 
     # coplanar: point on plane (1) + normals parallel (2) = chi2(3)
     w = Dc @ n
     Sj = V.covariances[idx][:, :3, :3]
-    var_w = (n @ Sx @ n + np.einsum("i,nij,j->n", n, Sj, n)
-             + np.einsum("ni,ij,nj->n", Dc, Sn, Dc) + 2 * cfg.flatness**2)
+    var_w = (plane_var(R.plane_cov, n, Dc) + np.einsum("i,nij,j->n", n, Sj, n)
+             + 2 * cfg.flatness**2)
     nj = V.normals[idx]
     e = np.cross(n, nj)
     Snj = ctx.normal_cov[idx]
@@ -231,10 +232,9 @@ def dimensions_from_edges(R: Rectangle, ctx: _Context, work: _VertexWork) -> lis
         return []
     D = ctx.edge_points[nb] - R.origin
     u, v, w = D @ R.x_axis, D @ R.y_axis, D @ R.normal
-    Sx, Sn = R.plane_cov[:3, :3], R.plane_cov[3:, 3:]
     Ce = ctx.edge_cov[nb]
-    var_w = (np.einsum("i,nij,j->n", R.normal, Ce, R.normal) + R.normal @ Sx @ R.normal
-             + np.einsum("ni,ij,nj->n", D, Sn, D))
+    var_w = (np.einsum("i,nij,j->n", R.normal, Ce, R.normal)
+             + plane_var(R.plane_cov, R.normal, D))
     T = w**2 / np.maximum(var_w, 1e-30)
     crit = chi2_critical(1.0, alpha)
     on_plane = T <= crit

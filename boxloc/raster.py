@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import cv2
 import numpy as np
 
@@ -37,4 +39,44 @@ def fill_polygon(uv: np.ndarray, shape: tuple[int, int]) -> tuple[np.ndarray, np
     return rr + y0, cc + x0
 
 
-__all__ = ["fill_polygon"]
+def rectangle_pixels(
+    project: Callable[[np.ndarray], np.ndarray], valid: np.ndarray, origin: np.ndarray,
+    x_axis: np.ndarray, y_axis: np.ndarray, u_range: tuple[float, float],
+    v_range: tuple[float, float],
+) -> tuple[np.ndarray, np.ndarray, float] | None:
+    """Valid pixels of a rectangle in 3D, projected into the image and clipped to it.
+
+    Parameters
+    ----------
+    project : callable
+        The sensor's projection, (n, 3) -> (n, 2) pixels (column, row).
+    valid : (H, W) bool
+        Pixels with a return.
+    origin, x_axis, y_axis : (3,) float64
+        The rectangle's frame.
+    u_range, v_range : (float, float)
+        Its extent along x_axis and y_axis, metres from origin.
+
+    Returns
+    -------
+    rows, cols : (n,) int64
+        Its valid pixels.
+    inside : float
+        Fraction of its projected area inside the image.
+
+    None where a corner has no projection.
+    """
+    (u0, u1), (v0, v1) = u_range, v_range
+    corners = np.array([origin + u0 * x_axis + v0 * y_axis, origin + u1 * x_axis + v0 * y_axis,
+                        origin + u1 * x_axis + v1 * y_axis, origin + u0 * x_axis + v1 * y_axis])
+    uv = project(corners)
+    if not np.isfinite(uv).all():
+        return None
+    rr, cc = fill_polygon(uv, valid.shape)
+    keep = valid[rr, cc]
+    du, dv = uv[:, 0], uv[:, 1]
+    area = 0.5 * abs(float(du @ np.roll(dv, -1) - dv @ np.roll(du, -1)))  # shoelace
+    return rr[keep], cc[keep], min(len(rr) / max(area, 1.0), 1.0)
+
+
+__all__ = ["fill_polygon", "rectangle_pixels"]

@@ -36,7 +36,7 @@ from typing import NamedTuple
 import numpy as np
 from scipy import stats as st
 
-from boxloc.raster import fill_polygon
+from boxloc.raster import rectangle_pixels
 
 #: Half-width of the groove window, in point spacings (the groove plus the uncertainty of
 #: where a side is).
@@ -114,16 +114,12 @@ def face_points(
     -------
     FacePoints
     """
-    (u0, u1), (v0, v1) = u_range, v_range
-    corners = np.array([origin + u0 * x_axis + v0 * y_axis, origin + u1 * x_axis + v0 * y_axis,
-                        origin + u1 * x_axis + v1 * y_axis, origin + u0 * x_axis + v1 * y_axis])
     empty = FacePoints(np.zeros(0), np.zeros(0), np.zeros(0), np.nan, spacing)
-    uv = project(corners)
-    if not np.isfinite(uv).all():
+    pix = rectangle_pixels(project, valid, origin, x_axis, y_axis, u_range, v_range)
+    if pix is None:
         return empty
-    rr, cc = fill_polygon(uv, valid.shape)
-    keep = valid[rr, cc]
-    flat = rr[keep] * valid.shape[1] + cc[keep]
+    rr, cc, _ = pix
+    flat = rr * valid.shape[1] + cc
     if len(flat) < 3:
         return empty
     P = points.reshape(-1, 3)[flat]

@@ -51,7 +51,7 @@ from scipy import stats as st
 from boxloc.config import Config
 from boxloc.lines import MIN_LINE_POINTS
 from boxloc.products import EdgeKind, EdgeMap, VerifyReason
-from boxloc.raster import fill_polygon
+from boxloc.raster import fill_polygon, rectangle_pixels
 from boxloc.scan import Scan
 from boxloc.seams import SEAM_FLANK, FacePoints, face_points, find_seams, seam_at
 from boxloc.stats import TestKind, TestTable, chi2_critical
@@ -253,7 +253,8 @@ def continuation(
     n_valid = np.zeros(4, np.int64)
     in_image = np.zeros(4, bool)
     for si, (u_range, v_range) in enumerate(strips):
-        pix = strip_pixels(ctx, origin, x_axis, y_axis, u_range, v_range)
+        pix = rectangle_pixels(ctx.project, ctx.valid, origin, x_axis, y_axis, u_range,
+                               v_range)
         if pix is None:
             continue
         rr, cc, inside = pix
@@ -269,24 +270,20 @@ def continuation(
     return frac, n_valid, in_image
 
 
-def strip_pixels(
-    ctx: VerifyContext, origin: np.ndarray, x_axis: np.ndarray, y_axis: np.ndarray,
-    u_range: tuple[float, float], v_range: tuple[float, float],
-) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
-    """Rows and columns of the valid pixels of a rectangle u_range x v_range (metres
-    along x_axis and y_axis from origin) projected into the image, and the fraction of
-    its projected area inside the image; None where a corner has no projection."""
-    (u0, u1), (v0, v1) = u_range, v_range
-    corners = np.array([origin + u0 * x_axis + v0 * y_axis, origin + u1 * x_axis + v0 * y_axis,
-                        origin + u1 * x_axis + v1 * y_axis, origin + u0 * x_axis + v1 * y_axis])
-    uv = ctx.project(corners)
-    if not np.isfinite(uv).all():
-        return None
-    rr, cc = fill_polygon(uv, ctx.valid.shape)
-    keep = ctx.valid[rr, cc]
-    du, dv = uv[:, 0], uv[:, 1]
-    area = 0.5 * abs(float(du @ np.roll(dv, -1) - dv @ np.roll(du, -1)))  # shoelace
-    return rr[keep], cc[keep], min(len(rr) / max(area, 1.0), 1.0)
+def plane_var(plane_cov: np.ndarray, normal: np.ndarray, D: np.ndarray) -> np.ndarray:
+    """Variance of the distance to a plane, from the plane's own uncertainty, of points at
+    offsets D (n, 3) from the plane's point, m^2 (n,): the point's error along the normal
+    plus the normal's error times the offset.
+
+    Parameters
+    ----------
+    plane_cov : (6, 6) float64
+        Covariance of the plane's (point, normal).
+    normal : (3,) float64
+    D : (n, 3) float64
+    """
+    So, Sn = plane_cov[:3, :3], plane_cov[3:, 3:]
+    return normal @ So @ normal + np.einsum("ni,ij,nj->n", D, Sn, D)
 
 
 def face_extent(
@@ -326,7 +323,7 @@ def face_extent(
     gap : float
         The gap that ends the face there, metres.
     """
-    pix = strip_pixels(ctx, origin, along, across, (0.0, reach), strip)
+    pix = rectangle_pixels(ctx.project, ctx.valid, origin, along, across, (0.0, reach), strip)
     # metres per pixel along the axis near the vertex, foreshortening included
     near = strip[1]
     step = near / max(ctx.samples_along(origin, origin + near * along), 1.0)
@@ -336,9 +333,7 @@ def face_extent(
     rr, cc, _ = pix
     P = ctx.points[rr, cc]
     D = P - origin
-    So, Sn = plane_cov[:3, :3], plane_cov[3:, 3:]
-    var = (ctx.var_along(rr, cc, normal) + flatness**2 + normal @ So @ normal
-           + np.einsum("ni,ij,nj->n", D, Sn, D))
+    var = ctx.var_along(rr, cc, normal) + flatness**2 + plane_var(plane_cov, normal, D)
     on = np.abs(D @ normal) <= k * np.sqrt(var)
     t = np.sort(D[on] @ along)
     t = t[t >= 0.0]
@@ -441,9 +436,7 @@ def verify(
     # half a sample beyond the face's last point, hence the spacing)
     # ... and the rectangle's own plane is uncertain: a small error of its normal moves
     # the far sides' edges off it by the error times their distance from the vertex
-    So, Sn = plane_cov[:3, :3], plane_cov[3:, 3:]
-    var_pe = normal @ So @ normal + np.einsum("ni,ij,nj->n", E, Sn, E)
-    near_plane = np.abs(ew) <= k * np.sqrt(sig_e**2 + var_pe) + spacing
+    near_plane = np.abs(ew) <= k * np.sqrt(sig_e**2 + plane_var(plane_cov, normal, E)) + spacing
     # interior edges: strictly inside, beyond the band where the boundary's own edges lie
     # (rounded or bevelled cardboard gives a second, parallel edge a few mm inside)
     mi = max(m, BOUNDARY_BAND * config.min_edge)
@@ -507,21 +500,17 @@ def verify(
     B = (SEAM_FLANK[1] + 1.0) * spacing
     fp = face_points(ctx.points, ctx.valid, ctx.sigma, ctx.project, origin, x_axis, y_axis,
                      normal, (-B, width + B), (-B, length + B), spacing, alpha)
-    seam_stat, seam_crit, seam_ok, seam_side = [], [], [], []
+    seam_sides: set[int] = set()  # sides shown to be seams (or gaps), here or below
     if not all(side_ok) and len(fp):
-        for si in range(4):
-            if side_ok[si]:
-                continue
-            zs, zc = _side_seam(fp, si, width, length, spacing, alpha)
-            seam_stat.append(zs)
-            seam_crit.append(zc)
-            seam_ok.append(zs > zc)
-            seam_side.append(si)
+        tried = [si for si in range(4) if not side_ok[si]]
+        zz = np.array([_side_seam(fp, si, width, length, spacing, alpha) for si in tried])
+        for si, (zs, zc) in zip(tried, zz):
             if zs > zc:
+                seam_sides.add(si)
                 side_ok[si] = True
                 covered[si] = int(side_n[si])
-        tests.append(TestTable.decision(TestKind.VERIFY_SEAM_SIDE, attempt_id, seam_side,
-                                        seam_stat, seam_crit, seam_ok, alpha))
+        tests.append(TestTable.decision(TestKind.VERIFY_SEAM_SIDE, attempt_id, tried,
+                                        zz[:, 0], zz[:, 1], zz[:, 0] > zz[:, 1], alpha))
         frac = float(sum(covered) / sum(side_n))
         bound_ok = all(side_ok) and frac >= config.support_fraction
     # no seam inside: the points of the interior, binned along x and along y
@@ -561,8 +550,7 @@ def verify(
     # each point's noise along the normal; the flatness prior covers cardboard bulge
     var_pt = ctx.var_along(rv, cv, normal) + config.flatness**2
     # 1) points on the plane of R, with R's own uncertainty
-    So, Sn = plane_cov[:3, :3], plane_cov[3:, 3:]
-    var_pl = normal @ So @ normal + np.einsum("ni,ij,nj->n", D, Sn, D)
+    var_pl = plane_var(plane_cov, normal, D)
     on0 = np.abs(w0) <= k * np.sqrt(var_pt + var_pl)
     if on0.sum() < 3:
         return fail(VerifyReason.INLIERS, n_inside=n_inside, n_valid=n_valid)
@@ -618,7 +606,7 @@ def verify(
         mean = float(wi.mean())
         dc = P[inl].mean(0) - origin
         # the face may depart from R's plane by the flatness prior as a whole (bulge)
-        s2_mean = float(var_pt[inl].mean() / n_in + normal @ So @ normal + dc @ Sn @ dc
+        s2_mean = float(var_pt[inl].mean() / n_in + plane_var(plane_cov, normal, dc[None])[0]
                         + config.flatness**2)
         T_mean = mean**2 / s2_mean
     else:
@@ -633,7 +621,7 @@ def verify(
     ends = ~continues
     extra_seam: list[tuple[int, float, float]] = []
     for si in np.flatnonzero(continues):
-        if si in seam_side and seam_ok[seam_side.index(si)]:
+        if si in seam_sides:
             ends[si] = True
             continue
         # anywhere in the band where the side's boundary edges are counted
@@ -641,6 +629,8 @@ def verify(
                   else (-np.inf, np.inf))
         extra_seam.append((int(si), zs, zc))
         ends[si] = zs > zc
+        if ends[si]:
+            seam_sides.add(int(si))
     if extra_seam:
         es = np.array(extra_seam)
         tests.append(TestTable.decision(TestKind.VERIFY_SEAM_SIDE, attempt_id,
@@ -648,9 +638,7 @@ def verify(
                                         es[:, 1] > es[:, 2], alpha))
     # a side whose strip leaves the image cannot show that the face ends there (unless
     # the side is a seam): the face may run on out of sight
-    seams_found = {si for si, ok in zip(seam_side, seam_ok) if ok}
-    seams_found |= {si for si, zs, zc in extra_seam if zs > zc}
-    cut = np.array([not in_image[si] and si not in seams_found for si in range(4)])
+    cut = np.array([not in_image[si] and si not in seam_sides for si in range(4)])
     ends &= ~cut
     tests.append(TestTable.decision(TestKind.VERIFY_CONTINUATION, attempt_id, [0, 1, 2, 3],
                                     cont, config.min_inlier_fraction, ends, alpha))
