@@ -30,6 +30,7 @@ Per-vertex work is independent (the paper's parallel implementation); with
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass, field
@@ -40,7 +41,14 @@ from scipy import stats as st
 from scipy.spatial import cKDTree
 
 from boxloc.config import Config
-from boxloc.products import DimensionSource, EdgeMap, HypothesisSet, Verification, VertexSet
+from boxloc.products import (
+    DimensionSource,
+    EdgeMap,
+    HypothesisSet,
+    Verification,
+    VerifyReason,
+    VertexSet,
+)
 from boxloc.scan import Scan
 from boxloc.seams import face_points, find_seams
 from boxloc.stats import TestKind, TestTable, chi2_critical
@@ -59,6 +67,8 @@ from boxloc.vertices import _skew, normal_covariance
 MAX_ATTEMPTS = 6
 #: Most candidates from the face's extent verified per vertex, after the others.
 MAX_EXTENT_ATTEMPTS = 3
+#: Most rounds of neighbours' corners (a row of touching boxes grows by one box a round).
+MAX_NEIGHBOUR_ROUNDS = 8
 
 
 @dataclass
@@ -473,34 +483,216 @@ def _work_chunk(ids: list[int]) -> list[_VertexWork]:
 def generate_hypotheses(
     scan: Scan, edges: EdgeMap, vertices: VertexSet, *, config: Config,
     up: np.ndarray | None = None,
-) -> tuple[HypothesisSet, Verification]:
+) -> tuple[VertexSet, HypothesisSet, Verification]:
     """One hypothesis per vertex with its dimensions, and the verification of every attempt.
+
+    The vertices of two lines come first. Then, round by round, the corners of each
+    verified rectangle's seam sides become vertices of the touching neighbour beyond
+    (:func:`neighbour_vertices`), and get hypotheses of their own, until a round adds
+    none or ``MAX_NEIGHBOUR_ROUNDS`` have run.
 
     Parameters
     ----------
     scan : Scan
     edges : EdgeMap
     vertices : VertexSet
+        From the vertex stage.
     config : Config
     up : ndarray (3,), optional
         Up in the sensor frame (default ``scan.up``), for the tilt prior.
 
     Returns
     -------
+    VertexSet
+        ``vertices`` and the neighbours' corners after them (``parent`` >= 0); hypothesis
+        i belongs to vertex i.
     HypothesisSet, Verification
     """
     up = scan.up if up is None else np.asarray(up, dtype=np.float64)
     ctx = _Context.build(scan, edges, vertices, config, up)
-    ids = list(range(len(vertices)))
+    works = _work_on(list(range(len(vertices))), ctx)
+    new_from = 0
+    for _ in range(MAX_NEIGHBOUR_ROUNDS):
+        V = neighbour_vertices(ctx.vertices, works[new_from:], config)
+        new_from = len(ctx.vertices)
+        if len(V) == len(ctx.vertices):
+            ctx = dataclasses.replace(ctx, vertices=V)
+            break
+        ctx = dataclasses.replace(ctx, vertices=V, normal_cov=normal_covariance(V))
+        works += _work_on(list(range(new_from, len(V))), ctx)
+    return ctx.vertices, *_assemble(works, ctx.vertices, config, up)
+
+
+def _work_on(ids: list[int], ctx: _Context) -> list[_VertexWork]:
+    config = ctx.config
     if config.workers > 1 and len(ids) > 1:
         chunks = [ids[k :: config.workers] for k in range(config.workers)]
         with ProcessPoolExecutor(config.workers, initializer=_init_worker, initargs=(ctx,)) as ex:
             parts = list(ex.map(_work_chunk, chunks))
         by_id = {w.vertex: w for part in parts for w in part}
-        works = [by_id[i] for i in ids]
-    else:
-        works = [_work_on_vertex(i, ctx) for i in ids]
-    return _assemble(works, vertices, config, up)
+        return [by_id[i] for i in ids]
+    return [_work_on_vertex(i, ctx) for i in ids]
+
+
+def neighbour_vertices(vertices: VertexSet, works: list[_VertexWork], config: Config
+                       ) -> VertexSet:
+    """``vertices`` and, after them, the corners of touching neighbours across seams.
+
+    A side of a verified rectangle that is a seam (``VERIFY_SEAM_SIDE``) beyond which the
+    face's plane runs on (``VERIFY_CONTINUATION`` below ``min_inlier_fraction``: a
+    neighbour of equal height) is a side of that neighbour too, and its two ends are two
+    of the neighbour's corners: one vertex each, with d1 across the seam and d2 along
+    it. Those are the corners the line stage misses when both sides are seams (an
+    interior box of a neat layer). A corner that coincides with a vertex of the same
+    quadrant (chi2 of the positions, 3 dof, at alpha) is not added again; every corner
+    offered is a ``NEIGHBOUR_CORNER`` test row.
+
+    The new vertex's covariance is first order: the parent's point, moved along its arms
+    by the rectangle's dimensions, takes the arms' direction errors times those lengths;
+    its directions keep the parent's.
+    """
+    alpha = config.alpha
+    pts, D1, D2, N, COV = (list(vertices.points), list(vertices.d1), list(vertices.d2),
+                           list(vertices.normals), list(vertices.covariances))
+    parent, side_of = list(vertices.parent), list(vertices.parent_side)
+    rows: list[tuple[int, int, float]] = []
+    for w in works:
+        att = next((a for a in w.attempts if a.outcome is not None and a.outcome.accepted),
+                   None)
+        if att is None:
+            continue
+        i = w.vertex
+        t = att.outcome.tests  # type: ignore[union-attr]
+        # a seam that makes evidence beyond its own rectangle must be as strong as the
+        # search for one anywhere inside had to find (a weak false seam would send a
+        # chain of cut-short rectangles across a face)
+        seam = t.of_kind(TestKind.VERIFY_SEAM_SIDE)
+        crit_in = t.of_kind(TestKind.VERIFY_SEAM_INTERIOR).critical
+        strong = seam.accepted & (seam.statistic >= (crit_in.max() if len(crit_in) else np.inf))
+        sides = set(int(b) for b in seam.b[strong])
+        cont = t.of_kind(TestKind.VERIFY_CONTINUATION)
+        runs_on = {int(b) for b, f in zip(cont.b, cont.statistic)
+                   if f >= config.min_inlier_fraction}
+        o, x, y, n = vertices.points[i], vertices.d1[i], vertices.d2[i], vertices.normals[i]
+        C = vertices.covariances[i]
+        W, L = att.width, att.length
+        # side: (its two corners as (u, v), the outward direction, the axis along it)
+        geometry = {0: (((0.0, 0.0), (W, 0.0)), -y, 0), 1: (((0.0, L), (W, L)), y, 0),
+                    2: (((0.0, 0.0), (0.0, L)), -x, 1), 3: (((W, 0.0), (W, L)), x, 1)}
+        for si in sorted(sides & runs_on):
+            ends, out, along = geometry[si]
+            for k, (u, v) in enumerate(ends):
+                p = o + u * x + v * y
+                (u2, v2) = ends[1 - k]
+                d2 = (u2 - u) * x + (v2 - v) * y
+                d2 = d2 / np.linalg.norm(d2)
+                d1 = out.copy()
+                s_out = C[6:, 6:] if along == 0 else C[3:6, 3:6]  # out is +-y or +-x
+                s_along = C[3:6, 3:6] if along == 0 else C[6:, 6:]
+                if np.cross(d1, d2) @ n < 0:  # keep the normal toward the sensor
+                    d1, d2, s_out, s_along = d2, d1, s_along, s_out
+                cov = np.zeros((9, 9))
+                cov[:3, :3] = C[:3, :3] + u * u * C[3:6, 3:6] + v * v * C[6:, 6:]
+                cov[3:6, 3:6], cov[6:, 6:] = s_out, s_along
+                # the same corner of the same quadrant already there?
+                best, best_j = np.inf, -1
+                for j in range(len(pts)):
+                    if D1[j] @ d1 < 0.5 or D2[j] @ d2 < 0.5:
+                        continue
+                    dp = p - pts[j]
+                    try:
+                        c2 = float(dp @ np.linalg.solve(cov[:3, :3] + COV[j][:3, :3], dp))
+                    except np.linalg.LinAlgError:
+                        continue
+                    if c2 < best:
+                        best, best_j = c2, j
+                rows.append((i, best_j, best))
+                if best <= chi2_critical(3.0, alpha):
+                    continue
+                pts.append(p)
+                D1.append(d1)
+                D2.append(d2)
+                N.append(n)
+                COV.append(cov)
+                parent.append(i)
+                side_of.append(si)
+    n_new = len(pts) - len(vertices)
+    tests = vertices.tests
+    if rows:
+        r = np.array(rows)
+        tests = TestTable.concat([tests, TestTable.chi2(
+            TestKind.NEIGHBOUR_CORNER, r[:, 0].astype(np.int32), r[:, 1].astype(np.int32),
+            r[:, 2], 3.0, alpha)], alpha)
+    if not n_new:
+        return dataclasses.replace(vertices, tests=tests)
+    return VertexSet(
+        points=np.array(pts), d1=np.array(D1), d2=np.array(D2), normals=np.array(N),
+        covariances=np.array(COV),
+        line_a=np.r_[vertices.line_a, np.full(n_new, -1)].astype(np.int32),
+        line_b=np.r_[vertices.line_b, np.full(n_new, -1)].astype(np.int32),
+        tests=tests, parent=np.array(parent, np.int32), parent_side=np.array(side_of, np.int32),
+    )
+
+
+def _seams_across(att_rows: list[tuple[int, _Attempt]], vertices: VertexSet,
+                  config: Config) -> None:
+    """Reject a verified rectangle across whose core runs a seam side of another one
+    (``VERIFY_SEAM_CROSSING``, reason ``INTERIOR_SEAM``).
+
+    Two touching boxes of equal height seen from afar may show their seam only to the
+    test at the side's known position, not to the search for the strongest groove
+    anywhere inside; the rectangle over both then verifies too, and would win the
+    selection for explaining more points with one model.
+    """
+    acc = [j for j, (_, a) in enumerate(att_rows) if a.outcome and a.outcome.accepted]
+    if len(acc) < 2:
+        return
+    segs: list[tuple[int, float, np.ndarray, np.ndarray]] = []
+    frames = {}
+    for j in acc:
+        hi, a = att_rows[j]
+        c = rectangle_corners(vertices.points[hi], vertices.d1[hi], vertices.d2[hi],
+                              a.width, a.length)
+        frames[j] = (c[0], vertices.d1[hi], vertices.d2[hi], a)
+        t = a.outcome.tests.of_kind(TestKind.VERIFY_SEAM_SIDE)  # type: ignore[union-attr]
+        ends = {0: (c[0], c[1]), 1: (c[3], c[2]), 2: (c[0], c[3]), 3: (c[1], c[2])}
+        for si, z in zip(t.b[t.accepted], t.statistic[t.accepted]):
+            segs.append((j, float(z), *ends[int(si)]))
+    if not segs:
+        return
+    k = math.sqrt(chi2_critical(1.0, config.alpha))
+    crit_all = float(st.norm.isf(config.alpha / len(segs)))
+    mi = BOUNDARY_BAND * config.min_edge
+    s = np.linspace(0.0, 1.0, 21)[:, None]
+    for j in acc:
+        o, x, y, a = frames[j]
+        out = a.outcome
+        assert out is not None
+        nf, cf = out.plane_normal, out.plane_center
+        sig = math.hypot(config.noise.sigma_range(float(np.linalg.norm(cf))), config.flatness)
+        worst, by, zb = 0.0, -1, 0.0
+        for jb, z, p, q in segs:
+            if jb == j:
+                continue
+            P = p + s * (q - p)
+            D = P - o
+            u, v = D @ x, D @ y
+            inside = ((u > mi) & (u < a.width - mi) & (v > mi) & (v < a.length - mi)
+                      & (np.abs((P - cf) @ nf) <= k * sig))
+            f = float(inside.mean())
+            if f > worst:
+                worst, by, zb = f, jb, z
+        # ... and the seam as strong as the search inside had to find, and significant
+        # among all the seam sides offered (Bonferroni): one weak false seam must not
+        # remove a face
+        crit_in = out.tests.of_kind(TestKind.VERIFY_SEAM_INTERIOR).critical
+        crit = max(float(crit_in.max()) if len(crit_in) else np.inf, crit_all)
+        crosses = worst >= 0.5 and zb >= crit
+        row = TestTable.decision(TestKind.VERIFY_SEAM_CROSSING, -1, by, worst, 0.5,
+                                 not crosses, config.alpha)
+        a.outcome = dataclasses.replace(
+            out, tests=TestTable.concat([out.tests, row], config.alpha),
+            **({"accepted": False, "reason": VerifyReason.INTERIOR_SEAM} if crosses else {}))
 
 
 def _ragged(arrs: list[np.ndarray], dtype: type) -> tuple[np.ndarray, np.ndarray]:
@@ -516,13 +708,13 @@ def _assemble(
 ) -> tuple[HypothesisSet, Verification]:
     alpha = config.alpha
     n = len(works)
-    att_rows: list[tuple[int, _Attempt]] = []
+    att_rows: list[tuple[int, _Attempt]] = [(hi, a) for hi, w in enumerate(works)
+                                            for a in w.attempts]
+    _seams_across(att_rows, vertices, config)
     kept = np.full(n, -1, np.int32)
-    for hi, w in enumerate(works):
-        for a in w.attempts:
-            if a.outcome is not None and a.outcome.accepted and kept[hi] < 0:
-                kept[hi] = len(att_rows)
-            att_rows.append((hi, a))
+    for j, (hi, a) in enumerate(att_rows):
+        if a.outcome is not None and a.outcome.accepted and kept[hi] < 0:
+            kept[hi] = j
     source = np.zeros(n, np.uint8)
     diag = np.full(n, -1, np.int32)
     width = np.full(n, np.nan)

@@ -89,12 +89,13 @@ def find_graspable_surfaces(
     lines = _timed(timing, "lines", lambda: find_lines(scan, edges, config=config, rng=rng))
     obs.on_lines(scan, lines)
     vertices = _timed(timing, "vertices", lambda: find_vertices(lines, config=config))
-    obs.on_vertices(scan, vertices)
     up = _timed(timing, "up", lambda: estimate_up(scan, config, rng))
-    hyps, verification = _timed(
+    # the hypothesis stage adds the corners of touching neighbours to the vertices
+    vertices, hyps, verification = _timed(
         timing, "hypotheses",
         lambda: generate_hypotheses(scan, edges, vertices, config=config, up=up),
     )
+    obs.on_vertices(scan, vertices)
     obs.on_hypotheses(scan, hyps)
     obs.on_verification(scan, verification)
     selection = _timed(timing, "select", lambda: select(verification, config=config))

@@ -200,9 +200,15 @@ class VertexSet:
     covariances : (V, 9, 9) float64
         Joint covariance of (point, d1, d2).
     line_a, line_b : (V,) int32
-        The two lines (``d1`` runs along ``line_a``).
+        The two lines (``d1`` runs along ``line_a``); -1 for a neighbour's corner.
     tests : TestTable
-        LINES_MEET, LINES_ORTHOGONAL and AT_SEGMENT_ENDS for every pair considered.
+        LINES_MEET, LINES_ORTHOGONAL and AT_SEGMENT_ENDS for every pair considered;
+        NEIGHBOUR_CORNER for every corner offered across a seam.
+    parent, parent_side : (V,) int32
+        A neighbour's corner (added by the hypothesis stage): the vertex whose verified
+        rectangle has this corner on its seam side ``parent_side`` (0-3: v=0, v=length,
+        u=0, u=width); -1 for a vertex of two lines. Logs written before these fields
+        existed read back as all -1.
     """
 
     points: np.ndarray
@@ -213,6 +219,13 @@ class VertexSet:
     line_a: np.ndarray
     line_b: np.ndarray
     tests: TestTable
+    parent: np.ndarray = None  # type: ignore[assignment]
+    parent_side: np.ndarray = None  # type: ignore[assignment]
+
+    def __post_init__(self) -> None:
+        for name in ("parent", "parent_side"):
+            if getattr(self, name) is None:
+                object.__setattr__(self, name, np.full(len(self), -1, np.int32))
 
     def __len__(self) -> int:
         return int(self.points.shape[0])
@@ -552,6 +565,8 @@ def from_arrays(cls: type, arrays: dict[str, np.ndarray], prefix: str = "") -> A
             kw[f.name] = from_arrays(t, arrays, name + _SEP)
             continue
         if name not in arrays:
+            if f.default is not dataclasses.MISSING:  # a field newer than the log
+                continue
             raise KeyError(f"missing field {name!r} for {cls.__name__}")
         a = arrays[name]
         if t is int:

@@ -74,9 +74,13 @@ def rectangle_pixels(
         return None
     rr, cc = fill_polygon(uv, valid.shape)
     keep = valid[rr, cc]
+    return rr[keep], cc[keep], min(len(rr) / max(polygon_area(uv), 1.0), 1.0)
+
+
+def polygon_area(uv: np.ndarray) -> float:
+    """Area of a simple polygon (k, 2), in its units squared (shoelace formula)."""
     du, dv = uv[:, 0], uv[:, 1]
-    area = 0.5 * abs(float(du @ np.roll(dv, -1) - dv @ np.roll(du, -1)))  # shoelace
-    return rr[keep], cc[keep], min(len(rr) / max(area, 1.0), 1.0)
+    return 0.5 * abs(float(du @ np.roll(dv, -1) - dv @ np.roll(du, -1)))
 
 
-__all__ = ["fill_polygon", "rectangle_pixels"]
+__all__ = ["fill_polygon", "polygon_area", "rectangle_pixels"]

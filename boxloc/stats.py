@@ -79,6 +79,16 @@ class TestKind(IntEnum):
     #: statistic = the extent, critical = the gap that ends it (metres); accepted if the
     #: extent is a box edge (min_edge to max_edge) and so a far-side candidate
     FACE_EXTENT = 22
+    #: hypothesis stage: a corner of verified hypothesis a's seam side, where a touching
+    #: neighbour of equal height has a corner too, coincides with vertex b (the nearest
+    #: with the same quadrant, -1 if none; statistic = chi2 of the positions, 3 dof);
+    #: rejected means a new vertex (``VertexSet.parent``)
+    NEIGHBOUR_CORNER = 23
+    #: verification: no seam side of verified attempt b crosses the core of verified
+    #: attempt a (statistic = the fraction of that side inside a's core, beyond
+    #: BOUNDARY_BAND min_edge of its sides and on its plane; critical 0.5): a seam shown at
+    #: a known place is stronger evidence than a search for one anywhere inside
+    VERIFY_SEAM_CROSSING = 24
 
 
 @lru_cache(maxsize=256)

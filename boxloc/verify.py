@@ -51,7 +51,7 @@ from scipy import stats as st
 from boxloc.config import Config
 from boxloc.lines import MIN_LINE_POINTS
 from boxloc.products import EdgeKind, EdgeMap, VerifyReason
-from boxloc.raster import fill_polygon, rectangle_pixels
+from boxloc.raster import fill_polygon, polygon_area, rectangle_pixels
 from boxloc.scan import Scan
 from boxloc.seams import SEAM_FLANK, FacePoints, face_points, find_seams, seam_at
 from boxloc.stats import TestKind, TestTable, chi2_critical
@@ -357,16 +357,15 @@ def rectangle_corners(
 
 
 def rasterize(scan: Scan, corners: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
-    """Pixels (rows, cols) inside the projected polygon; None if it leaves the image."""
+    """Pixels (rows, cols) inside the projected polygon, clipped to the image; None if a
+    corner has no projection or less than half the polygon lies in the image."""
     uv = scan.sensor.project(corners)
     if not np.isfinite(uv).all():
         return None
-    H, W = scan.shape
-    if (uv[:, 0] < -0.5).any() or (uv[:, 1] < -0.5).any() or (uv[:, 0] > W - 0.5).any() or (
-        uv[:, 1] > H - 0.5
-    ).any():
+    rr, cc = fill_polygon(uv, scan.shape)
+    if len(rr) < 0.5 * polygon_area(uv):
         return None
-    return fill_polygon(uv, (H, W))
+    return rr, cc
 
 
 def verify(
@@ -636,9 +635,11 @@ def verify(
         tests.append(TestTable.decision(TestKind.VERIFY_SEAM_SIDE, attempt_id,
                                         es[:, 0].astype(int), es[:, 1], es[:, 2],
                                         es[:, 1] > es[:, 2], alpha))
-    # a side whose strip leaves the image cannot show that the face ends there (unless
-    # the side is a seam): the face may run on out of sight
-    cut = np.array([not in_image[si] and si not in seam_sides for si in range(4)])
+    # a side whose strip leaves the image cannot show that the face ends there, unless
+    # the strip's part in the image has points enough to test or the side is a seam: the
+    # face may run on out of sight
+    cut = np.array([not in_image[si] and not np.isfinite(cont[si]) and si not in seam_sides
+                    for si in range(4)])
     ends &= ~cut
     tests.append(TestTable.decision(TestKind.VERIFY_CONTINUATION, attempt_id, [0, 1, 2, 3],
                                     cont, config.min_inlier_fraction, ends, alpha))

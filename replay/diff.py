@@ -696,12 +696,16 @@ def _test_keys(t: TestTable, maps: Mapping[str, Mapping[int, int] | None]) -> di
             x = m("peaks", a)
             key = None if x is None else (kind, x)
         elif (TestKind.VERIFY_INLIERS <= kind <= TestKind.VERIFY_SEAM_INTERIOR
-              or kind == TestKind.VERIFY_CONTINUATION):
+              or kind in (TestKind.VERIFY_CONTINUATION, TestKind.VERIFY_SEAM_CROSSING)):
             x = m("attempts", a)
             key = None if x is None else (kind, x)
         elif kind in (TestKind.SEAM_PEAK, TestKind.FACE_EXTENT):
             x = m("hypotheses", a)
             key = None if x is None else (kind, x, b)
+        elif kind == TestKind.NEIGHBOUR_CORNER:
+            # b is a vertex id of its own version: rows follow the parent, in order
+            x = m("hypotheses", a)
+            key = None if x is None else (kind, x)
         else:
             key = None
         if key is None:

@@ -49,7 +49,7 @@ _SENSE: dict[TestKind, str] = {
     TestKind.EDGE_SUPPORT: ">", TestKind.FIRST_QUADRANT: ">",
     TestKind.VERIFY_INLIERS: ">=", TestKind.VERIFY_BOUNDARY: ">=",
     TestKind.VERIFY_SEAM_SIDE: ">", TestKind.SEAM_PEAK: ">",
-    TestKind.VERIFY_CONTINUATION: "<",
+    TestKind.VERIFY_CONTINUATION: "<", TestKind.VERIFY_SEAM_CROSSING: "<",
 }
 _NEGATE = {"<=": ">", "<": ">=", ">": "<=", ">=": "<"}
 #: what each verify reason's failing test is
@@ -139,9 +139,15 @@ class _Ctx:
         return {
             "id": v, "point": _vec(V.points[v]), "normal": _vec(V.normals[v]),
             "d1": _vec(V.d1[v]), "d2": _vec(V.d2[v]), "line_a": la, "line_b": lb,
-            "lines": [self.line(la), self.line(lb)] if self.lines is not None else [],
-            "tests": _tests(V.tests, [TestKind.LINES_MEET, TestKind.LINES_ORTHOGONAL,
-                                      TestKind.AT_SEGMENT_ENDS], pair=(la, lb)),
+            # a neighbour's corner: the vertex whose verified rectangle's seam side it ends
+            "parent": int(V.parent[v]), "parent_side": int(V.parent_side[v]),
+            "lines": ([self.line(la), self.line(lb)] if self.lines is not None and la >= 0
+                      else []),
+            # two lines' tests, or the corners offered from the parent's seam sides
+            "tests": (_tests(V.tests, [TestKind.LINES_MEET, TestKind.LINES_ORTHOGONAL,
+                                       TestKind.AT_SEGMENT_ENDS], pair=(la, lb)) if la >= 0
+                      else _tests(V.tests, [TestKind.NEIGHBOUR_CORNER],
+                                  a=int(V.parent[v]))),
         }
 
     def attempts_of(self, h: int) -> list[int]:
@@ -162,7 +168,8 @@ class _Ctx:
         if V is not None and j < len(V):
             reason = VerifyReason(int(V.reason[j]))
             tests = _tests(V.tests, [k for k in TestKind if k >= TestKind.VERIFY_INLIERS
-                                     and k not in (TestKind.SEAM_PEAK, TestKind.FACE_EXTENT)],
+                                     and k not in (TestKind.SEAM_PEAK, TestKind.FACE_EXTENT,
+                                                   TestKind.NEIGHBOUR_CORNER)],
                            a=j)
             sides = iter(_SIDES)
             for t in tests:  # one row per side, in the order boxloc.verify tests them

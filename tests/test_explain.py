@@ -60,6 +60,12 @@ def test_chosen_surface_chain_matches_the_log(log: Path, records: dict[int, Any]
         # the generating vertex and its two lines, with support, trial and votes
         v = e["hypothesis"]["vertex"]
         assert v["id"] == int(H.vertex[h])
+        assert v["parent"] == int(V.parent[v["id"]])
+        if v["parent"] >= 0:  # a neighbour's corner: its parent's seam side, no lines
+            assert v["lines"] == [] and v["parent_side"] in range(4)
+            assert {t["kind"] for t in v["tests"]} == {"NEIGHBOUR_CORNER"}
+            assert all(t["a"] == v["parent"] for t in v["tests"])
+            continue
         assert {ln["id"] for ln in v["lines"]} == {int(V.line_a[v["id"]]),
                                                   int(V.line_b[v["id"]])}
         for ln in v["lines"]:

@@ -2,15 +2,17 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 
 from boxloc.config import Config
 from boxloc.edges import detect_edges
-from boxloc.hypotheses import generate_hypotheses
+from boxloc.hypotheses import generate_hypotheses, neighbour_vertices
 from boxloc.lines import find_lines
-from boxloc.products import DimensionSource, VerifyReason
-from boxloc.stats import TestKind
+from boxloc.products import DimensionSource, VerifyReason, VertexSet
+from boxloc.stats import TestKind, TestTable
 from boxloc.vertices import find_vertices
 from tests.scenes import box, scene
 
@@ -20,7 +22,7 @@ def _stages(sim, cfg=None):
     e = detect_edges(sim.scan, config=cfg)
     L = find_lines(sim.scan, e, config=cfg, rng=np.random.default_rng(sim.scan.seed))
     V = find_vertices(L, config=cfg)
-    H, ver = generate_hypotheses(sim.scan, e, V, config=cfg)
+    V, H, ver = generate_hypotheses(sim.scan, e, V, config=cfg)
     return e, L, V, H, ver
 
 
@@ -107,3 +109,119 @@ def test_dimensions_from_extent_measure_the_face(one_box):
         rows = TestTable.concat(work.tests, cfg.alpha).of_kind(TestKind.FACE_EXTENT)
         assert list(rows.b) == [0, 1] and rows.accepted.all()
         assert np.allclose(rows.statistic, [atts[0].width, atts[0].length])
+
+
+def _outcome(tests, accepted=True, center=(0.0, 0.0, 1.5), normal=(0.0, 0.0, -1.0)):
+    from boxloc.verify import VerifyOutcome
+    return VerifyOutcome(
+        n_inside=100, n_valid=100, n_inliers=100, n_front=0, n_behind=0,
+        inlier_fraction=1.0, mean_distance=0.0, sigma_mean=0.001, n_interior_edges=0,
+        plane_center=np.array(center), plane_normal=np.array(normal),
+        plane_cov=np.eye(6) * 1e-8, rms=0.001, error=1.0, accepted=accepted,
+        reason=VerifyReason.ACCEPTED if accepted else VerifyReason.BOUNDARY,
+        inlier_pixels=np.zeros(0, np.int32), tests=TestTable.concat(tests, 0.01))
+
+
+def _one_vertex(o=(0.0, 0.0, 1.5)):
+    # seen from the origin down +z: a face at z = 1.5, normal -z (toward the sensor);
+    # d1 x d2 = x x (-y) = -z
+    cov = np.eye(9) * 1e-8
+    return VertexSet(points=np.array([o]), d1=np.array([[1.0, 0, 0]]),
+                     d2=np.array([[0, -1.0, 0]]), normals=np.array([[0, 0, -1.0]]),
+                     covariances=cov[None], line_a=np.zeros(1, np.int32),
+                     line_b=np.ones(1, np.int32), tests=TestTable.empty(0.01))
+
+
+def _work(vertex, width, length, seam_sides, runs_on):
+    from boxloc.hypotheses import _Attempt, _VertexWork
+    seam = TestTable.decision(TestKind.VERIFY_SEAM_SIDE, -1, sorted(seam_sides),
+                              [9.0] * len(seam_sides), [3.0] * len(seam_sides),
+                              [True] * len(seam_sides), 0.01)
+    cont = TestTable.decision(TestKind.VERIFY_CONTINUATION, -1, [0, 1, 2, 3],
+                              [0.95 if s in runs_on else 0.0 for s in range(4)], 0.8,
+                              [True] * 4, 0.01)
+    interior = TestTable.decision(TestKind.VERIFY_SEAM_INTERIOR, -1, [0, 1], [1.0, 1.0],
+                                  [3.5, 3.5], [True, True], 0.01)
+    att = _Attempt(DimensionSource.EDGES, -1, width, length, 0.0, 0.0,
+                   outcome=_outcome([seam, interior, cont]))
+    return _VertexWork(vertex=vertex, attempts=[att])
+
+
+def test_neighbour_vertices_are_the_corners_of_a_seam_side():
+    V = _one_vertex()
+    # side 3 (u = width) is a seam beyond which the plane runs on: the neighbour's corners
+    W = neighbour_vertices(V, [_work(0, 0.3, 0.4, {3}, {3})], Config())
+    assert len(W) == 3
+    assert W.parent.tolist() == [-1, 0, 0] and W.parent_side.tolist() == [-1, 3, 3]
+    assert (W.line_a[1:] == -1).all()
+    assert np.allclose(W.points[1], [0.3, 0.0, 1.5]) and np.allclose(W.points[2],
+                                                                     [0.3, -0.4, 1.5])
+    # each new vertex opens onto the neighbour (+x), normal still toward the sensor
+    for v in (1, 2):
+        assert np.allclose(np.cross(W.d1[v], W.d2[v]), [0, 0, -1.0])
+        assert max(W.d1[v] @ [1.0, 0, 0], W.d2[v] @ [1.0, 0, 0]) == pytest.approx(1.0)
+    t = W.tests.of_kind(TestKind.NEIGHBOUR_CORNER)
+    assert len(t) == 2 and not t.accepted.any()
+    # offered again, the same corners are found to be there already
+    again = neighbour_vertices(W, [_work(0, 0.3, 0.4, {3}, {3})], Config())
+    assert len(again) == 3
+    t2 = again.tests.of_kind(TestKind.NEIGHBOUR_CORNER)
+    assert t2.accepted[-2:].all() and set(t2.b[-2:].tolist()) == {1, 2}
+
+
+def test_no_neighbour_across_a_seam_to_a_lower_surface():
+    # the side is a seam (gap) but the plane does not run on: no equal neighbour there
+    V = _one_vertex()
+    assert len(neighbour_vertices(V, [_work(0, 0.3, 0.4, {3}, set())], Config())) == 1
+    # nor across a seam weaker than the search inside the rectangle had to find
+    w = _work(0, 0.3, 0.4, {3}, {3})
+    o = w.attempts[0].outcome
+    seam = o.tests.of_kind(TestKind.VERIFY_SEAM_SIDE)
+    w.attempts[0].outcome = dataclasses.replace(o, tests=TestTable.concat(
+        [dataclasses.replace(seam, statistic=np.array([3.0])),
+         o.tests.of_kind(TestKind.VERIFY_SEAM_INTERIOR),
+         o.tests.of_kind(TestKind.VERIFY_CONTINUATION)], 0.01))
+    assert len(neighbour_vertices(V, [w], Config())) == 1
+    # nor from a rectangle that was not verified
+    w = _work(0, 0.3, 0.4, {3}, {3})
+    w.attempts[0].outcome = dataclasses.replace(w.attempts[0].outcome, accepted=False)
+    assert len(neighbour_vertices(V, [w], Config())) == 1
+
+
+def test_a_seam_side_across_another_rectangle_rejects_it():
+    # rectangle A spans two boxes (0.6 along x); B, the left box, has a strong seam at
+    # u = 0.3 on its side 3, which crosses A's core: A is rejected, B kept
+    from boxloc.hypotheses import _seams_across
+    V = dataclasses.replace(_one_vertex(), tests=TestTable.empty(0.01))
+    V = VertexSet(points=np.r_[V.points, V.points], d1=np.r_[V.d1, V.d1],
+                  d2=np.r_[V.d2, V.d2], normals=np.r_[V.normals, V.normals],
+                  covariances=np.r_[V.covariances, V.covariances],
+                  line_a=np.zeros(2, np.int32), line_b=np.ones(2, np.int32),
+                  tests=TestTable.empty(0.01))
+    for z, rejected in ((9.0, True), (3.0, False)):  # a weak seam does not
+        a = _work(0, 0.6, 0.4, set(), set()).attempts[0]
+        b = _work(1, 0.3, 0.4, {3}, {3}).attempts[0]
+        seam = b.outcome.tests.of_kind(TestKind.VERIFY_SEAM_SIDE)
+        b.outcome = dataclasses.replace(b.outcome, tests=dataclasses.replace(
+            seam, statistic=np.array([z])))
+        rows = [(0, a), (1, b)]
+        _seams_across(rows, V, Config())
+        assert a.outcome.accepted is not rejected and b.outcome.accepted
+        t = a.outcome.tests.of_kind(TestKind.VERIFY_SEAM_CROSSING)
+        assert len(t) == 1 and t.b[0] == 1 and t.statistic[0] > 0.6  # beyond the band
+        if rejected:
+            assert a.outcome.reason == VerifyReason.INTERIOR_SEAM
+
+
+def test_interior_boxes_of_a_neat_layer_are_found_through_their_neighbours():
+    # suite scene 7: a partly unloaded neat layer whose seams the edge stage does not see;
+    # the interior boxes have no vertex of two lines, only their neighbours' corners
+    from boxloc.metrics import match_surfaces
+    from boxloc.pipeline import find_graspable_surfaces
+    from boxloc.simulate import scene_suite, simulate
+    sim = simulate(list(scene_suite(60, 0))[7])
+    r = find_graspable_surfaces(sim.scan, Config())
+    m = match_surfaces(r.surfaces, sim.truth)
+    assert m.fp == 0 and m.tp >= 8  # 2 without the neighbours' corners
+    hyp = r.hypotheses.att_hypothesis[r.surfaces.attempt]
+    assert (r.vertices.parent[hyp] >= 0).sum() >= 4

@@ -16,6 +16,7 @@ from boxloc.config import Config
 from boxloc.errors import LogError
 from boxloc.products import products_equal
 from recorder import annotate as A
+from recorder.encode import SCHEMA_VERSION
 from recorder.log import open_log
 from recorder.mcap_sink import McapRecorder
 
@@ -140,7 +141,7 @@ def test_info_shows_scans_channels_versions_time_and_size(log_path: Path) -> Non
     assert info["time_span"]["duration_s"] == pytest.approx(0.2)
     topics = {c["topic"]: c for c in info["channels"]}
     assert topics["/scan/range"]["schema"] == "foxglove.RawImage"
-    assert topics["/boxloc/hypotheses"]["record"] == "boxloc.HypothesisSet/1.0"
+    assert topics["/boxloc/hypotheses"]["record"] == f"boxloc.HypothesisSet/{SCHEMA_VERSION}"
     assert topics["/scan/info"]["messages"] == 3
     code, text = _invoke("info", str(log_path))
     assert code == 0

@@ -11,7 +11,7 @@ from boxloc.config import Config
 from boxloc.pipeline import find_graspable_surfaces
 from boxloc.products import EdgeKind, VerifyReason
 from boxloc.stats import TestKind
-from boxloc.verify import VerifyContext, continuation, face_extent, verify
+from boxloc.verify import VerifyContext, continuation, face_extent, rasterize, verify
 from tests.scenes import box, scene
 
 
@@ -159,3 +159,24 @@ def test_a_strip_out_of_the_image_cannot_show_the_face_ends(single_box):
                                                4 * spacing, 2.576)
         assert in_image.tolist() == inside
     assert np.isnan(frac[1]) and n_valid[1] == 0
+
+
+def _pixel_square(sensor, u0: float, v0: float, side: float, z: float = 1.0) -> np.ndarray:
+    """Corners (4, 3) at depth z whose projection is the square from (u0, v0), side px."""
+    uv = np.array([[u0, v0], [u0 + side, v0], [u0 + side, v0 + side], [u0, v0 + side]])
+    return np.c_[(uv[:, 0] - sensor.cx) / sensor.fx * z, (uv[:, 1] - sensor.cy) / sensor.fy * z,
+                 np.full(4, z)]
+
+
+def test_rasterize_clips_a_rectangle_at_the_image_border(single_box):
+    # a face a few pixels over the border is verified on its part in the image; one
+    # mostly outside cannot be
+    sim = single_box[0]
+    s = sim.scan.sensor
+    inside = rasterize(sim.scan, _pixel_square(s, 100.0, 100.0, 40.0))
+    assert inside is not None and len(inside[0]) == pytest.approx(1600, rel=0.1)
+    over = rasterize(sim.scan, _pixel_square(s, 100.0, -10.0, 40.0))
+    assert over is not None
+    rr, cc = over
+    assert rr.min() == 0 and len(rr) == pytest.approx(30 * 40, rel=0.1)
+    assert rasterize(sim.scan, _pixel_square(s, 100.0, -30.0, 40.0)) is None

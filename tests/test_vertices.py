@@ -58,3 +58,15 @@ def test_every_pair_is_tested_and_recorded():
     t = find_vertices(L, config=Config()).tests
     for kind in (TestKind.LINES_MEET, TestKind.LINES_ORTHOGONAL, TestKind.AT_SEGMENT_ENDS):
         assert len(t.of_kind(kind)) == 3
+
+
+def test_a_vertex_set_from_a_log_before_neighbours_reads_back_as_lines():
+    # logs of schema 1.0 have no parent columns: every vertex is then one of two lines
+    from boxloc.products import VertexSet, from_arrays, to_arrays
+    corner = np.array([0.0, 0.0, 1.5])
+    V = find_vertices(_fits((corner + 0.15 * X, X, 0.3), (corner + 0.1 * Y, Y, 0.2)),
+                      config=Config())
+    assert len(V) == 1 and V.parent.tolist() == [-1]
+    arrays = {k: v for k, v in to_arrays(V).items() if "parent" not in k}
+    W = from_arrays(VertexSet, arrays)
+    assert W.parent.tolist() == [-1] and W.parent_side.tolist() == [-1]
