@@ -513,7 +513,7 @@ def generate_hypotheses(
     works = _work_on(list(range(len(vertices))), ctx)
     new_from = 0
     for _ in range(MAX_NEIGHBOUR_ROUNDS):
-        V = neighbour_vertices(ctx.vertices, works[new_from:], config)
+        V = neighbour_vertices(ctx.vertices, works, new_from, config)
         new_from = len(ctx.vertices)
         if len(V) == len(ctx.vertices):
             ctx = dataclasses.replace(ctx, vertices=V)
@@ -534,80 +534,129 @@ def _work_on(ids: list[int], ctx: _Context) -> list[_VertexWork]:
     return [_work_on_vertex(i, ctx) for i in ids]
 
 
-def neighbour_vertices(vertices: VertexSet, works: list[_VertexWork], config: Config
-                       ) -> VertexSet:
+def _accepted(w: _VertexWork) -> _Attempt | None:
+    return next((a for a in w.attempts if a.outcome is not None and a.outcome.accepted), None)
+
+
+def _corner(C: np.ndarray, u: float, v: float, tol: float) -> np.ndarray:
+    """Position covariance (3, 3) of the corner u d1 + v d2 of a verified rectangle whose
+    vertex has joint covariance C (9, 9): the vertex's point, and the arms' direction
+    error, which verification bounded to the angle tolerance, times the lengths."""
+    return C[:3, :3] + (u * u + v * v) * tol * tol * np.eye(3)
+
+
+def neighbour_vertices(vertices: VertexSet, works: list[_VertexWork], new_from: int,
+                       config: Config) -> VertexSet:
     """``vertices`` and, after them, the corners of touching neighbours across seams.
 
-    A side of a verified rectangle that is a seam (``VERIFY_SEAM_SIDE``) beyond which the
-    face's plane runs on (``VERIFY_CONTINUATION`` below ``min_inlier_fraction``: a
-    neighbour of equal height) is a side of that neighbour too, and its two ends are two
-    of the neighbour's corners: one vertex each, with d1 across the seam and d2 along
-    it. Those are the corners the line stage misses when both sides are seams (an
-    interior box of a neat layer). A corner that coincides with a vertex of the same
-    quadrant (chi2 of the positions, 3 dof, at alpha) is not added again; every corner
-    offered is a ``NEIGHBOUR_CORNER`` test row.
+    A side of a verified rectangle that is a seam (``VERIFY_SEAM_SIDE``) as strong as the
+    search for one inside the rectangle had to find, beyond which the face's plane runs on
+    (``VERIFY_CONTINUATION`` at least ``min_inlier_fraction``: a neighbour of equal
+    height), is a side of that neighbour too, and its two ends are two of the neighbour's
+    corners: one vertex each, with its arms across the seam and along it. Those are the
+    corners the line stage misses when both sides are seams (an interior box of a neat
+    layer).
 
-    The new vertex's covariance is first order: the parent's point, moved along its arms
-    by the rectangle's dimensions, takes the arms' direction errors times those lengths;
-    its directions keep the parent's.
+    A corner is not added where the neighbour has been found already (a verified
+    rectangle, that no strong seam crosses, covers its quadrant just beyond it) or has a
+    vertex already (one of the same quadrant coincides with it: chi2 of the positions,
+    3 dof, at alpha). Every corner offered is a ``NEIGHBOUR_CORNER`` test row.
+
+    Parameters
+    ----------
+    vertices : VertexSet
+        All vertices so far; ``works[i]`` is vertex i's.
+    works : list
+        The work of every vertex so far.
+    new_from : int
+        Corners are offered from ``works[new_from:]`` (the last round's).
+    config : Config
+
+    Notes
+    -----
+    The new vertex's position covariance is the parent's point's, and the angle tolerance
+    times the distance along the arms (:func:`_corner`); its directions keep the parent's
+    covariances.
     """
     alpha = config.alpha
+    crit = chi2_critical(3.0, alpha)
+    k = math.sqrt(chi2_critical(1.0, alpha))
+    tol = config.angle_tolerance
     pts, D1, D2, N, COV = (list(vertices.points), list(vertices.d1), list(vertices.d2),
                            list(vertices.normals), list(vertices.covariances))
     parent, side_of = list(vertices.parent), list(vertices.parent_side)
+    # the verified rectangles that no strong seam crosses (one that is crossed will be
+    # rejected, and must not hide its neighbours)
+    acc = [(w.vertex, a) for w in works if (a := _accepted(w)) is not None]
+    cross = _crossings([(vertices.points[i], vertices.d1[i], vertices.d2[i], a)
+                        for i, a in acc], config)
+    found = [(i, a) for (i, a), (_, _, crosses) in zip(acc, cross) if not crosses]
+    mi, probe = BOUNDARY_BAND * config.min_edge, 0.75 * config.min_edge
+
+    def covered(p: np.ndarray, d1: np.ndarray, d2: np.ndarray) -> int:
+        """The vertex whose verified rectangle covers the quadrant at p, or -1."""
+        q = p + probe * (d1 + d2)  # inside any box there, beyond the band of its sides
+        for i, a in found:
+            out = a.outcome
+            assert out is not None
+            dq = q - vertices.points[i]
+            u, v = dq @ vertices.d1[i], dq @ vertices.d2[i]
+            r = float(np.linalg.norm(out.plane_center))
+            sig = math.hypot(config.noise.sigma_range(r), config.flatness)
+            if (mi < u < a.width - mi and mi < v < a.length - mi
+                    and abs((q - out.plane_center) @ out.plane_normal) <= k * sig):
+                return i
+        return -1
+
     rows: list[tuple[int, int, float]] = []
-    for w in works:
-        att = next((a for a in w.attempts if a.outcome is not None and a.outcome.accepted),
-                   None)
+    for w in works[new_from:]:
+        att = _accepted(w)
         if att is None:
             continue
         i = w.vertex
         t = att.outcome.tests  # type: ignore[union-attr]
-        # a seam that makes evidence beyond its own rectangle must be as strong as the
-        # search for one anywhere inside had to find (a weak false seam would send a
-        # chain of cut-short rectangles across a face)
         seam = t.of_kind(TestKind.VERIFY_SEAM_SIDE)
         crit_in = t.of_kind(TestKind.VERIFY_SEAM_INTERIOR).critical
         strong = seam.accepted & (seam.statistic >= (crit_in.max() if len(crit_in) else np.inf))
-        sides = set(int(b) for b in seam.b[strong])
         cont = t.of_kind(TestKind.VERIFY_CONTINUATION)
         runs_on = {int(b) for b, f in zip(cont.b, cont.statistic)
                    if f >= config.min_inlier_fraction}
         o, x, y, n = vertices.points[i], vertices.d1[i], vertices.d2[i], vertices.normals[i]
         C = vertices.covariances[i]
         W, L = att.width, att.length
-        # side: (its two corners as (u, v), the outward direction, the axis along it)
-        geometry = {0: (((0.0, 0.0), (W, 0.0)), -y, 0), 1: (((0.0, L), (W, L)), y, 0),
-                    2: (((0.0, 0.0), (0.0, L)), -x, 1), 3: (((W, 0.0), (W, L)), x, 1)}
-        for si in sorted(sides & runs_on):
-            ends, out, along = geometry[si]
-            for k, (u, v) in enumerate(ends):
+        # side: its two corners (u, v), the outward direction, whether it runs along x
+        geometry = {0: (((0.0, 0.0), (W, 0.0)), -y, True), 1: (((0.0, L), (W, L)), y, True),
+                    2: (((0.0, 0.0), (0.0, L)), -x, False), 3: (((W, 0.0), (W, L)), x, False)}
+        for si in sorted({int(b) for b in seam.b[strong]} & runs_on):
+            ends, out, along_x = geometry[si]
+            for e, (u, v) in enumerate(ends):
                 p = o + u * x + v * y
-                (u2, v2) = ends[1 - k]
+                u2, v2 = ends[1 - e]
                 d2 = (u2 - u) * x + (v2 - v) * y
                 d2 = d2 / np.linalg.norm(d2)
                 d1 = out.copy()
-                s_out = C[6:, 6:] if along == 0 else C[3:6, 3:6]  # out is +-y or +-x
-                s_along = C[3:6, 3:6] if along == 0 else C[6:, 6:]
+                # the outward arm is +-y (side along x) or +-x, the other along the side
+                s_out, s_along = ((C[6:, 6:], C[3:6, 3:6]) if along_x
+                                  else (C[3:6, 3:6], C[6:, 6:]))
                 if np.cross(d1, d2) @ n < 0:  # keep the normal toward the sensor
                     d1, d2, s_out, s_along = d2, d1, s_along, s_out
                 cov = np.zeros((9, 9))
-                cov[:3, :3] = C[:3, :3] + u * u * C[3:6, 3:6] + v * v * C[6:, 6:]
+                cov[:3, :3] = _corner(C, u, v, tol)
                 cov[3:6, 3:6], cov[6:, 6:] = s_out, s_along
-                # the same corner of the same quadrant already there?
-                best, best_j = np.inf, -1
-                for j in range(len(pts)):
-                    if D1[j] @ d1 < 0.5 or D2[j] @ d2 < 0.5:
-                        continue
-                    dp = p - pts[j]
-                    try:
-                        c2 = float(dp @ np.linalg.solve(cov[:3, :3] + COV[j][:3, :3], dp))
-                    except np.linalg.LinAlgError:
-                        continue
-                    if c2 < best:
-                        best, best_j = c2, j
+                best, best_j = np.inf, covered(p, d1, d2)
+                if best_j >= 0:  # the neighbour is found already
+                    best = 0.0
+                else:
+                    for j in range(len(pts)):
+                        if D1[j] @ d1 < 0.5 or D2[j] @ d2 < 0.5:  # another quadrant
+                            continue
+                        dp = p - pts[j]
+                        c2 = float(dp @ np.linalg.lstsq(cov[:3, :3] + COV[j][:3, :3], dp,
+                                                        rcond=None)[0])
+                        if c2 < best:
+                            best, best_j = c2, j
                 rows.append((i, best_j, best))
-                if best <= chi2_critical(3.0, alpha):
+                if best <= crit:
                     continue
                 pts.append(p)
                 D1.append(d1)
@@ -634,10 +683,59 @@ def neighbour_vertices(vertices: VertexSet, works: list[_VertexWork], config: Co
     )
 
 
+_Rect = tuple[np.ndarray, np.ndarray, np.ndarray, _Attempt]  # origin, x, y, attempt
+
+
+def _crossings(rects: list[_Rect], config: Config) -> list[tuple[float, int, bool]]:
+    """For each verified rectangle: the largest fraction of another one's strong seam
+    side that lies in its core, that other's index (-1 if none) and whether it crosses.
+
+    A seam side is strong for this if it is as strong as the rectangle's own search for
+    a seam anywhere inside had to find, and significant among all the seam sides offered
+    (Bonferroni): one weak false seam must not remove a face. It crosses if at least half
+    of it lies in the core (beyond ``BOUNDARY_BAND`` ``min_edge`` of the sides) and on
+    the rectangle's plane (point on plane, z at alpha).
+    """
+    segs: list[tuple[int, float, np.ndarray, np.ndarray]] = []
+    for j, (o, x, y, a) in enumerate(rects):
+        c = rectangle_corners(o, x, y, a.width, a.length)
+        t = a.outcome.tests.of_kind(TestKind.VERIFY_SEAM_SIDE)  # type: ignore[union-attr]
+        ends = {0: (c[0], c[1]), 1: (c[3], c[2]), 2: (c[0], c[3]), 3: (c[1], c[2])}
+        for si, z in zip(t.b[t.accepted], t.statistic[t.accepted]):
+            segs.append((j, float(z), *ends[int(si)]))
+    if not segs:
+        return [(0.0, -1, False)] * len(rects)
+    k = math.sqrt(chi2_critical(1.0, config.alpha))
+    crit_all = float(st.norm.isf(config.alpha / len(segs)))
+    mi = BOUNDARY_BAND * config.min_edge
+    s = np.linspace(0.0, 1.0, 21)[:, None]
+    out: list[tuple[float, int, bool]] = []
+    for j, (o, x, y, a) in enumerate(rects):
+        res = a.outcome
+        assert res is not None
+        nf, cf = res.plane_normal, res.plane_center
+        sig = math.hypot(config.noise.sigma_range(float(np.linalg.norm(cf))), config.flatness)
+        crit_in = res.tests.of_kind(TestKind.VERIFY_SEAM_INTERIOR).critical
+        crit = max(float(crit_in.max()) if len(crit_in) else np.inf, crit_all)
+        worst, by = 0.0, -1
+        for jb, z, p, q in segs:
+            if jb == j or z < crit:
+                continue
+            P = p + s * (q - p)
+            u, v = (P - o) @ x, (P - o) @ y
+            inside = ((u > mi) & (u < a.width - mi) & (v > mi) & (v < a.length - mi)
+                      & (np.abs((P - cf) @ nf) <= k * sig))
+            f = float(inside.mean())
+            if f > worst:
+                worst, by = f, jb
+        out.append((worst, by, worst >= 0.5))
+    return out
+
+
 def _seams_across(att_rows: list[tuple[int, _Attempt]], vertices: VertexSet,
                   config: Config) -> None:
     """Reject a verified rectangle across whose core runs a seam side of another one
-    (``VERIFY_SEAM_CROSSING``, reason ``INTERIOR_SEAM``).
+    (``VERIFY_SEAM_CROSSING``, reason ``INTERIOR_SEAM``; see :func:`_crossings`).
 
     Two touching boxes of equal height seen from afar may show their seam only to the
     test at the side's known position, not to the search for the strongest groove
@@ -645,51 +743,14 @@ def _seams_across(att_rows: list[tuple[int, _Attempt]], vertices: VertexSet,
     selection for explaining more points with one model.
     """
     acc = [j for j, (_, a) in enumerate(att_rows) if a.outcome and a.outcome.accepted]
-    if len(acc) < 2:
-        return
-    segs: list[tuple[int, float, np.ndarray, np.ndarray]] = []
-    frames = {}
-    for j in acc:
-        hi, a = att_rows[j]
-        c = rectangle_corners(vertices.points[hi], vertices.d1[hi], vertices.d2[hi],
-                              a.width, a.length)
-        frames[j] = (c[0], vertices.d1[hi], vertices.d2[hi], a)
-        t = a.outcome.tests.of_kind(TestKind.VERIFY_SEAM_SIDE)  # type: ignore[union-attr]
-        ends = {0: (c[0], c[1]), 1: (c[3], c[2]), 2: (c[0], c[3]), 3: (c[1], c[2])}
-        for si, z in zip(t.b[t.accepted], t.statistic[t.accepted]):
-            segs.append((j, float(z), *ends[int(si)]))
-    if not segs:
-        return
-    k = math.sqrt(chi2_critical(1.0, config.alpha))
-    crit_all = float(st.norm.isf(config.alpha / len(segs)))
-    mi = BOUNDARY_BAND * config.min_edge
-    s = np.linspace(0.0, 1.0, 21)[:, None]
-    for j in acc:
-        o, x, y, a = frames[j]
+    rects = [(vertices.points[h], vertices.d1[h], vertices.d2[h], a)
+             for h, a in (att_rows[j] for j in acc)]
+    for j, (frac, by, crosses) in zip(acc, _crossings(rects, config)):
+        a = att_rows[j][1]
         out = a.outcome
         assert out is not None
-        nf, cf = out.plane_normal, out.plane_center
-        sig = math.hypot(config.noise.sigma_range(float(np.linalg.norm(cf))), config.flatness)
-        worst, by, zb = 0.0, -1, 0.0
-        for jb, z, p, q in segs:
-            if jb == j:
-                continue
-            P = p + s * (q - p)
-            D = P - o
-            u, v = D @ x, D @ y
-            inside = ((u > mi) & (u < a.width - mi) & (v > mi) & (v < a.length - mi)
-                      & (np.abs((P - cf) @ nf) <= k * sig))
-            f = float(inside.mean())
-            if f > worst:
-                worst, by, zb = f, jb, z
-        # ... and the seam as strong as the search inside had to find, and significant
-        # among all the seam sides offered (Bonferroni): one weak false seam must not
-        # remove a face
-        crit_in = out.tests.of_kind(TestKind.VERIFY_SEAM_INTERIOR).critical
-        crit = max(float(crit_in.max()) if len(crit_in) else np.inf, crit_all)
-        crosses = worst >= 0.5 and zb >= crit
-        row = TestTable.decision(TestKind.VERIFY_SEAM_CROSSING, -1, by, worst, 0.5,
-                                 not crosses, config.alpha)
+        row = TestTable.decision(TestKind.VERIFY_SEAM_CROSSING, -1, acc[by] if by >= 0 else -1,
+                                 frac, 0.5, not crosses, config.alpha)
         a.outcome = dataclasses.replace(
             out, tests=TestTable.concat([out.tests, row], config.alpha),
             **({"accepted": False, "reason": VerifyReason.INTERIOR_SEAM} if crosses else {}))

@@ -80,9 +80,10 @@ class TestKind(IntEnum):
     #: extent is a box edge (min_edge to max_edge) and so a far-side candidate
     FACE_EXTENT = 22
     #: hypothesis stage: a corner of verified hypothesis a's seam side, where a touching
-    #: neighbour of equal height has a corner too, coincides with vertex b (the nearest
-    #: with the same quadrant, -1 if none; statistic = chi2 of the positions, 3 dof);
-    #: rejected means a new vertex (``VertexSet.parent``)
+    #: neighbour of equal height has a corner too, is known: vertex b's verified rectangle
+    #: covers its quadrant (statistic 0), or vertex b of the same quadrant coincides with
+    #: it (statistic = chi2 of the positions, 3 dof; b = -1 if there is none); rejected
+    #: means a new vertex (``VertexSet.parent``)
     NEIGHBOUR_CORNER = 23
     #: verification: no seam side of verified attempt b crosses the core of verified
     #: attempt a (statistic = the fraction of that side inside a's core, beyond
