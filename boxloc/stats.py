@@ -54,7 +54,9 @@ class TestKind(IntEnum):
     VERIFY_TILT = 15
     #: verification: points in front of hypothesis a's face, in its core, are no more than
     #: behind (row 0: sign test, b = points off the plane) or than the noise model's
-    #: alpha/2 (row 1: binomial, b = points in the core); covered only if both reject
+    #: alpha/2, over the core (row 1: binomial, b = points in the core) and in its busiest
+    #: cell (row 2: binomial, Bonferroni over the cells, b = points in the cell); covered
+    #: if row 0 rejects and row 1 or row 2 does
     VERIFY_EXPOSED = 16
     #: verification: the sides of hypothesis a are lines of convex edge points (rows 0-3:
     #: distinct positions covered per side, critical = MIN_LINE_POINTS or the side's

@@ -87,7 +87,7 @@ _RECORD_RE = re.compile(r"^boxloc\.([A-Za-z][A-Za-z0-9]{0,63})/(\d{1,4})\.(\d{1,
 
 
 def record_schema(name: str) -> str:
-    """The versioned record name written into every boxloc message, e.g. ``boxloc.EdgeMap/1.0``."""
+    """The versioned record name written into every boxloc message, e.g. ``boxloc.EdgeMap/1.1``."""
     return f"boxloc.{name}/{SCHEMA_VERSION}"
 
 

@@ -57,6 +57,7 @@ import dataclasses
 import io
 import json
 import os
+import re
 import resource
 import shutil
 import struct
@@ -661,8 +662,8 @@ def _mutate_product(rng: np.random.Generator, data: bytes) -> tuple[bytes, str]:
                            "duplicate", "string", "index"]))
     if what == "schema":
         msg.schema = str(_pick(rng, [msg.schema.replace("/1.", "/2."), "boxloc.Other/1.0", "",
-                                     "x" * 1000, msg.schema.replace("/1.0", "/1.99"),
-                                     msg.schema.replace("/1.0", "/0.9")]))
+                                     "x" * 1000, re.sub(r"/1\.\d+$", "/1.99", msg.schema),
+                                     re.sub(r"/1\.\d+$", "/0.9", msg.schema)]))
     elif what == "index":
         msg.scan_index = int(_pick(rng, [-1, 2**63 - 1, -(2**63), 7]))
     elif not arrays:
