@@ -53,7 +53,14 @@ from boxloc.lines import MIN_LINE_POINTS
 from boxloc.products import EdgeKind, EdgeMap, VerifyReason
 from boxloc.raster import fill_polygon, polygon_area, rectangle_pixels
 from boxloc.scan import Scan
-from boxloc.seams import SEAM_FLANK, FacePoints, face_points, find_seams, seam_at
+from boxloc.seams import (
+    SEAM_FLANK,
+    SEAM_INNER,
+    FacePoints,
+    face_points,
+    find_seams,
+    seam_at,
+)
 from boxloc.stats import TestKind, TestTable, chi2_critical
 
 #: A run of this many pixels without a point on a face's plane ends the face (a sensor's
@@ -641,9 +648,11 @@ def verify(
     ends = ~continues
     extra_seam: list[tuple[int, float, float]] = []
     # a side with neither a line of edges nor a step beyond it rests on its seam alone:
-    # that seam must be as strong as the search inside had to find (a weak false seam
-    # across a plane, the pallet's top beside the boxes, would cut a rectangle out of it)
-    crit_in = max(int_crit) if int_crit else np.inf
+    # that seam must be as strong as the search inside had to find, and as a search over
+    # the longest box edge (where the side's candidate came from) would: a weak false
+    # seam across a plane, the pallet's top beside the boxes, would cut a rectangle out
+    crit_in = max([*int_crit, float(st.norm.isf(
+        alpha / max(config.max_edge / (2.0 * SEAM_INNER * spacing), 1.0)))])
     for si in np.flatnonzero(continues):
         if si in seam_z:
             ends[si] = seam_z[si] >= crit_in
