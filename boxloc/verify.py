@@ -53,14 +53,7 @@ from boxloc.lines import MIN_LINE_POINTS
 from boxloc.products import EdgeKind, EdgeMap, VerifyReason
 from boxloc.raster import fill_polygon, polygon_area, rectangle_pixels
 from boxloc.scan import Scan
-from boxloc.seams import (
-    SEAM_FLANK,
-    SEAM_INNER,
-    FacePoints,
-    face_points,
-    find_seams,
-    seam_at,
-)
+from boxloc.seams import SEAM_FLANK, FacePoints, face_points, find_seams, seam_at
 from boxloc.stats import TestKind, TestTable, chi2_critical
 
 #: A run of this many pixels without a point on a face's plane ends the face (a sensor's
@@ -507,14 +500,12 @@ def verify(
     fp = face_points(ctx.points, ctx.valid, ctx.sigma, ctx.project, origin, x_axis, y_axis,
                      normal, (-B, width + B), (-B, length + B), spacing, alpha)
     seam_sides: set[int] = set()  # sides shown to be seams (or gaps), here or below
-    seam_z: dict[int, float] = {}  # ... of them, those without a line of edges: their z
     if not all(side_ok) and len(fp):
         tried = [si for si in range(4) if not side_ok[si]]
         zz = np.array([_side_seam(fp, si, width, length, spacing, alpha) for si in tried])
         for si, (zs, zc) in zip(tried, zz):
             if zs > zc:
                 seam_sides.add(si)
-                seam_z[si] = float(zs)
                 side_ok[si] = True
                 covered[si] = int(side_n[si])
         tests.append(TestTable.decision(TestKind.VERIFY_SEAM_SIDE, attempt_id, tried,
@@ -647,18 +638,7 @@ def verify(
     continues = cont >= config.min_inlier_fraction
     ends = ~continues
     extra_seam: list[tuple[int, float, float]] = []
-    # a side with neither a line of edges nor a step beyond it rests on its seam alone:
-    # that seam must be as strong as the search inside had to find, and as a search over
-    # the longest box edge (where the side's candidate came from) would: a weak false
-    # seam across a plane, the pallet's top beside the boxes, would cut a rectangle out
-    crit_in = max([*int_crit, float(st.norm.isf(
-        alpha / max(config.max_edge / (2.0 * SEAM_INNER * spacing), 1.0)))])
     for si in np.flatnonzero(continues):
-        if si in seam_z:
-            ends[si] = seam_z[si] >= crit_in
-            if not ends[si]:
-                seam_sides.discard(int(si))
-            continue
         if si in seam_sides:
             ends[si] = True
             continue

@@ -162,27 +162,6 @@ def test_exposed_catches_the_corner_of_a_box_above(single_box):
     assert not rows.accepted[0] and rows.accepted[1] and not rows.accepted[2]
 
 
-def test_no_rectangle_cut_out_of_a_plane_at_a_weak_seam():
-    # suite scene 30: the pallet's top beside a single box; a rectangle over part of it
-    # had one side with no edges, a groove there just above the side test's critical
-    # value (3.0 against 2.7) and the plane running on beyond it
-    from boxloc.metrics import match_surfaces
-    from boxloc.simulate import parse_spec, simulate
-    sim = simulate(parse_spec("single:seed=357358044,distance=1.159,tilt=0.0129,"
-                              "bulge=0.0119"))
-    r = find_graspable_surfaces(sim.scan, Config())
-    m = match_surfaces(r.surfaces, sim.truth)
-    assert (m.tp, m.fp) == (1, 0)
-    V = r.verification
-    big = np.flatnonzero((r.hypotheses.att_length > 0.7) & (V.reason == VerifyReason.CONTINUES))
-    assert len(big)
-    for j in big:  # its seam side is recorded, and is weaker than the interior search's
-        seam = V.tests.select((V.tests.a == j) & (V.tests.kind == TestKind.VERIFY_SEAM_SIDE))
-        inner = V.tests.select((V.tests.a == j)
-                               & (V.tests.kind == TestKind.VERIFY_SEAM_INTERIOR))
-        assert seam.accepted.any() and seam.statistic[seam.accepted].min() < inner.critical.max()
-
-
 def test_a_strip_out_of_the_image_cannot_show_the_face_ends(single_box):
     # the far side along y moved 2 m out: its strip lies outside the image (and so do
     # most of the two sides along it), the side at the vertex inside; verify then cannot
