@@ -45,7 +45,7 @@ import threading
 import time
 import traceback
 import warnings
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field
 from importlib.metadata import entry_points
 from pathlib import Path
@@ -456,6 +456,10 @@ def run_bench(
         "summary": {m: aggregate_matches(r.match for r in runs[m] if r.match) for m in methods},
         "edges": aggregate_edges([r.edges for r in runs["boxloc"] if r.edges is not None]),
         "per_kind": _per_kind(runs, methods),
+        # boxloc against the baseline on the faces both found
+        "common_grasp": (common_grasp(zip((r.match for r in runs["boxloc"]),
+                                          (r.match for r in runs["baseline"])))
+                         if "baseline" in methods else None),
         "timing": {m: _timing(runs[m]) for m in methods},
         "memory": {
             **{f"{m}_peak_rss_mb": _max([r.peak_mb for r in runs[m]]) for m in methods},
@@ -525,6 +529,40 @@ def _timing(runs: Sequence[_MethodRun]) -> dict[str, Any]:
         "total_ms": percentiles_ms(walls),
         "per_scene_total_ms": [None if r.wall_ms is None else round(r.wall_ms, 3) for r in runs],
     }
+
+
+def common_grasp(pairs: Iterable[tuple[Match | None, Match | None]]) -> dict[str, Any]:
+    """Grasp-point error of two methods on the faces both found (true positives of both).
+
+    A method that finds only the easy faces has a lower median over its own true
+    positives; on the same faces the comparison is like for like.
+
+    Parameters
+    ----------
+    pairs : iterable of (Match, Match)
+        The two methods' matches of each scene (None: the method failed there).
+
+    Returns
+    -------
+    dict
+        ``n`` faces, and per method (``a``, ``b``) the median and p95 in millimetres.
+    """
+    ea: list[float] = []
+    eb: list[float] = []
+    for ma, mb in pairs:
+        if ma is None or mb is None:
+            continue
+        ga = {int(f): float(e) for f, e in zip(ma.tp_pairs[:, 1], ma.grasp_err)}
+        gb = {int(f): float(e) for f, e in zip(mb.tp_pairs[:, 1], mb.grasp_err)}
+        for f in sorted(set(ga) & set(gb)):
+            ea.append(ga[f])
+            eb.append(gb[f])
+    out: dict[str, Any] = {"n": len(ea)}
+    for key, e in (("a", ea), ("b", eb)):
+        a = np.asarray(e, dtype=np.float64)
+        out[f"{key}_median_mm"] = float(np.median(a) * 1e3) if len(a) else None
+        out[f"{key}_p95_mm"] = float(np.percentile(a, 95) * 1e3) if len(a) else None
+    return out
 
 
 def _per_kind(runs: dict[str, list[_MethodRun]], methods: Sequence[str]) -> dict[str, Any]:
@@ -625,6 +663,11 @@ def print_report(report: dict[str, Any], console: Any) -> None:
         if has_base:
             cells.append(_fmt(s["baseline"].get(key)))
         t.add_row(*cells, "", "")
+    cg = report.get("common_grasp")
+    if has_base and cg and cg["n"]:
+        t.add_row(escape(f"grasp error on the {cg['n']} faces both find, median / p95 [mm]"),
+                  f"{_fmt(cg['a_median_mm'], 'mm')} / {_fmt(cg['a_p95_mm'], 'mm')}",
+                  f"{_fmt(cg['b_median_mm'], 'mm')} / {_fmt(cg['b_p95_mm'], 'mm')}", "", "")
     e = report.get("edges", {})
     if e.get("n_scans"):
         for k in ("any", "jump", "crease"):

@@ -19,8 +19,8 @@ from boxloc.cli import cli
 
 TOP_KEYS = {
     "version", "n", "seed", "config", "config_hash", "scene_noise", "threads", "warmup",
-    "crash_policy", "summary", "edges", "per_kind", "timing", "memory", "targets", "sections",
-    "errors", "scenes",
+    "crash_policy", "summary", "edges", "per_kind", "common_grasp", "timing", "memory",
+    "targets", "sections", "errors", "scenes",
 }
 SUMMARY_KEYS = {
     "precision", "recall", "f1", "tp", "fp", "fn", "grasp_err_median_mm", "grasp_err_p95_mm",
@@ -241,3 +241,26 @@ def test_cli_bench_help_and_bad_n() -> None:
     r = runner.invoke(cli, ["bench", "--n", "1", "--set", "nonsense=1"])
     assert r.exit_code == 2
     assert "unknown config key" in r.output
+
+
+def test_common_grasp_compares_on_the_faces_both_found() -> None:
+    from boxloc.metrics import match_surfaces
+    from boxloc.simulate import simulate
+
+    T = simulate("touching", seed=3).truth
+
+    def found(faces, shift=0.0):
+        f = np.asarray(faces)
+        return surface_set_from_rects(T.centers[f], T.normals[f], T.x_axis[f], T.width[f],
+                                      T.length[f], grasp_points=T.centers[f] + shift * T.x_axis[f])
+
+    every = np.flatnonzero(T.fully_exposed)
+    assert len(every) >= 2
+    exact = match_surfaces(found(every), T)
+    # the other method found only the first face, its grasp point 1 cm off
+    other = match_surfaces(found(every[:1], 0.01), T)
+    assert (exact.tp, other.tp) == (len(every), 1)
+    cg = bench.common_grasp([(exact, other), (exact, None)])
+    assert cg["n"] == 1
+    assert cg["a_median_mm"] == pytest.approx(0.0, abs=1e-6)
+    assert cg["b_median_mm"] == pytest.approx(10.0, abs=1e-3)
