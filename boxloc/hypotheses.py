@@ -592,21 +592,46 @@ def neighbour_vertices(vertices: VertexSet, works: list[_VertexWork], new_from: 
                         for i, a in acc], config)
     found = [(i, a) for (i, a), (_, _, crosses) in zip(acc, cross) if not crosses]
     mi, probe = BOUNDARY_BAND * config.min_edge, 0.75 * config.min_edge
+    fi = np.array([i for i, _ in found], np.int64)
+    f_wl = np.array([(a.width, a.length) for _, a in found], np.float64).reshape(-1, 2)
+    f_c = np.array([a.outcome.plane_center for _, a in found]).reshape(-1, 3)  # type: ignore
+    f_n = np.array([a.outcome.plane_normal for _, a in found]).reshape(-1, 3)  # type: ignore
+    f_sig = np.array([math.hypot(config.noise.sigma_range(float(np.linalg.norm(c))),
+                                 config.flatness) for c in f_c])
 
     def covered(p: np.ndarray, d1: np.ndarray, d2: np.ndarray) -> int:
         """The vertex whose verified rectangle covers the quadrant at p, or -1."""
+        if not len(fi):
+            return -1
         q = p + probe * (d1 + d2)  # inside any box there, beyond the band of its sides
-        for i, a in found:
-            out = a.outcome
-            assert out is not None
-            dq = q - vertices.points[i]
-            u, v = dq @ vertices.d1[i], dq @ vertices.d2[i]
-            r = float(np.linalg.norm(out.plane_center))
-            sig = math.hypot(config.noise.sigma_range(r), config.flatness)
-            if (mi < u < a.width - mi and mi < v < a.length - mi
-                    and abs((q - out.plane_center) @ out.plane_normal) <= k * sig):
-                return i
-        return -1
+        dq = q - vertices.points[fi]
+        u = np.einsum("ij,ij->i", dq, vertices.d1[fi])
+        v = np.einsum("ij,ij->i", dq, vertices.d2[fi])
+        on = np.abs(np.einsum("ij,ij->i", q - f_c, f_n)) <= k * f_sig
+        hit = np.flatnonzero((u > mi) & (u < f_wl[:, 0] - mi) & (v > mi)
+                             & (v < f_wl[:, 1] - mi) & on)
+        return int(fi[hit[0]]) if len(hit) else -1
+
+    n0 = len(pts)
+    base = (np.asarray(pts).reshape(-1, 3), np.asarray(D1).reshape(-1, 3),
+            np.asarray(D2).reshape(-1, 3), np.asarray(COV).reshape(-1, 9, 9)[:, :3, :3])
+
+    def nearest(p: np.ndarray, d1: np.ndarray, d2: np.ndarray, S: np.ndarray
+                ) -> tuple[float, int]:
+        """chi2 (3 dof) and id of the nearest vertex of the same quadrant, else (inf, -1)."""
+        P, A1, A2, C3 = base
+        if len(pts) > n0:  # the corners added in this call
+            P, A1, A2 = (np.r_[P, pts[n0:]], np.r_[A1, D1[n0:]], np.r_[A2, D2[n0:]])
+            C3 = np.r_[C3, np.asarray(COV[n0:])[:, :3, :3]]
+        same = np.flatnonzero((A1 @ d1 >= 0.5) & (A2 @ d2 >= 0.5))
+        if not len(same):
+            return np.inf, -1
+        dp = p - P[same]
+        # a micrometre of slack keeps a degenerate covariance solvable
+        x = np.linalg.solve(C3[same] + S + 1e-12 * np.eye(3), dp[..., None])[..., 0]
+        c2 = np.einsum("ij,ij->i", dp, x)
+        b = int(np.argmin(c2))
+        return float(c2[b]), int(same[b])
 
     rows: list[tuple[int, int, float]] = []
     for w in works[new_from:]:
@@ -643,18 +668,11 @@ def neighbour_vertices(vertices: VertexSet, works: list[_VertexWork], new_from: 
                 cov = np.zeros((9, 9))
                 cov[:3, :3] = _corner(C, u, v, tol)
                 cov[3:6, 3:6], cov[6:, 6:] = s_out, s_along
-                best, best_j = np.inf, covered(p, d1, d2)
+                best_j = covered(p, d1, d2)
                 if best_j >= 0:  # the neighbour is found already
                     best = 0.0
                 else:
-                    for j in range(len(pts)):
-                        if D1[j] @ d1 < 0.5 or D2[j] @ d2 < 0.5:  # another quadrant
-                            continue
-                        dp = p - pts[j]
-                        c2 = float(dp @ np.linalg.lstsq(cov[:3, :3] + COV[j][:3, :3], dp,
-                                                        rcond=None)[0])
-                        if c2 < best:
-                            best, best_j = c2, j
+                    best, best_j = nearest(p, d1, d2, cov[:3, :3])
                 rows.append((i, best_j, best))
                 if best <= crit:
                     continue
@@ -696,19 +714,26 @@ def _crossings(rects: list[_Rect], config: Config) -> list[tuple[float, int, boo
     of it lies in the core (beyond ``BOUNDARY_BAND`` ``min_edge`` of the sides) and on
     the rectangle's plane (point on plane, z at alpha).
     """
-    segs: list[tuple[int, float, np.ndarray, np.ndarray]] = []
+    own, zs, p0, p1 = [], [], [], []
     for j, (o, x, y, a) in enumerate(rects):
         c = rectangle_corners(o, x, y, a.width, a.length)
         t = a.outcome.tests.of_kind(TestKind.VERIFY_SEAM_SIDE)  # type: ignore[union-attr]
         ends = {0: (c[0], c[1]), 1: (c[3], c[2]), 2: (c[0], c[3]), 3: (c[1], c[2])}
         for si, z in zip(t.b[t.accepted], t.statistic[t.accepted]):
-            segs.append((j, float(z), *ends[int(si)]))
-    if not segs:
+            own.append(j)
+            zs.append(float(z))
+            p0.append(ends[int(si)][0])
+            p1.append(ends[int(si)][1])
+    if not own:
         return [(0.0, -1, False)] * len(rects)
+    owner, z_seg = np.array(own), np.array(zs)
+    A, B = np.array(p0), np.array(p1)
     k = math.sqrt(chi2_critical(1.0, config.alpha))
-    crit_all = float(st.norm.isf(config.alpha / len(segs)))
+    crit_all = float(st.norm.isf(config.alpha / len(owner)))
     mi = BOUNDARY_BAND * config.min_edge
-    s = np.linspace(0.0, 1.0, 21)[:, None]
+    s = np.linspace(0.0, 1.0, 21)
+    P = A[:, None, :] + s[None, :, None] * (B - A)[:, None, :]  # (segments, 21, 3)
+    mid, half = 0.5 * (A + B), 0.5 * np.linalg.norm(B - A, axis=1)
     out: list[tuple[float, int, bool]] = []
     for j, (o, x, y, a) in enumerate(rects):
         res = a.outcome
@@ -717,18 +742,22 @@ def _crossings(rects: list[_Rect], config: Config) -> list[tuple[float, int, boo
         sig = math.hypot(config.noise.sigma_range(float(np.linalg.norm(cf))), config.flatness)
         crit_in = res.tests.of_kind(TestKind.VERIFY_SEAM_INTERIOR).critical
         crit = max(float(crit_in.max()) if len(crit_in) else np.inf, crit_all)
-        worst, by = 0.0, -1
-        for jb, z, p, q in segs:
-            if jb == j or z < crit:
-                continue
-            P = p + s * (q - p)
-            u, v = (P - o) @ x, (P - o) @ y
-            inside = ((u > mi) & (u < a.width - mi) & (v > mi) & (v < a.length - mi)
-                      & (np.abs((P - cf) @ nf) <= k * sig))
-            f = float(inside.mean())
-            if f > worst:
-                worst, by = f, jb
-        out.append((worst, by, worst >= 0.5))
+        # only segments that can reach the rectangle (its circumscribed circle)
+        centre = o + 0.5 * a.width * x + 0.5 * a.length * y
+        near = np.linalg.norm(mid - centre, axis=1) <= half + 0.5 * math.hypot(a.width,
+                                                                                a.length)
+        cand = np.flatnonzero((owner != j) & (z_seg >= crit) & near)
+        if not len(cand):
+            out.append((0.0, -1, False))
+            continue
+        Q = P[cand]
+        u, v = (Q - o) @ x, (Q - o) @ y
+        inside = ((u > mi) & (u < a.width - mi) & (v > mi) & (v < a.length - mi)
+                  & (np.abs((Q - cf) @ nf) <= k * sig))
+        f = inside.mean(1)
+        b = int(np.argmax(f))
+        worst = float(f[b])
+        out.append((worst, int(owner[cand[b]]) if worst > 0 else -1, worst >= 0.5))
     return out
 
 
