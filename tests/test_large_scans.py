@@ -197,7 +197,7 @@ def test_a_pile_of_300_boxes() -> None:
                                         if k in ("tp", "fp", "fn", "n_pred", "n_exposed",
                                                  "precision", "recall")}
            | {"seconds": round(res.timing_ms["total"] / 1e3, 1)})
-    assert len(surf) >= 100  # measured: 191 surfaces, 135 of them true (precision 0.71)
+    assert len(surf) >= 100  # measured: 166 surfaces, 99 of them true (precision 0.60)
     assert m.to_dict()["precision"] >= 0.5
     w, ln = np.asarray(surf.width), np.asarray(surf.length)
     assert (np.minimum(w, ln) >= 0.5 * cfg.min_edge).all()
