@@ -57,6 +57,7 @@ from boxloc.verify import (
     VerifyContext,
     VerifyOutcome,
     face_extent,
+    face_sigma,
     plane_var,
     rectangle_corners,
     verify,
@@ -596,8 +597,7 @@ def neighbour_vertices(vertices: VertexSet, works: list[_VertexWork], new_from: 
     f_wl = np.array([(a.width, a.length) for _, a in found], np.float64).reshape(-1, 2)
     f_c = np.array([a.outcome.plane_center for _, a in found]).reshape(-1, 3)  # type: ignore
     f_n = np.array([a.outcome.plane_normal for _, a in found]).reshape(-1, 3)  # type: ignore
-    f_sig = np.array([math.hypot(config.noise.sigma_range(float(np.linalg.norm(c))),
-                                 config.flatness) for c in f_c])
+    f_sig = np.array([face_sigma(config, c) for c in f_c])
 
     def covered(p: np.ndarray, d1: np.ndarray, d2: np.ndarray) -> int:
         """The vertex whose verified rectangle covers the quadrant at p, or -1."""
@@ -739,7 +739,7 @@ def _crossings(rects: list[_Rect], config: Config) -> list[tuple[float, int, boo
         res = a.outcome
         assert res is not None
         nf, cf = res.plane_normal, res.plane_center
-        sig = math.hypot(config.noise.sigma_range(float(np.linalg.norm(cf))), config.flatness)
+        sig = face_sigma(config, cf)
         crit_in = res.tests.of_kind(TestKind.VERIFY_SEAM_INTERIOR).critical
         crit = max(float(crit_in.max()) if len(crit_in) else np.inf, crit_all)
         # only segments that can reach the rectangle (its circumscribed circle)

@@ -10,8 +10,9 @@ rectangle's plane with their propagated uncertainty (point-on-plane, chi2(1) at 
   (something resting on it or hanging over it), counted in the core beyond twice the
   border margin, are not more frequent than points significantly behind it (noise is symmetric,
   occluders are not: a sign test at alpha, which does not depend on the noise model being
-  exact; row 0), or not more frequent than the noise model puts there (alpha/2 of the
-  points; row 1). The face is covered only if both reject;
+  exact; row 0), and not more frequent than the noise model puts there (alpha/2 of the
+  points) over the core (row 1) or in its busiest cell (row 2, Bonferroni over the cells).
+  The face is covered if row 0 rejects and row 1 or row 2 does;
 * ``VERIFY_INLIERS`` — at least ``min_inlier_fraction`` of the pixels inside are on the
   plane (the rest are dropouts and noise);
 * ``VERIFY_MEAN`` — the inliers' mean signed distance is zero within the propagated
@@ -42,6 +43,7 @@ rectangle's plane with their propagated uncertainty (point-on-plane, chi2(1) at 
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 from dataclasses import dataclass
 
@@ -270,6 +272,12 @@ def continuation(
     return frac, n_valid, in_image
 
 
+def face_sigma(config: Config, point: np.ndarray) -> float:
+    """Standard deviation of a face's points off its plane at ``point``, metres: the
+    range noise there and the flatness prior (bulge)."""
+    return math.hypot(config.noise.sigma_range(float(np.linalg.norm(point))), config.flatness)
+
+
 def plane_var(plane_cov: np.ndarray, normal: np.ndarray, D: np.ndarray) -> np.ndarray:
     """Variance of the distance to a plane, from the plane's own uncertainty, of points at
     offsets D (n, 3) from the plane's point, m^2 (n,): the point's error along the normal
@@ -429,8 +437,7 @@ def verify(
     # edge points near the face's plane, in the rectangle's frame
     E = ctx.edge_points - origin
     eu, ev, ew = E @ x_axis, E @ y_axis, E @ normal
-    r_c = float(np.linalg.norm(centre))
-    sig_e = float(np.sqrt(config.noise.sigma_range(r_c) ** 2 + config.flatness**2))
+    sig_e = face_sigma(config, centre)
     # a face's boundary, seam and crossing edges lie on its plane (a jump point is placed
     # half a sample beyond the face's last point, hence the spacing)
     # ... and the rectangle's own plane is uncertain: a small error of its normal moves
@@ -500,8 +507,9 @@ def verify(
     fp = face_points(ctx.points, ctx.valid, ctx.sigma, ctx.project, origin, x_axis, y_axis,
                      normal, (-B, width + B), (-B, length + B), spacing, alpha)
     seam_sides: set[int] = set()  # sides shown to be seams (or gaps), here or below
-    if not all(side_ok) and len(fp):
-        tried = [si for si in range(4) if not side_ok[si]]
+
+    def seams_along(tried: list[int]) -> None:
+        """Test the tried sides for a seam; a seam is a boundary along the whole side."""
         zz = np.array([_side_seam(fp, si, width, length, spacing, alpha) for si in tried])
         for si, (zs, zc) in zip(tried, zz):
             if zs > zc:
@@ -510,22 +518,16 @@ def verify(
                 covered[si] = int(side_n[si])
         tests.append(TestTable.decision(TestKind.VERIFY_SEAM_SIDE, attempt_id, tried,
                                         zz[:, 0], zz[:, 1], zz[:, 0] > zz[:, 1], alpha))
-        frac = float(sum(covered) / sum(side_n))
-        bound_ok = all(side_ok) and frac >= config.support_fraction
-    if all(side_ok) and not bound_ok and len(fp):
+
+    if not all(side_ok) and len(fp):
+        seams_along([si for si in range(4) if not side_ok[si]])
+    if all(side_ok) and len(fp) and sum(covered) < config.support_fraction * sum(side_n):
         # every side has its line, but together they cover too little of the perimeter:
         # a side whose line is a few points of a seam between equal neighbours is covered
         # by the seam along its whole length
-        tried = [si for si in range(4) if si not in seam_sides]
-        zz = np.array([_side_seam(fp, si, width, length, spacing, alpha) for si in tried])
-        for si, (zs, zc) in zip(tried, zz):
-            if zs > zc:
-                seam_sides.add(si)
-                covered[si] = int(side_n[si])
-        tests.append(TestTable.decision(TestKind.VERIFY_SEAM_SIDE, attempt_id, tried,
-                                        zz[:, 0], zz[:, 1], zz[:, 0] > zz[:, 1], alpha))
-        frac = float(sum(covered) / sum(side_n))
-        bound_ok = frac >= config.support_fraction
+        seams_along([si for si in range(4) if si not in seam_sides])
+    frac = float(sum(covered) / sum(side_n))
+    bound_ok = all(side_ok) and frac >= config.support_fraction
     # no seam inside: the points of the interior, binned along x and along y
     int_z, int_crit = [], []
     if len(fp):
