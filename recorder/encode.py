@@ -312,20 +312,26 @@ def _parse(name: str, data: bytes) -> Any:
 # --- products --------------------------------------------------------------------------------
 
 
-def _field_names(cls: type, prefix: str = "") -> set[str]:
-    """The names :func:`to_arrays` produces for a product type."""
+def _field_names(cls: type, prefix: str = "", required: bool = False) -> set[str]:
+    """The names :func:`to_arrays` produces for a product type; with ``required``, only
+    those a log must have (a field with a default is newer than some logs, and
+    :func:`~boxloc.products.from_arrays` fills it in)."""
     hints = typing.get_type_hints(cls)
     names: set[str] = set()
     for f in dataclasses.fields(cls):
+        if required and f.default is not dataclasses.MISSING:
+            continue
         t = hints[f.name]
         if isinstance(t, type) and dataclasses.is_dataclass(t):
-            names |= _field_names(t, prefix + f.name + "/")
+            names |= _field_names(t, prefix + f.name + "/", required)
         else:
             names.add(prefix + f.name)
     return names
 
 
 _PRODUCT_FIELDS: dict[str, set[str]] = {s: _field_names(PRODUCT_TYPES[s]) for s in STAGES}
+_REQUIRED_FIELDS: dict[str, set[str]] = {s: _field_names(PRODUCT_TYPES[s], required=True)
+                                         for s in STAGES}
 
 
 #: The TestTable columns stored on ``/boxloc/tests`` (one row per test) instead of inside
@@ -384,7 +390,7 @@ def decode_product(
     for col, a in (tests or {}).items():
         arrays.setdefault(f"tests/{col}", a)  # a column kept in the product wins
     expected = _PRODUCT_FIELDS[stage]
-    missing = sorted(expected - set(arrays))
+    missing = sorted(_REQUIRED_FIELDS[stage] - set(arrays))
     if missing:
         where = " (its /boxloc/tests rows are missing)" if any(
             m.startswith("tests/") for m in missing) else ""
