@@ -450,6 +450,14 @@ class SurfaceSet:
         Covariance of (center, rotation vector) in the sensor frame.
     pick_order : (s,) int32
         0 is picked first.
+    bulge : (s,) float64
+        How far the middle of the lid stands above the rim's plane (the box's top),
+        metres (:func:`boxloc.surfaces.fit_bulge`); the centre is on the rim's plane when
+        its SURFACE_BULGE test rejects a flat lid, else on the points' plane.
+    tests : TestTable
+        SURFACE_BULGE per surface (``a`` = attempt).
+
+    Logs written before ``bulge`` and ``tests`` existed read back with zeros and no tests.
     """
 
     hypothesis: np.ndarray
@@ -465,6 +473,14 @@ class SurfaceSet:
     scores: np.ndarray
     covariances: np.ndarray
     pick_order: np.ndarray
+    bulge: np.ndarray = None  # type: ignore[assignment]
+    tests: TestTable = None  # type: ignore[assignment]
+
+    def __post_init__(self) -> None:
+        if self.bulge is None:
+            object.__setattr__(self, "bulge", np.zeros(len(self)))
+        if self.tests is None:
+            object.__setattr__(self, "tests", TestTable.empty(np.nan))
 
     def __len__(self) -> int:
         return int(self.centers.shape[0])
@@ -486,6 +502,7 @@ class SurfaceSet:
                     "score": float(self.scores[i]),
                     "covariance": self.covariances[i].tolist(),
                     "pick_order": int(self.pick_order[i]),
+                    "bulge": float(self.bulge[i]),
                 }
             )
         return out
@@ -562,6 +579,9 @@ def from_arrays(cls: type, arrays: dict[str, np.ndarray], prefix: str = "") -> A
         name = prefix + f.name
         t = hints[f.name]
         if isinstance(t, type) and dataclasses.is_dataclass(t):
+            if f.default is not dataclasses.MISSING and not any(
+                    k.startswith(name + _SEP) for k in arrays):
+                continue  # a product newer than the log
             kw[f.name] = from_arrays(t, arrays, name + _SEP)
             continue
         if name not in arrays:

@@ -92,6 +92,10 @@ class TestKind(IntEnum):
     #: BOUNDARY_BAND min_edge of its sides and on its plane; critical 0.5): a seam shown at
     #: a known place is stronger evidence than a search for one anywhere inside
     VERIFY_SEAM_CROSSING = 24
+    #: result stage: the lid of chosen attempt a is flat: its rim-supported bulge term is
+    #: zero (:func:`boxloc.surfaces.fit_bulge`; statistic (k / sigma_k)^2, 1 dof); rejected
+    #: puts the surface's centre on the rim's plane
+    SURFACE_BULGE = 25
 
 
 @lru_cache(maxsize=256)

@@ -6,7 +6,7 @@ Every MCAP channel boxloc writes is declared here and nowhere else. Two families
   ...), so a log opens in Foxglove and converts with ``rerun mcap convert``;
 * the algorithm's own records, protobuf messages of package ``boxloc.v1`` (built at
   runtime, see :mod:`recorder.proto`) whose ``schema`` field names the record and its
-  version (``boxloc.EdgeMap/1.1``), plus one JSON view with a JSON Schema.
+  version (``boxloc.EdgeMap/1.2``), plus one JSON view with a JSON Schema.
 
 Time: every message of a scan has ``log_time = publish_time =`` :func:`scan_log_time` and
 ``sequence =`` the scan index. Session messages (pick outcomes) carry the log time of the

@@ -62,7 +62,7 @@ from recorder.proto import PACKAGE, message_class
 #: Major version of every boxloc record; a reader refuses any other major version.
 SCHEMA_MAJOR = 1
 #: Minor version: compatible additions (new fields are ignored by older readers).
-SCHEMA_MINOR = 1
+SCHEMA_MINOR = 2
 SCHEMA_VERSION = f"{SCHEMA_MAJOR}.{SCHEMA_MINOR}"
 
 #: Frame of every geometric message (x right, y down, z forward; metres).
@@ -87,7 +87,7 @@ _RECORD_RE = re.compile(r"^boxloc\.([A-Za-z][A-Za-z0-9]{0,63})/(\d{1,4})\.(\d{1,
 
 
 def record_schema(name: str) -> str:
-    """The versioned record name written into every boxloc message, e.g. ``boxloc.EdgeMap/1.1``."""
+    """The versioned record name written into every boxloc message, e.g. ``boxloc.EdgeMap/1.2``."""
     return f"boxloc.{name}/{SCHEMA_VERSION}"
 
 
@@ -387,8 +387,9 @@ def decode_product(
         product carries its tests itself.
     """
     _, arrays = decode_arrays(data, PRODUCT_RECORDS[stage], limits)
-    for col, a in (tests or {}).items():
-        arrays.setdefault(f"tests/{col}", a)  # a column kept in the product wins
+    if any(k.startswith("tests/") for k in arrays):  # else a log from before the tests
+        for col, a in (tests or {}).items():
+            arrays.setdefault(f"tests/{col}", a)  # a column kept in the product wins
     expected = _PRODUCT_FIELDS[stage]
     missing = sorted(_REQUIRED_FIELDS[stage] - set(arrays))
     if missing:
@@ -847,6 +848,7 @@ LOCATE_JSON_SCHEMA: dict[str, Any] = {
                     "length": {"type": ["number", "null"]},
                     "grasp_point": {"type": "array", "items": {"type": ["number", "null"]}},
                     "score": {"type": ["number", "null"]},
+                    "bulge": {"type": ["number", "null"]},
                 },
             },
         },

@@ -597,7 +597,9 @@ class Log:
             elif cur is None:
                 continue
             elif m.topic == C.SURFACES:
-                cur["n"] = len(E.decode_product("surfaces", m.data, limits=self.limits))
+                # only the count: the surfaces' tests (on /boxloc/tests) are not read here
+                cur["n"] = len(E.decode_product("surfaces", m.data, E.empty_test_columns(),
+                                                self.limits))
             else:
                 err = None
                 if m.topic == C.ERROR:

@@ -14,7 +14,7 @@ Messages
                shuffle for integers; upper triangle then byte shuffle for stacks of
                exactly symmetric matrices), so that the chunk's zstd compresses well.
 ``Product``    a record made of named arrays (``schema`` says which, e.g.
-               ``boxloc.EdgeMap/1.1``): every stage product, the scan info, the sensor model.
+               ``boxloc.EdgeMap/1.2``): every stage product, the scan info, the sensor model.
 ``TestRows``   every statistical test of a scan as readable rows (stage, kind, entities,
                statistic, dof, critical value, p-value, alpha, decision).
 ``Timing``     wall-clock time per stage (never compared).

@@ -467,7 +467,8 @@ def log_surfaces(rec: rr.RecordingStream, surfaces: SurfaceSet, *, prefix: str =
                      hypothesis=np.asarray(surfaces.hypothesis, np.int32),
                      score=np.asarray(surfaces.scores, np.float64),
                      width=np.asarray(surfaces.width, np.float64),
-                     length=np.asarray(surfaces.length, np.float64)),
+                     length=np.asarray(surfaces.length, np.float64),
+                     bulge=np.asarray(surfaces.bulge, np.float64)),
     )
     rec.log(entity(prefix, SURFACE_GRASP),
             rr.Points3D(surfaces.grasp_points, colors=colors, radii=rr.Radius.ui_points(6.0)))
@@ -475,6 +476,7 @@ def log_surfaces(rec: rr.RecordingStream, surfaces: SurfaceSet, *, prefix: str =
             rr.Arrows3D(origins=surfaces.grasp_points, vectors=0.1 * surfaces.normals,
                         colors=colors, radii=rr.Radius.ui_points(1.5)))
     _scalar(rec, entity(prefix, f"{STATS_COUNTS}/surfaces"), n)
+    log_tests(rec, surfaces.tests, prefix=prefix)
 
 
 def log_timing(

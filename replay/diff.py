@@ -696,7 +696,8 @@ def _test_keys(t: TestTable, maps: Mapping[str, Mapping[int, int] | None]) -> di
             x = m("peaks", a)
             key = None if x is None else (kind, x)
         elif (TestKind.VERIFY_INLIERS <= kind <= TestKind.VERIFY_SEAM_INTERIOR
-              or kind in (TestKind.VERIFY_CONTINUATION, TestKind.VERIFY_SEAM_CROSSING)):
+              or kind in (TestKind.VERIFY_CONTINUATION, TestKind.VERIFY_SEAM_CROSSING,
+                          TestKind.SURFACE_BULGE)):
             x = m("attempts", a)
             key = None if x is None else (kind, x)
         elif kind in (TestKind.SEAM_PEAK, TestKind.FACE_EXTENT):

@@ -323,6 +323,9 @@ class _Ctx:
             "surface": k, "pick_order": int(S.pick_order[k]), "center": _vec(S.centers[k]),
             "normal": _vec(S.normals[k]), "width_mm": _mm(S.width[k]),
             "length_mm": _mm(S.length[k]), "score": float(S.scores[k]),
+            # the lid's middle above the rim's plane, and whether the centre sits on the rim
+            "bulge_mm": _mm(S.bulge[k]),
+            "tests": _tests(S.tests, [TestKind.SURFACE_BULGE], a=j),
             "hypothesis": self.hypothesis(h, focus=j), "attempt": j,
             "selection": self.selection(int(kk[0])) if kk.size else None,
         }

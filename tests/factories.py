@@ -335,7 +335,10 @@ def make_surfaces(hyps: HypothesisSet, sel: Selection, rng: np.random.Generator)
                       y_axis=y.copy(), width=w, length=ln, corners=corners,
                       grasp_points=centers.copy(), scores=rng.uniform(0.2, 1.0, s),
                       covariances=_spd(rng, s, 6, 0.001),
-                      pick_order=np.arange(s, dtype=np.int32))
+                      pick_order=np.arange(s, dtype=np.int32),
+                      bulge=rng.uniform(-0.001, 0.01, s),
+                      tests=TestTable.chi2(TestKind.SURFACE_BULGE, att, 0,
+                                           rng.chisquare(1, s) * 4, 1, ALPHA))
 
 
 def make_result(scan: Scan, seed: int = 0, *, empty: bool = False) -> Result:

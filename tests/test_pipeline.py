@@ -131,7 +131,7 @@ def test_result_json_is_the_public_interface(single):
     assert set(j) == {"surfaces", "timing_ms", "version"}
     s = j["surfaces"][0]
     assert set(s) == {"id", "center", "normal", "x_axis", "y_axis", "width", "length",
-                      "grasp_point", "score", "covariance", "pick_order"}
+                      "grasp_point", "score", "covariance", "pick_order", "bulge"}
     assert np.array(s["covariance"]).shape == (6, 6)
     assert set(j["timing_ms"]) >= {"edges", "lines", "vertices", "hypotheses", "total"}
 
