@@ -1586,8 +1586,9 @@ class _Pool:
             if s.proc.is_alive():
                 s.proc.kill()
                 s.proc.join(timeout=10)
-        with contextlib.suppress(OSError):
-            s.conn.close()
+        if s.conn is not None:  # stopping a slot twice (its start failed) is harmless
+            with contextlib.suppress(OSError):
+                s.conn.close()
         s.proc, s.conn, s.state, s.case = None, None, "down", None
 
     def run(self, cases: Sequence[Case], on_result: Callable[[dict[str, Any]], None]) -> None:
@@ -1721,7 +1722,8 @@ def run_fuzz(
 
         raise InputError(f"the number of fuzz cases must be an integer >= 0, got {n!r}")
     keep = workdir is not None
-    wd = Path(workdir) if keep else Path(tempfile.mkdtemp(prefix="boxloc-fuzz-"))
+    # absolute: the workers change into their own scratch directories
+    wd = (Path(workdir) if keep else Path(tempfile.mkdtemp(prefix="boxloc-fuzz-"))).resolve()
     wd.mkdir(parents=True, exist_ok=True)
     shutil.rmtree(wd / "failures", ignore_errors=True)
     logs = default_sample_logs() if sample_logs is None else [Path(p) for p in sample_logs]

@@ -266,11 +266,13 @@ def test_the_pipeline_on_tiny_degenerate_scans(scan: Scan) -> None:
     assert len(s) <= 1 or np.isfinite(np.asarray(s.centers)).all()
 
 
-def test_a_small_fuzz_campaign_through_the_bench(tmp_path: Path) -> None:
+def test_a_small_fuzz_campaign_through_the_bench(tmp_path: Path,
+                                                 monkeypatch: pytest.MonkeyPatch) -> None:
     """`boxloc bench --fuzz N`: every category, no failure (CI size; the README's figures
-    come from 10,000 cases)."""
+    come from 10,000 cases). ``--out`` is relative: the workers change directory."""
+    monkeypatch.chdir(tmp_path.parent)
     res = CliRunner().invoke(cli, ["bench", "--fuzz", "42", "--seed", "5", "--out",
-                                   str(tmp_path)], catch_exceptions=False)
+                                   tmp_path.name], catch_exceptions=False)
     assert res.exit_code == 0, res.output
     report = json.loads((tmp_path / "bench.json").read_text())
     assert report["errors"]["total"] == 0, report["errors"]
