@@ -200,15 +200,18 @@ class VertexSet:
     covariances : (V, 9, 9) float64
         Joint covariance of (point, d1, d2).
     line_a, line_b : (V,) int32
-        The two lines (``d1`` runs along ``line_a``); -1 for a neighbour's corner.
+        The two lines (``d1`` runs along ``line_a``); -1 for a neighbour's corner, and for
+        the third edge of a box corner.
     tests : TestTable
         LINES_MEET, LINES_ORTHOGONAL and AT_SEGMENT_ENDS for every pair considered;
         NEIGHBOUR_CORNER for every corner offered across a seam.
     parent, parent_side : (V,) int32
         A neighbour's corner (added by the hypothesis stage): the vertex whose verified
         rectangle has this corner on its seam side ``parent_side`` (0-3: v=0, v=length,
-        u=0, u=width); -1 for a vertex of two lines. Logs written before these fields
-        existed read back as all -1.
+        u=0, u=width); or a box corner's vertex of the face across a crease
+        (``parent_side`` 4, :func:`boxloc.vertices.corner_vertices`), whose parent is the
+        vertex of two lines it was derived from; -1 for a vertex of two lines. Logs
+        written before these fields existed read back as all -1.
     """
 
     points: np.ndarray

@@ -13,6 +13,15 @@ An accepted pair gives one vertex per combination of *arms*: the directions from
 intersection along which each segment extends by at least half the shortest box edge. An
 L corner gives one vertex, a T two, a cross four (the inner corners of a neat pallet layer
 are crosses of seam lines). Each vertex's normal ``d1 x d2`` points toward the sensor.
+
+**Box corners** (:func:`corner_vertices`, a deviation from the paper). A vertex one of
+whose segments is a convex crease is a corner of a box where two of its faces meet: the
+crease is their common edge, and the box's third edge there runs along the vertex's
+normal, into the box. So the corner is also a vertex of the other face, with arms along
+the crease and the third edge. This finds a top whose only straight edge is its crease
+with the face below, as when a sensor sees the tops as slivers at grazing incidence and
+rounds their short sides (the mOSD Kinect frames). The face it offers is tested like any
+other (a side face fails the tilt test at once).
 """
 
 from __future__ import annotations
@@ -20,8 +29,12 @@ from __future__ import annotations
 import numpy as np
 
 from boxloc.config import Config
-from boxloc.products import LineSet, VertexSet
+from boxloc.products import EdgeKind, LineSet, VertexSet
 from boxloc.stats import TestKind, TestTable
+
+#: ``VertexSet.parent_side`` of a box corner's vertex (:func:`corner_vertices`); 0-3 are
+#: the seam sides of a neighbour's corner
+THIRD_EDGE = 4
 
 
 def _skew(v: np.ndarray) -> np.ndarray:
@@ -147,7 +160,7 @@ def find_vertices(lines: LineSet, *, config: Config) -> VertexSet:
     if not pts:
         e = _empty(alpha)
         return VertexSet(**{**e.__dict__, "tests": tests})
-    return VertexSet(
+    V = VertexSet(
         points=np.array(pts),
         d1=np.array(D1),
         d2=np.array(D2),
@@ -156,6 +169,68 @@ def find_vertices(lines: LineSet, *, config: Config) -> VertexSet:
         line_a=np.array(la, np.int32),
         line_b=np.array(lb, np.int32),
         tests=tests,
+    )
+    return corner_vertices(V, lines)
+
+
+def corner_vertices(vertices: VertexSet, lines: LineSet) -> VertexSet:
+    """Add, for each vertex with a convex-crease arm, the box corner's vertex of the other
+    face at that crease: arms along the crease and along the vertex's inward normal.
+
+    Parameters
+    ----------
+    vertices : VertexSet
+        Vertices of two lines.
+    lines : LineSet
+
+    Returns
+    -------
+    VertexSet
+        ``vertices`` followed by the new ones, each with ``parent`` its vertex and
+        ``parent_side`` = :data:`THIRD_EDGE`; the arm along the crease keeps its line id,
+        the third edge has -1. Covariance: the vertex's point, the crease's direction and,
+        for the third edge, the normal's first-order covariance.
+    """
+    Sn = normal_covariance(vertices)
+    crease = lines.kinds == EdgeKind.CREASE_CONVEX
+    new: list[tuple[np.ndarray, ...]] = []
+    la, lb, par, seen = [], [], [], set()
+    for v in range(len(vertices)):
+        C = vertices.covariances[v]
+        for arm, line, Sd in ((vertices.d1[v], vertices.line_a[v], C[3:6, 3:6]),
+                              (vertices.d2[v], vertices.line_b[v], C[6:, 6:])):
+            if line < 0 or not crease[line]:
+                continue
+            # the crease's own direction (a vertex's second arm is squared to its first),
+            # so the corners of a T along the crease give the same vertex, bit for bit
+            d = lines.directions[line]
+            d = d if arm @ d > 0 else -d
+            da, db, Sa, Sb, ia, ib = d, -vertices.normals[v], Sd, Sn[v], int(line), -1
+            nrm = np.cross(da, db)
+            if nrm @ vertices.points[v] > 0:  # the normal toward the sensor
+                da, db, Sa, Sb, ia, ib, nrm = db, da, Sb, Sa, ib, ia, -nrm
+            key = (vertices.points[v].tobytes(), da.tobytes(), db.tobytes())
+            if key in seen:  # the two corners of a T along the crease give the same one
+                continue
+            seen.add(key)
+            cov = np.zeros((9, 9))
+            cov[:3, :3], cov[3:6, 3:6], cov[6:, 6:] = C[:3, :3], Sa, Sb
+            new.append((vertices.points[v], da, db, nrm, cov))
+            la.append(ia)
+            lb.append(ib)
+            par.append(v)
+    if not new:
+        return vertices
+    P, D1, D2, N, COV = (np.array(a) for a in zip(*new))
+    return VertexSet(
+        points=np.r_[vertices.points, P], d1=np.r_[vertices.d1, D1],
+        d2=np.r_[vertices.d2, D2], normals=np.r_[vertices.normals, N],
+        covariances=np.r_[vertices.covariances, COV],
+        line_a=np.r_[vertices.line_a, la].astype(np.int32),
+        line_b=np.r_[vertices.line_b, lb].astype(np.int32),
+        tests=vertices.tests,
+        parent=np.r_[vertices.parent, par].astype(np.int32),
+        parent_side=np.r_[vertices.parent_side, np.full(len(par), THIRD_EDGE)].astype(np.int32),
     )
 
 

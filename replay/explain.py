@@ -43,6 +43,7 @@ from boxloc.errors import InputError
 from boxloc.jsonable import jsonable as _jsonable
 from boxloc.products import DimensionSource, EdgeKind, SelectReason, VerifyReason
 from boxloc.stats import TestKind, TestTable
+from boxloc.vertices import THIRD_EDGE
 
 #: How a test's statistic is compared with its critical value when the relation holds.
 _SENSE: dict[TestKind, str] = {
@@ -136,18 +137,22 @@ class _Ctx:
     def vertex(self, v: int) -> dict[str, Any]:
         V = self.vertices
         la, lb = int(V.line_a[v]), int(V.line_b[v])
+        par, side = int(V.parent[v]), int(V.parent_side[v])
+        pair = (int(V.line_a[par]), int(V.line_b[par])) if side == THIRD_EDGE else (la, lb)
         return {
             "id": v, "point": _vec(V.points[v]), "normal": _vec(V.normals[v]),
             "d1": _vec(V.d1[v]), "d2": _vec(V.d2[v]), "line_a": la, "line_b": lb,
-            # a neighbour's corner: the vertex whose verified rectangle's seam side it ends
-            "parent": int(V.parent[v]), "parent_side": int(V.parent_side[v]),
-            "lines": ([self.line(la), self.line(lb)] if self.lines is not None and la >= 0
-                      else []),
-            # two lines' tests, or the corners offered from the parent's seam sides
+            # a neighbour's corner: the vertex whose verified rectangle's seam side it ends;
+            # a box corner's (side THIRD_EDGE): the vertex of two lines it comes from
+            "parent": par, "parent_side": side,
+            "lines": ([self.line(i) for i in (la, lb) if i >= 0]
+                      if self.lines is not None else []),
+            # two lines' tests (the parent's, for a box corner), or the corners offered
+            # from the parent's seam sides
             "tests": (_tests(V.tests, [TestKind.LINES_MEET, TestKind.LINES_ORTHOGONAL,
-                                       TestKind.AT_SEGMENT_ENDS], pair=(la, lb)) if la >= 0
-                      else _tests(V.tests, [TestKind.NEIGHBOUR_CORNER],
-                                  a=int(V.parent[v]))),
+                                       TestKind.AT_SEGMENT_ENDS], pair=pair)
+                      if min(pair) >= 0
+                      else _tests(V.tests, [TestKind.NEIGHBOUR_CORNER], a=par)),
         }
 
     def attempts_of(self, h: int) -> list[int]:
@@ -731,6 +736,11 @@ def _line_text(ln: dict[str, Any]) -> str:
 def _vertex_lines(v: dict[str, Any], ind: str) -> list[str]:
     out = [f"{ind}generating vertex V{v['id']} at {_p(v.get('point'))}, normal "
            f"{_p(v.get('normal'))[:-2]}"]
+    par, side = v.get("parent", -1), v.get("parent_side", -1)
+    if par >= 0 and side == THIRD_EDGE:
+        out.append(f"{ind}  a box corner: vertex V{par}'s crease and its third edge")
+    elif par >= 0:
+        out.append(f"{ind}  a neighbour's corner, on side {side} of vertex V{par}'s rectangle")
     for ln in v.get("lines", []):
         out.append(f"{ind}  line {_line_text(ln)}")
         out += [f"{ind}    {_test_text(t)}" for t in ln["tests"]]

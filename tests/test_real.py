@@ -270,6 +270,36 @@ def test_mosd_stacked_frame_has_a_covered_top() -> None:
     assert not truth.exposed[lower]
 
 
+#: the sensor parameters `bench --real` measures on the mOSD frames (README), fixed here so
+#: that one frame is a quick test
+MOSD_CONFIG = ["min_edge=0.035", "noise.sigma0=0.000176", "noise.k1=0.000998", "noise.k2=0",
+               "noise.edge_px=0.5928", "angle_tolerance=0.05907"]
+
+
+@needs_mosd
+@pytest.mark.parametrize("frame", ["learn3", "learn9"])
+def test_mosd_sliver_tops_are_found_from_their_crease(frame: str) -> None:
+    # The Kinect sees these tops at grazing incidence, 15-25 pixels across, and rounds
+    # their short sides: their only straight edges are the far jump and the crease with
+    # the front face. The front face's corner at the crease is the top's corner too (a
+    # box corner vertex); without it the top had no vertex and was missed.
+    from boxloc.config import Config
+    from boxloc.pipeline import find_graspable_surfaces
+    p = MOSD / f"{frame}.pcd"
+    scan, L = read_scan(p), read_labels(p)
+    scan = dataclasses.replace(scan, sensor_to_base=support_plane_pose(scan))
+    r = find_graspable_surfaces(scan, Config().with_overrides(MOSD_CONFIG))
+    truth = top_faces(scan, L)
+    m = score_real(r.surfaces, truth, scan)
+    assert (m.tp, m.fp) == (truth.n_exposed, 0) == (2, 0)
+    corner = r.vertices.parent_side == 4
+    assert corner.any()
+    # a surface's generating vertex or its diagonal is a box corner's
+    used = np.r_[r.hypotheses.vertex[r.surfaces.hypothesis],
+                 r.hypotheses.att_diagonal[r.surfaces.attempt]]
+    assert np.isin(used, np.flatnonzero(corner)).any()
+
+
 # --- boxloc import -------------------------------------------------------------------------
 
 

@@ -70,3 +70,54 @@ def test_a_vertex_set_from_a_log_before_neighbours_reads_back_as_lines():
     arrays = {k: v for k, v in to_arrays(V).items() if "parent" not in k}
     W = from_arrays(VertexSet, arrays)
     assert W.parent.tolist() == [-1] and W.parent_side.tolist() == [-1]
+
+
+def _crease_corner(kind_a: int) -> tuple:
+    """A box corner seen from the origin: line a (kind ``kind_a``) along x where the top
+    meets the front face, line b down the front face along y; the box lies toward +z."""
+    import dataclasses
+    corner = np.array([0.0, 0.0, 1.5])
+    L = _fits((corner + 0.15 * X, X, 0.3), (corner + 0.1 * Y, Y, 0.2))
+    return corner, dataclasses.replace(L, kinds=np.array([kind_a, 1], np.uint8))
+
+
+def test_a_convex_crease_corner_is_also_a_vertex_of_the_face_across_it():
+    from boxloc.products import EdgeKind
+    from boxloc.vertices import THIRD_EDGE
+    corner, L = _crease_corner(EdgeKind.CREASE_CONVEX)
+    V = find_vertices(L, config=Config())
+    assert len(V) == 2
+    assert V.parent.tolist() == [-1, 0] and V.parent_side.tolist() == [-1, THIRD_EDGE]
+    # the new vertex: same point, arms along the crease (+x) and into the box (+z, away
+    # from the sensor, against the front face's normal), normal toward the sensor
+    assert np.allclose(V.points[1], V.points[0])
+    arms = {tuple(np.round(V.d1[1])), tuple(np.round(V.d2[1]))}
+    assert arms == {(1, 0, 0), (0, 0, 1)}
+    assert V.normals[1] @ V.points[1] < 0
+    assert np.allclose(np.cross(V.d1[1], V.d2[1]), V.normals[1], atol=1e-9)
+    # the crease keeps its line id, the implied third edge has none
+    assert sorted([int(V.line_a[1]), int(V.line_b[1])]) == [-1, 0]
+    # the third edge's direction is as uncertain as the front face's normal
+    k = 3 if V.line_a[1] == -1 else 6
+    assert np.trace(V.covariances[1][k:k + 3, k:k + 3]) > 0
+
+
+def test_no_box_corner_vertex_without_a_convex_crease():
+    from boxloc.products import EdgeKind
+    for kind in (EdgeKind.JUMP, EdgeKind.CREASE_CONCAVE, EdgeKind.GROOVE):
+        _, L = _crease_corner(kind)
+        V = find_vertices(L, config=Config())
+        assert len(V) == 1 and V.parent.tolist() == [-1]
+
+
+def test_a_T_on_a_crease_gives_its_box_corner_vertex_once():
+    import dataclasses
+
+    from boxloc.products import EdgeKind
+    c = np.array([0.0, 0.0, 1.5])
+    T = _fits((c, X, 0.6), (c + 0.15 * Y, Y, 0.3))  # the crease runs on both ways
+    T = dataclasses.replace(T, kinds=np.array([1, EdgeKind.CREASE_CONVEX], np.uint8))
+    V = find_vertices(T, config=Config())
+    # two vertices of lines; the crease (along y) gives one corner per arm pair, but both
+    # of the T's vertices share its arm: one box corner vertex
+    assert (V.parent >= 0).sum() == 1
