@@ -826,6 +826,9 @@ def _surface_lines(e: dict[str, Any], ind: str = "") -> list[str]:
     out = [f"{ind}surface #{e['surface']} (pick {e['pick_order']}): centre {_p(e['center'])}, "
            f"{e['width_mm']} x {e['length_mm']} mm, normal {_p(e['normal'])[:-2]}, score "
            f"{e['score']:.3f}"]
+    for t in e.get("tests", []):  # SURFACE_BULGE: is the centre on the lid or on its rim?
+        where = "on the rim's plane" if not t["accepted"] else "on the points' plane"
+        out.append(f"{ind}  lid bulge {e['bulge_mm']} mm, centre {where}: {_test_text(t)}")
     if "pick" in e:
         out.append(f"{ind}  pick FAILED" + (f": {e['pick']['reason']}" if e["pick"]["reason"]
                                             else ""))

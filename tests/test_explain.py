@@ -224,3 +224,14 @@ def test_cli_errors_are_one_line(log: Path, args: list[str]) -> None:
 def test_cli_missing_log(tmp_path: Path) -> None:
     r = CliRunner().invoke(cli, ["explain", str(tmp_path / "x.mcap"), "--scan", "0"])
     assert r.exit_code == 2 and "not found" in r.stderr
+
+
+def test_a_surface_says_where_its_centre_is_and_why(log: Path, records: dict[int, Any]) -> None:
+    i, k = _surfaces(records)[0]
+    S = records[i].surfaces
+    d = explain(log, i, surface=k)["surfaces"][0]
+    assert d["bulge_mm"] == pytest.approx(S.bulge[k] * 1e3, abs=0.01)
+    (t,) = d["tests"]
+    assert t["a"] == int(S.attempt[k]) and t["dof"] == 1
+    text = format_explanation(explain(log, i, surface=k))
+    assert "lid bulge" in text and "SURFACE_BULGE" in text
