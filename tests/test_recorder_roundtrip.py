@@ -37,14 +37,18 @@ def _same_scan(a, b) -> None:
 # --- products through the encoder ---------------------------------------------------------
 
 
+def _test_columns(stage: str, product):  # type: ignore[no-untyped-def]
+    """The product's tests through /boxloc/tests rows, as the reader gets them."""
+    if not hasattr(product, "tests"):
+        return None
+    tests = E.decode_test_columns(E.encode_test_rows(0, {stage: product.tests}))
+    return tests.get(stage, E.empty_test_columns())
+
+
 def _round_trip(stage: str, product):  # type: ignore[no-untyped-def]
     """Encode a product and its tests as the recorder does, decode as the reader does."""
-    data = E.encode_product(stage, product, 0, 0)
-    tests = None
-    if hasattr(product, "tests"):
-        tests = E.decode_test_columns(E.encode_test_rows(0, {stage: product.tests}))
-        tests = tests.get(stage, E.empty_test_columns())
-    return E.decode_product(stage, data, tests)
+    return E.decode_product(stage, E.encode_product(stage, product, 0, 0),
+                            _test_columns(stage, product))
 
 
 @pytest.mark.parametrize("empty", [False, True])
@@ -187,11 +191,8 @@ def test_a_record_without_the_fields_newer_than_its_log_reads_back(stage: str) -
     newer = [f.name for f in dc.fields(product) if f.default is not dc.MISSING]
     _, arrays = E.decode_arrays(E.encode_product(stage, product, 0, 0), E.PRODUCT_RECORDS[stage])
     old = {k: v for k, v in arrays.items() if k.split("/")[0] not in newer}
-    tests = None
-    if hasattr(product, "tests"):
-        tests = E.decode_test_columns(E.encode_test_rows(0, {stage: product.tests}))
-        tests = tests.get(stage, E.empty_test_columns())
-    back = E.decode_product(stage, E.encode_arrays(E.PRODUCT_RECORDS[stage], old, 0, 0), tests)
+    back = E.decode_product(stage, E.encode_arrays(E.PRODUCT_RECORDS[stage], old, 0, 0),
+                            _test_columns(stage, product))
     assert type(back) is type(product)
     fresh = type(product)(**{f.name: getattr(product, f.name) for f in dc.fields(product)
                              if f.name not in newer})
