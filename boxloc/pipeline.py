@@ -88,8 +88,8 @@ def find_graspable_surfaces(
     obs.on_edges(scan, edges)
     lines = _timed(timing, "lines", lambda: find_lines(scan, edges, config=config, rng=rng))
     obs.on_lines(scan, lines)
-    vertices = _timed(timing, "vertices", lambda: find_vertices(lines, config=config))
     up = _timed(timing, "up", lambda: estimate_up(scan, config, rng))
+    vertices = _timed(timing, "vertices", lambda: find_vertices(lines, config=config, up=up))
     # the hypothesis stage adds the corners of touching neighbours to the vertices
     vertices, hyps, verification = _timed(
         timing, "hypotheses",

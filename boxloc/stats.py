@@ -96,6 +96,10 @@ class TestKind(IntEnum):
     #: zero (:func:`boxloc.surfaces.fit_bulge`; statistic (k / sigma_k)^2, 1 dof); rejected
     #: puts the surface's centre on the rim's plane
     SURFACE_BULGE = 25
+    #: vertex stage: the box corner at vertex a's convex-crease arm (b = the crease line)
+    #: can be a top's: the face across the crease is within max_tilt of up (statistic =
+    #: (cos max_tilt - n.up) / sigma, one-sided z); accepted adds its vertex
+    BOX_CORNER = 26
 
 
 @lru_cache(maxsize=256)

@@ -53,7 +53,7 @@ from boxloc.stats import TestKind, TestTable
 
 #: The stages whose tests are compared decision by decision (the edge stage's tests name
 #: scan lines and breakpoints, which are compared through the edge map instead).
-TEST_STAGES = ("lines", "vertices", "hypotheses", "verification")
+TEST_STAGES = ("lines", "vertices", "hypotheses", "verification", "surfaces")
 
 _INFEASIBLE = 1e18
 #: The default tolerances, every entry commented (shipped as package data).
@@ -703,6 +703,9 @@ def _test_keys(t: TestTable, maps: Mapping[str, Mapping[int, int] | None]) -> di
         elif kind in (TestKind.SEAM_PEAK, TestKind.FACE_EXTENT):
             x = m("hypotheses", a)
             key = None if x is None else (kind, x, b)
+        elif kind == TestKind.BOX_CORNER:
+            x, y = m("vertices", a), m("lines", b)
+            key = None if x is None or y is None else (kind, x, y)
         elif kind == TestKind.NEIGHBOUR_CORNER:
             # b is a vertex id of its own version: rows follow the parent, in order
             x = m("hypotheses", a)

@@ -151,6 +151,8 @@ class _Ctx:
             # from the parent's seam sides
             "tests": (_tests(V.tests, [TestKind.LINES_MEET, TestKind.LINES_ORTHOGONAL,
                                        TestKind.AT_SEGMENT_ENDS], pair=pair)
+                      + (_tests(V.tests, [TestKind.BOX_CORNER], a=par, b=max(la, lb))
+                         if side == THIRD_EDGE else [])
                       if min(pair) >= 0
                       else _tests(V.tests, [TestKind.NEIGHBOUR_CORNER], a=par)),
         }

@@ -300,6 +300,17 @@ def test_mosd_sliver_tops_are_found_from_their_crease(frame: str) -> None:
     assert np.isin(used, np.flatnonzero(corner)).any()
 
 
+@needs_mosd
+def test_explain_names_a_box_corner_and_its_test(tmp_path: Path) -> None:
+    from replay.explain import explain, format_explanation
+    log = tmp_path / "learn9.mcap"
+    res = CliRunner().invoke(cli, ["run", str(MOSD / "learn9.pcd"), "--record", str(log),
+                                   "-q", *[a for s in MOSD_CONFIG for a in ("--set", s)]])
+    assert res.exit_code == 0, res.output
+    text = format_explanation(explain(log, 0))
+    assert "a box corner: vertex V" in text and "BOX_CORNER" in text
+
+
 # --- boxloc import -------------------------------------------------------------------------
 
 

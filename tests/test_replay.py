@@ -113,12 +113,12 @@ def test_a_crashing_stage_is_that_scans_result(logs: list[Path], tmp_path: Path,
 
     real = pipeline.find_vertices
 
-    def flaky(lines, *, config):  # type: ignore[no-untyped-def]
+    def flaky(lines, *, config, up=None):  # type: ignore[no-untyped-def]
         if flaky.calls == 1:  # the second scan
             flaky.calls += 1
             raise RuntimeError("vertex stage exploded")
         flaky.calls += 1
-        return real(lines, config=config)
+        return real(lines, config=config, up=up)
 
     flaky.calls = 0  # type: ignore[attr-defined]
     monkeypatch.setattr(pipeline, "find_vertices", flaky)

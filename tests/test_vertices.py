@@ -121,3 +121,17 @@ def test_a_T_on_a_crease_gives_its_box_corner_vertex_once():
     # two vertices of lines; the crease (along y) gives one corner per arm pair, but both
     # of the T's vertices share its arm: one box corner vertex
     assert (V.parent >= 0).sum() == 1
+
+
+def test_a_box_corner_is_offered_only_where_its_face_can_be_a_top():
+    from boxloc.products import EdgeKind
+    _, L = _crease_corner(EdgeKind.CREASE_CONVEX)
+    # the face across the crease has normal -y (y is down): a top when up is -y, a side
+    # face when the sensor looks straight down (up -z)
+    for up, offered in (((0.0, -1.0, 0.0), True), ((0.0, 0.0, -1.0), False)):
+        V = find_vertices(L, config=Config(), up=np.array(up))
+        t = V.tests.of_kind(TestKind.BOX_CORNER)
+        assert len(t) == 1 and t.a[0] == 0 and t.b[0] == 0
+        assert bool(t.accepted[0]) is offered
+        assert len(V) == (2 if offered else 1)
+        assert bool(t.statistic[0] < 0) is offered  # n.up above cos(max_tilt), or below
