@@ -458,7 +458,9 @@ class SurfaceSet:
         metres (:func:`boxloc.surfaces.fit_bulge`); the centre is on the rim's plane when
         its SURFACE_BULGE test rejects a flat lid, else on the points' plane.
     tests : TestTable
-        SURFACE_BULGE per surface (``a`` = attempt).
+        SURFACE_BULGE per surface (``a`` = attempt) whose inliers determine the fit (at
+        least ``boxloc.surfaces.MIN_BULGE_POINTS``, not all on one line); a surface
+        without one has ``bulge`` 0 and its centre on the points' plane.
 
     Logs written before ``bulge`` and ``tests`` existed read back with zeros and no tests.
     """

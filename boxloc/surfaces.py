@@ -32,7 +32,7 @@ MIN_BULGE_POINTS = 16
 def fit_bulge(
     points: np.ndarray, center: np.ndarray, x_axis: np.ndarray, y_axis: np.ndarray,
     normal: np.ndarray, width: float, length: float, sigma: np.ndarray,
-) -> tuple[np.ndarray, np.ndarray]:
+) -> tuple[np.ndarray, np.ndarray] | None:
     """Fit a face's points with a plane and a rim-supported bulge.
 
     The height of a point over the plane through ``center`` is modelled as
@@ -58,12 +58,16 @@ def fit_bulge(
         ``a, b, c, k``, metres.
     cov : (4, 4) float64
         Their covariance, m^2.
+
+    None where the points cannot determine the four (all on one line, say).
     """
     D = np.asarray(points, np.float64) - center
     u = D @ x_axis / (0.5 * width)
     v = D @ y_axis / (0.5 * length)
     A = np.stack([np.ones_like(u), u, v, (1.0 - u * u) * (1.0 - v * v)], axis=1)
     w = 1.0 / np.asarray(sigma, np.float64)
+    if np.linalg.matrix_rank(A * w[:, None]) < 4:
+        return None
     cov = np.linalg.inv((A * (w * w)[:, None]).T @ A)
     coef = cov @ (A.T @ ((D @ normal) * w * w))
     return coef, cov
@@ -106,9 +110,12 @@ def make_surfaces(
             x, y = y, -x  # keeps x cross y = normal
         pts = flat[verification.inliers_of(j)].astype(np.float64)
         bulge = 0.0
+        fit = None
         if len(pts) >= MIN_BULGE_POINTS:
             sig = config.noise.sigma_range(np.linalg.norm(pts, axis=1))
-            coef, C = fit_bulge(pts, c, x, y, nf, w, ln, sig)
+            fit = fit_bulge(pts, c, x, y, nf, w, ln, sig)
+        if fit is not None:  # else untestable: the centre stays on the points' plane
+            coef, C = fit
             t = TestTable.chi2(TestKind.SURFACE_BULGE, j, 0, coef[3] ** 2 / C[3, 3], 1,
                                config.alpha)
             tests.append(t)

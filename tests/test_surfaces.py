@@ -27,19 +27,33 @@ def _lid(k: float, seed: int = 0, sigma: float = 0.001) -> tuple[np.ndarray, np.
 @pytest.mark.parametrize("k", [0.0, 0.004, 0.012])
 def test_fit_bulge_finds_the_rim_and_the_bulge(k: float) -> None:
     P, s = _lid(k)
-    coef, cov = fit_bulge(P, np.array([0.0, 0.0, 1.5]), X, Y, -N, 0.3, 0.4, s)
+    fit = fit_bulge(P, np.array([0.0, 0.0, 1.5]), X, Y, -N, 0.3, 0.4, s)
+    assert fit is not None
+    coef, cov = fit
     sd = np.sqrt(np.diag(cov))
     assert abs(coef[0] - 0.002) < 4 * sd[0] and sd[0] < 2e-4  # the rim, not the mean
     assert abs(coef[1] - 0.001) < 4 * sd[1]
     assert abs(coef[3] - k) < 4 * sd[3]
 
 
+def _fit(seed: int) -> tuple[np.ndarray, np.ndarray]:
+    P, s = _lid(0.006, seed)
+    fit = fit_bulge(P, np.array([0.0, 0.0, 1.5]), X, Y, -N, 0.3, 0.4, s)
+    assert fit is not None
+    return fit
+
+
 def test_fit_bulge_covariance_matches_the_scatter() -> None:
-    ks = np.array([fit_bulge(*_lid(0.006, seed)[:1], np.array([0.0, 0.0, 1.5]), X, Y, -N,
-                             0.3, 0.4, _lid(0.006, seed)[1])[0] for seed in range(40)])
-    _, cov = fit_bulge(*_lid(0.006)[:1], np.array([0.0, 0.0, 1.5]), X, Y, -N, 0.3, 0.4,
-                       _lid(0.006)[1])
+    ks = np.array([_fit(seed)[0] for seed in range(40)])
+    cov = _fit(0)[1]
     assert ks.std(axis=0)[[0, 3]] == pytest.approx(np.sqrt(np.diag(cov))[[0, 3]], rel=0.35)
+
+
+def test_fit_bulge_refuses_points_on_one_line() -> None:
+    u = np.linspace(-0.1, 0.1, 40)
+    P = np.stack([u, np.full_like(u, 0.05), np.full_like(u, 1.5)], axis=1)
+    assert fit_bulge(P, np.array([0.0, 0.0, 1.5]), X, Y, -N, 0.3, 0.1,
+                     np.full(40, 0.001)) is None
 
 
 @pytest.mark.parametrize("bulge", [0.0, 0.01])
