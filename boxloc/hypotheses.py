@@ -54,6 +54,7 @@ from boxloc.seams import face_points, find_seams
 from boxloc.stats import TestKind, TestTable, chi2_critical
 from boxloc.verify import (
     BOUNDARY_BAND,
+    SIDE_CORNERS,
     VerifyContext,
     VerifyOutcome,
     face_extent,
@@ -649,11 +650,10 @@ def neighbour_vertices(vertices: VertexSet, works: list[_VertexWork], new_from: 
         o, x, y, n = vertices.points[i], vertices.d1[i], vertices.d2[i], vertices.normals[i]
         C = vertices.covariances[i]
         W, L = att.width, att.length
-        # side: its two corners (u, v), the outward direction, whether it runs along x
-        geometry = {0: (((0.0, 0.0), (W, 0.0)), -y, True), 1: (((0.0, L), (W, L)), y, True),
-                    2: (((0.0, 0.0), (0.0, L)), -x, False), 3: (((W, 0.0), (W, L)), x, False)}
+        uv = ((0.0, 0.0), (W, 0.0), (W, L), (0.0, L))  # the corners in the rectangle's frame
         for si in sorted({int(b) for b in seam.b[strong]} & runs_on):
-            ends, out, along_x = geometry[si]
+            ends = tuple(uv[k] for k in SIDE_CORNERS[si])
+            out, along_x = (-y, y, -x, x)[si], si < 2
             for e, (u, v) in enumerate(ends):
                 p = o + u * x + v * y
                 u2, v2 = ends[1 - e]
@@ -718,12 +718,12 @@ def _crossings(rects: list[_Rect], config: Config) -> list[tuple[float, int, boo
     for j, (o, x, y, a) in enumerate(rects):
         c = rectangle_corners(o, x, y, a.width, a.length)
         t = a.outcome.tests.of_kind(TestKind.VERIFY_SEAM_SIDE)  # type: ignore[union-attr]
-        ends = {0: (c[0], c[1]), 1: (c[3], c[2]), 2: (c[0], c[3]), 3: (c[1], c[2])}
         for si, z in zip(t.b[t.accepted], t.statistic[t.accepted]):
+            e0, e1 = SIDE_CORNERS[int(si)]
             own.append(j)
             zs.append(float(z))
-            p0.append(ends[int(si)][0])
-            p1.append(ends[int(si)][1])
+            p0.append(c[e0])
+            p1.append(c[e1])
     if not own:
         return [(0.0, -1, False)] * len(rects)
     owner, z_seg = np.array(own), np.array(zs)

@@ -354,6 +354,11 @@ def face_extent(
     return float(last + 0.5 * step), gap
 
 
+#: The two corners (rows of :func:`rectangle_corners`) of each side 0-3 of a rectangle:
+#: v=0, v=length, u=0, u=width, the numbering of every per-side test.
+SIDE_CORNERS = ((0, 1), (3, 2), (0, 3), (1, 2))
+
+
 def rectangle_corners(
     origin: np.ndarray, x_axis: np.ndarray, y_axis: np.ndarray, width: float, length: float
 ) -> np.ndarray:
@@ -485,8 +490,8 @@ def verify(
     # lower box beside a taller one), which a top face's side never does
     concave, _ = side_lines(near_plane & (ctx.edge_kinds == EdgeKind.CREASE_CONCAVE), density)
     side_min = [max(MIN_LINE_POINTS, kc) for kc in concave]
-    c0, c1, c2, c3 = rectangle_corners(origin, x_axis, y_axis, width, length)
-    side_n = [ctx.samples_along(a, b) for a, b in ((c0, c1), (c3, c2), (c0, c3), (c1, c2))]
+    corners = rectangle_corners(origin, x_axis, y_axis, width, length)
+    side_n = [ctx.samples_along(corners[a], corners[b]) for a, b in SIDE_CORNERS]
     # each side a significant line of boundary edges, outnumbering any concave ones; all
     # sides together covering the fraction p of the perimeter (the paper's |P_f| > p, over
     # all four sides)

@@ -138,7 +138,15 @@ class _Ctx:
         V = self.vertices
         la, lb = int(V.line_a[v]), int(V.line_b[v])
         par, side = int(V.parent[v]), int(V.parent_side[v])
-        pair = (int(V.line_a[par]), int(V.line_b[par])) if side == THIRD_EDGE else (la, lb)
+        lines_tests = [TestKind.LINES_MEET, TestKind.LINES_ORTHOGONAL, TestKind.AT_SEGMENT_ENDS]
+        if side == THIRD_EDGE:  # the parent's two lines, and the corner's own test
+            tests = (_tests(V.tests, lines_tests,
+                            pair=(int(V.line_a[par]), int(V.line_b[par])))
+                     + _tests(V.tests, [TestKind.BOX_CORNER], a=par, b=max(la, lb)))
+        elif par >= 0:  # offered from the parent's seam side
+            tests = _tests(V.tests, [TestKind.NEIGHBOUR_CORNER], a=par)
+        else:
+            tests = _tests(V.tests, lines_tests, pair=(la, lb))
         return {
             "id": v, "point": _vec(V.points[v]), "normal": _vec(V.normals[v]),
             "d1": _vec(V.d1[v]), "d2": _vec(V.d2[v]), "line_a": la, "line_b": lb,
@@ -147,14 +155,7 @@ class _Ctx:
             "parent": par, "parent_side": side,
             "lines": ([self.line(i) for i in (la, lb) if i >= 0]
                       if self.lines is not None else []),
-            # two lines' tests (the parent's, for a box corner), or the corners offered
-            # from the parent's seam sides
-            "tests": (_tests(V.tests, [TestKind.LINES_MEET, TestKind.LINES_ORTHOGONAL,
-                                       TestKind.AT_SEGMENT_ENDS], pair=pair)
-                      + (_tests(V.tests, [TestKind.BOX_CORNER], a=par, b=max(la, lb))
-                         if side == THIRD_EDGE else [])
-                      if min(pair) >= 0
-                      else _tests(V.tests, [TestKind.NEIGHBOUR_CORNER], a=par)),
+            "tests": tests,
         }
 
     def attempts_of(self, h: int) -> list[int]:
