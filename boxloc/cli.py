@@ -397,6 +397,11 @@ def _print_noise_report(report: dict[str, Any]) -> None:
               + (f"; incidence exponent {g:.2f} (model assumes 1)" if g is not None else "")
               + (" [underdetermined: fewer bins than terms]" if report["underdetermined"]
                  else ""))
+    rc = report.get("row_corr")
+    if rc:
+        con.print(f"row correlation {rc['value']:.3f} (share of the variance common to an "
+                  f"image row; median {rc['median']:.3f} over {rc['tiles']} tiles, "
+                  f"standard error {rc['std_error'] or 0:.3f})")
     con.print(f"tiles rejected: {rej or 'none'}")
 
 

@@ -354,13 +354,14 @@ def _seam_peaks(R: Rectangle, ctx: _Context, work: _VertexWork, px: np.ndarray,
     V = float(py.max()) if len(py) else cfg.max_edge
     vc = ctx.verify_ctx
     fp = face_points(vc.points, vc.valid, vc.sigma, vc.project, R.origin, R.x_axis, R.y_axis,
-                     R.normal, (0.0, U), (0.0, V), spacing, cfg.alpha)
+                     R.normal, (0.0, U), (0.0, V), spacing, cfg.alpha, cfg.noise.row_corr)
     lo = 0.9 * cfg.min_edge
     found = []
     for b, (coord, other, ext) in enumerate(((fp.u, fp.v, U), (fp.v, fp.u, V))):
         sel = other > band
         pos, z, crit, _ = find_seams(coord[sel], fp.w[sel], fp.scale, lo, ext - lo, spacing,
-                                     cfg.alpha)
+                                     cfg.alpha, None if fp.row is None else fp.row[sel],
+                                     fp.row_corr)
         found.append(pos)
         if len(pos):
             work.tests.append(TestTable.decision(TestKind.SEAM_PEAK, R.vertex, b, z, crit,

@@ -13,6 +13,11 @@ model of :class:`boxloc.scan.NoiseModel`,
 is fitted to the binned (robust) standard deviations by non-negative least squares on
 sigma**2, which is linear in (sigma0**2, k1**2, k2**2).
 
+The same tiles give ``row_corr``, the share of the noise variance that is an offset common
+to one image row (one-way ANOVA per tile, rows as groups: the intraclass correlation,
+averaged over the tiles). Structured-light sensors have one; a scanner with independent
+samples gives ~0.
+
 The NoiseModel divides the range noise by ``max(cos_incidence, min_cos)``; the residual of
 each point along its ray is multiplied by the same factor before binning, so the fitted model
 predicts the observed along-ray scatter at the incidences seen in the data.
@@ -21,6 +26,7 @@ predicts the observed along-ray scatter at the incidences seen in the data.
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import warnings
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
@@ -46,6 +52,7 @@ class _TileResiduals:
     cos_incidence: np.ndarray  # (N,)
     residual: np.ndarray  # (N,) metres, along the ray
     tile: np.ndarray  # (N,) int, tile id (unique within one scan)
+    row_share: np.ndarray  # (n_accepted,) per tile: row-offset variance / total (ANOVA)
     n_tiles: int  # tiles considered (enough valid pixels)
     n_accepted: int  # tiles that passed every test
     rejected: dict[str, int]  # tiles rejected, by reason
@@ -157,7 +164,7 @@ def _tile_residuals(
 
     def nothing(n_tiles: int, rejected: dict[str, int]) -> _TileResiduals:
         z = np.zeros(0)
-        return _TileResiduals(z, z, z, np.zeros(0, dtype=np.int64), n_tiles, 0, rejected)
+        return _TileResiduals(z, z, z, np.zeros(0, dtype=np.int64), z, n_tiles, 0, rejected)
 
     if scan.shape[0] < patch or scan.shape[1] < patch:
         return nothing(0, {})
@@ -225,9 +232,37 @@ def _tile_residuals(
     tile = np.broadcast_to(ids[sel][:, None], wi.shape)
     return _TileResiduals(
         range=r[wi], cos_incidence=np.abs(ndot[wi]), residual=e_ray[wi],
-        tile=tile[wi].astype(np.int64), n_tiles=n_tiles, n_accepted=int(sel.size),
-        rejected=rejected,
+        tile=tile[wi].astype(np.int64), row_share=_row_share(h[sel], wi, patch),
+        n_tiles=n_tiles, n_accepted=int(sel.size), rejected=rejected,
     )
+
+
+def _row_share(h: np.ndarray, w: np.ndarray, patch: int) -> np.ndarray:
+    """Per tile, the share of the residual variance that is an offset common to an image
+    row: one-way ANOVA with the tile's rows as groups (the intraclass correlation).
+
+    ``h`` (T, patch*patch) are the residuals in row-major order, ``w`` the inliers. The
+    plane fit takes one of the between-row degrees of freedom (its tilt along the
+    columns) and one within (its tilt along the rows).
+    """
+    T = h.shape[0]
+    H = np.where(w, h, 0.0).reshape(T, patch, patch)
+    n_r = w.reshape(T, patch, patch).sum(2)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        m_r = H.sum(2) / n_r
+        m = H.sum((1, 2)) / n_r.sum(1)
+        has = n_r > 0
+        R = has.sum(1)
+        N = n_r.sum(1)
+        ssb = np.sum(np.where(has, n_r * (m_r - m[:, None]) ** 2, 0.0), 1)
+        ssw = np.sum(np.where(w.reshape(T, patch, patch),
+                              (H - np.where(has, m_r, 0.0)[..., None]) ** 2, 0.0), (1, 2))
+        msb = ssb / np.maximum(R - 2, 1)
+        msw = ssw / np.maximum(N - R - 1, 1)
+        n0 = N / np.maximum(R, 1)  # rows are (nearly) full in an accepted tile
+        s_row = (msb - msw) / n0
+        share = s_row / (s_row + msw)
+    return np.where(np.isfinite(share), share, np.nan)
 
 
 @contextlib.contextmanager
@@ -355,6 +390,7 @@ def estimate_noise(
         ``tiles``, ``std`` (the estimator's, m), ``std_mad``, ``std_clipped``, ``mean_cos``,
         ``model_std`` (fitted, m, at cos = 1), ``used`` (entered the fit); ``fit_rel_rms``
         (RMS of std/model - 1 over the fitted bins), ``incidence_exponent`` (see Notes),
+        ``row_corr`` (``value``, ``tiles``, ``median``, ``std_error``),
         ``n_points``, ``n_tiles``, ``n_tiles_used``, ``tiles_rejected`` (by reason),
         ``n_scans``, ``estimator``, ``incidence``, ``terms``, ``underdetermined``, ``model``.
 
@@ -395,7 +431,7 @@ def estimate_noise(
         raise InputError(f"bin_width must be finite and > 0, got {bin_width}")
     base = base or NoiseModel()
 
-    rs, ys, cs, ts = [], [], [], []
+    rs, ys, cs, ts, shares = [], [], [], [], []
     n_tiles, rejected = 0, {}
     for i, (scan, m, lab) in enumerate(zip(scans, masks_l, labels_l)):
         t = _tile_residuals(scan, m, patch=patch, labels=lab, min_valid=0.9,
@@ -406,6 +442,7 @@ def estimate_noise(
         f = np.maximum(t.cos_incidence, base.min_cos) if incidence == "model" else 1.0
         ys.append(t.residual * f)
         ts.append(t.tile + (i << 32))
+        shares.append(t.row_share)
         n_tiles += t.n_tiles
         for k, v in t.rejected.items():
             rejected[k] = rejected.get(k, 0) + v
@@ -454,6 +491,16 @@ def estimate_noise(
     e_ray = y / np.maximum(c, base.min_cos) if incidence == "model" else y
     report["incidence_exponent"] = _incidence_exponent(r, c, e_ray, used)
     model, x = _fit(used, terms, base)
+    # the row-shared share of the variance: the mean of the tiles' (unbiased) ANOVA
+    # estimates, each noisy and some negative
+    share = np.concatenate(shares)
+    share = share[np.isfinite(share)]
+    row_corr = float(np.clip(share.mean(), 0.0, 0.95)) if share.size else 0.0
+    model = dataclasses.replace(model, row_corr=row_corr)
+    report["row_corr"] = {"value": row_corr, "tiles": int(share.size),
+                          "median": float(np.median(share)) if share.size else None,
+                          "std_error": float(share.std() / np.sqrt(share.size))
+                          if share.size > 1 else None}
     for row in rows:
         row["model_std"] = float(model.sigma_range(row["range"]) * 1.0)
     rel = np.array([row["std"] / row["model_std"] - 1.0 for row in used])

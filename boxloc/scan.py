@@ -226,6 +226,12 @@ class NoiseModel:
         the pixel grid's own quantization, pixels. Structured-light sensors blur and shift
         depth edges by about a pixel (their correlation window); an ideal scanner has 0.
         On a surface seen at grazing incidence one pixel is several millimetres.
+    row_corr : float
+        Correlation of the range noise of two points in the same image row, in [0, 1):
+        the share of the noise variance that is an offset common to the whole row.
+        Structured-light sensors have one (the mOSD Kinect frames: about 0.2); it does not
+        average out along a row, so tests that average points along a line (seams) need
+        it. An ideal scanner has 0.
     """
 
     sigma0: float = 0.0010
@@ -234,6 +240,7 @@ class NoiseModel:
     sigma_angle: float = 0.0003
     min_cos: float = 0.2
     edge_px: float = 0.0
+    row_corr: float = 0.0
 
     def __post_init__(self) -> None:
         for name in ("sigma0", "k1", "k2", "sigma_angle", "min_cos", "edge_px"):
@@ -242,6 +249,8 @@ class NoiseModel:
                 raise InputError(f"noise parameter {name} must be finite and >= 0, got {v}")
         if self.sigma0 == 0 and self.k1 == 0 and self.k2 == 0:
             raise InputError("noise model needs sigma0, k1 or k2 > 0")
+        if not (np.isfinite(self.row_corr) and 0 <= self.row_corr < 1):
+            raise InputError(f"noise parameter row_corr must be in [0, 1), got {self.row_corr}")
         if not 0 < self.min_cos <= 1:
             raise InputError(f"noise parameter min_cos must be in (0, 1], got {self.min_cos}")
 
@@ -289,6 +298,8 @@ class NoiseModel:
         # before it are unchanged and versions that predate it can replay new logs
         if self.edge_px:
             d["edge_px"] = self.edge_px
+        if self.row_corr:
+            d["row_corr"] = self.row_corr
         return d
 
 

@@ -62,6 +62,11 @@ class FacePoints:
         least the noise model's median sigma there, metres.
     spacing : float
         Point spacing at the region's centre, metres.
+    row : (n,) int64 or None
+        Image row of each point (for ``row_corr``).
+    row_corr : float
+        Correlation of two points' noise in the same image row
+        (:attr:`boxloc.scan.NoiseModel.row_corr`).
     """
 
     u: np.ndarray
@@ -69,6 +74,8 @@ class FacePoints:
     w: np.ndarray
     scale: float
     spacing: float
+    row: np.ndarray | None = None
+    row_corr: float = 0.0
 
     def __len__(self) -> int:
         return int(self.u.shape[0])
@@ -87,6 +94,7 @@ def face_points(
     v_range: tuple[float, float],
     spacing: float,
     alpha: float,
+    row_corr: float = 0.0,
 ) -> FacePoints:
     """The range points of a rectangular region of a face's plane, with their residuals.
 
@@ -145,30 +153,54 @@ def face_points(
     # surface would otherwise make seams of rounding)
     scale = max(float(1.4826 * np.median(np.abs(wf - np.median(wf)))),
                 float(np.median(s[on])), 1e-9)
-    return FacePoints(D[on] @ x_axis, D[on] @ y_axis, wf, scale, spacing)
+    return FacePoints(D[on] @ x_axis, D[on] @ y_axis, wf, scale, spacing, rr[on], row_corr)
+
+
+def _bounds(coord: np.ndarray, centres: np.ndarray, h: float
+            ) -> tuple[np.ndarray, list[tuple[np.ndarray, np.ndarray]]]:
+    """Sort order of the points, and the index range of the groove window and of each
+    flank in that order, per centre."""
+    a, b = SEAM_FLANK[0] * h, SEAM_FLANK[1] * h
+    order = np.argsort(coord)
+    cs = coord[order]
+    return order, [(np.searchsorted(cs, lo, "left"), np.searchsorted(cs, hi, "right"))
+                   for lo, hi in ((centres - SEAM_INNER * h, centres + SEAM_INNER * h),
+                                  (centres - b, centres - a), (centres + a, centres + b))]
 
 
 def _windows(coord: np.ndarray, w: np.ndarray, centres: np.ndarray, h: float
              ) -> tuple[np.ndarray, ...]:
     """Count and sum of w in the groove window and in each flank, per centre."""
-    a, b = SEAM_FLANK[0] * h, SEAM_FLANK[1] * h
-    order = np.argsort(coord)
-    cs = coord[order]
+    order, wins = _bounds(coord, centres, h)
     cum = np.r_[0.0, np.cumsum(w[order])]
+    out: list[np.ndarray] = []
+    for i0, i1 in wins:
+        out += [(i1 - i0).astype(np.float64), cum[i1] - cum[i0]]
+    return tuple(out)
 
-    def win(lo: np.ndarray, hi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        i0 = np.searchsorted(cs, lo, "left")
-        i1 = np.searchsorted(cs, hi, "right")
-        return (i1 - i0).astype(np.float64), cum[i1] - cum[i0]
 
-    ni, si = win(centres - SEAM_INNER * h, centres + SEAM_INNER * h)
-    nl, sl = win(centres - b, centres - a)
-    nr, sr = win(centres + a, centres + b)
-    return ni, si, nl, sl, nr, sr
+def _row_term(coord: np.ndarray, row: np.ndarray, centres: np.ndarray, h: float,
+              ni: np.ndarray, nl: np.ndarray, nr: np.ndarray) -> np.ndarray:
+    """sum over image rows of (the statistic's weights of that row's points)^2, per centre.
+
+    The statistic is sum_i c_i w_i with c = -1/ni in the groove window and 1/(2 nl), 1/(2 nr)
+    in the flanks; a noise offset shared by one row's points adds row_corr * scale^2 *
+    (sum of that row's c_i)^2 to its variance.
+    """
+    order, wins = _bounds(coord, centres, h)
+    _, r = np.unique(row[order], return_inverse=True)
+    onehot = np.zeros((len(order) + 1, int(r.max()) + 1 if len(r) else 1))
+    onehot[np.arange(1, len(order) + 1), r] = 1.0
+    cum = np.cumsum(onehot, axis=0)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        S = sum(c[:, None] * (cum[i1] - cum[i0])
+                for c, (i0, i1) in zip((-1.0 / ni, 0.5 / nl, 0.5 / nr), wins))
+    return np.sum(S * S, axis=1)
 
 
 def _seam_stats(coord: np.ndarray, w: np.ndarray, scale: float, centres: np.ndarray,
-                h: float) -> tuple[np.ndarray, np.ndarray]:
+                h: float, row: np.ndarray | None = None, row_corr: float = 0.0
+                ) -> tuple[np.ndarray, np.ndarray]:
     """Flanks minus groove over its standard deviation (NaN where a window is empty), and
     whether the groove lies behind each flank on its own."""
     ni, si, nl, sl, nr, sr = _windows(coord, w, centres, h)
@@ -176,14 +208,19 @@ def _seam_stats(coord: np.ndarray, w: np.ndarray, scale: float, centres: np.ndar
     with np.errstate(invalid="ignore", divide="ignore"):
         mi = si / ni
         d = 0.5 * (sl / nl + sr / nr) - mi
-        sd = scale * np.sqrt(1.0 / ni + 0.25 / nl + 0.25 / nr)
+        var = 1.0 / ni + 0.25 / nl + 0.25 / nr
+        if row_corr > 0 and row is not None and len(coord):
+            # a groove along an image row averages one row's shared offset, not noise
+            var = (1.0 - row_corr) * var + row_corr * _row_term(coord, row, centres, h,
+                                                                 ni, nl, nr)
+        sd = scale * np.sqrt(var)
         both = ok & (sl / nl > mi) & (sr / nr > mi)
         z = np.where(ok, d / sd, np.nan)
     return z, both
 
 
-def seam_z(coord: np.ndarray, w: np.ndarray, scale: float, centres: np.ndarray, h: float
-           ) -> np.ndarray:
+def seam_z(coord: np.ndarray, w: np.ndarray, scale: float, centres: np.ndarray, h: float,
+           row: np.ndarray | None = None, row_corr: float = 0.0) -> np.ndarray:
     """Seam statistic at each centre: flanks minus groove over its standard deviation.
 
     Parameters
@@ -206,7 +243,7 @@ def seam_z(coord: np.ndarray, w: np.ndarray, scale: float, centres: np.ndarray, 
         -inf where it does not, or a window is empty (a ridge or a step beside the window
         lifts only one flank).
     """
-    z, both = _seam_stats(coord, w, scale, centres, h)
+    z, both = _seam_stats(coord, w, scale, centres, h, row, row_corr)
     return np.where(both, z, -np.inf)
 
 
@@ -225,7 +262,8 @@ class Seams(NamedTuple):
 
 
 def find_seams(coord: np.ndarray, w: np.ndarray, scale: float, lo: float, hi: float,
-               h: float, alpha: float) -> Seams:
+               h: float, alpha: float, row: np.ndarray | None = None,
+               row_corr: float = 0.0) -> Seams:
     """Significant seams between ``lo`` and ``hi`` (local maxima of :func:`seam_z`).
 
     The critical value is Bonferroni-corrected over the independent positions (one per
@@ -242,7 +280,7 @@ def find_seams(coord: np.ndarray, w: np.ndarray, scale: float, lo: float, hi: fl
     centres = np.arange(lo, hi + 0.5 * step, step)
     n_indep = max((hi - lo) / (2.0 * SEAM_INNER * h), 1.0)
     crit = float(st.norm.isf(alpha / n_indep))
-    zr, both = _seam_stats(coord, w, scale, centres, h)
+    zr, both = _seam_stats(coord, w, scale, centres, h, row, row_corr)
     # correlated noise (e.g. structured-light depth) spreads the statistic beyond N(0, 1):
     # measure its spread over the positions (robustly: seams are few) and divide it out
     fin = zr[np.isfinite(zr)]
@@ -283,8 +321,8 @@ def gap_z(coord: np.ndarray, centres: np.ndarray, h: float) -> np.ndarray:
 
 
 def seam_at(coord: np.ndarray, w: np.ndarray, scale: float, position: float, h: float,
-            alpha: float, reach: float | None = None, gaps: bool = False
-            ) -> tuple[float, float]:
+            alpha: float, reach: float | None = None, gaps: bool = False,
+            row: np.ndarray | None = None, row_corr: float = 0.0) -> tuple[float, float]:
     """The strongest seam (or gap) statistic near ``position``.
 
     Parameters
@@ -308,7 +346,7 @@ def seam_at(coord: np.ndarray, w: np.ndarray, scale: float, position: float, h: 
     r = SEAM_INNER * h if reach is None else max(float(reach), SEAM_INNER * h)
     centres = position + np.arange(-r, r + 0.25 * SEAM_INNER * h, SEAM_INNER * h)
     n_indep = max(3.0, 2.0 * r / (SEAM_INNER * h) + 1.0)
-    z = seam_z(coord, w, scale, centres, h)
+    z = seam_z(coord, w, scale, centres, h, row, row_corr)
     if gaps:
         z = np.maximum(z, gap_z(coord, centres, h))
     return float(z.max()), float(st.norm.isf(alpha / n_indep))

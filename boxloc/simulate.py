@@ -1196,6 +1196,12 @@ def _measure(spec: SceneSpec, world: _World, sensor: PinholeModel, rays: np.ndar
             good = np.isfinite(rm)
             r[pix[good]] = rm[good]
     sigma = spec.noise.sigma_range(np.where(hit, r0, 1.0), np.abs(nu))
+    rho = spec.noise.row_corr
+    if rho > 0:
+        # an offset shared by each image row (drawn last, and only then: a model without
+        # it renders the same scan as before it existed)
+        z_row = rng.standard_normal(sensor.height)
+        z_range = np.sqrt(1.0 - rho) * z_range + np.sqrt(rho) * z_row[np.arange(N) // sensor.width]
     r = r + z_range * sigma
     bad = ~hit | ~(r > 0) | (u_drop < spec.dropout)
     if spec.shadows:

@@ -76,6 +76,47 @@ def test_estimate_recovers_known_model() -> None:
     assert full.sigma_angle == NoiseModel().sigma_angle and full.min_cos == NoiseModel().min_cos
 
 
+def row_noisy_scan(r_true: np.ndarray, normal: np.ndarray, model: NoiseModel, rho: float,
+                   seed: int) -> Scan:
+    """As noisy_scan, with the share ``rho`` of the variance an offset common to each row."""
+    rng = np.random.default_rng(seed)
+    cos = np.abs(SENSOR.rays() @ normal)
+    z = (np.sqrt(1.0 - rho) * rng.normal(size=r_true.shape)
+         + np.sqrt(rho) * rng.normal(size=(r_true.shape[0], 1)))
+    r = r_true + z * model.sigma_range(r_true, cos)
+    return Scan(range=r.astype(np.float32), sensor=SENSOR)
+
+
+@pytest.mark.parametrize("rho", [0.0, 0.25])
+def test_estimate_measures_the_row_correlation(rho: float) -> None:
+    normals = [_unit([0, -0.4, -1]), _unit([0.3, -0.2, -1]), _unit([0, 0, -1])]
+    scans = [row_noisy_scan(plane_range(d, normals[i % 3]), normals[i % 3], TRUE, rho, i)
+             for i, d in enumerate([0.6, 0.9, 1.3, 1.8, 2.4, 3.0])]
+    model, report = estimate_noise(scans, terms=("sigma0", "k2"))
+    assert model.row_corr == pytest.approx(rho, abs=0.03)
+    assert report["row_corr"]["value"] == model.row_corr
+    assert report["row_corr"]["tiles"] == report["n_tiles_used"]
+    # the row offsets are part of each point's noise: the model's sigma is the total
+    assert model.sigma_range(1.5) == pytest.approx(TRUE.sigma_range(1.5), rel=0.2)
+    # columns carry no shared offset: transposed, the same estimator sees none
+    if rho:
+        cols = [Scan(range=np.ascontiguousarray(sc.range.T), sensor=PinholeModel(
+            150.0, 150.0, 59.5, 79.5, width=120, height=160)) for sc in scans]
+        assert estimate_noise(cols, terms=("sigma0", "k2"))[0].row_corr < 0.03
+
+
+def test_row_corr_is_checked_and_left_out_of_configs_at_zero() -> None:
+    with pytest.raises(InputError, match="row_corr"):
+        NoiseModel(row_corr=1.0)
+    with pytest.raises(InputError, match="row_corr"):
+        NoiseModel(row_corr=-0.1)
+    assert "row_corr" not in NoiseModel().to_dict()  # old configs keep their hash
+    assert Config().hash == Config().with_overrides(["noise.row_corr=0"]).hash
+    cfg = Config().with_overrides(["noise.row_corr=0.25"])
+    assert cfg.noise.to_dict()["row_corr"] == 0.25 and cfg.hash != Config().hash
+    assert Config.from_toml(cfg.to_toml()).noise.row_corr == 0.25
+
+
 def test_estimate_recovers_linear_term_and_ignore_mode() -> None:
     true = NoiseModel(sigma0=0.0, k1=0.002, k2=0.0)
     scans = synthetic_planes(true)
@@ -211,3 +252,6 @@ def test_mosd_frame_noise() -> None:
     assert rep["fit_rel_rms"] < 0.15
     assert sum(row["used"] for row in rep["rows"]) >= 5
     assert rep["n_tiles_used"] > 200
+    # the Kinect's noise has a part common to each image row (measured on the 25 frames:
+    # 0.28 of the variance); a frame alone measures it to a few hundredths
+    assert 0.15 < model.row_corr < 0.4

@@ -68,6 +68,51 @@ def test_seam_statistic_is_standard_normal_without_a_seam():
     assert st.binom.sf(k - 1, 200, 0.05) > 0.001
 
 
+def _row_face(rng: np.random.Generator, rho: float, groove_at: float | None = None,
+              depth: float = 0.003) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """As _face, with image rows along u (one row per v) sharing the share rho of the noise."""
+    u, v = np.meshgrid(np.arange(0, 0.6, H), np.arange(0, 0.4, H))
+    row = np.broadcast_to(np.arange(u.shape[0])[:, None], u.shape).ravel()
+    u = u.ravel()
+    w = SIGMA * (np.sqrt(1 - rho) * rng.normal(size=u.shape)
+                 + np.sqrt(rho) * rng.normal(size=int(row.max()) + 1)[row])
+    if groove_at is not None:
+        w -= depth * (np.abs(u - groove_at) <= H)
+    return u, w, row
+
+
+def test_a_row_shared_offset_is_no_seam_along_the_row():
+    # the coordinate across a candidate seam is v here: a seam along the rows; one row's
+    # shared offset fills a groove window, and only row_corr says it is not evidence
+    rng = np.random.default_rng(7)
+    rho = 0.3
+    hits_iid, hits_rho, n = 0, 0, 60
+    for _ in range(n):
+        u, w, row = _row_face(rng, rho)
+        v = row * H
+        z0, c0 = seam_at(v, w, SIGMA, 0.2, H, 0.01)
+        z1, c1 = seam_at(v, w, SIGMA, 0.2, H, 0.01, row=row, row_corr=rho)
+        hits_iid += z0 > c0
+        hits_rho += z1 > c1
+    # without the model nearly every other face has a "seam" at one given place; with it
+    # the false-alarm rate is alpha's (binomial upper bound)
+    assert hits_iid > 0.3 * n
+    assert st.binom.sf(hits_rho - 1, n, 0.01) > 0.001
+
+
+def test_row_corr_leaves_seams_across_the_rows_and_real_grooves():
+    rng = np.random.default_rng(8)
+    u, w, row = _row_face(rng, 0.3, groove_at=0.30)
+    # across the rows (coordinate u) the row offsets cancel between groove and flanks
+    z_iid, crit = seam_at(u, w, SIGMA, 0.30, H, 0.01)
+    z_rho, _ = seam_at(u, w, SIGMA, 0.30, H, 0.01, row=row, row_corr=0.3)
+    assert z_rho > crit
+    assert z_rho == pytest.approx(z_iid * np.sqrt(1 / 0.7), rel=0.05)
+    # and the interior search finds it, once
+    pos, z, crit, _ = find_seams(u, w, SIGMA, 0.1, 0.5, H, 0.01, row=row, row_corr=0.3)
+    assert len(pos) == 1 and abs(pos[0] - 0.30) <= H
+
+
 def test_seam_at_looks_one_window_either_side():
     u, w = _face(np.random.default_rng(5), 0.30 + H)
     z, crit = seam_at(u, w, SIGMA, 0.30, H, 0.01)

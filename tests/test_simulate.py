@@ -16,6 +16,7 @@ from boxloc.cli import cli
 from boxloc.config import Config
 from boxloc.errors import InputError
 from boxloc.io import read_scan
+from boxloc.noise import estimate_noise
 from boxloc.products import products_equal
 from boxloc.scan import NoiseModel, PinholeModel, Scan
 from boxloc.simulate import (
@@ -384,6 +385,21 @@ def test_noise_matches_the_model_on_the_floor(tilt: float, distance: float) -> N
     near = floor & (r0 < np.percentile(r0[floor], 20))
     dr = scan.range.astype(np.float64) - r0
     assert dr[far].std() > dr[near].std()
+
+
+def test_row_correlated_noise_is_shared_along_rows() -> None:
+    spec = parse_spec("empty:seed=4,tilt=0.1,distance=2,mixed_pixels=false,shadows=false,"
+                      "dropout=0")
+    iid = simulate(spec).scan
+    rho = 0.3
+    rows = simulate(dataclasses.replace(
+        spec, noise=dataclasses.replace(spec.noise, row_corr=rho))).scan
+    model, _ = estimate_noise([rows])
+    assert model.row_corr == pytest.approx(rho, abs=0.05)
+    assert estimate_noise([iid])[0].row_corr < 0.03
+    # the same total noise: the row offsets are a share of it, not more of it
+    assert model.sigma_range(2.0) == pytest.approx(
+        estimate_noise([iid])[0].sigma_range(2.0), rel=0.1)
 
 
 def test_dropouts() -> None:
