@@ -185,17 +185,26 @@ def _row_term(coord: np.ndarray, row: np.ndarray, centres: np.ndarray, h: float,
 
     The statistic is sum_i c_i w_i with c = -1/ni in the groove window and 1/(2 nl), 1/(2 nr)
     in the flanks; a noise offset shared by one row's points adds row_corr * scale^2 *
-    (sum of that row's c_i)^2 to its variance.
+    (sum of that row's c_i)^2 to its variance. Each point lies in the windows of a few
+    centres only: the sums run over those (point, centre) pairs. ``centres`` ascend.
     """
-    order, wins = _bounds(coord, centres, h)
-    _, r = np.unique(row[order], return_inverse=True)
-    onehot = np.zeros((len(order) + 1, int(r.max()) + 1 if len(r) else 1))
-    onehot[np.arange(1, len(order) + 1), r] = 1.0
-    cum = np.cumsum(onehot, axis=0)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        S = sum(c[:, None] * (cum[i1] - cum[i0])
-                for c, (i0, i1) in zip((-1.0 / ni, 0.5 / nl, 0.5 / nr), wins))
-    return np.sum(S * S, axis=1)
+    a, b = SEAM_FLANK[0] * h, SEAM_FLANK[1] * h
+    _, r = np.unique(row, return_inverse=True)
+    R = int(r.max()) + 1
+    m = len(centres)
+    keys, wts = [], []
+    with np.errstate(divide="ignore"):
+        coefs = (-1.0 / ni, 0.5 / nl, 0.5 / nr)
+    for (lo, hi), coef in zip(((-SEAM_INNER * h, SEAM_INNER * h), (-b, -a), (a, b)), coefs):
+        # x lies in the window [c + lo, c + hi] of the centres c in [x - hi, x - lo]
+        j0 = np.searchsorted(centres, coord - hi, "left")
+        cnt = np.searchsorted(centres, coord - lo, "right") - j0
+        first = np.repeat(np.cumsum(cnt) - cnt, cnt)
+        jc = np.repeat(j0, cnt) + np.arange(int(cnt.sum())) - first
+        keys.append(jc * R + np.repeat(r, cnt))
+        wts.append(coef[jc])
+    S = np.bincount(np.concatenate(keys), weights=np.concatenate(wts), minlength=m * R)
+    return (S * S).reshape(m, R).sum(1)
 
 
 def _seam_stats(coord: np.ndarray, w: np.ndarray, scale: float, centres: np.ndarray,
