@@ -270,8 +270,9 @@ def calibrate_noise(
 ) -> None:
     """Fit the range-noise model to flat surfaces in SCAN files (or directories of them).
 
-    Prints a TOML [noise] table (usable with --config) on stdout and the per-range-bin
-    table on stderr.
+    Measures the range noise against range and the share of it common to an image row
+    (row_corr). Prints a TOML [noise] table (usable with --config) on stdout and the
+    per-range-bin table on stderr.
     """
     from boxloc.errors import InputError
     from boxloc.io import read_labels, read_scans

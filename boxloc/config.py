@@ -172,7 +172,8 @@ class Config:
         return hashlib.sha256(text.encode()).hexdigest()[:16]
 
     def _all_keys(self) -> dict[str, Any]:
-        """``to_dict`` with the keys it leaves out at their defaults (``noise.edge_px``)."""
+        """``to_dict`` with the keys it leaves out at their defaults (``noise.edge_px``,
+        ``noise.row_corr``)."""
         d = self.to_dict()
         d["noise"] = dataclasses.asdict(self.noise)
         return d

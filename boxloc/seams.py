@@ -24,7 +24,12 @@ interior test then errs toward rejecting, never toward merging two faces.
 The variance comes from the points' own scatter (a robust scale of their residuals, at
 least the noise model's), so a sensor noisier than its model does not make seams out of
 noise; where the noise is correlated (structured-light depth), the statistic's own spread
-over the positions is divided out as well.
+over the positions is divided out as well. A sensor whose rows share part of their noise
+(``NoiseModel.row_corr``; the Kinect: about a quarter of the variance) puts a whole row a
+little behind or in front of the plane: along a row that is one groove window's worth of
+evidence, not hundreds of independent points. With the points' image rows given, the
+statistic's variance counts each row's shared offset once (and across the rows, where the
+offsets cancel between the groove and its flanks, only the rest).
 """
 
 from __future__ import annotations
