@@ -198,12 +198,16 @@ def _print_surfaces(result: Any) -> None:
 @click.option("--pose", type=click.Choice(["plane", "none"]), default="plane",
               show_default=True,
               help="With --real: sensor pose from each frame's dominant plane, or none.")
+@click.option("--scene-set", "scene_sets", multiple=True, metavar="KEY=VALUE",
+              help="Set a field of every simulated scene (repeatable; scene-spec keys, e.g. "
+                   "noise.row_corr=0.276 for a sensor whose rows share part of their noise).")
 @config_options
 def bench(
     n: int, seed: int, out: str | None, no_baseline: bool, real_dir: str | None,
     frames: str | None, noise_source: str, squareness: str, pose: str,
     config_path: str | None, overrides: tuple[str, ...], replay_only: bool = False,
     sections: tuple[str, ...] = (), fuzz_cases: int | None = None,
+    scene_sets: tuple[str, ...] = (),
 ) -> None:
     """Benchmark the localizer against the open3d baseline on N simulated scenes.
 
@@ -234,8 +238,13 @@ def bench(
         return
     from boxloc.bench import run_bench
 
+    specs = None
+    if scene_sets:
+        from boxloc.simulate import override_spec, scene_suite
+
+        specs = [override_spec(s, scene_sets) for s in scene_suite(n, seed)]
     run_bench(n, seed, config=cfg, out=Path(out) if out else None, baseline=not no_baseline,
-              progress=True)
+              progress=True, specs=specs)
 
 
 @cli.command()

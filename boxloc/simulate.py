@@ -39,7 +39,7 @@ import os
 import typing
 import zipfile
 import zlib
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -59,6 +59,7 @@ __all__ = [
     "SimulatedScan",
     "parse_spec",
     "format_spec",
+    "override_spec",
     "simulate",
     "simulate_boxes",
     "look_down_pose",
@@ -410,6 +411,27 @@ def parse_spec(text: str) -> SceneSpec:
     if noise_kw:
         kw["noise"] = NoiseModel(**noise_kw)
     return SceneSpec(kind=kind, **kw)
+
+
+def override_spec(spec: SceneSpec, items: Sequence[str]) -> SceneSpec:
+    """``spec`` with ``key=value`` items (as in :func:`parse_spec`) replacing its fields.
+
+    Raises
+    ------
+    InputError
+        As :func:`parse_spec`, naming the item.
+    """
+    kind, _, rest = format_spec(spec).partition(":")
+    kv: dict[str, str] = {}
+    for item in [*rest.split(","), *items]:
+        item = item.strip()
+        if not item:
+            continue
+        if "=" not in item:
+            raise InputError(f"scene spec item {item!r} must be key=value")
+        key, val = (t.strip() for t in item.split("=", 1))
+        kv[key] = val
+    return parse_spec(kind + ":" + ",".join(f"{k}={v}" for k, v in kv.items()))
 
 
 def format_spec(spec: SceneSpec) -> str:

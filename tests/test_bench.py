@@ -16,6 +16,7 @@ import boxloc.bench as bench
 from boxloc.baseline import surface_set_from_rects
 from boxloc.bench import PeakRSS, evaluate_targets, run_bench
 from boxloc.cli import cli
+from boxloc.simulate import scene_suite
 
 TOP_KEYS = {
     "version", "n", "seed", "config", "config_hash", "scene_noise", "threads", "warmup",
@@ -241,6 +242,28 @@ def test_cli_bench_help_and_bad_n() -> None:
     r = runner.invoke(cli, ["bench", "--n", "1", "--set", "nonsense=1"])
     assert r.exit_code == 2
     assert "unknown config key" in r.output
+    assert "--scene-set" in runner.invoke(cli, ["bench", "--help"]).output
+    r = runner.invoke(cli, ["bench", "--n", "1", "--scene-set", "noise.bogus=1"])
+    assert r.exit_code == 2 and "bogus" in r.output and "Traceback" not in r.output
+
+
+def test_cli_bench_scene_set_changes_every_scene(monkeypatch: pytest.MonkeyPatch) -> None:
+    seen: dict[str, object] = {}
+
+    def fake_run_bench(n: int, seed: int, **kw: object) -> dict:
+        seen.update(n=n, seed=seed, **kw)
+        return {}
+
+    monkeypatch.setattr(bench, "run_bench", fake_run_bench)
+    r = CliRunner().invoke(cli, ["bench", "--n", "3", "--no-baseline", "--scene-set",
+                                 "noise.row_corr=0.3", "--scene-set", "dropout=0"])
+    assert r.exit_code == 0, r.output
+    specs = seen["specs"]
+    assert [s.seed for s in specs] == [s.seed for s in scene_suite(3, 0)]
+    assert all(s.noise.row_corr == 0.3 and s.dropout == 0 for s in specs)
+    # without it the suite is the default one (run_bench builds it)
+    CliRunner().invoke(cli, ["bench", "--n", "3", "--no-baseline"])
+    assert seen["specs"] is None
 
 
 def test_common_grasp_compares_on_the_faces_both_found() -> None:

@@ -31,6 +31,7 @@ from boxloc.simulate import (
     format_spec,
     load_truth,
     look_down_pose,
+    override_spec,
     parse_spec,
     save_npz,
     scene_suite,
@@ -385,6 +386,18 @@ def test_noise_matches_the_model_on_the_floor(tilt: float, distance: float) -> N
     near = floor & (r0 < np.percentile(r0[floor], 20))
     dr = scan.range.astype(np.float64) - r0
     assert dr[far].std() > dr[near].std()
+
+
+def test_override_spec_replaces_fields_and_keeps_the_rest() -> None:
+    s = parse_spec("mixed:seed=3,distance=2.0,noise.k2=0.001")
+    t = override_spec(s, ["distance=2.5", "noise.row_corr=0.2"])
+    assert (t.kind, t.seed, t.distance) == ("mixed", 3, 2.5)
+    assert (t.noise.k2, t.noise.row_corr) == (0.001, 0.2)
+    assert override_spec(s, []) == s
+    with pytest.raises(InputError, match="bogus"):
+        override_spec(s, ["bogus=1"])
+    with pytest.raises(InputError, match="key=value"):
+        override_spec(s, ["distance"])
 
 
 def test_row_correlated_noise_is_shared_along_rows() -> None:
