@@ -113,6 +113,15 @@ def test_row_corr_leaves_seams_across_the_rows_and_real_grooves():
     assert len(pos) == 1 and abs(pos[0] - 0.30) <= H
 
 
+def test_row_corr_with_no_point_in_any_window_gives_no_evidence():
+    u = np.array([0.0, 0.001, 0.002])
+    w = np.zeros(3)
+    z, _ = seam_at(u, w, SIGMA, 0.5, H, 0.01, row=np.array([3, 3, 4]), row_corr=0.3)
+    assert z == -np.inf
+    assert np.all(seam_z(u, w, SIGMA, np.array([0.5, 0.6]), H, np.array([3, 3, 4]),
+                         0.3) == -np.inf)
+
+
 def test_seam_at_looks_one_window_either_side():
     u, w = _face(np.random.default_rng(5), 0.30 + H)
     z, crit = seam_at(u, w, SIGMA, 0.30, H, 0.01)
