@@ -388,13 +388,7 @@ def parse_spec(text: str) -> SceneSpec:
     noise_hints = {f.name: str(f.type) for f in dataclasses.fields(NoiseModel)}
     kw: dict[str, Any] = {}
     noise_kw: dict[str, float] = {}
-    for item in rest.split(","):
-        item = item.strip()
-        if not item:
-            continue
-        if "=" not in item:
-            raise InputError(f"scene spec item {item!r} must be key=value")
-        key, val = (s.strip() for s in item.split("=", 1))
+    for key, val in _spec_items(rest.split(",")):
         if key in kw or (key.startswith("noise.") and key.removeprefix("noise.") in noise_kw):
             raise InputError(f"scene spec key {key!r} is given twice")
         if key.startswith("noise."):
@@ -422,16 +416,20 @@ def override_spec(spec: SceneSpec, items: Sequence[str]) -> SceneSpec:
         As :func:`parse_spec`, naming the item.
     """
     kind, _, rest = format_spec(spec).partition(":")
-    kv: dict[str, str] = {}
-    for item in [*rest.split(","), *items]:
+    kv = dict(_spec_items([*rest.split(","), *items]))  # later items replace earlier ones
+    return parse_spec(kind + ":" + ",".join(f"{k}={v}" for k, v in kv.items()))
+
+
+def _spec_items(items: Sequence[str]) -> Iterator[tuple[str, str]]:
+    """(key, value) of each non-empty ``key=value`` item, stripped."""
+    for item in items:
         item = item.strip()
         if not item:
             continue
         if "=" not in item:
             raise InputError(f"scene spec item {item!r} must be key=value")
         key, val = (t.strip() for t in item.split("=", 1))
-        kv[key] = val
-    return parse_spec(kind + ":" + ",".join(f"{k}={v}" for k, v in kv.items()))
+        yield key, val
 
 
 def format_spec(spec: SceneSpec) -> str:
