@@ -229,7 +229,7 @@ class NoiseModel:
     row_corr : float
         Correlation of the range noise of two points in the same image row, in [0, 1):
         the share of the noise variance that is an offset common to the whole row.
-        Structured-light sensors have one (the mOSD Kinect frames: about 0.2); it does not
+        Structured-light sensors have one (the mOSD Kinect frames: 0.28); it does not
         average out along a row, so tests that average points along a line (seams) need
         it. An ideal scanner has 0.
     """
