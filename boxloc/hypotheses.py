@@ -63,7 +63,7 @@ from boxloc.verify import (
     rectangle_corners,
     verify,
 )
-from boxloc.vertices import _skew, normal_covariance
+from boxloc.vertices import _skew, append_vertices, normal_covariance
 
 #: Most dimension candidates verified per vertex (bounds the work on cluttered scenes).
 MAX_ATTEMPTS = 6
@@ -360,8 +360,7 @@ def _seam_peaks(R: Rectangle, ctx: _Context, work: _VertexWork, px: np.ndarray,
     for b, (coord, other, ext) in enumerate(((fp.u, fp.v, U), (fp.v, fp.u, V))):
         sel = other > band
         pos, z, crit, _ = find_seams(coord[sel], fp.w[sel], fp.scale, lo, ext - lo, spacing,
-                                     cfg.alpha, None if fp.row is None else fp.row[sel],
-                                     fp.row_corr)
+                                     cfg.alpha, fp.row[sel], fp.row_corr)
         found.append(pos)
         if len(pos):
             work.tests.append(TestTable.decision(TestKind.SEAM_PEAK, R.vertex, b, z, crit,
@@ -587,7 +586,8 @@ def neighbour_vertices(vertices: VertexSet, works: list[_VertexWork], new_from: 
     tol = config.angle_tolerance
     pts, D1, D2, N, COV = (list(vertices.points), list(vertices.d1), list(vertices.d2),
                            list(vertices.normals), list(vertices.covariances))
-    parent, side_of = list(vertices.parent), list(vertices.parent_side)
+    parent: list[int] = []  # of each new corner, and its seam side
+    side_of: list[int] = []
     # the verified rectangles that no strong seam crosses (one that is crossed will be
     # rejected, and must not hide its neighbours)
     acc = [(w.vertex, a) for w in works if (a := _accepted(w)) is not None]
@@ -691,15 +691,9 @@ def neighbour_vertices(vertices: VertexSet, works: list[_VertexWork], new_from: 
         tests = TestTable.concat([tests, TestTable.chi2(
             TestKind.NEIGHBOUR_CORNER, r[:, 0].astype(np.int32), r[:, 1].astype(np.int32),
             r[:, 2], 3.0, alpha)], alpha)
-    if not n_new:
-        return dataclasses.replace(vertices, tests=tests)
-    return VertexSet(
-        points=np.array(pts), d1=np.array(D1), d2=np.array(D2), normals=np.array(N),
-        covariances=np.array(COV),
-        line_a=np.r_[vertices.line_a, np.full(n_new, -1)].astype(np.int32),
-        line_b=np.r_[vertices.line_b, np.full(n_new, -1)].astype(np.int32),
-        tests=tests, parent=np.array(parent, np.int32), parent_side=np.array(side_of, np.int32),
-    )
+    new = list(zip(pts[n0:], D1[n0:], D2[n0:], N[n0:], COV[n0:]))
+    return append_vertices(vertices, new, [-1] * n_new, [-1] * n_new, parent, side_of,
+                           tests)
 
 
 _Rect = tuple[np.ndarray, np.ndarray, np.ndarray, _Attempt]  # origin, x, y, attempt

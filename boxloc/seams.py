@@ -67,7 +67,7 @@ class FacePoints:
         least the noise model's median sigma there, metres.
     spacing : float
         Point spacing at the region's centre, metres.
-    row : (n,) int64 or None
+    row : (n,) int64
         Image row of each point (for ``row_corr``).
     row_corr : float
         Correlation of two points' noise in the same image row
@@ -79,7 +79,7 @@ class FacePoints:
     w: np.ndarray
     scale: float
     spacing: float
-    row: np.ndarray | None = None
+    row: np.ndarray
     row_corr: float = 0.0
 
     def __len__(self) -> int:
@@ -127,7 +127,8 @@ def face_points(
     -------
     FacePoints
     """
-    empty = FacePoints(np.zeros(0), np.zeros(0), np.zeros(0), np.nan, spacing)
+    empty = FacePoints(np.zeros(0), np.zeros(0), np.zeros(0), np.nan, spacing,
+                       np.zeros(0, np.int64), row_corr)
     pix = rectangle_pixels(project, valid, origin, x_axis, y_axis, u_range, v_range)
     if pix is None:
         return empty
@@ -161,25 +162,22 @@ def face_points(
     return FacePoints(D[on] @ x_axis, D[on] @ y_axis, wf, scale, spacing, rr[on], row_corr)
 
 
-def _bounds(coord: np.ndarray, centres: np.ndarray, h: float
-            ) -> tuple[np.ndarray, list[tuple[np.ndarray, np.ndarray]]]:
-    """Sort order of the points, and the index range of the groove window and of each
-    flank in that order, per centre."""
+def _window_offsets(h: float) -> tuple[tuple[float, float], ...]:
+    """The groove window and the two flanks, as (from, to) offsets from a centre, metres."""
     a, b = SEAM_FLANK[0] * h, SEAM_FLANK[1] * h
-    order = np.argsort(coord)
-    cs = coord[order]
-    return order, [(np.searchsorted(cs, lo, "left"), np.searchsorted(cs, hi, "right"))
-                   for lo, hi in ((centres - SEAM_INNER * h, centres + SEAM_INNER * h),
-                                  (centres - b, centres - a), (centres + a, centres + b))]
+    return (-SEAM_INNER * h, SEAM_INNER * h), (-b, -a), (a, b)
 
 
 def _windows(coord: np.ndarray, w: np.ndarray, centres: np.ndarray, h: float
              ) -> tuple[np.ndarray, ...]:
     """Count and sum of w in the groove window and in each flank, per centre."""
-    order, wins = _bounds(coord, centres, h)
+    order = np.argsort(coord)
+    cs = coord[order]
     cum = np.r_[0.0, np.cumsum(w[order])]
     out: list[np.ndarray] = []
-    for i0, i1 in wins:
+    for lo, hi in _window_offsets(h):
+        i0 = np.searchsorted(cs, centres + lo, "left")
+        i1 = np.searchsorted(cs, centres + hi, "right")
         out += [(i1 - i0).astype(np.float64), cum[i1] - cum[i0]]
     return tuple(out)
 
@@ -193,14 +191,13 @@ def _row_term(coord: np.ndarray, row: np.ndarray, centres: np.ndarray, h: float,
     (sum of that row's c_i)^2 to its variance. Each point lies in the windows of a few
     centres only: the sums run over those (point, centre) pairs. ``centres`` ascend.
     """
-    a, b = SEAM_FLANK[0] * h, SEAM_FLANK[1] * h
     r = row - row.min()  # image rows: small integers, no need to sort them
     R = int(r.max()) + 1
     m = len(centres)
     keys, wts = [], []
     with np.errstate(divide="ignore"):
         coefs = (-1.0 / ni, 0.5 / nl, 0.5 / nr)
-    for (lo, hi), coef in zip(((-SEAM_INNER * h, SEAM_INNER * h), (-b, -a), (a, b)), coefs):
+    for (lo, hi), coef in zip(_window_offsets(h), coefs):
         # x lies in the window [c + lo, c + hi] of the centres c in [x - hi, x - lo]
         j0 = np.searchsorted(centres, coord - hi, "left")
         cnt = np.searchsorted(centres, coord - lo, "right") - j0

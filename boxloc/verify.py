@@ -176,11 +176,6 @@ def _interior_line(
     return best, best_p
 
 
-def _rows(fp: FacePoints, sel: np.ndarray) -> np.ndarray | None:
-    """Image rows of the selected face points (None if unknown)."""
-    return None if fp.row is None else fp.row[sel]
-
-
 def _side_seam(fp: FacePoints, side: int, width: float, length: float, spacing: float,
                alpha: float, reach: float | None = None, gaps: bool = False
                ) -> tuple[float, float]:
@@ -198,10 +193,10 @@ def _side_seam(fp: FacePoints, side: int, width: float, length: float, spacing: 
         sel = (fp.v >= 0) & (fp.v <= length)
         coord, along, at, L = fp.u, fp.v, (0.0, width)[side - 2], length
     zs, zc = seam_at(coord[sel], fp.w[sel], fp.scale, at, spacing, alpha, reach,
-                     gaps, _rows(fp, sel), fp.row_corr)
+                     gaps, fp.row[sel], fp.row_corr)
     for half in (sel & (along < 0.5 * L), sel & (along >= 0.5 * L)):
         zh, _ = seam_at(coord[half], fp.w[half], fp.scale, at, spacing, alpha, reach,
-                        gaps, _rows(fp, half), fp.row_corr)
+                        gaps, fp.row[half], fp.row_corr)
         if zh <= 0:
             zs = min(zs, zh)
     return zs, zc
@@ -546,7 +541,7 @@ def verify(
                                          (fp.v, fp.u, (mi, length - mi), width)):
             sel = (other >= mi) & (other <= ext - mi)
             found = find_seams(coord[sel], fp.w[sel], fp.scale, lo_hi[0], lo_hi[1],
-                               spacing, alpha, _rows(fp, sel), fp.row_corr)
+                               spacing, alpha, fp.row[sel], fp.row_corr)
             # the strongest groove anywhere inside, significant or not (NaN: none measurable)
             int_z.append(found.z_max if np.isfinite(found.z_max) else np.nan)
             int_crit.append(found.critical)

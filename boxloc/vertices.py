@@ -251,6 +251,17 @@ def corner_vertices(vertices: VertexSet, lines: LineSet, config: Config,
         a, b, z = (np.array(c) for c in zip(*rows))
         tests = TestTable.concat([tests, TestTable.decision(
             TestKind.BOX_CORNER, a, b, z, k, z <= k, config.alpha)], config.alpha)
+    return append_vertices(vertices, new, la, lb, par, [THIRD_EDGE] * len(par), tests)
+
+
+def append_vertices(vertices: VertexSet, new: list[tuple[np.ndarray, ...]],
+                    line_a: list[int], line_b: list[int], parent: list[int],
+                    parent_side: list[int], tests: TestTable) -> VertexSet:
+    """``vertices`` followed by derived ones, with ``tests`` in place of theirs.
+
+    ``new`` holds one (point, d1, d2, normal, covariance) per derived vertex; the other
+    lists give each its lines, its parent vertex and ``parent_side``.
+    """
     if not new:
         return dataclasses.replace(vertices, tests=tests)
     P, D1, D2, N, COV = (np.array(a) for a in zip(*new))
@@ -258,11 +269,11 @@ def corner_vertices(vertices: VertexSet, lines: LineSet, config: Config,
         points=np.r_[vertices.points, P], d1=np.r_[vertices.d1, D1],
         d2=np.r_[vertices.d2, D2], normals=np.r_[vertices.normals, N],
         covariances=np.r_[vertices.covariances, COV],
-        line_a=np.r_[vertices.line_a, la].astype(np.int32),
-        line_b=np.r_[vertices.line_b, lb].astype(np.int32),
+        line_a=np.r_[vertices.line_a, line_a].astype(np.int32),
+        line_b=np.r_[vertices.line_b, line_b].astype(np.int32),
         tests=tests,
-        parent=np.r_[vertices.parent, par].astype(np.int32),
-        parent_side=np.r_[vertices.parent_side, np.full(len(par), THIRD_EDGE)].astype(np.int32),
+        parent=np.r_[vertices.parent, parent].astype(np.int32),
+        parent_side=np.r_[vertices.parent_side, parent_side].astype(np.int32),
     )
 
 
