@@ -13,7 +13,8 @@ of equal height that touch (or stand within a DBSCAN radius) form one cluster, a
 covered top whose visible part is rectangular looks like a smaller box, and visible pieces
 of the pallet or floor of box size look like boxes (it knows no support height).
 
-Determinism: open3d's RANSAC is seeded from the scan (``scan.seed``) and runs all its
+Determinism: open3d's RANSAC is seeded from the scan (``scan.seed``, with
+``Config.trial_seed`` as for the localizer's trials) and runs all its
 iterations (its early stop depends on thread timing), and each plane is then refitted by
 least squares, so the same scan gives the same surfaces.
 """
@@ -210,7 +211,8 @@ def baseline_surfaces(
     # Smallest cluster worth a rectangle: half the points of the smallest box top.
     min_pts = max(20, int(0.5 * cfg.min_edge**2 / step**2))
 
-    o3d.utility.random.seed(int(scan.seed % (2**31 - 1)))
+    seed = cfg.seed_for(scan.seed)
+    o3d.utility.random.seed(int(seed % (2**31 - 1)))
     pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(P))
     pcd = pcd.voxel_down_sample(voxel)
     rest_P = np.asarray(pcd.points)
@@ -223,7 +225,7 @@ def baseline_surfaces(
     planes: list[tuple[np.ndarray, np.ndarray]] = []  # (points, normal) of each top plane
     cos_tilt = np.cos(cfg.max_tilt)
     cos_nf = np.cos(np.radians(normal_filter_deg))
-    rng = np.random.default_rng(scan.seed)
+    rng = np.random.default_rng(seed)
     for _ in range(max_planes):
         m = rest_P.shape[0]
         if m < min_pts:

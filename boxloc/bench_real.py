@@ -28,17 +28,21 @@ Layout of ``bench_real.json`` (lengths in mm, angles in degrees, times in ms):
   ``config_hash``, ``noise`` (source, model, fit summary, ``edge_blur``), ``squareness`` (source,
   ``angle_tolerance_deg``, corners used, spread), ``pose``, ``threads``,
   ``warmup``, ``crash_policy``, ``truth_rule``
-- ``summary``: pooled figures per method (:func:`boxloc.metrics.aggregate_matches`)
+- ``seeds``: ``n`` draws of the random trials (``trial_seed`` the config's, +1, ...),
+  ``trial_seeds``, ``per_seed`` (each draw's TP, FP, FN, precision and recall per group
+  and method) and ``spread`` (their min, max and mean)
+- ``summary``: pooled figures per method (:func:`boxloc.metrics.aggregate_matches`), over
+  every frame and draw
 - ``groups``: the same per frame group (``boxes`` = learn0-16, ``stacked`` = learn17-24,
   ``other``), each with ``n_frames`` and per-method ``errors``
 - ``targets``: recall >= 0.9 and precision >= 0.95 on the box frames, no crash on any
   frame: name, target, value, baseline value, pass
 - ``timing``: per method, median/p95 per stage and of the wall time, per-frame wall times
 - ``memory``: per-method peak RSS and the process's ``ru_maxrss``
-- ``errors``: counts per method and the list (frame, method, message)
+- ``errors``: counts per method and the list (frame, method, trial seed, message)
 - ``skipped``: files not benchmarked and why (no labels, unreadable)
-- ``frames``: one deterministic row per frame (truth summary, per-method counts, status
-  of every prediction, per-TP errors; no durations)
+- ``frames``: one deterministic row per frame and draw (``trial_seed``, truth summary,
+  per-method counts, status of every prediction, per-TP errors; no durations)
 """
 
 from __future__ import annotations
@@ -148,6 +152,7 @@ class _Run:
     peak_mb: float | None = None
     error: str | None = None
     group: str = ""
+    trial_seed: int = 0
 
 
 def _default_localizer(scan: Scan, config: Config) -> Any:
@@ -285,6 +290,7 @@ def run_real_bench(
     localizer: Callable[[Scan, Config], Any] | None = None,
     console: Any = None,
     warmup: bool = True,
+    seeds: int = 1,
 ) -> dict[str, Any]:
     """Benchmark the localizer (and the open3d baseline) on real labelled scans.
 
@@ -313,6 +319,11 @@ def run_real_bench(
     console : rich.console.Console, optional
     warmup : bool
         Run both methods once on the first frame, untimed (JIT compilation, lazy imports).
+    seeds : int
+        Run both methods this many times on every frame, with ``trial_seed`` = the config's,
+        +1, +2, ... (other draws of their random trials; the noise model and
+        ``angle_tolerance`` are estimated once). The summary, groups and targets pool all
+        runs, so they are the expected figures over draws; ``seeds`` reports each draw's.
 
     Returns
     -------
@@ -327,6 +338,8 @@ def run_real_bench(
     from boxloc.real import top_faces
 
     cfg = config or Config()
+    if isinstance(seeds, bool) or not isinstance(seeds, int) or seeds < 1:
+        raise InputError(f"seeds must be an integer >= 1, got {seeds!r}")
     paths = list_frames(data_dir, frames)
     skipped: list[dict[str, Any]] = []
     errors: list[dict[str, Any]] = []
@@ -354,32 +367,39 @@ def run_real_bench(
 
     loc = localizer or _default_localizer
     methods = METHODS if baseline else METHODS[:1]
+    draws = [dataclasses.replace(cfg_run, trial_seed=cfg_run.trial_seed + i)
+             for i in range(seeds)]
     runs: dict[str, list[_Run]] = {m: [] for m in methods}
     rows: list[dict[str, Any]] = []
-    bar, task = progress_bar(con, "bench --real", len(scored)) if progress else (None, None)
+    bar, task = (progress_bar(con, "bench --real", len(scored) * seeds) if progress
+                 else (None, None))
     try:
         if warmup and scored:
             for m in methods:
                 with contextlib.suppress(Exception):
                     _calls(m, scored[0], cfg_run, loc)()
         for f in scored:
-            row: dict[str, Any] = {"frame": f.name, "group": f.group, "index": f.scan.index,
-                                   "truth": f.truth.to_dict()}
-            for m in methods:
+            for c in draws:
+                row: dict[str, Any] = {"frame": f.name, "group": f.group,
+                                       "index": f.scan.index, "trial_seed": c.trial_seed,
+                                       "truth": f.truth.to_dict()}
+                for m in methods:
+                    if bar is not None:
+                        bar.update(task, description=f"{f.name}: {m}"
+                                   + (f" (trial_seed {c.trial_seed})" if seeds > 1 else ""))
+                    r = _run(_calls(m, f, c, loc), f)
+                    r.trial_seed = c.trial_seed
+                    if r.error is not None:
+                        errors.append({"frame": f.name, "group": f.group, "method": m,
+                                       "trial_seed": c.trial_seed, "error": r.error})
+                        r.match = _empty_match(f)
+                    runs[m].append(r)
+                    mrow: dict[str, Any] = {"error": r.error}
+                    mrow.update(r.match.to_dict() if r.match is not None else {})
+                    row[m] = mrow
+                rows.append(row)
                 if bar is not None:
-                    bar.update(task, description=f"{f.name}: {m}")
-                r = _run(_calls(m, f, cfg_run, loc), f)
-                if r.error is not None:
-                    errors.append({"frame": f.name, "group": f.group, "method": m,
-                                   "error": r.error})
-                    r.match = _empty_match(f)
-                runs[m].append(r)
-                mrow: dict[str, Any] = {"error": r.error}
-                mrow.update(r.match.to_dict() if r.match is not None else {})
-                row[m] = mrow
-            rows.append(row)
-            if bar is not None:
-                bar.advance(task)
+                    bar.advance(task)
     finally:
         if bar is not None:
             bar.stop()
@@ -391,6 +411,7 @@ def run_real_bench(
         "version": __version__,
         "data_dir": str(data_dir),
         "n_frames": len(scored),
+        "seeds": _draws(runs, methods, [c.trial_seed for c in draws]),
         "config": cfg_run.to_dict(),
         "config_hash": cfg_run.hash,
         "noise": noise_info,
@@ -451,6 +472,29 @@ def _groups(runs: dict[str, list[_Run]], methods: Sequence[str]) -> dict[str, An
     return out
 
 
+def _draws(runs: dict[str, list[_Run]], methods: Sequence[str],
+           trial_seeds: list[int]) -> dict[str, Any]:
+    """Each draw's figures per group and method, and their spread over the draws."""
+    per: list[dict[str, Any]] = []
+    for k in trial_seeds:
+        groups = _groups({m: [r for r in runs[m] if r.trial_seed == k] for m in methods},
+                         methods)
+        per.append({"trial_seed": k, "groups": {
+            g: {m: {key: e[m][key] for key in ("tp", "fp", "fn", "precision", "recall")}
+                for m in methods} for g, e in groups.items()}})
+    spread: dict[str, Any] = {}
+    for g in per[0]["groups"] if per else ():
+        spread[g] = {}
+        for m in methods:
+            spread[g][m] = {}
+            for key in ("recall", "precision"):
+                v = [d["groups"][g][m][key] for d in per if d["groups"][g][m][key] is not None]
+                spread[g][m][key] = ({"min": min(v), "max": max(v), "mean": float(np.mean(v))}
+                                     if v else None)
+    return {"n": len(trial_seeds), "trial_seeds": trial_seeds, "per_seed": per,
+            "spread": spread}
+
+
 def _real_figures(report: dict[str, Any], method: str) -> dict[str, Any]:
     figs: dict[str, Any] = {}
     for g, entry in report["groups"].items():
@@ -507,19 +551,43 @@ def print_real_report(report: dict[str, Any], console: Any) -> None:
             t.add_row(*cells, "", "")
     console.print(t)
 
-    ft = Table(title="per frame: TP / FP / FN (exposed / faces)")
+    draws = report.get("seeds", {"n": 1})
+    if draws["n"] > 1:
+        dt = Table(title=f"per draw of the random trials ({draws['n']} trial seeds; the "
+                         "figures above pool them)")
+        dt.add_column("trial_seed", justify="right")
+        for g in draws["spread"]:
+            for m in methods:
+                dt.add_column(escape(f"{g}: {LABELS[m]} TP / FP / FN, R / P"), justify="right")
+        for d in draws["per_seed"]:
+            cells = [str(d["trial_seed"])]
+            for e in d["groups"].values():
+                cells += [f"{e[m]['tp']} / {e[m]['fp']} / {e[m]['fn']}, "
+                          f"{_fmt(e[m]['recall'])} / {_fmt(e[m]['precision'])}" for m in methods]
+            dt.add_row(*cells)
+        console.print(dt)
+
+    ft = Table(title="per frame: TP / FP / FN (exposed / faces)"
+               + (f", summed over {draws['n']} draws" if draws["n"] > 1 else ""))
     ft.add_column("frame")
     ft.add_column("group")
     ft.add_column("exposed / faces", justify="right")
     for m in methods:
         ft.add_column(LABELS[m], justify="right")
+    by_frame: dict[str, list[dict[str, Any]]] = {}
     for row in report["frames"]:
-        cells = [row["frame"], row["group"],
-                 f"{row['truth']['n_exposed']} / {row['truth']['n_faces']}"]
+        by_frame.setdefault(row["frame"], []).append(row)
+    for rs in by_frame.values():
+        cells = [rs[0]["frame"], rs[0]["group"],
+                 f"{rs[0]['truth']['n_exposed']} / {rs[0]['truth']['n_faces']}"]
         for m in methods:
-            r = row[m]
-            cells.append("[red]crash[/]" if r.get("error") else f"{r['tp']} / {r['fp']} / "
-                         f"{r['fn']}")
+            crashes = sum(bool(r[m].get("error")) for r in rs)
+            if crashes == len(rs):
+                cells.append("[red]crash[/]")
+                continue
+            tp, fp, fn = (sum(r[m].get(k, 0) for r in rs) for k in ("tp", "fp", "fn"))
+            cells.append(f"{tp} / {fp} / {fn}" + (f" [red]({crashes} crash)[/]" if crashes
+                                                  else ""))
         ft.add_row(*cells)
     console.print(ft)
 

@@ -198,6 +198,9 @@ def _print_surfaces(result: Any) -> None:
 @click.option("--pose", type=click.Choice(["plane", "none"]), default="plane",
               show_default=True,
               help="With --real: sensor pose from each frame's dominant plane, or none.")
+@click.option("--seeds", type=click.IntRange(min=1), default=1, show_default=True,
+              help="With --real: run each frame N times, with trial_seed 0..N-1 (other draws "
+                   "of the random trials); the figures pool them, and each draw's is listed.")
 @click.option("--scene-set", "scene_sets", multiple=True, metavar="KEY=VALUE",
               help="Set a field of every simulated scene (repeatable; scene-spec keys, e.g. "
                    "noise.row_corr=0.276 for a sensor whose rows share part of their noise).")
@@ -207,7 +210,7 @@ def bench(
     frames: str | None, noise_source: str, squareness: str, pose: str,
     config_path: str | None, overrides: tuple[str, ...], replay_only: bool = False,
     sections: tuple[str, ...] = (), fuzz_cases: int | None = None,
-    scene_sets: tuple[str, ...] = (),
+    scene_sets: tuple[str, ...] = (), seeds: int = 1,
 ) -> None:
     """Benchmark the localizer against the open3d baseline on N simulated scenes.
 
@@ -234,7 +237,7 @@ def bench(
         names = [f.strip() for f in frames.split(",") if f.strip()] if frames else None
         run_real_bench(real_dir, config=cfg, out=Path(out) if out else None,
                        baseline=not no_baseline, noise=noise_source, squareness=squareness,
-                       pose=pose, frames=names)
+                       pose=pose, frames=names, seeds=seeds)
         return
     from boxloc.bench import run_bench
 
@@ -412,6 +415,19 @@ def _print_noise_report(report: dict[str, Any]) -> None:
         con.print(f"row correlation {rc['value']:.3f} (share of the variance common to an "
                   f"image row; median {rc['median']:.3f} over {rc['tiles']} tiles, "
                   f"standard error {rc['std_error'] or 0:.3f})")
+    co = report.get("correlation")
+    if co:
+        def lags(vals: list[float | None]) -> str:
+            return ", ".join(f"{v:.2f}" if v is not None else "n/a" for v in vals)
+
+        con.print(f"residual correlation at {', '.join(map(str, co['lags_px']))} px: along "
+                  f"rows {lags(co['along_rows'])}; along columns {lags(co['along_columns'])}")
+    tl = report.get("tails")
+    if tl and tl["observed"]:
+        con.print("beyond " + ", ".join(
+            f"{k:g} sigma {o:.2e} (normal {n:.2e})"
+            for k, o, n in zip(tl["sigmas"], tl["observed"], tl["normal"], strict=True))
+            + f" of {tl['n_points']} residuals")
     con.print(f"tiles rejected: {rej or 'none'}")
 
 

@@ -14,6 +14,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import tomli_w
 
 from boxloc.errors import InputError
@@ -69,6 +70,13 @@ class Config:
         Largest scan accepted, pixels; larger scans are refused before any work.
     direction_granularity : int
         Subdivision level of the icosahedral direction accumulator (4 gives 1281 cells).
+    trial_seed : int
+        Which stream of random trials to draw (the Hough trials' distinguished points and
+        voters, the up estimate's and the baseline's RANSAC): 0, the default, seeds them
+        from the scan's content alone (:attr:`boxloc.scan.Scan.seed`); k > 0 from the scan
+        and k (:meth:`seed_for`). Running k = 0, 1, 2, ... measures how much a result owes
+        to the draw (``boxloc bench --real DIR --seeds N``). Left out of ``to_dict`` (so
+        of the config hash) at 0.
     """
 
     alpha: float = 0.01
@@ -88,6 +96,7 @@ class Config:
     workers: int = 1
     max_pixels: int = 16_777_216
     direction_granularity: int = 4
+    trial_seed: int = 0
 
     def __post_init__(self) -> None:
         def check(name: str, ok: bool, what: str) -> None:
@@ -109,6 +118,8 @@ class Config:
         check("workers", isinstance(self.workers, int) and self.workers >= 1, "an integer >= 1")
         check("max_pixels", isinstance(self.max_pixels, int) and self.max_pixels > 0, "> 0")
         check("direction_granularity", self.direction_granularity in range(2, 7), "in 2..6")
+        check("trial_seed", isinstance(self.trial_seed, int) and not isinstance(
+            self.trial_seed, bool) and 0 <= self.trial_seed < 2**63, "an integer >= 0")
         if not isinstance(self.noise, NoiseModel):
             raise TypeError(f"config noise must be a NoiseModel, got {type(self.noise)}")
 
@@ -117,7 +128,21 @@ class Config:
     def to_dict(self) -> dict[str, Any]:
         d = dataclasses.asdict(self)
         d["noise"] = self.noise.to_dict()
+        if self.trial_seed == 0:  # the default stream: configs and their hashes as before
+            del d["trial_seed"]
         return d
+
+    def seed_for(self, scan_seed: int) -> int:
+        """The seed of the random trials on a scan whose content seed is ``scan_seed``.
+
+        ``trial_seed`` 0 gives ``scan_seed`` itself; k > 0 a 63-bit hash of both, so every
+        (scan, k) has its own stream and the same pair always the same one.
+        """
+        if self.trial_seed == 0:
+            return int(scan_seed)
+        h = hashlib.blake2b(digest_size=8)
+        h.update(np.asarray([scan_seed, self.trial_seed], dtype=np.uint64).tobytes())
+        return int.from_bytes(h.digest(), "little") >> 1
 
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> Config:
@@ -173,9 +198,10 @@ class Config:
 
     def _all_keys(self) -> dict[str, Any]:
         """``to_dict`` with the keys it leaves out at their defaults (``noise.edge_px``,
-        ``noise.row_corr``)."""
+        ``noise.row_corr``, ``trial_seed``)."""
         d = self.to_dict()
         d["noise"] = dataclasses.asdict(self.noise)
+        d["trial_seed"] = self.trial_seed
         return d
 
     def to_toml(self) -> str:

@@ -64,7 +64,8 @@ def edge_offsets(scan: Scan, config: Config) -> tuple[np.ndarray, np.ndarray]:
         The standard deviation the point's covariance gives in that direction, same unit.
     """
     edges = detect_edges(scan, config=config)
-    lines = find_lines(scan, edges, config=config, rng=np.random.default_rng(scan.seed))
+    lines = find_lines(scan, edges, config=config,
+                       rng=np.random.default_rng(config.seed_for(scan.seed)))
     if len(edges) == 0 or len(lines) == 0:
         return np.zeros(0), np.zeros(0)
     tree = cKDTree(edges.points)

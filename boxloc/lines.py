@@ -312,7 +312,7 @@ def find_lines(scan: Scan, edges: EdgeMap, *, config: Config, rng: np.random.Gen
         else:
             fails += 1
 
-    return _to_lineset(lines, line_tests, trial, eps0, config, scan.seed)
+    return _to_lineset(lines, line_tests, trial, eps0, config, config.seed_for(scan.seed))
 
 
 def _trial(

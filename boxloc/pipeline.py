@@ -69,8 +69,9 @@ def find_graspable_surfaces(
 
     Notes
     -----
-    Randomness (the Hough trials) is seeded from the scan content, so the same scan and
-    config always give the same result, bit for bit. Wall-clock time enters only
+    Randomness (the Hough trials) is seeded from the scan content (and
+    ``config.trial_seed``, 0 by default), so the same scan and config always give the same
+    result, bit for bit. Wall-clock time enters only
     ``Result.timing_ms``.
 
     References
@@ -80,7 +81,8 @@ def find_graspable_surfaces(
     config = config or Config()
     obs: Observer = observer if observer is not None else NullObserver()
     check_scan(scan, config)
-    rng = np.random.default_rng(scan.seed)
+    seed = config.seed_for(scan.seed)
+    rng = np.random.default_rng(seed)
     timing: dict[str, float] = {}
 
     obs.on_scan(scan, config)
@@ -110,7 +112,7 @@ def find_graspable_surfaces(
     result = Result(
         scan_index=scan.index,
         capture_time_ns=scan.capture_time_ns,
-        seed=scan.seed,
+        seed=seed,
         config_hash=config.hash,
         version=__version__,
         edges=edges,

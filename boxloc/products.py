@@ -155,7 +155,7 @@ class LineSet:
         Fraction of edge points in the smallest line worth finding, at the start.
     p_success : float
     seed : int
-        The seed of the trials (derived from the scan).
+        The seed of the trials (derived from the scan and ``Config.trial_seed``).
     tests : TestTable
     """
 

@@ -20,6 +20,7 @@ from click.testing import CliRunner
 from boxloc.baseline import empty_surface_set, surface_set_from_rects
 from boxloc.bench_real import list_frames, run_real_bench
 from boxloc.cli import cli
+from boxloc.config import Config
 from boxloc.errors import InputError
 from boxloc.io import read_labels, read_scan, write_npz
 from boxloc.metrics import PredStatus
@@ -284,7 +285,6 @@ def test_mosd_sliver_tops_are_found_from_their_crease(frame: str) -> None:
     # their short sides: their only straight edges are the far jump and the crease with
     # the front face. The front face's corner at the crease is the top's corner too (a
     # box corner vertex); without it the top had no vertex and was missed.
-    from boxloc.config import Config
     from boxloc.pipeline import find_graspable_surfaces
     p = MOSD / f"{frame}.pcd"
     scan, L = read_scan(p), read_labels(p)
@@ -307,7 +307,6 @@ def test_mosd_row_offsets_make_no_seam_on_a_covered_top() -> None:
     # noise (noise.row_corr, measured on the frames: 0.28); read as independent, one row's
     # offset across the lower top was a "seam", and the strip it cut off, its only other
     # sides real edges, was reported as a top although a box stands on it
-    from boxloc.config import Config
     from boxloc.pipeline import find_graspable_surfaces
     p = MOSD / "learn20.pcd"
     scan, L = read_scan(p), read_labels(p)
@@ -454,6 +453,48 @@ def test_real_bench_harness_on_constructed_frames(tmp_path: Path) -> None:
     sq = rep["squareness"]
     assert sq["source"].startswith("estimate") and sq["n_corners"] > 0
     assert math.radians(sq["angle_tolerance_deg"]) == rep["config"]["angle_tolerance"]
+
+
+def test_real_bench_pools_draws_of_the_random_trials(tmp_path: Path) -> None:
+    data = tmp_path / "data"
+    data.mkdir()
+    for name, boxes in (("learn2", ONE_BOX), ("learn10", SIDE_BY_SIDE)):
+        scan, L = render(boxes, look_down())
+        write_labelled_pcd(data / f"{name}.pcd", scan, L)
+    labels = [read_labels(p) for p in list_frames(data)]
+    perfect, seen = _Perfect(labels), []
+
+    def lucky(scan: Scan, config: Config) -> object:
+        # finds every top on even draws, nothing on odd ones
+        seen.append(config.trial_seed)
+        if config.trial_seed % 2:
+            from types import SimpleNamespace
+
+            return SimpleNamespace(surfaces=empty_surface_set(), timing_ms={"total": 1.0})
+        return perfect(scan, config)
+
+    rep = run_real_bench(data, progress=False, warmup=False, noise="config", baseline=False,
+                         squareness="config", localizer=lucky, seeds=3,
+                         config=Config(trial_seed=4))
+    assert seen == [4, 5, 6, 4, 5, 6]
+    draws = rep["seeds"]
+    assert draws["n"] == 3 and draws["trial_seeds"] == [4, 5, 6]
+    per = {d["trial_seed"]: d["groups"]["boxes"]["boxloc"] for d in draws["per_seed"]}
+    assert (per[4]["tp"], per[4]["fn"], per[4]["recall"]) == (3, 0, 1.0)
+    assert (per[5]["tp"], per[5]["fn"], per[5]["recall"]) == (0, 3, 0.0)
+    assert draws["spread"]["boxes"]["boxloc"]["recall"] == {"min": 0.0, "max": 1.0,
+                                                            "mean": pytest.approx(2 / 3)}
+    # the summary and the targets pool the draws: the expected figure, not the best one
+    box = rep["groups"]["boxes"]["boxloc"]
+    assert (box["tp"], box["fp"], box["fn"]) == (6, 0, 3)
+    rows = {t["name"]: t for t in rep["targets"]}
+    assert rows["recall (box frames)"]["value"] == pytest.approx(2 / 3)
+    assert rows["recall (box frames)"]["pass"] is False
+    assert [(f["frame"], f["trial_seed"]) for f in rep["frames"]] == [
+        ("learn2", 4), ("learn2", 5), ("learn2", 6), ("learn10", 4), ("learn10", 5),
+        ("learn10", 6)]
+    with pytest.raises(InputError, match="seeds"):
+        run_real_bench(data, progress=False, seeds=0)
 
 
 def test_real_bench_counts_a_crash(tmp_path: Path) -> None:
