@@ -16,7 +16,11 @@ sigma**2, which is linear in (sigma0**2, k1**2, k2**2).
 The same tiles give ``row_corr``, the share of the noise variance that is an offset common
 to one image row (one-way ANOVA per tile, rows as groups: the intraclass correlation,
 averaged over the tiles). Structured-light sensors have one; a scanner with independent
-samples gives ~0.
+samples gives ~0. Two diagnostics say how far that model reaches: ``correlation``, the
+correlation of two residuals of a tile at 1, 2, 4 and 8 pixels apart along a row and along
+a column (how long the shared part is: a whole-row offset keeps its correlation at every
+lag), and ``tails``, how often a residual of the accepted tiles (their plane-fit outliers
+included) is beyond 3, 4 and 5 model sigmas, against a normal distribution's rate.
 
 The NoiseModel divides the range noise by ``max(cos_incidence, min_cos)``; the residual of
 each point along its ray is multiplied by the same factor before binning, so the fitted model
@@ -27,6 +31,7 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+import math
 import warnings
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
@@ -41,6 +46,10 @@ from boxloc.scan import NoiseModel, Scan
 __all__ = ["plane_residuals", "estimate_noise", "noise_toml", "NOISE_TERMS"]
 
 NOISE_TERMS = ("sigma0", "k1", "k2")
+#: Pixel lags of the residual correlation diagnostic (within a tile).
+CORRELATION_LAGS = (1, 2, 4, 8)
+#: Model sigmas of the tail diagnostic.
+TAIL_SIGMAS = (3.0, 4.0, 5.0)
 _MAD_TO_STD = 1.4826  # 1 / Phi^-1(3/4): MAD of a normal distribution -> its std
 
 
@@ -53,6 +62,13 @@ class _TileResiduals:
     residual: np.ndarray  # (N,) metres, along the ray
     tile: np.ndarray  # (N,) int, tile id (unique within one scan)
     row_share: np.ndarray  # (n_accepted,) per tile: row-offset variance / total (ANOVA)
+    # (2, len(CORRELATION_LAGS), 3): along rows / columns, per lag, sums of a*b, a*a, b*b
+    # over the pairs of inlier residuals that far apart
+    lag_sums: np.ndarray
+    # every valid point of the accepted tiles, plane-fit outliers included (tails)
+    all_range: np.ndarray
+    all_cos: np.ndarray
+    all_residual: np.ndarray
     n_tiles: int  # tiles considered (enough valid pixels)
     n_accepted: int  # tiles that passed every test
     rejected: dict[str, int]  # tiles rejected, by reason
@@ -164,7 +180,10 @@ def _tile_residuals(
 
     def nothing(n_tiles: int, rejected: dict[str, int]) -> _TileResiduals:
         z = np.zeros(0)
-        return _TileResiduals(z, z, z, np.zeros(0, dtype=np.int64), z, n_tiles, 0, rejected)
+        return _TileResiduals(
+            range=z, cos_incidence=z, residual=z, tile=np.zeros(0, dtype=np.int64),
+            row_share=z, lag_sums=np.zeros((2, len(CORRELATION_LAGS), 3)), all_range=z,
+            all_cos=z, all_residual=z, n_tiles=n_tiles, n_accepted=0, rejected=rejected)
 
     if scan.shape[0] < patch or scan.shape[1] < patch:
         return nothing(0, {})
@@ -230,11 +249,32 @@ def _tile_residuals(
     dof = np.sqrt(n_in[sel] / (n_in[sel] - 3.0))[:, None]
     e_ray = e_ray * dof
     tile = np.broadcast_to(ids[sel][:, None], wi.shape)
+    vi = V[sel] & np.isfinite(e_ray)
     return _TileResiduals(
         range=r[wi], cos_incidence=np.abs(ndot[wi]), residual=e_ray[wi],
         tile=tile[wi].astype(np.int64), row_share=_row_share(h[sel], wi, patch),
         n_tiles=n_tiles, n_accepted=int(sel.size), rejected=rejected,
+        lag_sums=_lag_sums(h[sel], wi, patch), all_range=r[vi],
+        all_cos=np.abs(ndot[vi]), all_residual=e_ray[vi],
     )
+
+
+def _lag_sums(h: np.ndarray, w: np.ndarray, patch: int) -> np.ndarray:
+    """Sums for the correlation of two inlier residuals of a tile ``lag`` pixels apart,
+    along a row and along a column: (2, len(CORRELATION_LAGS), 3) of sum a*b, a*a, b*b."""
+    T = h.shape[0]
+    H = np.where(w, h, 0.0).reshape(T, patch, patch)
+    M = w.reshape(T, patch, patch)
+    out = np.zeros((2, len(CORRELATION_LAGS), 3))
+    for j, lag in enumerate(CORRELATION_LAGS):
+        if lag >= patch:
+            continue
+        for i, (a, b, ma, mb) in enumerate((
+                (H[:, :, :-lag], H[:, :, lag:], M[:, :, :-lag], M[:, :, lag:]),
+                (H[:, :-lag], H[:, lag:], M[:, :-lag], M[:, lag:]))):
+            both = ma & mb
+            out[i, j] = ((a * b)[both].sum(), (a * a)[both].sum(), (b * b)[both].sum())
+    return out
 
 
 def _row_share(h: np.ndarray, w: np.ndarray, patch: int) -> np.ndarray:
@@ -390,7 +430,10 @@ def estimate_noise(
         ``tiles``, ``std`` (the estimator's, m), ``std_mad``, ``std_clipped``, ``mean_cos``,
         ``model_std`` (fitted, m, at cos = 1), ``used`` (entered the fit); ``fit_rel_rms``
         (RMS of std/model - 1 over the fitted bins), ``incidence_exponent`` (see Notes),
-        ``row_corr`` (``value``, ``tiles``, ``median``, ``std_error``),
+        ``row_corr`` (``value``, ``tiles``, ``median``, ``std_error``), ``correlation``
+        (``lags_px``, ``along_rows``, ``along_columns``: the residual correlation at those
+        pixel lags, within tiles), ``tails`` (``sigmas``, ``observed`` and ``normal`` rates
+        of |residual| beyond them, ``n_points``),
         ``n_points``, ``n_tiles``, ``n_tiles_used``, ``tiles_rejected`` (by reason),
         ``n_scans``, ``estimator``, ``incidence``, ``terms``, ``underdetermined``, ``model``.
 
@@ -432,6 +475,8 @@ def estimate_noise(
     base = base or NoiseModel()
 
     rs, ys, cs, ts, shares = [], [], [], [], []
+    lag_sums = np.zeros((2, len(CORRELATION_LAGS), 3))
+    all_r, all_c, all_e = [], [], []
     n_tiles, rejected = 0, {}
     for i, (scan, m, lab) in enumerate(zip(scans, masks_l, labels_l)):
         t = _tile_residuals(scan, m, patch=patch, labels=lab, min_valid=0.9,
@@ -443,6 +488,10 @@ def estimate_noise(
         ys.append(t.residual * f)
         ts.append(t.tile + (i << 32))
         shares.append(t.row_share)
+        lag_sums += t.lag_sums
+        all_r.append(t.all_range)
+        all_c.append(t.all_cos)
+        all_e.append(t.all_residual)
         n_tiles += t.n_tiles
         for k, v in t.rejected.items():
             rejected[k] = rejected.get(k, 0) + v
@@ -501,6 +550,20 @@ def estimate_noise(
                           "median": float(np.median(share)) if share.size else None,
                           "std_error": float(share.std() / np.sqrt(share.size))
                           if share.size > 1 else None}
+    with np.errstate(invalid="ignore", divide="ignore"):
+        corr = lag_sums[..., 0] / np.sqrt(lag_sums[..., 1] * lag_sums[..., 2])
+    report["correlation"] = {
+        "lags_px": list(CORRELATION_LAGS),
+        "along_rows": [None if not np.isfinite(v) else float(v) for v in corr[0]],
+        "along_columns": [None if not np.isfinite(v) else float(v) for v in corr[1]],
+    }
+    ra, ca, ea = (np.concatenate(a) for a in (all_r, all_c, all_e))
+    za = np.abs(ea) / model.sigma_range(ra, ca if incidence == "model" else 1.0)
+    report["tails"] = {
+        "sigmas": list(TAIL_SIGMAS), "n_points": int(za.size),
+        "observed": [float(np.mean(za > k)) for k in TAIL_SIGMAS] if za.size else None,
+        "normal": [math.erfc(k / math.sqrt(2.0)) for k in TAIL_SIGMAS],
+    }
     for row in rows:
         row["model_std"] = float(model.sigma_range(row["range"]) * 1.0)
     rel = np.array([row["std"] / row["model_std"] - 1.0 for row in used])

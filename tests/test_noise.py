@@ -98,11 +98,44 @@ def test_estimate_measures_the_row_correlation(rho: float) -> None:
     assert report["row_corr"]["tiles"] == report["n_tiles_used"]
     # the row offsets are part of each point's noise: the model's sigma is the total
     assert model.sigma_range(1.5) == pytest.approx(TRUE.sigma_range(1.5), rel=0.2)
+    # a whole-row offset: along the row, residuals stay correlated at every lag (a little
+    # under rho, whose linear trend across a tile's rows goes into its plane's tilt) ...
+    corr = report["correlation"]
+    assert corr["lags_px"] == [1, 2, 4, 8]
+    for v in corr["along_rows"]:
+        assert v == pytest.approx(0.85 * rho, abs=0.04)
+    # ... and along a column the rows' offsets are independent
+    assert max(abs(v) for v in corr["along_columns"]) < 0.05
+    # normal noise has normal tails (the model fitted to the same data, so roughly)
+    tails = report["tails"]
+    assert tails["sigmas"] == [3.0, 4.0, 5.0] and tails["n_points"] > report["n_points"] * 0.99
+    assert tails["observed"][0] == pytest.approx(tails["normal"][0], rel=0.3)
+    assert tails["observed"][1] < 3 * tails["normal"][1]
     # columns carry no shared offset: transposed, the same estimator sees none
     if rho:
         cols = [Scan(range=np.ascontiguousarray(sc.range.T), sensor=PinholeModel(
             150.0, 150.0, 59.5, 79.5, width=120, height=160)) for sc in scans]
         assert estimate_noise(cols, terms=("sigma0", "k2"))[0].row_corr < 0.03
+
+
+def test_tails_show_a_contaminated_noise() -> None:
+    # 2 % of the points with 2.5 times the noise (a sensor's occasional misses): the
+    # model's sigma barely moves, but beyond 4 sigma there are far more than normal
+    normals = [_unit([0, -0.4, -1]), _unit([0.3, -0.2, -1]), _unit([0, 0, -1])]
+    scans = []
+    for i, d in enumerate([0.6, 0.9, 1.3, 1.8, 2.4, 3.0]):
+        n = normals[i % 3]
+        r_true = plane_range(d, n)
+        rng = np.random.default_rng(100 + i)
+        z = rng.normal(size=r_true.shape) * np.where(rng.random(r_true.shape) < 0.02, 2.5, 1.0)
+        r = r_true + z * TRUE.sigma_range(r_true, np.abs(SENSOR.rays() @ n))
+        scans.append(Scan(range=r.astype(np.float32), sensor=SENSOR))
+    model, report = estimate_noise(scans, terms=("sigma0", "k2"))
+    assert model.sigma_range(1.5) == pytest.approx(TRUE.sigma_range(1.5), rel=0.2)
+    obs, normal = report["tails"]["observed"], report["tails"]["normal"]
+    assert obs[0] > 1.5 * normal[0]
+    assert obs[1] > 5 * normal[1]
+    assert obs[2] > 20 * normal[2]
 
 
 def test_row_corr_is_checked_and_left_out_of_configs_at_zero() -> None:
@@ -231,6 +264,8 @@ def test_cli_calibrate_noise(tmp_path: Path) -> None:
     assert cfg.noise.k2 == pytest.approx(TRUE.k2, rel=0.2)
     assert Config.load(out).noise == cfg.noise
     assert "range noise: 6 scan(s)" in res.stderr and "fit: relative RMS" in res.stderr
+    assert "residual correlation at 1, 2, 4, 8 px: along rows" in res.stderr
+    assert "beyond 3 sigma" in res.stderr and "(normal 2.70e-03)" in res.stderr
     bad = CliRunner().invoke(cli, ["calibrate-noise", str(tmp_path / "missing.npz")])
     assert bad.exit_code == 2
     assert bad.stderr.strip().splitlines() == [
@@ -255,3 +290,12 @@ def test_mosd_frame_noise() -> None:
     # the Kinect's noise has a part common to each image row (measured on the 25 frames:
     # 0.28 of the variance); a frame alone measures it to a few hundredths
     assert 0.15 < model.row_corr < 0.4
+    # ... but not to the whole row: along a row the residuals' correlation falls from 0.67
+    # at 1 pixel to 0.03 at 8 (25 frames: 0.66 to 0.02); and they are correlated across
+    # rows too (0.5 at 1 pixel): the sensor smooths over a window, wider than tall
+    along_rows, along_cols = (rep["correlation"][k] for k in ("along_rows", "along_columns"))
+    assert along_rows[0] > 0.5 and along_rows[3] < 0.1
+    assert along_cols[0] > 0.3 and along_rows[0] > along_cols[0]
+    # and its tails are heavier than normal: 5 times as many residuals beyond 4 sigma
+    obs, normal = rep["tails"]["observed"], rep["tails"]["normal"]
+    assert obs[1] > 3 * normal[1] and obs[2] > 30 * normal[2]
