@@ -10,6 +10,9 @@ Layout of ``bench.json`` (all lengths metres inside, figures named ``*_mm`` / ``
 
 - ``version``, ``config``, ``config_hash``, ``n``, ``seed``, ``scene_noise``, ``threads``,
   ``warmup``, ``crash_policy`` (a method that crashes on a scene scores as finding nothing)
+- ``seeds``: the draws of the random trials each scene was run with (``trial_seed`` the
+  config's, +1, ...; ``--seeds N``): ``n``, ``trial_seeds``, ``per_seed`` figures and their
+  ``spread`` (:func:`draw_figures`); every figure below pools the draws
 - ``summary``: ``{"boxloc": {...}, "baseline": {...}}`` pooled figures
   (:func:`boxloc.metrics.aggregate_matches`)
 - ``edges``: pooled edge-pixel precision/recall of the localizer (any / jump / crease)
@@ -19,8 +22,9 @@ Layout of ``bench.json`` (all lengths metres inside, figures named ``*_mm`` / ``
   RSS is the whole process's: it includes the simulator, and open3d once the baseline has
   imported it (``--no-baseline`` gives the localizer's figure without open3d).
 - ``targets``: one row per target: name, target, value, baseline value, pass (true/false/null)
-- ``errors``: counts per method and the list (scene, method, message)
-- ``scenes``: one deterministic row per scene (spec, counts, per-TP errors; no durations,
+- ``errors``: counts per method and the list (scene, method, trial seed, message)
+- ``scenes``: one deterministic row per scene and draw (spec, ``trial_seed``, counts,
+  per-TP errors; no durations,
   no timestamps: durations live in ``timing`` so that two runs' ``scenes`` compare equal)
 - ``sections``: the extra sections (see below)
 
@@ -213,6 +217,7 @@ class _MethodRun:
     peak_mb: float | None = None
     error: str | None = None
     kind: str = ""
+    trial_seed: int = 0
 
 
 def _err(e: BaseException) -> str:
@@ -326,6 +331,7 @@ def run_bench(
     sections: Sequence[tuple[str, BenchSection]] | None = None,
     console: Any = None,
     warmup: bool = True,
+    seeds: int = 1,
 ) -> dict[str, Any]:
     """Benchmark the localizer (and the open3d baseline) on simulated scenes.
 
@@ -356,6 +362,11 @@ def run_bench(
     warmup : bool
         Run both methods once on the first scene before timing anything, so JIT compilation
         and lazy imports (numba kernels, open3d) do not land in the first scene's time.
+    seeds : int
+        Run both methods this many times on every scene, with ``trial_seed`` = the config's,
+        +1, +2, ... (other draws of their random trials). Summary, per kind, timing and
+        targets pool all runs, so they are the expected figures over draws; ``seeds``
+        reports each draw's (:func:`draw_figures`).
 
     Returns
     -------
@@ -368,6 +379,8 @@ def run_bench(
         If ``n < 1`` or the simulator is unavailable.
     """
     cfg = config or Config()
+    if isinstance(seeds, bool) or not isinstance(seeds, int) or seeds < 1:
+        raise InputError(f"seeds must be an integer >= 1, got {seeds!r}")
     if specs is None:
         if n < 1:
             raise InputError(f"bench needs n >= 1 scenes, got {n}")
@@ -394,7 +407,7 @@ def run_bench(
         from rich.console import Console
 
         con = Console(stderr=True)
-    bar, task = progress_bar(con, "bench", len(specs)) if progress else (None, None)
+    bar, task = progress_bar(con, "bench", len(specs) * seeds) if progress else (None, None)
     try:
         if warmup and specs:
             _warm_up(specs[0], loc, cfg, baseline)
@@ -409,7 +422,7 @@ def run_bench(
                 row["error"] = _err(e)
                 rows.append(row)
                 if bar is not None:
-                    bar.advance(task)
+                    bar.advance(task, seeds)
                 continue
             scan, truth = sim.scan, sim.truth
             # the resolved spec (drawn distance and tilt filled in) reproduces the scan
@@ -421,24 +434,30 @@ def run_bench(
                 scfg = dataclasses.replace(cfg, noise=noise)
             row["n_faces"] = int(np.asarray(truth.centers).shape[0])
             row["n_exposed"] = int(np.asarray(truth.fully_exposed).sum())
-            for m in methods:
+            for d in range(seeds):
+                dcfg = dataclasses.replace(scfg, trial_seed=scfg.trial_seed + d)
+                drow = dict(row, trial_seed=dcfg.trial_seed)
+                for m in methods:
+                    if bar is not None:
+                        bar.update(task, description=f"scene {i} ({kind}): {m}"
+                                   + (f" (trial_seed {dcfg.trial_seed})" if seeds > 1 else ""))
+                    r = (_run_boxloc(loc, scan, truth, dcfg) if m == "boxloc"
+                         else _run_baseline(scan, truth, dcfg))
+                    if r.error is not None:
+                        errors.append({"scene": i, "kind": kind, "method": m,
+                                       "trial_seed": dcfg.trial_seed, "error": r.error})
+                        r.match = _empty_match(truth)
+                    r.kind = kind
+                    r.trial_seed = dcfg.trial_seed
+                    runs[m].append(r)
+                    mrow: dict[str, Any] = {"error": r.error}
+                    mrow.update(r.match.to_dict() if r.match is not None else {})
+                    if m == "boxloc":
+                        mrow["edges"] = r.edges
+                    drow[m] = mrow
+                rows.append(drow)
                 if bar is not None:
-                    bar.update(task, description=f"scene {i} ({kind}): {m}")
-                r = (_run_boxloc(loc, scan, truth, scfg) if m == "boxloc"
-                     else _run_baseline(scan, truth, scfg))
-                if r.error is not None:
-                    errors.append({"scene": i, "kind": kind, "method": m, "error": r.error})
-                    r.match = _empty_match(truth)
-                r.kind = kind
-                runs[m].append(r)
-                mrow: dict[str, Any] = {"error": r.error}
-                mrow.update(r.match.to_dict() if r.match is not None else {})
-                if m == "boxloc":
-                    mrow["edges"] = r.edges
-                row[m] = mrow
-            rows.append(row)
-            if bar is not None:
-                bar.advance(task)
+                    bar.advance(task)
     finally:
         if bar is not None:
             bar.stop()
@@ -447,6 +466,8 @@ def run_bench(
         "version": __version__,
         "n": len(specs),
         "seed": seed,
+        "seeds": draw_figures(runs, methods,
+                              [cfg.trial_seed + d for d in range(seeds)]),
         "config": cfg.to_dict(),
         "config_hash": cfg.hash,
         "scene_noise": scene_noise,
@@ -563,6 +584,77 @@ def common_grasp(pairs: Iterable[tuple[Match | None, Match | None]]) -> dict[str
         out[f"{key}_median_mm"] = float(np.median(a) * 1e3) if len(a) else None
         out[f"{key}_p95_mm"] = float(np.percentile(a, 95) * 1e3) if len(a) else None
     return out
+
+
+#: Figures listed per draw of the random trials.
+DRAW_KEYS = ("tp", "fp", "fn", "precision", "recall", "f1")
+
+
+def draw_figures(runs: dict[str, list[Any]], methods: Sequence[str], trial_seeds: list[int],
+                 groups: Sequence[str] | None = None) -> dict[str, Any]:
+    """Each draw's figures and their spread over the draws.
+
+    ``runs`` are per method, each with ``.trial_seed``, ``.match`` (and ``.group`` when
+    ``groups`` is given: figures per group then). Returns ``n``, ``trial_seeds``,
+    ``per_seed`` (``trial_seed`` and ``{method: figures}``, or ``{group: {method:
+    figures}}`` under ``groups``) and ``spread`` (min, max and mean of precision, recall
+    and F1 over the draws, nested the same way; None where no draw has the figure).
+    """
+    def figures(sel: list[Any]) -> dict[str, Any]:
+        a = aggregate_matches(r.match for r in sel if r.match)
+        return {k: a[k] for k in DRAW_KEYS}
+
+    def by_method(k: int, g: str | None) -> dict[str, Any]:
+        return {m: figures([r for r in runs[m] if r.trial_seed == k
+                            and (g is None or r.group == g)]) for m in methods}
+
+    present = None if groups is None else [
+        g for g in groups if any(r.group == g for r in runs[methods[0]])]
+    per: list[dict[str, Any]] = []
+    for k in trial_seeds:
+        if present is None:
+            per.append({"trial_seed": k, "figures": by_method(k, None)})
+        else:
+            per.append({"trial_seed": k, "groups": {g: by_method(k, g) for g in present}})
+
+    def spread(get: Callable[[dict[str, Any]], dict[str, Any]]) -> dict[str, Any]:
+        out: dict[str, Any] = {}
+        for m in methods:
+            out[m] = {}
+            for key in ("precision", "recall", "f1"):
+                v = [get(d)[m][key] for d in per if get(d)[m][key] is not None]
+                out[m][key] = ({"min": min(v), "max": max(v), "mean": float(np.mean(v))}
+                               if v else None)
+        return out
+
+    return {"n": len(trial_seeds), "trial_seeds": list(trial_seeds), "per_seed": per,
+            "spread": (spread(lambda d: d["figures"]) if present is None else
+                       {g: spread(lambda d, g=g: d["groups"][g]) for g in present})}
+
+
+def print_draws(console: Any, draws: dict[str, Any], methods: Sequence[str]) -> None:
+    """The per-draw table (only when there is more than one draw)."""
+    from rich.markup import escape
+    from rich.table import Table
+
+    if draws["n"] < 2:
+        return
+    t = Table(title=f"per draw of the random trials ({draws['n']} trial seeds; the figures "
+                    "above pool them): TP / FP / FN, recall / precision")
+    t.add_column("trial_seed", justify="right")
+    first = draws["per_seed"][0]
+    cols = ([(None, m) for m in methods] if "figures" in first else
+            [(g, m) for g in first["groups"] for m in methods])
+    for g, m in cols:
+        t.add_column(escape((f"{g}: " if g else "") + LABELS[m]), justify="right")
+    for d in draws["per_seed"]:
+        cells = [str(d["trial_seed"])]
+        for g, m in cols:
+            e = d["figures"][m] if g is None else d["groups"][g][m]
+            cells.append(f"{e['tp']} / {e['fp']} / {e['fn']}, "
+                         f"{_fmt(e['recall'])} / {_fmt(e['precision'])}")
+        t.add_row(*cells)
+    console.print(t)
 
 
 def _per_kind(runs: dict[str, list[_MethodRun]], methods: Sequence[str]) -> dict[str, Any]:
@@ -695,6 +787,7 @@ def print_report(report: dict[str, Any], console: Any) -> None:
         pk.add_row(*cells)
     console.print(pk)
 
+    print_draws(console, report.get("seeds", {"n": 1}), list(report["summary"]))
     print_timing(console, report["timing"], "scan")
     mem = report["memory"]
     console.print(escape("peak RSS [MB]: ") + ", ".join(f"{k.removesuffix('_mb')} {_fmt(v, 'MB')}"

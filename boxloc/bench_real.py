@@ -71,6 +71,8 @@ from boxloc.bench import (
     _jsonable,
     _limit_threads,
     _max,
+    draw_figures,
+    print_draws,
     print_timing,
     process_max_rss_mb,
     progress_bar,
@@ -411,7 +413,7 @@ def run_real_bench(
         "version": __version__,
         "data_dir": str(data_dir),
         "n_frames": len(scored),
-        "seeds": _draws(runs, methods, [c.trial_seed for c in draws]),
+        "seeds": draw_figures(runs, methods, [c.trial_seed for c in draws], GROUPS),
         "config": cfg_run.to_dict(),
         "config_hash": cfg_run.hash,
         "noise": noise_info,
@@ -472,29 +474,6 @@ def _groups(runs: dict[str, list[_Run]], methods: Sequence[str]) -> dict[str, An
     return out
 
 
-def _draws(runs: dict[str, list[_Run]], methods: Sequence[str],
-           trial_seeds: list[int]) -> dict[str, Any]:
-    """Each draw's figures per group and method, and their spread over the draws."""
-    per: list[dict[str, Any]] = []
-    for k in trial_seeds:
-        groups = _groups({m: [r for r in runs[m] if r.trial_seed == k] for m in methods},
-                         methods)
-        per.append({"trial_seed": k, "groups": {
-            g: {m: {key: e[m][key] for key in ("tp", "fp", "fn", "precision", "recall")}
-                for m in methods} for g, e in groups.items()}})
-    spread: dict[str, Any] = {}
-    for g in per[0]["groups"] if per else ():
-        spread[g] = {}
-        for m in methods:
-            spread[g][m] = {}
-            for key in ("recall", "precision"):
-                v = [d["groups"][g][m][key] for d in per if d["groups"][g][m][key] is not None]
-                spread[g][m][key] = ({"min": min(v), "max": max(v), "mean": float(np.mean(v))}
-                                     if v else None)
-    return {"n": len(trial_seeds), "trial_seeds": trial_seeds, "per_seed": per,
-            "spread": spread}
-
-
 def _real_figures(report: dict[str, Any], method: str) -> dict[str, Any]:
     figs: dict[str, Any] = {}
     for g, entry in report["groups"].items():
@@ -552,20 +531,7 @@ def print_real_report(report: dict[str, Any], console: Any) -> None:
     console.print(t)
 
     draws = report.get("seeds", {"n": 1})
-    if draws["n"] > 1:
-        dt = Table(title=f"per draw of the random trials ({draws['n']} trial seeds; the "
-                         "figures above pool them)")
-        dt.add_column("trial_seed", justify="right")
-        for g in draws["spread"]:
-            for m in methods:
-                dt.add_column(escape(f"{g}: {LABELS[m]} TP / FP / FN, R / P"), justify="right")
-        for d in draws["per_seed"]:
-            cells = [str(d["trial_seed"])]
-            for e in d["groups"].values():
-                cells += [f"{e[m]['tp']} / {e[m]['fp']} / {e[m]['fn']}, "
-                          f"{_fmt(e[m]['recall'])} / {_fmt(e[m]['precision'])}" for m in methods]
-            dt.add_row(*cells)
-        console.print(dt)
+    print_draws(console, draws, methods)
 
     ft = Table(title="per frame: TP / FP / FN (exposed / faces)"
                + (f", summed over {draws['n']} draws" if draws["n"] > 1 else ""))

@@ -199,8 +199,8 @@ def _print_surfaces(result: Any) -> None:
               show_default=True,
               help="With --real: sensor pose from each frame's dominant plane, or none.")
 @click.option("--seeds", type=click.IntRange(min=1), default=1, show_default=True,
-              help="With --real: run each frame N times, with trial_seed 0..N-1 (other draws "
-                   "of the random trials); the figures pool them, and each draw's is listed.")
+              help="Run each scene (or --real frame) N times, with trial_seed +0..N-1 (other "
+                   "draws of the random trials); the figures pool them, each draw's is listed.")
 @click.option("--scene-set", "scene_sets", multiple=True, metavar="KEY=VALUE",
               help="Set a field of every simulated scene (repeatable; scene-spec keys, e.g. "
                    "noise.row_corr=0.276 for a sensor whose rows share part of their noise).")
@@ -247,7 +247,7 @@ def bench(
 
         specs = [override_spec(s, scene_sets) for s in scene_suite(n, seed)]
     run_bench(n, seed, config=cfg, out=Path(out) if out else None, baseline=not no_baseline,
-              progress=True, specs=specs)
+              progress=True, specs=specs, seeds=seeds)
 
 
 @cli.command()

@@ -19,7 +19,8 @@ from boxloc.cli import cli
 from boxloc.simulate import scene_suite
 
 TOP_KEYS = {
-    "version", "n", "seed", "config", "config_hash", "scene_noise", "threads", "warmup",
+    "version", "n", "seed", "seeds", "config", "config_hash", "scene_noise", "threads",
+    "warmup",
     "crash_policy", "summary", "edges", "per_kind", "common_grasp", "timing", "memory",
     "targets", "sections", "errors", "scenes",
 }
@@ -143,6 +144,39 @@ def test_run_bench_with_the_real_localizer() -> None:
         assert report["errors"]["count"]["boxloc"] == 1
 
 
+def test_run_bench_pools_draws_of_the_random_trials() -> None:
+    sim = _simulator()
+    specs = _tiny_specs(sim)
+    oracle, seen = _oracle(specs, sim), []
+
+    def lucky(scan: Any, config: Any) -> Any:
+        # perfect on even draws, nothing on odd ones
+        seen.append(config.trial_seed)
+        r = oracle(scan, config)
+        if config.trial_seed % 2:
+            r.surfaces = surface_set_from_rects(np.zeros((0, 3)), np.zeros((0, 3)),
+                                                np.zeros((0, 3)), np.zeros(0), np.zeros(0))
+        return r
+
+    report = run_bench(specs=specs, baseline=False, progress=False, localizer=lucky,
+                       sections=[], warmup=False, seeds=2)
+    assert seen == [0, 1, 0, 1]
+    d = report["seeds"]
+    assert d["n"] == 2 and d["trial_seeds"] == [0, 1]
+    per = {p["trial_seed"]: p["figures"]["boxloc"] for p in d["per_seed"]}
+    n_exposed = sum(r["n_exposed"] for r in report["scenes"]) // 2
+    assert (per[0]["tp"], per[0]["fn"], per[0]["recall"]) == (n_exposed, 0, 1.0)
+    assert (per[1]["tp"], per[1]["fn"], per[1]["recall"]) == (0, n_exposed, 0.0)
+    assert d["spread"]["boxloc"]["recall"] == {"min": 0.0, "max": 1.0, "mean": 0.5}
+    # everything else pools the draws: the expected figure
+    assert report["summary"]["boxloc"]["recall"] == 0.5
+    assert [(r["index"], r["trial_seed"]) for r in report["scenes"]] == [(0, 0), (0, 1),
+                                                                         (1, 0), (1, 1)]
+    assert len(report["timing"]["boxloc"]["per_scene_total_ms"]) == 4
+    with pytest.raises(bench.InputError, match="seeds"):
+        run_bench(specs=specs, progress=False, seeds=0)
+
+
 def test_run_bench_counts_crashes(tmp_path: Path) -> None:
     sim = _simulator()
     specs = _tiny_specs(sim)[:1]
@@ -261,9 +295,12 @@ def test_cli_bench_scene_set_changes_every_scene(monkeypatch: pytest.MonkeyPatch
     specs = seen["specs"]
     assert [s.seed for s in specs] == [s.seed for s in scene_suite(3, 0)]
     assert all(s.noise.row_corr == 0.3 and s.dropout == 0 for s in specs)
+    assert seen["seeds"] == 1
     # without it the suite is the default one (run_bench builds it)
-    CliRunner().invoke(cli, ["bench", "--n", "3", "--no-baseline"])
-    assert seen["specs"] is None
+    CliRunner().invoke(cli, ["bench", "--n", "3", "--no-baseline", "--seeds", "4"])
+    assert seen["specs"] is None and seen["seeds"] == 4
+    r = CliRunner().invoke(cli, ["bench", "--n", "3", "--seeds", "0"])
+    assert r.exit_code == 2 and "Traceback" not in r.output
 
 
 def test_common_grasp_compares_on_the_faces_both_found() -> None:

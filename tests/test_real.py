@@ -497,6 +497,16 @@ def test_real_bench_pools_draws_of_the_random_trials(tmp_path: Path) -> None:
         run_real_bench(data, progress=False, seeds=0)
 
 
+def test_bench_real_cli_passes_seeds(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> None:
+    import boxloc.bench_real as br
+
+    seen: dict[str, object] = {}
+    monkeypatch.setattr(br, "run_real_bench", lambda d, **kw: seen.update(dir=d, **kw) or {})
+    r = CliRunner().invoke(cli, ["bench", "--real", str(tmp_path), "--seeds", "3"])
+    assert r.exit_code == 0, r.output
+    assert seen["dir"] == str(tmp_path) and seen["seeds"] == 3
+
+
 def test_real_bench_counts_a_crash(tmp_path: Path) -> None:
     data = tmp_path / "data"
     data.mkdir()
