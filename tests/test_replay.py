@@ -63,6 +63,19 @@ def test_replay_reproduces_every_product_bit_for_bit(logs: list[Path], tmp_path:
     assert snapshot(logs) == before
 
 
+def test_a_log_of_another_draw_replays_with_that_draw(tmp_path: Path) -> None:
+    # the recorded config carries trial_seed, so the replay draws the same trials
+    log = make_log(tmp_path / "draw2.mcap", [5], config=Config(trial_seed=2))
+    o = replay_log(log, out_dir=tmp_path / "out")
+    assert o.status == "ok", o
+    recs = list(open_log(o.output).scans())
+    assert recs[0].products["lines"].seed == Config(trial_seed=2).seed_for(recs[0].scan.seed)
+    assert product_differences(log, Path(o.output)) == []
+    # replayed with the scan's own draw, the trials (so the lines) differ
+    o0 = replay_log(log, out_dir=tmp_path / "out0", overrides=["trial_seed=0"])
+    assert any("lines" in d for d in product_differences(log, Path(o0.output)))
+
+
 def test_replayed_log_carries_its_own_version_metadata(logs: list[Path],
                                                         tmp_path: Path) -> None:
     o = replay_log(logs[0], out_dir=tmp_path)
