@@ -535,7 +535,8 @@ def test_real_bench_refuses_missing_frames(tmp_path: Path) -> None:
 
 @needs_mosd
 def test_bench_real_cli_on_two_mosd_frames(tmp_path: Path) -> None:
-    res = CliRunner().invoke(cli, ["bench", "--real", str(MOSD), "--frames", "learn0,learn17",
+    res = CliRunner().invoke(cli, ["bench", "--real", str(MOSD), "--seeds", "1",
+                                   "--frames", "learn0,learn17",
                                    "--out", str(tmp_path)])
     assert res.exit_code == 0, res.output
     rep = json.loads((tmp_path / "bench_real.json").read_text())
