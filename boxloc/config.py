@@ -75,8 +75,8 @@ class Config:
         voters, the up estimate's and the baseline's RANSAC): 0, the default, seeds them
         from the scan's content alone (:attr:`boxloc.scan.Scan.seed`); k > 0 from the scan
         and k (:meth:`seed_for`). Running k = 0, 1, 2, ... measures how much a result owes
-        to the draw (``boxloc bench --real DIR --seeds N``). Left out of ``to_dict`` (so
-        of the config hash) at 0.
+        to the draw (``boxloc bench --seeds N``, also with ``--real``). Left out of
+        ``to_dict`` (so of the config hash) at 0.
     """
 
     alpha: float = 0.01
