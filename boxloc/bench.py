@@ -379,8 +379,7 @@ def run_bench(
         If ``n < 1`` or the simulator is unavailable.
     """
     cfg = config or Config()
-    if isinstance(seeds, bool) or not isinstance(seeds, int) or seeds < 1:
-        raise InputError(f"seeds must be an integer >= 1, got {seeds!r}")
+    trial_seeds = [c.trial_seed for c in trial_configs(cfg, seeds)]
     if specs is None:
         if n < 1:
             raise InputError(f"bench needs n >= 1 scenes, got {n}")
@@ -434,8 +433,7 @@ def run_bench(
                 scfg = dataclasses.replace(cfg, noise=noise)
             row["n_faces"] = int(np.asarray(truth.centers).shape[0])
             row["n_exposed"] = int(np.asarray(truth.fully_exposed).sum())
-            for d in range(seeds):
-                dcfg = dataclasses.replace(scfg, trial_seed=scfg.trial_seed + d)
+            for dcfg in trial_configs(scfg, seeds):
                 drow = dict(row, trial_seed=dcfg.trial_seed)
                 for m in methods:
                     if bar is not None:
@@ -466,8 +464,7 @@ def run_bench(
         "version": __version__,
         "n": len(specs),
         "seed": seed,
-        "seeds": draw_figures(runs, methods,
-                              [cfg.trial_seed + d for d in range(seeds)]),
+        "seeds": draw_figures(runs, methods, trial_seeds),
         "config": cfg.to_dict(),
         "config_hash": cfg.hash,
         "scene_noise": scene_noise,
@@ -584,6 +581,19 @@ def common_grasp(pairs: Iterable[tuple[Match | None, Match | None]]) -> dict[str
         out[f"{key}_median_mm"] = float(np.median(a) * 1e3) if len(a) else None
         out[f"{key}_p95_mm"] = float(np.percentile(a, 95) * 1e3) if len(a) else None
     return out
+
+
+def trial_configs(config: Config, seeds: int) -> list[Config]:
+    """``config`` with ``trial_seed`` its own, +1, ..., +seeds-1: the draws a bench runs.
+
+    Raises
+    ------
+    InputError
+        If ``seeds`` is not an integer >= 1.
+    """
+    if isinstance(seeds, bool) or not isinstance(seeds, int) or seeds < 1:
+        raise InputError(f"seeds must be an integer >= 1, got {seeds!r}")
+    return [dataclasses.replace(config, trial_seed=config.trial_seed + d) for d in range(seeds)]
 
 
 #: Figures listed per draw of the random trials.

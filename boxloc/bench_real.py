@@ -76,6 +76,7 @@ from boxloc.bench import (
     print_timing,
     process_max_rss_mb,
     progress_bar,
+    trial_configs,
 )
 from boxloc.config import Config
 from boxloc.errors import InputError
@@ -340,8 +341,7 @@ def run_real_bench(
     from boxloc.real import top_faces
 
     cfg = config or Config()
-    if isinstance(seeds, bool) or not isinstance(seeds, int) or seeds < 1:
-        raise InputError(f"seeds must be an integer >= 1, got {seeds!r}")
+    trial_configs(cfg, seeds)  # a bad count is refused before any frame is read
     paths = list_frames(data_dir, frames)
     skipped: list[dict[str, Any]] = []
     errors: list[dict[str, Any]] = []
@@ -369,8 +369,7 @@ def run_real_bench(
 
     loc = localizer or _default_localizer
     methods = METHODS if baseline else METHODS[:1]
-    draws = [dataclasses.replace(cfg_run, trial_seed=cfg_run.trial_seed + i)
-             for i in range(seeds)]
+    draws = trial_configs(cfg_run, seeds)
     runs: dict[str, list[_Run]] = {m: [] for m in methods}
     rows: list[dict[str, Any]] = []
     bar, task = (progress_bar(con, "bench --real", len(scored) * seeds) if progress

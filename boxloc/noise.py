@@ -55,20 +55,18 @@ _MAD_TO_STD = 1.4826  # 1 / Phi^-1(3/4): MAD of a normal distribution -> its std
 
 @dataclass(frozen=True)
 class _TileResiduals:
-    """Per-point residuals of accepted tiles, plus bookkeeping for the report."""
+    """Per-point residuals of accepted tiles (every valid point, the robust plane fit's
+    outliers included), plus bookkeeping for the report."""
 
     range: np.ndarray  # (N,) metres
     cos_incidence: np.ndarray  # (N,)
     residual: np.ndarray  # (N,) metres, along the ray
     tile: np.ndarray  # (N,) int, tile id (unique within one scan)
+    inlier: np.ndarray  # (N,) bool: kept by the robust plane fit
     row_share: np.ndarray  # (n_accepted,) per tile: row-offset variance / total (ANOVA)
     # (2, len(CORRELATION_LAGS), 3): along rows / columns, per lag, sums of a*b, a*a, b*b
     # over the pairs of inlier residuals that far apart
     lag_sums: np.ndarray
-    # every valid point of the accepted tiles, plane-fit outliers included (tails)
-    all_range: np.ndarray
-    all_cos: np.ndarray
-    all_residual: np.ndarray
     n_tiles: int  # tiles considered (enough valid pixels)
     n_accepted: int  # tiles that passed every test
     rejected: dict[str, int]  # tiles rejected, by reason
@@ -132,7 +130,7 @@ def plane_residuals(
     t = _tile_residuals(scan, mask, patch=patch, labels=labels, min_valid=min_valid,
                         max_outliers=max_outliers, max_curvature_ratio=max_curvature_ratio,
                         min_cos=min_cos)
-    return t.range, t.cos_incidence, t.residual
+    return t.range[t.inlier], t.cos_incidence[t.inlier], t.residual[t.inlier]
 
 
 def _check_image(a: npt.ArrayLike | None, shape: tuple[int, int], name: str) -> np.ndarray | None:
@@ -182,8 +180,9 @@ def _tile_residuals(
         z = np.zeros(0)
         return _TileResiduals(
             range=z, cos_incidence=z, residual=z, tile=np.zeros(0, dtype=np.int64),
-            row_share=z, lag_sums=np.zeros((2, len(CORRELATION_LAGS), 3)), all_range=z,
-            all_cos=z, all_residual=z, n_tiles=n_tiles, n_accepted=0, rejected=rejected)
+            inlier=np.zeros(0, dtype=bool), row_share=z,
+            lag_sums=np.zeros((2, len(CORRELATION_LAGS), 3)), n_tiles=n_tiles, n_accepted=0,
+            rejected=rejected)
 
     if scan.shape[0] < patch or scan.shape[1] < patch:
         return nothing(0, {})
@@ -249,13 +248,12 @@ def _tile_residuals(
     dof = np.sqrt(n_in[sel] / (n_in[sel] - 3.0))[:, None]
     e_ray = e_ray * dof
     tile = np.broadcast_to(ids[sel][:, None], wi.shape)
-    vi = V[sel] & np.isfinite(e_ray)
+    vi = V[sel]  # the inliers are among them (the fit's weights are zero elsewhere)
     return _TileResiduals(
-        range=r[wi], cos_incidence=np.abs(ndot[wi]), residual=e_ray[wi],
-        tile=tile[wi].astype(np.int64), row_share=_row_share(h[sel], wi, patch),
-        n_tiles=n_tiles, n_accepted=int(sel.size), rejected=rejected,
-        lag_sums=_lag_sums(h[sel], wi, patch), all_range=r[vi],
-        all_cos=np.abs(ndot[vi]), all_residual=e_ray[vi],
+        range=r[vi], cos_incidence=np.abs(ndot[vi]), residual=e_ray[vi],
+        tile=tile[vi].astype(np.int64), inlier=wi[vi], row_share=_row_share(h[sel], wi, patch),
+        lag_sums=_lag_sums(h[sel], wi, patch), n_tiles=n_tiles, n_accepted=int(sel.size),
+        rejected=rejected,
     )
 
 
@@ -476,22 +474,23 @@ def estimate_noise(
 
     rs, ys, cs, ts, shares = [], [], [], [], []
     lag_sums = np.zeros((2, len(CORRELATION_LAGS), 3))
-    all_r, all_c, all_e = [], [], []
+    all_r, all_c, all_e = [], [], []  # every point of the accepted tiles, for the tails
     n_tiles, rejected = 0, {}
     for i, (scan, m, lab) in enumerate(zip(scans, masks_l, labels_l)):
         t = _tile_residuals(scan, m, patch=patch, labels=lab, min_valid=0.9,
                             max_outliers=0.05, max_curvature_ratio=1.5, min_cos=0.3)
-        rs.append(t.range)
-        cs.append(t.cos_incidence)
+        inl = t.inlier
+        rs.append(t.range[inl])
+        cs.append(t.cos_incidence[inl])
         # The model divides range noise by max(cos, min_cos); undo that per point.
-        f = np.maximum(t.cos_incidence, base.min_cos) if incidence == "model" else 1.0
-        ys.append(t.residual * f)
-        ts.append(t.tile + (i << 32))
+        f = np.maximum(t.cos_incidence[inl], base.min_cos) if incidence == "model" else 1.0
+        ys.append(t.residual[inl] * f)
+        ts.append(t.tile[inl] + (i << 32))
         shares.append(t.row_share)
         lag_sums += t.lag_sums
-        all_r.append(t.all_range)
-        all_c.append(t.all_cos)
-        all_e.append(t.all_residual)
+        all_r.append(t.range)
+        all_c.append(t.cos_incidence)
+        all_e.append(t.residual)
         n_tiles += t.n_tiles
         for k, v in t.rejected.items():
             rejected[k] = rejected.get(k, 0) + v
@@ -558,6 +557,8 @@ def estimate_noise(
         "along_columns": [None if not np.isfinite(v) else float(v) for v in corr[1]],
     }
     ra, ca, ea = (np.concatenate(a) for a in (all_r, all_c, all_e))
+    fin = np.isfinite(ea)
+    ra, ca, ea = ra[fin], ca[fin], ea[fin]
     za = np.abs(ea) / model.sigma_range(ra, ca if incidence == "model" else 1.0)
     report["tails"] = {
         "sigmas": list(TAIL_SIGMAS), "n_points": int(za.size),
