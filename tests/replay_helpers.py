@@ -4,7 +4,8 @@ Scans are simulated at 160 x 120 pixels (f = 131.25 px, the 640 x 480 camera sca
 so the pipeline takes a few tens of milliseconds per scan. The tests do not pin what the
 localizer finds on them (the algorithm keeps improving): they look up which scans have
 surfaces and which exposed faces were missed, and only need the mix of a few of each,
-which single boxes and small piles at this resolution reliably give.
+which single boxes and small piles at this resolution reliably give; the empty scene is a
+scan with no surface by construction.
 """
 
 from __future__ import annotations
@@ -22,9 +23,11 @@ from recorder.mcap_sink import McapRecorder
 SINGLE = "single:width=160,height=120,f=131.25"
 MIXED = "mixed:width=160,height=120,f=131.25"
 PALLET = "pallet:width=160,height=120,f=131.25"
-#: (spec, seed) of scan 0, 1, 2, 3, 4
+#: the floor alone: a scan with nothing to find, whatever the localizer becomes
+EMPTY = "empty:width=160,height=120,f=131.25"
+#: (spec, seed) of scan 0, 1, 2, 3, 4, 5
 SCENES: tuple[tuple[str, int], ...] = (
-    (SINGLE, 0), (SINGLE, 2), (MIXED, 2), (MIXED, 3), (PALLET, 1))
+    (SINGLE, 0), (SINGLE, 2), (MIXED, 2), (MIXED, 3), (PALLET, 1), (EMPTY, 0))
 ALL = tuple(range(len(SCENES)))
 
 

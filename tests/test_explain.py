@@ -86,11 +86,15 @@ def test_chosen_surface_chain_matches_the_log(log: Path, records: dict[int, Any]
             assert g["vertex"] == int(H.att_diagonal[j])
             assert {t["kind"] for t in g["tests"]} == DIAGONAL_TESTS
             assert all(t["accepted"] for t in g["tests"])
-        else:
+        elif src == "EDGES":
             used = [t for t in dims["edges"]["edge_support"] if t.get("used")]
             assert len(used) == 1 and used[0]["accepted"]
             assert used[0]["statistic"] > used[0]["critical"]  # |P_f| > p
             assert dims["edges"]["peaks_x"] and dims["edges"]["peaks_y"]
+        else:  # a far side from a seam or from the plane's extent: the tests that gave it
+            key = {"SEAMS": "seams", "EXTENT": "extent"}[src]
+            assert dims["edges"][key]
+            assert not any(t.get("used") for t in dims["edges"]["edge_support"])
         # every attempt of the hypothesis, the surface's own one accepted with its tests
         atts = {a["id"]: a for a in e["hypothesis"]["attempts"]}
         assert set(atts) == set(np.flatnonzero(H.att_hypothesis == h).tolist())

@@ -6,7 +6,7 @@ import numpy as np
 
 from boxloc.config import Config
 from boxloc.stats import TestKind
-from boxloc.vertices import find_vertices
+from boxloc.vertices import END_TOLERANCE, find_vertices
 from tests.test_stats import _line, _lineset
 
 X, Y, Z = np.eye(3)
@@ -50,6 +50,24 @@ def test_parallel_skew_and_far_apart_lines_give_no_vertex():
     far = _fits((c + 0.15 * X, X, 0.3), (c + 0.6 * X + 0.3 * Y, Y, 0.2))  # meet far away
     assert not find_vertices(far, config=Config()).tests.of_kind(
         TestKind.AT_SEGMENT_ENDS).accepted[0]
+
+
+def test_a_segment_may_stop_short_of_its_corner_by_END_TOLERANCE_of_the_shortest_edge():
+    # rounded and dented cardboard corners: the edge down the front starts a gap g below
+    # the corner; the gap is allowed up to END_TOLERANCE * min_edge, and not beyond
+    corner = np.array([0.0, 0.0, 1.5])
+    cfg = Config()
+    for frac, found in ((END_TOLERANCE - 0.1, True), (END_TOLERANCE + 0.1, False)):
+        g = frac * cfg.min_edge
+        L = _fits((corner + 0.15 * X, X, 0.3), (corner + (g + 0.1) * Y, Y, 0.2))
+        V = find_vertices(L, config=cfg)
+        ends = V.tests.of_kind(TestKind.AT_SEGMENT_ENDS)
+        assert ends.accepted[0] == found
+        assert abs(ends.statistic[0] - g) < 0.005  # the gap, metres
+        assert ends.critical[0] == END_TOLERANCE * cfg.min_edge
+        assert (len(V) == 1) == found
+        if found:
+            assert np.linalg.norm(V.points[0] - corner) < 0.003
 
 
 def test_every_pair_is_tested_and_recorded():
