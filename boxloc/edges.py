@@ -11,7 +11,13 @@ Every row and every column of the organized cloud is approximated by 3D line seg
 * **groove** — the lines are continuous and collinear but the samples between them lie
   significantly behind both (the seam between two touching boxes of equal height); or,
   inside one segment, a short run of samples lies behind its line with the samples around
-  it back on the line, and the deepest of them passes the single-sample test.
+  it back on the line, and the deepest of them passes the single-sample test;
+* **no-return border** — the scan line's first or last return is followed by no return
+  out to the image border, over at least :data:`NO_RETURN_PX` pixels: nothing was measured
+  beyond the surface (out of range, a background removed, the sky), so it ends there, a
+  jump with no far side to test against (PCL's ``NAN_BOUNDARY``). Labelled a jump, and
+  recorded as a decision on the run's length (``TestKind.NO_RETURN``). No return with a
+  return beyond it is left to the jump test across the gap.
 
 Each edge point carries a covariance: the sensor noise at the point plus the localization
 uncertainty along the scan line. Where a row scan and a column scan find an edge at the
@@ -45,6 +51,11 @@ GROOVE_CONTEXT = 4
 #: Segments with fewer samples are not fitted (their samples are "dropped": mixed pixels,
 #: a sliver of a steep side face). Three is the fewest that can show a line's residual.
 MIN_SEGMENT_POINTS = 4
+
+#: No return over at least this many pixels, out to the image border, ends a surface (a
+#: no-return-border jump); shorter runs are dropouts inside a face (as
+#: :data:`boxloc.verify.EXTENT_GAP_PX`, 4, the longest a face's extent bridges).
+NO_RETURN_PX = 5
 
 
 # --- kernels -------------------------------------------------------------------------------
@@ -522,6 +533,30 @@ def _all_lines(
             out_pix, out_pt, out_along, out_sig, out_kind, out_strength, out_stat,
             out_crit, out_test, n_out,
         )
+        # a surface that runs into no return out to the image border ends there
+        for end in range(2):
+            if end == 0:
+                a, b, run = 0, 1, pbuf[0]
+            else:
+                a, b, run = nv - 1, nv - 2, L - 1 - pbuf[nv - 1]
+            if run < NO_RETURN_PX or n_out >= cap:
+                continue
+            h = buf[a] - buf[b]
+            hn = math.sqrt(np.dot(h, h))
+            if hn <= 0.0:
+                continue
+            step = hn / max(abs(pbuf[a] - pbuf[b]), 1)  # one pixel step, outward
+            dirv = h / hn
+            out_pt[n_out] = buf[a] + 0.5 * step * dirv
+            out_along[n_out] = dirv
+            out_sig[n_out] = step / math.sqrt(12.0)
+            out_pix[n_out] = pbuf[a]
+            out_kind[n_out] = 1
+            out_strength[n_out] = np.inf
+            out_stat[n_out] = run
+            out_crit[n_out] = NO_RETURN_PX
+            out_test[n_out] = 3
+            n_out += 1
         for k in range(n0, n_out):
             out_line[k] = li
     return (
@@ -666,7 +701,9 @@ def detect_edges(scan: Scan, *, config: Config) -> EdgeMap:
 
     # the tests at every breakpoint, in detection order
     is_jump_test = te == 1
-    kind_col = np.where(is_jump_test, int(TestKind.JUMP), int(TestKind.CREASE)).astype(np.uint8)
+    # test codes of the scan-line kernel: 1 jump (and groove), 2 crease, 3 no return
+    kind_col = np.select([is_jump_test, te == 3], [int(TestKind.JUMP), int(TestKind.NO_RETURN)],
+                         int(TestKind.CREASE)).astype(np.uint8)
     pval = np.where(is_jump_test, st.chi2.sf(sta, 1.0), np.nan)
     tests = TestTable(
         kind=kind_col, a=np.arange(len(r), dtype=np.int32), b=(r * W + c).astype(np.int32),

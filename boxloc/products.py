@@ -107,7 +107,8 @@ class EdgeMap:
     scan_dir : (N,) uint8
         Bit 1: found on a row; bit 2: found on a column.
     tests : TestTable
-        The JUMP and CREASE decision at every breakpoint.
+        The JUMP and CREASE decision at every breakpoint, and the NO_RETURN decision at
+        every surface that runs into no return out to the image border.
     """
 
     labels: np.ndarray

@@ -100,6 +100,10 @@ class TestKind(IntEnum):
     #: can be a top's: the face across the crease is within max_tilt of up (statistic =
     #: (cos max_tilt - n.up) / sigma, one-sided z); accepted adds its vertex
     BOX_CORNER = 26
+    #: edge stage: a scan line's first or last return is followed by no return out to the
+    #: image border (a = edge point, b = pixel; statistic = the no-return run, pixels;
+    #: critical = NO_RETURN_PX): the surface ends there, a jump with no far side
+    NO_RETURN = 27
 
 
 @lru_cache(maxsize=256)

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from boxloc.config import Config
-from boxloc.edges import detect_edges, residual_thresholds, run_thresholds
+from boxloc.edges import NO_RETURN_PX, detect_edges, residual_thresholds, run_thresholds
 from boxloc.metrics import edge_scores
 from boxloc.products import EdgeKind
 from boxloc.scan import NoiseModel, PinholeModel, Scan
@@ -48,7 +48,7 @@ def test_covariances_are_symmetric_positive(one_box):
 def test_every_edge_carries_its_test(one_box):
     _, e = one_box
     kinds = set(np.unique(e.tests.kind).tolist())
-    assert kinds <= {TestKind.JUMP, TestKind.CREASE}
+    assert kinds <= {TestKind.JUMP, TestKind.CREASE, TestKind.NO_RETURN}
     assert len(e.tests) >= len(e)
 
 
@@ -67,6 +67,37 @@ def test_a_noisy_plane_has_almost_no_edges():
     e = detect_edges(_plane_scan(cfg.noise, 3), config=cfg)
     # 560 scan lines each tested at alpha: false edges are a small multiple of alpha per line
     assert len(e) < 0.05 * 560
+
+
+def _cut(scan: Scan, cols: slice) -> Scan:
+    r = scan.range.copy()
+    r[:, cols] = np.nan
+    return Scan(range=r, sensor=scan.sensor)
+
+
+def test_a_surface_that_runs_into_no_return_out_to_the_border_ends_there():
+    cfg = Config()
+    plane = _plane_scan(cfg.noise, 3)
+    base = detect_edges(plane, config=cfg)
+    # no return from column 250 to the right border (70 px): every row ends in a jump
+    e = detect_edges(_cut(plane, slice(250, None)), config=cfg)
+    at = (e.pixels[:, 1] == 249) & (e.kinds == EdgeKind.JUMP)
+    assert at.sum() >= 0.95 * 240
+    # half a pixel past the last return, on the plane, and recorded as a decision
+    last = plane.points[e.pixels[at, 0], 249].astype(np.float64)
+    step = np.linalg.norm(plane.points[e.pixels[at, 0], 249] - plane.points[e.pixels[at, 0], 248],
+                          axis=1)
+    assert np.allclose(np.linalg.norm(e.points[at] - last, axis=1), 0.5 * step, rtol=0.5)
+    t = e.tests.of_kind(TestKind.NO_RETURN)
+    assert len(t) >= 0.95 * 240
+    assert (t.statistic == 70).all() and (t.critical == NO_RETURN_PX).all()
+    assert (t.dof == 0).all() and t.accepted.all()
+    assert set((t.b % 320).tolist()) == {249}  # b = the pixel (row * W + col)
+    # a shorter run to the border, or a run with the plane beyond it, is a dropout
+    for cols in (slice(320 - NO_RETURN_PX + 1, None), slice(200, 230)):
+        d = detect_edges(_cut(plane, cols), config=cfg)
+        assert len(d.tests.of_kind(TestKind.NO_RETURN)) == 0
+        assert len(d) <= len(base) + 0.05 * 240
 
 
 def test_thresholds_grow_with_line_length():
