@@ -6,7 +6,7 @@ Every pair of segments is tested, with the propagated covariances of both lines
 * **meet** — the signed distance between the two lines is zero: chi2(1);
 * **orthogonal** — the cosine of their angle is zero: chi2(1);
 * **at segment ends** — the intersection lies on both segments, within their extent plus
-  :data:`END_TOLERANCE` of the shortest box edge (support thins out near junctions, and
+  ``end_tolerance`` of the shortest box edge (support thins out near junctions, and
   cardboard corners are rounded and dented), so a corner, a T or a cross; not the far
   extension of a line.
 
@@ -38,15 +38,6 @@ from scipy import stats as st
 from boxloc.config import Config
 from boxloc.products import EdgeKind, LineSet, VertexSet
 from boxloc.stats import TestKind, TestTable
-
-#: How far (a fraction of ``min_edge``) the lines' intersection may lie beyond the end of
-#: a segment. Near a junction both scan directions cross the edge badly, so support thins
-#: out; on real boxes the corners are rounded, dented or chamfered by flaps as well. On the
-#: mOSD Kinect frames (``min_edge`` 35 mm) segments stop 18-26 mm short of a top's corner,
-#: and half the edge lost those vertices in some draws of the trials (README, "Real
-#: scans"). A larger fraction starts to join a segment to the far side of its neighbour in
-#: a dense layer: the whole shortest edge lost faces on the simulated pallets.
-END_TOLERANCE = 0.75
 
 #: ``VertexSet.parent_side`` of a box corner's vertex (:func:`corner_vertices`); 0-3 are
 #: the seam sides of a neighbour's corner
@@ -81,7 +72,8 @@ def find_vertices(lines: LineSet, *, config: Config, up: np.ndarray | None = Non
     ----------
     lines : LineSet
     config : Config
-        Uses ``alpha``, ``min_edge``, ``angle_tolerance``, ``flatness`` and ``max_tilt``.
+        Uses ``alpha``, ``min_edge``, ``end_tolerance``, ``angle_tolerance``, ``flatness``
+        and ``max_tilt``.
     up : ndarray (3,), optional
         Up in the sensor frame; without it every box corner is offered.
 
@@ -141,7 +133,7 @@ def find_vertices(lines: LineSet, *, config: Config, up: np.ndarray | None = Non
         [lo1 - t1, t1 - hi1, lo2 - t2, t2 - hi2, np.zeros_like(t1)]
     )
     # a segment may stop short of its corner by a fraction of the shortest edge
-    tol = END_TOLERANCE * config.min_edge
+    tol = config.end_tolerance * config.min_edge
     ends = TestTable.decision(
         TestKind.AT_SEGMENT_ENDS, ia, ib, beyond, tol, beyond <= tol, alpha
     )

@@ -3,10 +3,11 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from boxloc.config import Config
 from boxloc.stats import TestKind
-from boxloc.vertices import END_TOLERANCE, find_vertices
+from boxloc.vertices import find_vertices
 from tests.test_stats import _line, _lineset
 
 X, Y, Z = np.eye(3)
@@ -52,22 +53,35 @@ def test_parallel_skew_and_far_apart_lines_give_no_vertex():
         TestKind.AT_SEGMENT_ENDS).accepted[0]
 
 
-def test_a_segment_may_stop_short_of_its_corner_by_END_TOLERANCE_of_the_shortest_edge():
+@pytest.mark.parametrize("end_tolerance", [None, 0.5, 1.0])
+def test_a_segment_may_stop_short_of_its_corner_by_end_tolerance_of_the_shortest_edge(
+        end_tolerance):
     # rounded and dented cardboard corners: the edge down the front starts a gap g below
-    # the corner; the gap is allowed up to END_TOLERANCE * min_edge, and not beyond
+    # the corner; the gap is allowed up to end_tolerance * min_edge, and not beyond
     corner = np.array([0.0, 0.0, 1.5])
-    cfg = Config()
-    for frac, found in ((END_TOLERANCE - 0.1, True), (END_TOLERANCE + 0.1, False)):
+    cfg = Config() if end_tolerance is None else Config(end_tolerance=end_tolerance)
+    for frac, found in ((cfg.end_tolerance - 0.1, True), (cfg.end_tolerance + 0.1, False)):
         g = frac * cfg.min_edge
         L = _fits((corner + 0.15 * X, X, 0.3), (corner + (g + 0.1) * Y, Y, 0.2))
         V = find_vertices(L, config=cfg)
         ends = V.tests.of_kind(TestKind.AT_SEGMENT_ENDS)
         assert ends.accepted[0] == found
         assert abs(ends.statistic[0] - g) < 0.005  # the gap, metres
-        assert ends.critical[0] == END_TOLERANCE * cfg.min_edge
+        assert ends.critical[0] == pytest.approx(cfg.end_tolerance * cfg.min_edge)
         assert (len(V) == 1) == found
         if found:
             assert np.linalg.norm(V.points[0] - corner) < 0.003
+
+
+def test_end_tolerance_is_left_out_of_the_config_at_its_default():
+    # configs and hashes from before it are unchanged; another value is recorded
+    assert "end_tolerance" not in Config().to_dict()
+    assert Config(end_tolerance=0.75).hash == Config().hash
+    c = Config(end_tolerance=0.5)
+    assert c.to_dict()["end_tolerance"] == 0.5 and c.hash != Config().hash
+    assert Config.from_toml(c.to_toml()) == c
+    assert "end_tolerance = 0.75" in Config().to_toml()
+    assert Config().with_overrides(["end_tolerance=0.6"]).end_tolerance == 0.6
 
 
 def test_every_pair_is_tested_and_recorded():
