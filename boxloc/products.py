@@ -103,7 +103,8 @@ class EdgeMap:
     kinds : (N,) uint8
         :class:`EdgeKind`.
     strength : (N,) float64
-        Jump height, metres, or fold angle, radians.
+        Jump height, metres (inf at a no-return border: nothing was measured beyond), or
+        fold angle, radians.
     scan_dir : (N,) uint8
         Bit 1: found on a row; bit 2: found on a column.
     tests : TestTable
