@@ -55,7 +55,8 @@ def corner_departures(scan: Scan, config: Config) -> tuple[np.ndarray, np.ndarra
         The propagated variance of the pair's cosine (the orthogonality test's variance
         without the tolerance).
     """
-    rng = np.random.default_rng(scan.seed)
+    # the config's draw of the trials, as the pipeline and edgeblur.edge_offsets draw them
+    rng = np.random.default_rng(config.seed_for(scan.seed))
     edges = detect_edges(scan, config=config)
     lines = find_lines(scan, edges, config=config, rng=rng)
     T = find_vertices(lines, config=config).tests

@@ -60,6 +60,15 @@ def test_departures_are_within_the_bound_and_propagated_variances_positive(boxes
     assert np.all(v > 0)
 
 
+def test_departures_follow_the_configs_draw_of_the_trials(boxes):
+    # the line stage draws its trials as the pipeline does: another trial_seed is another
+    # draw (other lines, so other corners), and each draw is reproduced bit for bit
+    d0, _ = corner_departures(boxes[0], Config())
+    d2, _ = corner_departures(boxes[0], Config(trial_seed=2))
+    assert not np.array_equal(d0, d2)
+    assert np.array_equal(d2, corner_departures(boxes[0], Config(trial_seed=2))[0])
+
+
 def test_a_scan_without_corners_is_an_input_error():
     # a wall 1.5 m ahead, seen by a 64 x 48 pinhole: no edges, no corners
     with pytest.raises(InputError, match="too few line pairs"):
