@@ -218,3 +218,59 @@ def test_a_side_with_a_few_seam_edges_is_covered_by_its_seam():
             assert seam.accepted.sum() >= 2
             saved += 1
     assert saved >= 1
+
+
+def _with_edges(ctx, pts, kind):
+    return dataclasses.replace(
+        ctx, edge_points=np.vstack([ctx.edge_points, pts]),
+        edge_kinds=np.r_[ctx.edge_kinds, np.full(len(pts), kind, ctx.edge_kinds.dtype)])
+
+
+def test_scattered_interior_edges_do_not_reject_a_face(single_box):
+    # a face seen at grazing incidence (the mOSD Kinect frames) carries noise edges all
+    # over it: many points, no line. Their number is not a crossing edge
+    sim, cfg, ctx, frame = single_box
+    o, x, y, n, w, l_ = frame
+    mi = 0.5 * cfg.min_edge + 0.005
+    rng = np.random.default_rng(0)
+    u, v = rng.uniform(mi, w - mi, 120), rng.uniform(mi, l_ - mi, 120)
+    ctx2 = _with_edges(ctx, o + u[:, None] * x + v[:, None] * y, EdgeKind.CREASE_CONCAVE)
+    out = _verify(sim, cfg, ctx2, frame)
+    assert out.reason == VerifyReason.ACCEPTED
+    spacing = ctx.spacing_at(o + 0.5 * w * x + 0.5 * l_ * y)
+    # more interior points than a side's support p: a count would have rejected the face
+    assert out.n_interior_edges >= 120 > cfg.support_fraction * min(w, l_) / spacing
+    row = out.tests.of_kind(TestKind.VERIFY_INTERIOR)
+    assert len(row) == 1 and row.accepted[0] and row.p_value[0] >= cfg.alpha
+
+
+def test_an_edge_crossing_the_interior_rejects_the_face(single_box):
+    # the seam of two touching boxes, seen by the edge stage in part (every other point)
+    sim, cfg, ctx, frame = single_box
+    o, x, y, n, w, l_ = frame
+    spacing = ctx.spacing_at(o + 0.5 * w * x + 0.5 * l_ * y)
+    v = np.arange(0.0, l_, 2 * spacing)
+    ctx2 = _with_edges(ctx, o + 0.5 * w * x + v[:, None] * y, EdgeKind.JUMP)
+    out = _verify(sim, cfg, ctx2, frame)
+    assert out.reason == VerifyReason.INTERIOR_EDGES
+    row = out.tests.of_kind(TestKind.VERIFY_INTERIOR)
+    assert not row.accepted[0] and row.p_value[0] < cfg.alpha
+    assert row.statistic[0] >= row.critical[0]
+
+
+def test_interior_line_measures_scatter_over_the_interior_only():
+    # a narrow face (5 x 20 cm, 1.6 mm spacing): its interior is a strip 15 mm wide, and
+    # scatter confined to it is no line, though over the whole 5 cm it would look like one
+    from boxloc.verify import _interior_line
+    w, l_, spacing, mi = 0.05, 0.20, 0.0016, 0.0175
+    rng = np.random.default_rng(1)
+    u, v = rng.uniform(mi, w - mi, 20), rng.uniform(mi, l_ - mi, 20)
+    _, p = _interior_line(u, v, w, l_, spacing, mi)
+    assert p > 0.1
+    _, p_whole = _interior_line(u, v, w, l_, spacing)
+    assert p_whole < 0.01
+    # an edge across the strip (9 points at one v) is still a line
+    ue = np.r_[u, np.linspace(mi, w - mi, 9)]
+    ve = np.r_[v, np.full(9, 0.1)]
+    k, p_line = _interior_line(ue, ve, w, l_, spacing, mi)
+    assert k >= 9 and p_line < 1e-3
