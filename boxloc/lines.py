@@ -196,6 +196,21 @@ def _point_on_line_stat(
     return T, t
 
 
+def _may_lie_on(P: np.ndarray, tr: np.ndarray, c: np.ndarray, b: np.ndarray,
+                crit: float) -> np.ndarray:
+    """Which points can pass the point-on-line test at ``crit`` (a cheap, exact pre-filter).
+
+    The chi2(2) statistic of a point at perpendicular distance r is at least r^2 over the
+    largest eigenvalue of its projected covariance, and that is at most the trace ``tr`` of
+    its 3-D covariance: a point with r^2 > crit * tr fails the test, whatever its
+    covariance's shape. (A point with no covariance is kept: the test decides it.)
+    """
+    D = P - c
+    R = D - np.outer(D @ b, b)
+    r2 = np.einsum("ni,ni->n", R, R)
+    return ~(r2 > crit * tr * (1.0 + 1e-9)) | (tr <= 0.0)
+
+
 def fit_segment(P: np.ndarray, C: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray,
                                                        np.ndarray]:
     """Total-least-squares line through points, with the covariance of (centroid, direction).
@@ -278,6 +293,7 @@ def find_lines(scan: Scan, edges: EdgeMap, *, config: Config, rng: np.random.Gen
 
     lut, nbr, dirs = _direction_index(config.direction_granularity)
     ptree = cKDTree(P) if N else None
+    trC = np.einsum("nii->n", C)  # bounds each point's covariance (``_may_lie_on``)
 
     alive = np.ones(N, bool)
     n_alive = N
@@ -303,8 +319,8 @@ def find_lines(scan: Scan, edges: EdgeMap, *, config: Config, rng: np.random.Gen
         found = False
         if len(nb) >= m_min:
             found = _trial(
-                i0, nb, P, C, edges.kinds, alive, rng, dirs, lut, nbr, k2, chi2_2, spacing, m_min,
-                config, trial, lines, line_tests,
+                i0, nb, P, C, trC, edges.kinds, alive, rng, dirs, lut, nbr, k2, chi2_2, spacing,
+                m_min, config, trial, lines, line_tests,
             )
         if found:
             n_alive = int(alive.sum())
@@ -316,8 +332,8 @@ def find_lines(scan: Scan, edges: EdgeMap, *, config: Config, rng: np.random.Gen
 
 
 def _trial(
-    i0: int, nb: np.ndarray, P: np.ndarray, C: np.ndarray, edge_kinds: np.ndarray,
-    alive: np.ndarray,
+    i0: int, nb: np.ndarray, P: np.ndarray, C: np.ndarray, trC: np.ndarray,
+    edge_kinds: np.ndarray, alive: np.ndarray,
     rng: np.random.Generator, dirs: np.ndarray, lut: np.ndarray, nbr: np.ndarray,
     k2: float, chi2_2: float, spacing: float, m_min: int, config: Config, trial: int,
     lines: list[dict], line_tests: list[TestTable],
@@ -381,8 +397,10 @@ def _trial(
     c, bb = anchor, b
     inl = live[:0]
     for _ in range(2):
-        T, _t = _point_on_line_stat(P[live], C[live], c, bb)
-        inl = live[T <= chi2_2]
+        # the full test on the points the trace bound leaves: the same inliers, cheaper
+        cand = live[_may_lie_on(P[live], trC[live], c, bb, chi2_2)]
+        T, _t = _point_on_line_stat(P[cand], C[cand], c, bb)
+        inl = cand[T <= chi2_2]
         if len(inl) < m_min:
             return False
         c, bb, _w = _tls(P[inl])

@@ -143,7 +143,8 @@ def face_points(
     zc = float(st.norm.isf(alpha / (2.0 * len(flat))))
     # the face's own points first (relative to the given plane, tilt allowed for by the
     # median), then the plane refitted to them
-    on = np.abs(w - np.median(w)) <= zc * s + 3.0 * 1.4826 * np.median(np.abs(w - np.median(w)))
+    dw = np.abs(w - np.median(w))
+    on = dw <= zc * s + 3.0 * 1.4826 * np.median(dw)
     if on.sum() < 3:
         return empty
     Q = P[on]
@@ -171,11 +172,18 @@ def _window_offsets(h: float) -> tuple[tuple[float, float], ...]:
 def _windows(coord: np.ndarray, w: np.ndarray, centres: np.ndarray, h: float
              ) -> tuple[np.ndarray, ...]:
     """Count and sum of w in the groove window and in each flank, per centre."""
+    offs = _window_offsets(h)
+    if len(centres) and len(coord):
+        # only the points some window can reach: a search near one side sorts a strip,
+        # not the face
+        reach = (coord >= centres.min() + min(o[0] for o in offs)) & (
+            coord <= centres.max() + max(o[1] for o in offs))
+        coord, w = coord[reach], w[reach]
     order = np.argsort(coord)
     cs = coord[order]
     cum = np.r_[0.0, np.cumsum(w[order])]
     out: list[np.ndarray] = []
-    for lo, hi in _window_offsets(h):
+    for lo, hi in offs:
         i0 = np.searchsorted(cs, centres + lo, "left")
         i1 = np.searchsorted(cs, centres + hi, "right")
         out += [(i1 - i0).astype(np.float64), cum[i1] - cum[i0]]

@@ -462,7 +462,14 @@ def verify(
     # cheap tests first, on the edge points (no rasterization): interior and boundary
     # edge points near the face's plane, in the rectangle's frame
     E = ctx.edge_points - origin
-    eu, ev, ew = E @ x_axis, E @ y_axis, E @ normal
+    eu, ev = E @ x_axis, E @ y_axis
+    # every edge test below looks at most a side's band beyond the rectangle: the rest of
+    # the scan's edge points need no plane test
+    band = 1.5 * m
+    reach = (eu >= -band) & (eu <= width + band) & (ev >= -band) & (ev <= length + band)
+    E, eu, ev = E[reach], eu[reach], ev[reach]
+    edge_kinds = ctx.edge_kinds[reach]
+    ew = E @ normal
     sig_e = face_sigma(config, centre)
     # a face's boundary, seam and crossing edges lie on its plane (a jump point is placed
     # half a sample beyond the face's last point, hence the spacing)
@@ -481,9 +488,8 @@ def verify(
     tests.append(TestTable.decision(TestKind.VERIFY_INTERIOR, attempt_id, -1, line_count,
                                     min_line, line_ok, alpha, p_value=line_p))
     # boundary: every side covered by convex edge evidence (jump, convex crease, groove)
-    convex = near_plane & np.isin(ctx.edge_kinds, (EdgeKind.JUMP, EdgeKind.CREASE_CONVEX,
-                                                   EdgeKind.GROOVE))
-    band = 1.5 * m
+    convex = near_plane & np.isin(edge_kinds, (EdgeKind.JUMP, EdgeKind.CREASE_CONVEX,
+                                               EdgeKind.GROOVE))
     sides = (
         (np.abs(ev) <= band, eu, width),
         (np.abs(ev - length) <= band, eu, width),
@@ -507,7 +513,7 @@ def verify(
     covered, side_p = side_lines(convex, density)
     # concave creases along a side: the face meets a wall rising from it (the pallet or a
     # lower box beside a taller one), which a top face's side never does
-    concave, _ = side_lines(near_plane & (ctx.edge_kinds == EdgeKind.CREASE_CONCAVE), density)
+    concave, _ = side_lines(near_plane & (edge_kinds == EdgeKind.CREASE_CONCAVE), density)
     side_min = [max(MIN_LINE_POINTS, kc) for kc in concave]
     corners = rectangle_corners(origin, x_axis, y_axis, width, length)
     side_n = [ctx.samples_along(corners[a], corners[b]) for a, b in SIDE_CORNERS]

@@ -82,3 +82,34 @@ def test_fit_segment_covariance_scales_as_expected():
     # direction variance ~ sigma^2 / sum t^2 in each perpendicular axis
     assert cov[4, 4] == pytest.approx(4e-6 / (tt**2).sum(), rel=0.5)
     assert cov[1, 1] == pytest.approx(4e-6 / 100, rel=0.5)
+
+
+def test_trace_prefilter_never_drops_a_point_on_the_line():
+    # the pre-filter of the inlier search is a bound, not an approximation: every point the
+    # chi2(2) test accepts passes it, and it removes the points far off the line
+    from boxloc.lines import _may_lie_on, _point_on_line_stat
+    rng = np.random.default_rng(3)
+    n = 4000
+    c, b = np.array([0.1, -0.2, 1.5]), np.array([0.6, 0.0, 0.8])
+    # half of them near the line, half scattered over 10 cm around it
+    spread = np.where(np.arange(n) < n // 2, 0.004, 0.03)[:, None]
+    P = c + rng.uniform(-0.3, 0.3, n)[:, None] * b + rng.normal(0, 1, (n, 3)) * spread
+    A = rng.normal(0, 1, (n, 3, 3))
+    # anisotropic covariances, 0.1-3 mm
+    C = np.einsum("nij,nkj->nik", A, A) * rng.uniform(1e-8, 9e-6, n)[:, None, None]
+    crit = 9.21
+    T, _ = _point_on_line_stat(P, C, c, b)
+    keep = _may_lie_on(P, np.einsum("nii->n", C), c, b, crit)
+    assert keep[T <= crit].all()
+    assert (T <= crit).sum() > 100 and (~keep).sum() > n // 4
+
+
+def test_inlier_search_with_the_prefilter_finds_the_same_lines(monkeypatch):
+    # the lines of a cluttered set of edges, found with the pre-filter, are the lines of the
+    # full test: the pre-filter changes only the time
+    import boxloc.lines as L
+    P, s, *_ = _two_lines_and_clutter(3)
+    a = find_lines(_scan(), _edge_map(P, s), config=Config(), rng=np.random.default_rng(0))
+    monkeypatch.setattr(L, "_may_lie_on", lambda P, tr, c, b, crit: np.ones(len(P), bool))
+    b_ = find_lines(_scan(), _edge_map(P, s), config=Config(), rng=np.random.default_rng(0))
+    assert len(a) >= 2 and products_equal(a, b_) == []

@@ -200,3 +200,20 @@ def test_seam_tests_are_recorded_for_a_post_mortem(block_of_four):
     used = r.hypotheses.att_source[r.surfaces.attempt]
     assert set(used.tolist()) <= {DimensionSource.VERTICES, DimensionSource.EDGES,
                                   DimensionSource.SEAMS}
+
+
+def test_window_sums_match_a_direct_count():
+    # the windows are counted over the points some window can reach: the same counts and
+    # sums as over all of them, for a search across the face and for one near a side
+    from boxloc.seams import _window_offsets, _windows
+    rng = np.random.default_rng(7)
+    h = 0.002
+    coord = rng.uniform(-0.05, 0.25, 20000)
+    w = rng.normal(0, 1e-3, coord.size)
+    for centres in (np.arange(0.0, 0.2, 0.5 * h), np.array([0.149, 0.15, 0.151])):
+        got = _windows(coord, w, centres, h)
+        for j, (lo, hi) in enumerate(_window_offsets(h)):
+            inside = (coord[None, :] >= (centres + lo)[:, None]) & (
+                coord[None, :] <= (centres + hi)[:, None])
+            assert np.array_equal(got[2 * j], inside.sum(1).astype(float))
+            np.testing.assert_allclose(got[2 * j + 1], (inside * w).sum(1), rtol=0, atol=1e-12)
