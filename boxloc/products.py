@@ -339,7 +339,9 @@ class Verification:
     mean_distance, sigma_mean : (k,) float64
         Mean signed distance of the inliers to the plane and its standard deviation, metres.
     n_interior_edges : (k,) int32
-        Edge points strictly inside the rectangle (beyond their localization error).
+        Edge points on the face's plane inside the rectangle, beyond the band where its
+        sides' own edges lie: the points ``VERIFY_INTERIOR`` looks for a line in (their
+        number is recorded, not tested).
     plane_centers, plane_normals : (k, 3) float64
         Plane refitted to the inliers (normal toward the sensor).
     plane_covariances : (k, 6, 6) float64
