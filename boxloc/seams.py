@@ -169,21 +169,23 @@ def _window_offsets(h: float) -> tuple[tuple[float, float], ...]:
     return (-SEAM_INNER * h, SEAM_INNER * h), (-b, -a), (a, b)
 
 
+def _in_reach(coord: np.ndarray, centres: np.ndarray, h: float) -> np.ndarray:
+    """Which points some window around the centres reaches: a search near one side of a
+    face then sorts and sums a strip, not the whole face."""
+    if len(centres) == 0:
+        return np.zeros(len(coord), bool)
+    r = SEAM_FLANK[1] * h  # the flanks reach farthest
+    return (coord >= centres.min() - r) & (coord <= centres.max() + r)
+
+
 def _windows(coord: np.ndarray, w: np.ndarray, centres: np.ndarray, h: float
              ) -> tuple[np.ndarray, ...]:
     """Count and sum of w in the groove window and in each flank, per centre."""
-    offs = _window_offsets(h)
-    if len(centres) and len(coord):
-        # only the points some window can reach: a search near one side sorts a strip,
-        # not the face
-        reach = (coord >= centres.min() + min(o[0] for o in offs)) & (
-            coord <= centres.max() + max(o[1] for o in offs))
-        coord, w = coord[reach], w[reach]
     order = np.argsort(coord)
     cs = coord[order]
     cum = np.r_[0.0, np.cumsum(w[order])]
     out: list[np.ndarray] = []
-    for lo, hi in offs:
+    for lo, hi in _window_offsets(h):
         i0 = np.searchsorted(cs, centres + lo, "left")
         i1 = np.searchsorted(cs, centres + hi, "right")
         out += [(i1 - i0).astype(np.float64), cum[i1] - cum[i0]]
@@ -222,6 +224,9 @@ def _seam_stats(coord: np.ndarray, w: np.ndarray, scale: float, centres: np.ndar
                 ) -> tuple[np.ndarray, np.ndarray]:
     """Flanks minus groove over its standard deviation (NaN where a window is empty), and
     whether the groove lies behind each flank on its own."""
+    near = _in_reach(coord, centres, h)
+    coord, w = coord[near], w[near]
+    row = None if row is None else row[near]
     ni, si, nl, sl, nr, sr = _windows(coord, w, centres, h)
     ok = (ni > 0) & (nl > 0) & (nr > 0)
     with np.errstate(invalid="ignore", divide="ignore"):
@@ -333,6 +338,7 @@ def gap_z(coord: np.ndarray, centres: np.ndarray, h: float) -> np.ndarray:
     z : (m,) float64
         -inf where a flank is empty (the face does not continue on both sides).
     """
+    coord = coord[_in_reach(coord, centres, h)]
     ni, _, nl, _, nr, _ = _windows(coord, np.zeros_like(coord), centres, h)
     lam = (nl + nr) * SEAM_INNER / (SEAM_FLANK[1] - SEAM_FLANK[0])
     p = st.poisson.cdf(ni, np.maximum(lam, 1e-12))
