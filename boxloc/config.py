@@ -20,9 +20,16 @@ import tomli_w
 from boxloc.errors import InputError
 from boxloc.scan import NoiseModel
 
-#: Default of ``Config.end_tolerance``: 1/2 lost corners of the mOSD tops in some draws of
-#: the trials, 1 lost faces of the simulated neat layers (README, "Real scans").
-DEFAULT_END_TOLERANCE = 0.75
+#: Keys that logs written before every value was recorded left out, with the value their
+#: run used. Frozen: these are facts about old logs, not defaults. A key added to the
+#: config later must be added here with the value that reproduces what a run before it did,
+#: so that logs written without it keep saying (and replaying) what they ran.
+UNRECORDED_KEYS: dict[str, Any] = {
+    "trial_seed": 0,
+    "end_tolerance": 0.75,
+    "noise.edge_px": 0.0,
+    "noise.row_corr": 0.0,
+}
 
 #: Config fields that change how a result is computed, never what it is.
 EXECUTION_FIELDS = frozenset({"workers"})
@@ -71,8 +78,7 @@ class Config:
         badly, so support thins out, and real boxes' corners are rounded, dented or
         chamfered by flaps: on the mOSD Kinect frames segments stop 18-26 mm short of a
         top's corner (``min_edge`` 35 mm). Much more joins a segment to the far side of its
-        neighbour in a dense layer. Left out of ``to_dict`` (so of the config hash) at its
-        default.
+        neighbour in a dense layer.
     mdl_k1, mdl_k2, mdl_k3 : float
         MDL weights (Leonardis et al.): per explained point, per unit of normalized squared
         residual, per model parameter.
@@ -87,8 +93,7 @@ class Config:
         voters, the up estimate's and the baseline's RANSAC): 0, the default, seeds them
         from the scan's content alone (:attr:`boxloc.scan.Scan.seed`); k > 0 from the scan
         and k (:meth:`seed_for`). Running k = 0, 1, 2, ... measures how much a result owes
-        to the draw (``boxloc bench --seeds N``, also with ``--real``). Left out of
-        ``to_dict`` (so of the config hash) at 0.
+        to the draw (``boxloc bench --seeds N``, also with ``--real``).
     """
 
     alpha: float = 0.01
@@ -102,7 +107,9 @@ class Config:
     min_inlier_fraction: float = 0.8
     flatness: float = 0.005
     angle_tolerance: float = math.radians(1.0)
-    end_tolerance: float = DEFAULT_END_TOLERANCE
+    # 1/2 lost corners of the mOSD tops in some draws of the trials, 1 lost faces of the
+    # simulated neat layers
+    end_tolerance: float = 0.75
     mdl_k1: float = 1.0
     mdl_k2: float = 0.5
     mdl_k3: float = 10.0
@@ -140,14 +147,9 @@ class Config:
     # --- serialization -------------------------------------------------------------------
 
     def to_dict(self) -> dict[str, Any]:
+        """Every value, defaults included (what a log records: its provenance is complete)."""
         d = dataclasses.asdict(self)
         d["noise"] = self.noise.to_dict()
-        if self.trial_seed == 0:  # the default stream: configs and their hashes as before
-            del d["trial_seed"]
-        # came later: at its default, configs and hashes as before, and older versions
-        # (which refuse unknown keys) still read new logs
-        if self.end_tolerance == DEFAULT_END_TOLERANCE:
-            del d["end_tolerance"]
         return d
 
     def seed_for(self, scan_seed: int) -> int:
@@ -202,30 +204,61 @@ class Config:
             kw[k] = v
         return cls(**kw)
 
+    @classmethod
+    def from_recorded(cls, d: dict[str, Any]) -> Config:
+        """The config a log recorded.
+
+        Logs written before every value was recorded (``to_dict`` then left out
+        :data:`UNRECORDED_KEYS` at their defaults) get those keys from that frozen table,
+        never from today's defaults: a default changed later changes neither what an old
+        log says nor what its replay runs. Any other missing key is an error, as nothing
+        says what the run used.
+        """
+        if not isinstance(d, dict):
+            raise InputError(f"config must be a table of key = value, got {type(d).__name__}")
+        d = dict(d)
+        noise = d.get("noise")
+        if isinstance(noise, dict):
+            d["noise"] = noise = dict(noise)
+        for key, value in UNRECORDED_KEYS.items():
+            head, _, tail = key.partition(".")
+            if not tail:
+                d.setdefault(head, value)
+            elif isinstance(noise, dict):
+                noise.setdefault(tail, value)
+        required = {f.name for f in dataclasses.fields(cls)}
+        missing = sorted(required - set(d))
+        if isinstance(noise, dict):
+            missing += sorted("noise." + f.name for f in dataclasses.fields(NoiseModel)
+                              if f.name not in noise)
+        if missing:
+            raise InputError(f"recorded config lacks {', '.join(missing)}")
+        return cls.from_dict(d)
+
     def canonical_json(self) -> str:
         return json.dumps(self.to_dict(), sort_keys=True, separators=(",", ":"))
 
     @property
     def hash(self) -> str:
         """SHA-256 (first 16 hex digits) of the canonical JSON of the fields that can change
-        a result; execution settings (``workers``) are left out, as results never depend on
-        them."""
+        a result.
+
+        Execution settings (``workers``) are left out, as results never depend on them, and
+        so are :data:`UNRECORDED_KEYS` at their table values: a config hashes as it did when
+        logs left those keys out, so old logs' hashes still name the same configs.
+        """
         d = {k: v for k, v in self.to_dict().items() if k not in EXECUTION_FIELDS}
+        for key, value in UNRECORDED_KEYS.items():
+            head, _, tail = key.partition(".")
+            table, name = (d[head], tail) if tail else (d, head)
+            if table.get(name, value) == value:
+                table.pop(name, None)
         text = json.dumps(d, sort_keys=True, separators=(",", ":"))
         return hashlib.sha256(text.encode()).hexdigest()[:16]
 
-    def _all_keys(self) -> dict[str, Any]:
-        """``to_dict`` with the keys it leaves out at their defaults (``noise.edge_px``,
-        ``noise.row_corr``, ``trial_seed``, ``end_tolerance``)."""
-        d = self.to_dict()
-        d["noise"] = dataclasses.asdict(self.noise)
-        d["trial_seed"] = self.trial_seed
-        d["end_tolerance"] = self.end_tolerance
-        return d
-
     def to_toml(self) -> str:
-        """Every parameter as TOML (``boxloc config``), those left out of ``to_dict`` too."""
-        return tomli_w.dumps(self._all_keys())
+        """Every parameter as TOML (``boxloc config``)."""
+        return tomli_w.dumps(self.to_dict())
 
     @classmethod
     def from_toml(cls, text: str) -> Config:
@@ -246,7 +279,7 @@ class Config:
 
         Values are parsed as TOML scalars (``alpha=0.05``, ``workers=2``).
         """
-        d = self._all_keys()
+        d = self.to_dict()
         items = assignments.items() if isinstance(assignments, dict) else None
         if items is None:
             parsed = []

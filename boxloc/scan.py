@@ -9,10 +9,11 @@ A *range* is the distance along a pixel's unit ray, so the organized cloud is
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 from dataclasses import dataclass, field
 from functools import cached_property
-from typing import Any
+from typing import Any, overload
 
 import numpy as np
 import numpy.typing as npt
@@ -254,8 +255,16 @@ class NoiseModel:
         if not 0 < self.min_cos <= 1:
             raise InputError(f"noise parameter min_cos must be in (0, 1], got {self.min_cos}")
 
-    def sigma_range(self, r: FloatArray, cos_incidence: FloatArray | float = 1.0) -> np.ndarray:
-        """Range standard deviation, metres, same shape as ``r``."""
+    @overload
+    def sigma_range(self, r: float, cos_incidence: float = 1.0) -> float: ...
+
+    @overload
+    def sigma_range(self, r: FloatArray,
+                    cos_incidence: FloatArray | float = 1.0) -> np.ndarray: ...
+
+    def sigma_range(self, r: FloatArray | float,
+                    cos_incidence: FloatArray | float = 1.0) -> np.ndarray | float:
+        """Range standard deviation, metres, same shape as ``r`` (a float for a float)."""
         r = np.asarray(r, dtype=np.float64)
         s = np.sqrt(self.sigma0**2 + (self.k1 * r) ** 2 + (self.k2 * r * r) ** 2)
         c = np.maximum(np.abs(np.asarray(cos_incidence, dtype=np.float64)), self.min_cos)
@@ -292,15 +301,8 @@ class NoiseModel:
         return r * pixel_angle / np.maximum(sin, self.min_cos)
 
     def to_dict(self) -> dict[str, float]:
-        d = {"sigma0": self.sigma0, "k1": self.k1, "k2": self.k2,
-             "sigma_angle": self.sigma_angle, "min_cos": self.min_cos}
-        # edge_px came later: left out at its default, so configs (and their hashes) from
-        # before it are unchanged and versions that predate it can replay new logs
-        if self.edge_px:
-            d["edge_px"] = self.edge_px
-        if self.row_corr:
-            d["row_corr"] = self.row_corr
-        return d
+        """Every parameter, defaults included."""
+        return dataclasses.asdict(self)
 
 
 def _check_range(range_: npt.ArrayLike) -> np.ndarray:

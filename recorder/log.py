@@ -478,7 +478,7 @@ class Log:
         if not text:
             return None
         try:
-            return Config.from_dict(E.parse_json(text, "the recorded config"))
+            return Config.from_recorded(E.parse_json(text, "the recorded config"))
         except (ValueError, TypeError, LogError) as e:
             raise LogError(f"{self.path}: recorded config is invalid: {e}") from None
 

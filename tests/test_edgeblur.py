@@ -155,9 +155,9 @@ def test_pixel_footprint_grows_toward_grazing_and_is_floored():
     assert f[2] == pytest.approx(2.0 * 0.002 / nm.min_cos)  # along the ray: the floor
 
 
-def test_edge_px_is_printed_by_config_but_left_out_of_the_hash_at_zero():
+def test_edge_px_is_printed_and_recorded_at_zero():
     cfg = Config()
     assert tomllib.loads(cfg.to_toml())["noise"]["edge_px"] == 0.0
-    assert "edge_px" not in cfg.to_dict()["noise"]
+    assert cfg.to_dict()["noise"]["edge_px"] == 0.0
     assert Config.from_toml(cfg.to_toml()).hash == cfg.hash
     assert cfg.with_overrides(["noise.edge_px=0.5"]).hash != cfg.hash

@@ -9,6 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 from click.testing import CliRunner
+from real_data import MOSD
 
 from boxloc.cli import cli
 from boxloc.config import Config
@@ -17,7 +18,6 @@ from boxloc.io import write_npz
 from boxloc.noise import estimate_noise, noise_toml, plane_residuals
 from boxloc.scan import NoiseModel, PinholeModel, Scan
 
-MOSD = Path(__file__).parents[1] / ".." / "shared" / "data" / "mosd"
 SENSOR = PinholeModel(150.0, 150.0, 79.5, 59.5, width=160, height=120)
 
 
@@ -138,12 +138,12 @@ def test_tails_show_a_contaminated_noise() -> None:
     assert obs[2] > 20 * normal[2]
 
 
-def test_row_corr_is_checked_and_left_out_of_configs_at_zero() -> None:
+def test_row_corr_is_checked_and_recorded_at_zero() -> None:
     with pytest.raises(InputError, match="row_corr"):
         NoiseModel(row_corr=1.0)
     with pytest.raises(InputError, match="row_corr"):
         NoiseModel(row_corr=-0.1)
-    assert "row_corr" not in NoiseModel().to_dict()  # old configs keep their hash
+    assert NoiseModel().to_dict()["row_corr"] == 0.0
     assert Config().hash == Config().with_overrides(["noise.row_corr=0"]).hash
     cfg = Config().with_overrides(["noise.row_corr=0.25"])
     assert cfg.noise.to_dict()["row_corr"] == 0.25 and cfg.hash != Config().hash
@@ -272,7 +272,7 @@ def test_cli_calibrate_noise(tmp_path: Path) -> None:
         f"boxloc: error: scan file not found: {tmp_path / 'missing.npz'}"]
 
 
-@pytest.mark.skipif(not (MOSD / "learn0.pcd").is_file(), reason=f"mOSD data not found at {MOSD}")
+@pytest.mark.real_data("learn0.pcd")
 def test_mosd_frame_noise() -> None:
     from boxloc.io import read_labels, read_scan
 

@@ -73,9 +73,8 @@ def test_a_segment_may_stop_short_of_its_corner_by_end_tolerance_of_the_shortest
             assert np.linalg.norm(V.points[0] - corner) < 0.003
 
 
-def test_end_tolerance_is_left_out_of_the_config_at_its_default():
-    # configs and hashes from before it are unchanged; another value is recorded
-    assert "end_tolerance" not in Config().to_dict()
+def test_end_tolerance_is_recorded_at_its_default_too():
+    assert Config().to_dict()["end_tolerance"] == 0.75
     assert Config(end_tolerance=0.75).hash == Config().hash
     c = Config(end_tolerance=0.5)
     assert c.to_dict()["end_tolerance"] == 0.5 and c.hash != Config().hash
