@@ -12,8 +12,6 @@ from boxloc.metrics import match_surfaces
 from boxloc.products import products_equal
 from boxloc.scan import PinholeModel, Scan
 
-pytest.importorskip("open3d")
-
 # Boxes standing on a floor (base frame: z up, floor z = 0): (x0, x1, y0, y1, height).
 BOXES = [(-0.20, 0.20, -0.15, 0.15, 0.40), (0.30, 0.60, -0.30, 0.10, 0.30)]
 

@@ -13,6 +13,7 @@ import pytest
 from click.testing import CliRunner
 
 import boxloc.bench as bench
+import boxloc.simulate as sim
 from boxloc.baseline import surface_set_from_rects
 from boxloc.bench import PeakRSS, evaluate_targets, run_bench
 from boxloc.cli import cli
@@ -30,21 +31,13 @@ SUMMARY_KEYS = {
 }
 
 
-def _simulator() -> Any:
-    try:
-        import boxloc.simulate as sim
-    except ImportError as e:  # pragma: no cover - only while the simulator is being written
-        pytest.skip(f"boxloc.simulate is not importable yet: {e}")
-    return sim
-
-
-def _tiny_specs(sim: Any) -> list[Any]:
+def _tiny_specs() -> list[Any]:
     """Two small scenes (160 x 120) of different kinds, so the test stays fast."""
     base = sim.scene_suite(2, seed=7)
     return [dataclasses.replace(s, width=160, height=120, f=131.25) for s in base]
 
 
-def _oracle(specs: list[Any], sim: Any) -> Any:
+def _oracle(specs: list[Any]) -> Any:
     """A localizer that answers with the ground truth (exposed faces, exact edges)."""
     by_seed = {}
     for spec in specs:
@@ -64,8 +57,7 @@ def _oracle(specs: list[Any], sim: Any) -> Any:
 
 
 def test_run_bench_writes_report(tmp_path: Path) -> None:
-    sim = _simulator()
-    specs = _tiny_specs(sim)
+    specs = _tiny_specs()
     calls: list[Any] = []
 
     def section(ctx: bench.BenchContext) -> dict[str, Any]:
@@ -76,7 +68,7 @@ def test_run_bench_writes_report(tmp_path: Path) -> None:
         raise RuntimeError("section exploded")
 
     report = run_bench(
-        specs=specs, out=tmp_path, progress=False, localizer=_oracle(specs, sim),
+        specs=specs, out=tmp_path, progress=False, localizer=_oracle(specs),
         sections=[("extra", section), ("broken", broken)], warmup=False,
     )
     assert set(report) == TOP_KEYS
@@ -132,8 +124,7 @@ def _keys_ending(d: Any, suffix: str) -> list[str]:
 @pytest.mark.slow
 def test_run_bench_with_the_real_localizer() -> None:
     # The localizer may still fail on a scene; the bench must report that, not crash.
-    sim = _simulator()
-    specs = _tiny_specs(sim)[:1]
+    specs = _tiny_specs()[:1]
     report = run_bench(specs=specs, baseline=False, progress=False, sections=[], warmup=False)
     assert set(report) == TOP_KEYS
     row = report["scenes"][0]["boxloc"]
@@ -145,9 +136,8 @@ def test_run_bench_with_the_real_localizer() -> None:
 
 
 def test_run_bench_pools_draws_of_the_random_trials() -> None:
-    sim = _simulator()
-    specs = _tiny_specs(sim)
-    oracle, seen = _oracle(specs, sim), []
+    specs = _tiny_specs()
+    oracle, seen = _oracle(specs), []
 
     def lucky(scan: Any, config: Any) -> Any:
         # perfect on even draws, nothing on odd ones
@@ -178,8 +168,7 @@ def test_run_bench_pools_draws_of_the_random_trials() -> None:
 
 
 def test_run_bench_counts_crashes(tmp_path: Path) -> None:
-    sim = _simulator()
-    specs = _tiny_specs(sim)[:1]
+    specs = _tiny_specs()[:1]
 
     def crash(scan: Any, config: Any) -> Any:
         raise ValueError("localizer exploded")

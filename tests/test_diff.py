@@ -17,6 +17,7 @@ from xml.etree import ElementTree
 
 import numpy as np
 import pytest
+import replay_helpers as helpers
 from click.testing import CliRunner
 
 from boxloc.cli import cli
@@ -38,8 +39,6 @@ from replay.diff import (
     regression,
 )
 from replay.report import bless, exit_code, print_table, write_outputs
-
-helpers = pytest.importorskip("replay_helpers")
 
 
 @pytest.fixture(scope="module")

@@ -13,6 +13,7 @@ from typing import Any
 
 import numpy as np
 import pytest
+import replay_helpers as helpers
 from click.testing import CliRunner
 
 from boxloc.cli import cli
@@ -22,8 +23,6 @@ from boxloc.stats import TestKind
 from recorder.annotate import append_outcome
 from recorder.log import open_log
 from replay.explain import explain, format_explanation
-
-helpers = pytest.importorskip("replay_helpers")
 
 VERTEX_TESTS = {"LINES_MEET", "LINES_ORTHOGONAL", "AT_SEGMENT_ENDS"}
 DIAGONAL_TESTS = {"COPLANAR", "PARALLEL", "FIRST_QUADRANT"}

@@ -11,6 +11,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from real_data import MOSD
 
 from boxloc.errors import InputError
 from boxloc.io import (
@@ -24,7 +25,6 @@ from boxloc.io import (
 )
 from boxloc.scan import PinholeModel, RayTableModel, Scan
 
-MOSD = Path(__file__).parents[1] / ".." / "shared" / "data" / "mosd"
 H, W = 24, 32
 INTR = (40.0, 42.0, 15.5, 11.5)
 INTR_S = "40,42,15.5,11.5"
@@ -609,11 +609,8 @@ def test_cli_locate_bad_input_exits_2(tmp_path: Path, case: str) -> None:
 
 # --- real data: mOSD ----------------------------------------------------------------------
 
-mosd = pytest.mark.skipif(not (MOSD / "learn0.pcd").is_file(),
-                          reason=f"mOSD data not found at {MOSD}")
 
-
-@mosd
+@pytest.mark.real_data("learn0.pcd")
 def test_mosd_learn0() -> None:
     scan = read_scan(MOSD / "learn0.pcd")
     labels = read_labels(MOSD / "learn0.pcd")

@@ -3,7 +3,8 @@
 
 The constructed scenes are ray-cast here (axis-aligned boxes on a table, seen from above at
 50 degrees like mOSD's Kinect), so every answer is known. Tests on the real mOSD frames read
-them from ``../shared/data/mosd`` and skip, saying so, where that folder is absent.
+them from ``../shared/data/mosd`` and are marked ``real_data`` with the frames they read
+(tests/conftest.py skips them, naming the missing frames, where these are absent).
 """
 
 from __future__ import annotations
@@ -16,6 +17,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 from click.testing import CliRunner
+from real_data import MOSD
 
 from boxloc.baseline import empty_surface_set, surface_set_from_rects
 from boxloc.bench_real import list_frames, run_real_bench
@@ -35,13 +37,6 @@ from boxloc.real import (
 )
 from boxloc.scan import PinholeModel, Scan
 from boxloc.stats import TestKind
-
-MOSD = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "mosd"
-needs_mosd = pytest.mark.skipif(
-    not (MOSD / "learn0.pcd").is_file(),
-    reason=f"mOSD frames not found at {MOSD} (the shared data folder is absent)",
-)
-
 
 # --- a constructed labelled scene ---------------------------------------------------------
 
@@ -250,7 +245,7 @@ def test_rasterized_rectangle_drops_what_is_hidden_in_front() -> None:
 # --- on mOSD ---------------------------------------------------------------------------------
 
 
-@needs_mosd
+@pytest.mark.real_data("learn0.pcd")
 def test_mosd_learn0_has_exposed_tops_parallel_to_the_table() -> None:
     p = MOSD / "learn0.pcd"
     scan, L = read_scan(p), read_labels(p)
@@ -263,7 +258,7 @@ def test_mosd_learn0_has_exposed_tops_parallel_to_the_table() -> None:
     assert m.tp == truth.n_exposed and m.fp == len(truth) - truth.n_exposed
 
 
-@needs_mosd
+@pytest.mark.real_data("learn17.pcd")
 def test_mosd_stacked_frame_has_a_covered_top() -> None:
     p = MOSD / "learn17.pcd"
     truth = top_faces(read_scan(p), read_labels(p))
@@ -278,7 +273,7 @@ MOSD_CONFIG = ["min_edge=0.035", "noise.sigma0=0.000176", "noise.k1=0.000998", "
                "noise.edge_px=0.5928", "angle_tolerance=0.05907"]
 
 
-@needs_mosd
+@pytest.mark.real_data("learn3.pcd", "learn9.pcd")
 @pytest.mark.parametrize("frame", ["learn3", "learn9"])
 def test_mosd_sliver_tops_are_found_from_their_crease(frame: str) -> None:
     # The Kinect sees these tops at grazing incidence, 15-25 pixels across, and rounds
@@ -301,7 +296,7 @@ def test_mosd_sliver_tops_are_found_from_their_crease(frame: str) -> None:
     assert np.isin(used, np.flatnonzero(corner)).any()
 
 
-@needs_mosd
+@pytest.mark.real_data("learn20.pcd")
 def test_mosd_row_offsets_make_no_seam_on_a_covered_top() -> None:
     # learn20: a tall box stands on a lower one. The Kinect's rows share part of their
     # noise (noise.row_corr, measured on the frames: 0.28); read as independent, one row's
@@ -325,7 +320,7 @@ def test_mosd_row_offsets_make_no_seam_on_a_covered_top() -> None:
         assert bool(((t.kind == seam) & t.accepted).any()) == covered_found
 
 
-@needs_mosd
+@pytest.mark.real_data("learn9.pcd")
 def test_explain_names_a_box_corner_and_its_test(tmp_path: Path) -> None:
     from replay.explain import explain, format_explanation
     log = tmp_path / "learn9.mcap"
@@ -394,7 +389,7 @@ def test_import_refuses_a_missing_source(tmp_path: Path) -> None:
     assert res.exit_code == 2 and "Traceback" not in res.output
 
 
-@needs_mosd
+@pytest.mark.real_data("learn0.pcd", "learn17.pcd")
 def test_import_two_mosd_frames_bit_exact(tmp_path: Path) -> None:
     from recorder.log import open_log
 
@@ -533,7 +528,7 @@ def test_real_bench_refuses_missing_frames(tmp_path: Path) -> None:
         list_frames(tmp_path, ["learn0"])
 
 
-@needs_mosd
+@pytest.mark.real_data("learn0.pcd", "learn17.pcd")
 def test_bench_real_cli_on_two_mosd_frames(tmp_path: Path) -> None:
     res = CliRunner().invoke(cli, ["bench", "--real", str(MOSD), "--seeds", "1",
                                    "--frames", "learn0,learn17",

@@ -11,14 +11,18 @@ import pytest
 from click.testing import CliRunner
 from factories import feed, make_result, make_scan
 
+from boxloc import io
+from boxloc import simulate as sim
 from boxloc.cli import cli
 from boxloc.config import Config
 from boxloc.errors import LogError
+from boxloc.pipeline import find_graspable_surfaces
 from boxloc.products import products_equal
 from recorder import annotate as A
 from recorder.encode import SCHEMA_VERSION
 from recorder.log import open_log
 from recorder.mcap_sink import McapRecorder
+from recorder.overhead import measure_overhead
 
 SIM = "sim:single:width=96,height=72,f=80"
 
@@ -177,7 +181,6 @@ def test_info_on_something_that_is_not_a_log(tmp_path: Path) -> None:
 
 
 def test_run_records_a_simulated_session_and_replays_it_exactly(tmp_path: Path) -> None:
-    pytest.importorskip("boxloc.simulate")
     code, out = _invoke("run", SIM, "--count", "2", "--record", str(tmp_path / "rec"),
                         "--rerun", "none", "--seed", "5")
     assert code == 0, out
@@ -195,7 +198,6 @@ def test_run_records_a_simulated_session_and_replays_it_exactly(tmp_path: Path) 
 
 
 def test_run_on_scan_files_and_a_directory(tmp_path: Path) -> None:
-    io = pytest.importorskip("boxloc.io")
     d = tmp_path / "scans"
     d.mkdir()
     for i in range(2):
@@ -221,7 +223,6 @@ def test_run_refuses_to_overwrite_and_bad_rerun_targets(tmp_path: Path) -> None:
 
 
 def test_run_saves_to_rerun_with_the_target_as_the_next_word(tmp_path: Path) -> None:
-    pytest.importorskip("recorder.rerun_sink")
     rrd = tmp_path / "out.rrd"
     code, out = _invoke("run", "--rerun", "save", str(rrd), SIM, "--record",
                         str(tmp_path / "r.mcap"), "-q")
@@ -230,8 +231,6 @@ def test_run_saves_to_rerun_with_the_target_as_the_next_word(tmp_path: Path) -> 
 
 
 def test_the_real_pipeline_round_trips_through_the_log(tmp_path: Path) -> None:
-    sim = pytest.importorskip("boxloc.simulate")
-    from boxloc.pipeline import find_graspable_surfaces
 
     scan = sim.simulate("pallet:width=120,height=90,f=100", seed=2).scan
     with McapRecorder(tmp_path / "p.mcap") as rec:
@@ -243,8 +242,6 @@ def test_the_real_pipeline_round_trips_through_the_log(tmp_path: Path) -> None:
 
 
 def test_measure_overhead_reports_time_and_size() -> None:
-    sim = pytest.importorskip("boxloc.simulate")
-    from recorder.overhead import measure_overhead
 
     scans = [sim.simulate(f"single:width=96,height=72,f=80,seed={i}").scan for i in range(2)]
     r = measure_overhead(scans)

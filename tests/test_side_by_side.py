@@ -11,6 +11,7 @@ import subprocess
 from pathlib import Path
 
 import pytest
+import replay_helpers as helpers
 import rerun.blueprint as rrb
 from click.testing import CliRunner
 
@@ -28,7 +29,6 @@ from replay.side_by_side import (
     side_by_side_blueprint,
 )
 
-helpers = pytest.importorskip("replay_helpers")
 ENV = {**os.environ, "RERUN_APP_ONLY": "true"}
 
 

@@ -4,11 +4,11 @@ from __future__ import annotations
 
 import math
 import tomllib
-from pathlib import Path
 
 import numpy as np
 import pytest
 from cli_run import run
+from real_data import MOSD
 from scenes import box, scene, wall
 
 from boxloc.config import Config
@@ -16,8 +16,6 @@ from boxloc.errors import InputError
 from boxloc.scan import Scan
 from boxloc.simulate import save_npz, simulate
 from boxloc.squareness import corner_departures, estimate_angle_tolerance
-
-MOSD = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "mosd"
 
 
 @pytest.fixture(scope="module")
@@ -88,8 +86,7 @@ def test_cli_prints_a_toml_line(tmp_path, boxes):
     assert "missing.npz" in bad.stderr and "Traceback" not in bad.stderr
 
 
-@pytest.mark.skipif(not (MOSD / "learn0.pcd").is_file(),
-                    reason=f"mOSD frames not found at {MOSD} (the shared data folder is absent)")
+@pytest.mark.real_data("learn0.pcd", "learn1.pcd", "learn2.pcd", "learn3.pcd")
 def test_the_kinect_shears_box_tops_by_degrees():
     from boxloc.io import read_scan
 
