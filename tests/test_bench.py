@@ -121,18 +121,43 @@ def _keys_ending(d: Any, suffix: str) -> list[str]:
     return []
 
 
-@pytest.mark.slow
-def test_run_bench_with_the_real_localizer() -> None:
-    # The localizer may still fail on a scene; the bench must report that, not crash.
-    specs = _tiny_specs()[:1]
+def _scene(kind: str, seed: int) -> Any:
+    return dataclasses.replace(sim.parse_spec(f"{kind}:width=160,height=120,f=131.25"),
+                               seed=seed)
+
+
+def test_run_bench_scores_the_real_localizer() -> None:
+    """The real pipeline through the bench, on scenes small enough for a second: the single
+    boxes are found, nothing is invented on the empty floor, the piles are mostly found,
+    and the summary and per-kind figures are the per-scene rows added up."""
+    specs = [_scene("single", 0), _scene("single", 2), _scene("mixed", 2), _scene("pallet", 1),
+             _scene("empty", 0)]
     report = run_bench(specs=specs, baseline=False, progress=False, sections=[], warmup=False)
-    assert set(report) == TOP_KEYS
-    row = report["scenes"][0]["boxloc"]
-    if row["error"] is None:
+    assert report["errors"]["total"] == 0, report["errors"]["list"]
+    rows = [r["boxloc"] for r in report["scenes"]]
+    assert [r["kind"] for r in report["scenes"]] == [s.kind for s in specs]
+    assert all(r["error"] is None for r in rows)
+    for row, scene in zip(rows, report["scenes"]):
         assert row["n_pred"] == row["tp"] + row["fp"]
-        assert report["timing"]["boxloc"]["total_ms"]["median"] > 0
-    else:
-        assert report["errors"]["count"]["boxloc"] == 1
+        assert row["tp"] + row["fn"] == row["n_exposed"] == scene["n_exposed"]
+    one, other, mixed, pallet, empty = rows
+    # one box on the floor, in plain view: found, and nothing else
+    assert (one["tp"], one["fp"], other["tp"], other["fp"]) == (1, 0, 1, 0)
+    assert empty["n_pred"] == 0 and empty["n_exposed"] == 0
+    assert mixed["n_exposed"] >= 3 and pallet["n_exposed"] >= 3
+    assert mixed["tp"] >= mixed["n_exposed"] // 2 and pallet["tp"] >= pallet["n_exposed"] // 2
+    # the summary is the rows pooled
+    s = report["summary"]["boxloc"]
+    tp, fp, fn = (sum(r[k] for r in rows) for k in ("tp", "fp", "fn"))
+    assert (s["tp"], s["fp"], s["fn"], s["n_pred"]) == (tp, fp, fn, tp + fp)
+    assert s["precision"] == pytest.approx(tp / (tp + fp))
+    assert s["recall"] == pytest.approx(tp / (tp + fn))
+    assert s["precision"] >= 0.9 and s["recall"] >= 0.6
+    # a found face is where the box is: millimetres at 1-2 m, not centimetres
+    assert 0 < s["grasp_err_median_mm"] < 10 and s["normal_err_median_deg"] < 2
+    assert sum(k["boxloc"]["tp"] for k in report["per_kind"].values()) == tp
+    assert report["per_kind"]["single"]["boxloc"]["recall"] == 1.0
+    assert len(report["timing"]["boxloc"]["per_scene_total_ms"]) == len(specs)
 
 
 def test_run_bench_pools_draws_of_the_random_trials() -> None:

@@ -9,7 +9,6 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
-import os
 import re
 import shutil
 from pathlib import Path
@@ -18,6 +17,7 @@ from xml.etree import ElementTree
 import numpy as np
 import pytest
 import replay_helpers as helpers
+import tomli_w
 from click.testing import CliRunner
 
 from boxloc.cli import cli
@@ -27,7 +27,6 @@ from recorder.annotate import append_outcome, sidecar_path
 from recorder.log import open_log
 from replay.diff import (
     DEFAULT_TOLERANCES,
-    Tolerances,
     compare_surfaces,
     diff_logs,
     diff_paths,
@@ -38,6 +37,7 @@ from replay.diff import (
     match_vertices,
     regression,
 )
+from replay.replay import replay_log
 from replay.report import bless, exit_code, print_table, write_outputs
 
 
@@ -490,8 +490,37 @@ def test_cli_bad_input_is_one_line_and_exit_2(
     assert len(err) == 1 and re.search(match, err[0]) and "Traceback" not in r.output
 
 
-def test_tolerances_round_trip_through_the_summary() -> None:
-    tol = load_tolerances()
-    d = tol.to_dict()
-    assert isinstance(d["scores"]["truth"], list) and json.dumps(d)
-    assert isinstance(tol, Tolerances) and os.path.isfile(DEFAULT_TOLERANCES)
+def test_tolerances_round_trip_through_the_summary(logs: dict[str, Path],
+                                                   tmp_path: Path) -> None:
+    """The tolerances a diff's summary records, written back as a tolerances file, give the
+    same tolerances: a report says enough to run its diff again."""
+    tol_file = _tol_file(tmp_path, "[surfaces]\ncenter_mm = 7.5\n[scores]\ntruth = [\"npz\"]\n"
+                                   "[regression]\nsurface_removed = false\n")
+    tol = load_tolerances(tol_file)
+    assert tol != load_tolerances()  # the file changed something
+    summ = write_outputs(diff_paths(logs["base"], logs["same"], tolerances=tol),
+                         tmp_path / "out")
+    recorded = json.loads((tmp_path / "out" / "summary.json").read_text())["tolerances"]
+    assert recorded == summ["tolerances"] and recorded["source"] == str(tol_file)
+    again = tmp_path / "again.toml"
+    again.write_text(tomli_w.dumps({k: v for k, v in recorded.items() if k != "source"}))
+    back = load_tolerances(again)
+    assert dataclasses.replace(back, source=tol.source) == tol
+
+
+def test_a_replayed_log_diffs_to_nothing_and_a_perturbed_replay_does_not(
+        logs: dict[str, Path], tmp_path: Path) -> None:
+    """Record, replay the log with this code, diff: zero differences; replay it again with
+    one value changed, diff: the change shows, and dropping every surface is a regression."""
+    same = replay_log(logs["base"], out_dir=tmp_path / "same")
+    assert same.status == "ok", same.error
+    ld = diff_logs(logs["base"], Path(same.output))
+    assert ld.error is None and len(ld.scans) == len(helpers.SCENES)
+    assert ld.identical and ld.all_differences == [] and exit_code([ld]) == 0
+    worse = replay_log(logs["base"], out_dir=tmp_path / "k3", overrides=["mdl_k3=1e7"])
+    assert worse.status == "ok", worse.error
+    ld = diff_logs(logs["base"], Path(worse.output))
+    assert not ld.identical and ld.all_differences
+    assert ld.regression and exit_code([ld]) == 1
+    had = {r.index for r in open_log(logs["base"]).scans() if len(r.surfaces)}
+    assert had and had <= {s.scan for s in ld.scans if not s.identical}
