@@ -284,7 +284,7 @@ def _empty_match(truth: Any) -> Match:
 def _spec_dict(spec: Any) -> dict[str, Any]:
     if hasattr(spec, "to_dict"):
         return _jsonable(spec.to_dict())
-    if dataclasses.is_dataclass(spec):
+    if dataclasses.is_dataclass(spec) and not isinstance(spec, type):
         return _jsonable(dataclasses.asdict(spec))
     return {"repr": repr(spec)}
 
@@ -496,8 +496,8 @@ def run_bench(
                            "error": _err(e)})
     report["sections"] = extra
     counts = {m: 0 for m in ("simulate", *methods)}
-    for e in errors:
-        counts[e["method"]] = counts.get(e["method"], 0) + 1
+    for err in errors:
+        counts[err["method"]] = counts.get(err["method"], 0) + 1
     report["errors"] = {"count": counts, "total": len(errors), "list": errors}
     report["scenes"] = rows
     report = _jsonable(report)
@@ -637,9 +637,12 @@ def draw_figures(runs: dict[str, list[Any]], methods: Sequence[str], trial_seeds
                                if v else None)
         return out
 
+    def of_group(g: str) -> Callable[[dict[str, Any]], dict[str, Any]]:
+        return lambda d: d["groups"][g]
+
     return {"n": len(trial_seeds), "trial_seeds": list(trial_seeds), "per_seed": per,
             "spread": (spread(lambda d: d["figures"]) if present is None else
-                       {g: spread(lambda d, g=g: d["groups"][g]) for g in present})}
+                       {g: spread(of_group(g)) for g in present})}
 
 
 def print_draws(console: Any, draws: dict[str, Any], methods: Sequence[str]) -> None:
@@ -925,6 +928,6 @@ def run_sections(
                 st.add_row(escape(k), escape(_fmt(v) if not isinstance(v, list | dict)
                                              else json.dumps(v)[:80]))
             con.print(st)
-        for e in errors:
-            con.print(escape(f"[error] {e['method']}: {e['error']}"))
+        for err in errors:
+            con.print(escape(f"[error] {err['method']}: {err['error']}"))
     return report

@@ -406,8 +406,8 @@ def run_real_bench(
             bar.stop()
 
     counts = {k: 0 for k in ("truth", *methods)}
-    for e in errors:
-        counts[e["method"]] = counts.get(e["method"], 0) + 1
+    for err in errors:
+        counts[err["method"]] = counts.get(err["method"], 0) + 1
     report: dict[str, Any] = {
         "version": __version__,
         "data_dir": str(data_dir),

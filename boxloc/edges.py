@@ -368,7 +368,7 @@ def _scan_line_edges(
         if np.isfinite(dA) and np.isfinite(dB) and dA * dB > 0:
             J = min(abs(dA), abs(dB))
         elif not (np.isfinite(dA) and np.isfinite(dB)):
-            J = abs(np.linalg.norm(P[ib] - P[ia]))
+            J = float(abs(np.linalg.norm(P[ib] - P[ia])))
         tstat = J * J / sig2
         # a jump must also show in the measurements at the break, not only between the
         # extrapolated lines (a steep side seen at grazing incidence extrapolates badly)
@@ -609,7 +609,7 @@ def _crossing_ok(r: np.ndarray, c: np.ndarray, scan_dir: np.ndarray,
     """
     if len(r) == 0:
         return np.zeros(0, bool)
-    E = np.zeros(shape, np.float32)
+    E: np.ndarray = np.zeros(shape, np.float32)
     E[r, c] = 1.0
     E = cv2.GaussianBlur(E, (0, 0), 1.0)
     gx = cv2.Sobel(E, cv2.CV_32F, 1, 0, ksize=3)

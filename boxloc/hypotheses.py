@@ -408,7 +408,7 @@ def _peaks(acc: np.ndarray, h: float, lo: float, min_height: float, alpha: float
     pk = np.flatnonzero((s3 >= left) & (s3 > right) & (s3 >= max(min_height, k_sig)))
     out = []
     for i in pk:
-        a, b = max(i - 1, 0), min(i + 2, acc.size)
+        a, b = max(int(i) - 1, 0), min(int(i) + 2, acc.size)
         wts = acc[a:b].astype(np.float64)
         pos = (np.arange(a, b) + 0.5) * h
         x = float((wts * pos).sum() / max(wts.sum(), 1e-12))
@@ -777,14 +777,16 @@ def _seams_across(att_rows: list[tuple[int, _Attempt]], vertices: VertexSet,
                                  frac, 0.5, not crosses, config.alpha)
         a.outcome = dataclasses.replace(
             out, tests=TestTable.concat([out.tests, row], config.alpha),
-            **({"accepted": False, "reason": VerifyReason.INTERIOR_SEAM} if crosses else {}))
+            accepted=False if crosses else out.accepted,
+            reason=VerifyReason.INTERIOR_SEAM if crosses else out.reason)
 
 
 def _ragged(arrs: list[np.ndarray], dtype: type) -> tuple[np.ndarray, np.ndarray]:
     offs = np.zeros(len(arrs) + 1, np.int64)
     if arrs:
         offs[1:] = np.cumsum([len(a) for a in arrs])
-    vals = np.concatenate(arrs).astype(dtype) if arrs and offs[-1] else np.zeros(0, dtype)
+    vals: np.ndarray = (np.concatenate(arrs).astype(dtype) if arrs and offs[-1]
+                        else np.zeros(0, dtype))
     return offs, vals
 
 

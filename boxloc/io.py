@@ -40,7 +40,7 @@ import zipfile
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, BinaryIO
+from typing import Any, BinaryIO, overload
 
 import numpy as np
 import numpy.typing as npt
@@ -69,6 +69,15 @@ IntrinsicsLike = str | Sequence[float] | npt.NDArray[Any] | None
 
 
 # --- common checks ------------------------------------------------------------------------
+
+
+@overload
+def parse_intrinsics(value: None) -> None: ...
+
+
+@overload
+def parse_intrinsics(value: str | Sequence[float] | npt.NDArray[Any]
+                     ) -> tuple[float, float, float, float]: ...
 
 
 def parse_intrinsics(value: IntrinsicsLike) -> tuple[float, float, float, float] | None:
@@ -429,7 +438,7 @@ def _scan_from_npz(
     try:
         if "range" in arrs and pin is not None:
             H, W = arrs["range"].shape
-            sensor = PinholeModel(*pin, width=W, height=H)
+            sensor: PinholeModel | RayTableModel = PinholeModel(*pin, width=W, height=H)
             return Scan(range=arrs["range"], sensor=sensor, **kw)
         if "points" in arrs:
             P = arrs["points"]
@@ -815,12 +824,12 @@ def _parse_ply_header(p: Path) -> _PlyHeader:
     if len(set(names)) != len(names):
         raise InputError(f"{p}: PLY repeats an element ({' '.join(names)})")
     size = p.stat().st_size
-    for e in elements:
+    for el in elements:
         # Every entry takes at least a byte (a line in ascii), so a larger count is corrupt;
         # Open3D would otherwise loop over it (even over entries without properties).
-        if e.count < 0 or e.count > size:
-            raise InputError(f"{p}: PLY element {e.name!r} claims {e.count} entries in a file "
-                             f"of {size} bytes")
+        if el.count < 0 or el.count > size:
+            raise InputError(f"{p}: PLY element {el.name!r} claims {el.count} entries in a "
+                             f"file of {size} bytes")
     return _PlyHeader(fmt, elements, info, nl + 1)
 
 
@@ -991,7 +1000,7 @@ def _o3d_read(p: Path) -> Any:
     with o3d.utility.VerbosityContextManager(o3d.utility.VerbosityLevel.Error):
         try:
             return o3d.t.io.read_point_cloud(
-                str(p), remove_nan_points=False, remove_infinite_points=False
+                p, remove_nan_points=False, remove_infinite_points=False
             )
         except RuntimeError as e:
             raise InputError(f"{p}: cannot decode point cloud: {_one_line(e)}") from None

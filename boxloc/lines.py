@@ -292,7 +292,7 @@ def find_lines(scan: Scan, edges: EdgeMap, *, config: Config, rng: np.random.Gen
     eps0 = min(1.0, m_min / max(N, 1))
 
     lut, nbr, dirs = _direction_index(config.direction_granularity)
-    ptree = cKDTree(P) if N else None
+    ptree = cKDTree(P)
     trC = np.einsum("nii->n", C)  # bounds each point's covariance (``_may_lie_on``)
 
     alive = np.ones(N, bool)

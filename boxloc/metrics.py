@@ -32,15 +32,22 @@ from boxloc.products import EdgeKind, SurfaceSet
 
 
 class FaceTruth(Protocol):
-    """The face arrays of a ground truth (see ``boxloc.simulate.GroundTruth``)."""
+    """The face arrays of a ground truth (see ``boxloc.simulate.GroundTruth``), read-only."""
 
-    centers: np.ndarray
-    normals: np.ndarray
-    x_axis: np.ndarray
-    y_axis: np.ndarray
-    width: np.ndarray
-    length: np.ndarray
-    fully_exposed: np.ndarray
+    @property
+    def centers(self) -> np.ndarray: ...
+    @property
+    def normals(self) -> np.ndarray: ...
+    @property
+    def x_axis(self) -> np.ndarray: ...
+    @property
+    def y_axis(self) -> np.ndarray: ...
+    @property
+    def width(self) -> np.ndarray: ...
+    @property
+    def length(self) -> np.ndarray: ...
+    @property
+    def fully_exposed(self) -> np.ndarray: ...
 
 
 class PredStatus(IntEnum):
@@ -165,7 +172,7 @@ def rect_iou_in_plane(
     if w <= 0 or length <= 0:
         return 0.0
     # Re-orthonormalize the face axes so slightly sloppy truth does not bias the areas.
-    ex = ex / max(np.linalg.norm(ex), 1e-300)
+    ex = ex / max(float(np.linalg.norm(ex)), 1e-300)
     ey = ey - ex * float(ey @ ex)
     ny = np.linalg.norm(ey)
     if ny < 1e-9:

@@ -475,7 +475,8 @@ def estimate_noise(
     rs, ys, cs, ts, shares = [], [], [], [], []
     lag_sums = np.zeros((2, len(CORRELATION_LAGS), 3))
     all_r, all_c, all_e = [], [], []  # every point of the accepted tiles, for the tails
-    n_tiles, rejected = 0, {}
+    n_tiles = 0
+    rejected: dict[str, int] = {}
     for i, (scan, m, lab) in enumerate(zip(scans, masks_l, labels_l)):
         t = _tile_residuals(scan, m, patch=patch, labels=lab, min_valid=0.9,
                             max_outliers=0.05, max_curvature_ratio=1.5, min_cos=0.3)

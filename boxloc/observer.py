@@ -8,7 +8,7 @@ instead of silently losing data.
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING, Protocol, runtime_checkable
+from typing import TYPE_CHECKING, Any, Protocol, runtime_checkable
 
 if TYPE_CHECKING:
     from boxloc.config import Config
@@ -82,11 +82,11 @@ class FanOut(NullObserver):
     def __init__(self, *observers: Observer) -> None:
         self.observers = [o for o in observers if o is not None]
 
-    def __getattribute__(self, name: str):  # type: ignore[no-untyped-def]
+    def __getattribute__(self, name: str) -> Any:
         if name.startswith("on_"):
             obs = object.__getattribute__(self, "observers")
 
-            def call(*args, **kwargs):  # type: ignore[no-untyped-def]
+            def call(*args: Any, **kwargs: Any) -> None:
                 for o in obs:
                     getattr(o, name)(*args, **kwargs)
 

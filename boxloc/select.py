@@ -43,7 +43,7 @@ def overlap_counts(verification: Verification, attempts: np.ndarray) -> np.ndarr
         cols.append(px)
     r = np.concatenate(rows)
     col = np.concatenate(cols).astype(np.int64)
-    M = sparse.csr_matrix((np.ones(len(r), np.int64), (r, col)),
+    M = sparse.csr_array((np.ones(len(r), np.int64), (r, col)),
                           shape=(c, int(col.max()) + 1 if len(col) else 1))
     return (M @ M.T).toarray().astype(np.int64)
 

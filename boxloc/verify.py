@@ -235,7 +235,7 @@ def continuation(
     margin: float,
     depth: float,
     k: float,
-) -> tuple[np.ndarray, np.ndarray]:
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """How far a face's plane continues beyond each side of a rectangle.
 
     For each side, the pixels of a strip outside it (from ``margin`` to ``margin + depth``
@@ -646,7 +646,7 @@ def verify(
     f_cell = np.bincount(inv, weights=front[core].astype(np.float64), minlength=len(ids))
     n_cells = max(len(ids), 1)
     if n_front:
-        p_cells = st.binom.sf(f_cell - 1, n_cell, alpha / 2)
+        p_cells = np.asarray(st.binom.sf(f_cell - 1, n_cell, alpha / 2))
         c_best = int(np.argmin(np.where(f_cell > 0, p_cells, np.inf)))
         p_local = float(min(p_cells[c_best] * n_cells, 1.0))
         f_local, n_local = int(f_cell[c_best]), int(n_cell[c_best])

@@ -31,6 +31,7 @@ one-sided z on the face normal's propagated error), which on a 300-box pile leav
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Sequence
 
 import numpy as np
 from scipy import stats as st
@@ -255,7 +256,7 @@ def corner_vertices(vertices: VertexSet, lines: LineSet, config: Config,
     return append_vertices(vertices, new, la, lb, par, [THIRD_EDGE] * len(par), tests)
 
 
-def append_vertices(vertices: VertexSet, new: list[tuple[np.ndarray, ...]],
+def append_vertices(vertices: VertexSet, new: Sequence[tuple[np.ndarray, ...]],
                     line_a: list[int], line_b: list[int], parent: list[int],
                     parent_side: list[int], tests: TestTable) -> VertexSet:
     """``vertices`` followed by derived ones, with ``tests`` in place of theirs.

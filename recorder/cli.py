@@ -156,8 +156,8 @@ def _stop_requests() -> Iterator[list[int]]:
     try:
         yield requested
     finally:
-        for sig, h in old.items():
-            signal.signal(sig, h)
+        for signum, h in old.items():
+            signal.signal(signum, h)
 
 
 def _progress(enabled: bool, total: int | None) -> Any:

@@ -663,7 +663,7 @@ def _test_rows_bytes(stage: str, t: TestTable) -> bytes:
         (dbl, np.full(n, 45)),
         (acc, np.full(n, 2)),
     ]
-    row_len = sum(ln for _, ln in body)
+    row_len = np.sum([ln for _, ln in body], axis=0)
     lb, ll = _varints(row_len.astype(np.uint64))
     data, mask = _fields([fixed(b"\x1a"), (lb, ll), *body])
     return data[mask].tobytes()

@@ -157,7 +157,7 @@ def build_corpus(d: Path, sample_logs: Sequence[str | os.PathLike[str]] = ()) ->
     from boxloc.config import Config
     from boxloc.io import write_npz
     from boxloc.pipeline import find_graspable_surfaces
-    from boxloc.scan import RayTableModel, Scan
+    from boxloc.scan import PinholeModel, RayTableModel, Scan
     from boxloc.simulate import simulate
     from recorder.mcap_sink import McapRecorder
 
@@ -202,6 +202,7 @@ def build_corpus(d: Path, sample_logs: Sequence[str | os.PathLike[str]] = ()) ->
 
     scan = simulate("single:width=48,height=36,f=39.4", seed=3).scan
     s = scan.sensor
+    assert isinstance(s, PinholeModel)  # the simulator's camera
     intr = f"{s.fx!r},{s.fy!r},{s.cx!r},{s.cy!r}"
     npz = [d / "scan.npz", d / "points.npz", d / "range.npz"]
     write_npz(scan, npz[0])
@@ -212,18 +213,19 @@ def build_corpus(d: Path, sample_logs: Sequence[str | os.PathLike[str]] = ()) ->
     cv2.imwrite(str(images[0]), np.where(np.isfinite(z), np.round(z * 1000), 0).astype(np.uint16))
     cv2.imwrite(str(images[1]), np.where(np.isfinite(z), z, np.nan).astype(np.float32))
     P = np.asarray(scan.points, np.float32)
-    labels = (np.arange(P.shape[0] * P.shape[1]) % 7).astype(np.uint32).reshape(P.shape[:2])
+    point_labels = (np.arange(P.shape[0] * P.shape[1]) % 7).astype(np.uint32).reshape(
+        P.shape[:2])
     clouds = []
     for kind in ("ascii", "binary", "binary_compressed"):
         q = d / f"cloud-{kind}.pcd"
-        q.write_bytes(pcd_bytes(P, kind, labels=labels))
+        q.write_bytes(pcd_bytes(P, kind, labels=point_labels))
         clouds.append(q)
     for fmt in ("ascii", "binary_little_endian"):
         q = d / f"cloud-{fmt}.ply"
-        q.write_bytes(ply_bytes(P, fmt, labels=labels))
+        q.write_bytes(ply_bytes(P, fmt, labels=point_labels))
         clouds.append(q)
     # Copies: the originals may be regenerated while a long run reads them.
-    logs = []
+    logs: list[Path] = []
     for x in sample_logs:
         if Path(x).is_file():
             logs.append(d / f"sample-{len(logs)}-{Path(x).name}")
@@ -333,7 +335,7 @@ def mutate_bytes(rng: np.random.Generator, data: bytes, other: bytes | None = No
         return bytes(rng.integers(0, 256, int(rng.integers(1, 64)), dtype=np.uint8)), "random"
     b = bytearray(data)
     at = int(rng.integers(0, n))
-    span = int(min(n - at, rng.integers(1, 1 + max(1, min(4096, n // 4)))))
+    span = min(n - at, int(rng.integers(1, 1 + max(1, min(4096, n // 4)))))
     if op == "truncate":
         # Anywhere, but often near the end (inside the summary) or near the start.
         where = rng.random()
@@ -602,9 +604,9 @@ def read_log_model(path: str | os.PathLike[str]) -> LogModel:
             att = [[a.create_time, a.log_time, a.name, a.media_type, a.data]
                    for a in r.iter_attachments()]
         _LOG_CACHE[path] = LogModel(hdr.library, md, att, msgs)
-    m = _LOG_CACHE[path]
-    return LogModel(m.library, [(n, dict(v)) for n, v in m.metadata],
-                     [list(a) for a in m.attachments], [dict(x) for x in m.messages])
+    cached = _LOG_CACHE[path]
+    return LogModel(cached.library, [(n, dict(v)) for n, v in cached.metadata],
+                    [list(a) for a in cached.attachments], [dict(x) for x in cached.messages])
 
 
 def write_log_model(m: LogModel, path: Path) -> None:
@@ -1032,11 +1034,12 @@ def _gen_npz(rng: np.random.Generator, corpus: dict[str, Any], d: Path) -> Job:
         i = int(rng.integers(0, len(opts)))
         arrays[target], what = opts[i], f"T#{i}"
     else:
-        opts = [np.uint64(2**64 - 1), np.int64(-1), np.float64(1.5), np.int64(2**63 - 1),
-                np.zeros((2, 2), np.int64), np.uint64(2**63), np.array("1"), np.int8(-128),
-                np.bool_(True)]
-        i = int(rng.integers(0, len(opts)))
-        arrays[target], what = np.asarray(opts[i]), f"t#{i}"
+        times: list[np.generic | np.ndarray] = [
+            np.uint64(2**64 - 1), np.int64(-1), np.float64(1.5), np.int64(2**63 - 1),
+            np.zeros((2, 2), np.int64), np.uint64(2**63), np.array("1"), np.int8(-128),
+            np.bool_(True)]
+        i = int(rng.integers(0, len(times)))
+        arrays[target], what = np.asarray(times[i]), f"t#{i}"
     members = {}
     for k, v in arrays.items():
         if v.dtype == object:  # what a careless writer would produce, without the pickle
@@ -1609,10 +1612,10 @@ class _Pool:
                         s.conn.send(dataclasses.asdict(s.case))
                         s.state, s.t0 = "busy", time.monotonic()
                 live = [s.conn for s in self.slots if s.state in ("starting", "busy")]
-                for conn in wait(live, timeout=0.5):
-                    s = next(x for x in self.slots if x.conn is conn)
+                for ready in wait(live, timeout=0.5):
+                    s = next(x for x in self.slots if x.conn is ready)
                     try:
-                        msg = conn.recv()
+                        msg = s.conn.recv()
                     except (EOFError, OSError):
                         self._died(s, on_result)
                         continue
@@ -1723,7 +1726,8 @@ def run_fuzz(
         raise InputError(f"the number of fuzz cases must be an integer >= 0, got {n!r}")
     keep = workdir is not None
     # absolute: the workers change into their own scratch directories
-    wd = (Path(workdir) if keep else Path(tempfile.mkdtemp(prefix="boxloc-fuzz-"))).resolve()
+    wd = (Path(workdir) if workdir is not None
+          else Path(tempfile.mkdtemp(prefix="boxloc-fuzz-"))).resolve()
     wd.mkdir(parents=True, exist_ok=True)
     shutil.rmtree(wd / "failures", ignore_errors=True)
     logs = default_sample_logs() if sample_logs is None else [Path(p) for p in sample_logs]
@@ -1838,10 +1842,11 @@ def reproduce(case_dir: str | os.PathLike[str]) -> dict[str, Any]:
                 if f.is_file() and f.name != "case.json":
                     shutil.copy2(f, tmp / f.name)
             job = _steps_for_saved(case, info, tmp)
-        out = {"case": case.index, "kind": job.kind, "steps": {}}
+        steps: dict[str, dict[str, Any]] = {}
+        out = {"case": case.index, "kind": job.kind, "steps": steps}
         for name, fn in job.steps:
             status, what, detail, tb = run_step(fn)
-            out["steps"][name] = {"status": status, "what": what, "detail": detail}
+            steps[name] = {"status": status, "what": what, "detail": detail}
             if tb:
                 print(tb, file=sys.stderr)
         return out

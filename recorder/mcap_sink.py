@@ -73,7 +73,8 @@ class _ZstdAtLevel:
             return self._c.compress(data)
 
 
-_mcap_writer.zstandard = _ZstdAtLevel(ZSTD_LEVEL)  # type: ignore[attr-defined]
+# a module attribute replaced by a stand-in object (mcap offers no compression level)
+_mcap_writer.zstandard = _ZstdAtLevel(ZSTD_LEVEL)  # type: ignore[assignment]
 
 #: A chunk is closed by the recorder at the end of each scan, never by size.
 _NO_AUTO_CHUNK = 1 << 62
@@ -91,6 +92,12 @@ class RecordingError(BoxlocError):
 _GIT: tuple[str, str] | None = None
 
 
+def _git(root: Path, *args: str) -> str:
+    """stdout of ``git args`` in ``root``; raises on failure or after 10 s."""
+    return subprocess.run(["git", *args], cwd=root, capture_output=True, text=True, timeout=10,
+                          check=True).stdout
+
+
 def git_info() -> tuple[str, str]:
     """(commit, dirty) of the boxloc source tree: ``("unknown", "unknown")`` outside git.
 
@@ -102,10 +109,8 @@ def git_info() -> tuple[str, str]:
         commit, dirty = "unknown", "unknown"
         if (root / ".git").exists():
             try:
-                run = dict(cwd=root, capture_output=True, text=True, timeout=10, check=True)
-                commit = subprocess.run(["git", "rev-parse", "HEAD"], **run).stdout.strip()
-                st = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"],
-                                    **run).stdout
+                commit = _git(root, "rev-parse", "HEAD").strip()
+                st = _git(root, "status", "--porcelain", "--untracked-files=no")
                 dirty = "true" if st.strip() else "false"
             except (OSError, subprocess.SubprocessError):
                 pass
@@ -184,14 +189,14 @@ def defer_signals() -> Iterator[None]:
     try:
         yield
     finally:
-        for sig, handler in old.items():
-            signal.signal(sig, handler)
-        for sig in caught[:1]:
-            handler = old.get(sig)
+        for signum, handler in old.items():
+            signal.signal(signum, handler)
+        for signum in caught[:1]:
+            handler = old.get(signum)
             if callable(handler):
-                handler(sig, None)
+                handler(signum, None)
             elif handler == signal.SIG_DFL:
-                signal.raise_signal(sig)
+                signal.raise_signal(signum)
 
 
 # --- one MCAP file ---------------------------------------------------------------------------
@@ -294,7 +299,7 @@ class McapFile:
             # The mcap writer indexes empty schema/channel/chunk groups with summary offsets
             # that point at nothing, which strict checkers reject; a log without messages
             # (metadata and attachments only) is valid without summary offsets.
-            self.writer._Writer__use_summary_offsets = False  # type: ignore[attr-defined]
+            self.writer._Writer__use_summary_offsets = False
         self.writer.finish()
         self.sync()
         self.stream.close()

@@ -64,6 +64,7 @@ from typing import Any
 from urllib.parse import urlsplit
 
 import numpy as np
+import numpy.typing as npt
 import rerun as rr
 
 from boxloc.config import Config
@@ -178,6 +179,11 @@ def _edge_colors(kinds: np.ndarray) -> np.ndarray:
 def _closed(corners: np.ndarray) -> np.ndarray:
     """(n, 4, 3) rectangle corners -> (n, 5, 3) closed strips."""
     return np.concatenate([corners, corners[:, :1]], axis=1)
+
+
+def _strips(a: np.ndarray) -> npt.NDArray[np.float32]:
+    """Line strips (n, k, 3) as Rerun stores them (float32: the same values it logs)."""
+    return np.asarray(a, np.float32)
 
 
 def _finite_rows(a: np.ndarray) -> np.ndarray:
@@ -335,7 +341,7 @@ def log_lines(rec: rr.RecordingStream, lines: LineSet, *, prefix: str = "") -> N
     strips = np.stack([lines.starts, lines.ends], axis=1) if len(lines) else np.zeros((0, 2, 3))
     rec.log(
         entity(prefix, LINES),
-        rr.LineStrips3D(strips, colors=_edge_colors(lines.kinds),
+        rr.LineStrips3D(_strips(strips), colors=_edge_colors(lines.kinds),
                         radii=rr.Radius.ui_points(2.0),
                         labels=[f"L{i}" for i in range(len(lines))], show_labels=False),
         *_any_values(line_id=np.arange(len(lines), dtype=np.int32),
@@ -419,7 +425,7 @@ def log_hypotheses(
         ]
         rec.log(
             entity(prefix, path),
-            rr.LineStrips3D(_closed(corners[idx]) if idx.size else np.zeros((0, 5, 3)),
+            rr.LineStrips3D(_strips(_closed(corners[idx]) if idx.size else np.zeros((0, 5, 3))),
                             colors=color, radii=rr.Radius.ui_points(radius),
                             labels=labels, show_labels=False),
             *_any_values(hypothesis=h.astype(np.int32), attempt=idx.astype(np.int32),
@@ -459,7 +465,7 @@ def log_surfaces(rec: rr.RecordingStream, surfaces: SurfaceSet, *, prefix: str =
     corners = np.asarray(surfaces.corners, np.float64)
     rec.log(
         entity(prefix, SURFACES),
-        rr.LineStrips3D(_closed(corners) if n else np.zeros((0, 5, 3)), colors=colors,
+        rr.LineStrips3D(_strips(_closed(corners) if n else np.zeros((0, 5, 3))), colors=colors,
                         radii=rr.Radius.ui_points(5.0),
                         labels=[f"#{i} pick {int(pick[i])}" for i in range(n)],
                         show_labels=True),

@@ -19,15 +19,20 @@ import json
 import shlex
 import sys
 import time
+from collections.abc import Sequence
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import click
 
 from boxloc.errors import InputError
 from recorder.cli import _RerunOption, normalize_rerun
 
+if TYPE_CHECKING:  # the diff machinery loads only when a command runs
+    from replay.diff import LogDiff
 
-def _pick_for_rerun(diffs: list) -> object | None:
+
+def _pick_for_rerun(diffs: Sequence[LogDiff]) -> LogDiff | None:
     """The log pair to show side by side: the first with differences, else the first one."""
     ok = [d for d in diffs if d.error is None]
     for d in ok:

@@ -91,6 +91,7 @@ def _context() -> Any:
     # forkserver, not fork: the parent runs a progress thread (and maybe Dask or numba
     # threads), and forking a threaded process can deadlock the child. The server imports
     # the pipeline once, so each worker starts warm.
+    ctx: multiprocessing.context.BaseContext
     try:
         ctx = multiprocessing.get_context("forkserver")
         ctx.set_forkserver_preload(_PRELOAD)

@@ -232,7 +232,7 @@ class _Ctx:
         if brief:
             return d
         d.update(k1=S.k1, k2=S.k2, k3=S.k3, objective=float(S.objective))
-        comp = []
+        comp: list[dict[str, Any]] = []
         for c in range(len(S)):
             if c == k or S.Q[k, c] == 0.0:
                 continue  # q_ij is 0 exactly when the two share no inlier
@@ -562,7 +562,7 @@ def explain_at(ctx: _Ctx, at: Any) -> dict[str, Any]:
     vids = [] if V is None else [int(v) for v in range(len(V))
                                  if int(V.line_a[v]) in lid or int(V.line_b[v]) in lid]
     if not vids:
-        pair_tests = []
+        pair_tests: list[dict[str, Any]] = []
         if V is not None:
             for x in range(len(lid)):
                 for y in range(x + 1, len(lid)):

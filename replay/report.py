@@ -127,7 +127,7 @@ def _pooled_all(diffs: Sequence[LogDiff]) -> dict[str, Any] | None:
     """Counts summed over the logs with ground truth, and precision/recall from them."""
     from boxloc.metrics import prf
 
-    tot: dict[str, dict[str, int]] = {"base": Counter(), "candidate": Counter()}  # type: ignore
+    tot: dict[str, dict[str, int]] = {"base": Counter(), "candidate": Counter()}
     n = 0
     for ld in diffs:
         if not ld.pooled:
@@ -185,13 +185,13 @@ def print_table(diffs: Sequence[LogDiff], console: Any = None, *,
         if any_picks:
             t.add_column("picks", overflow="fold")
         for s in shown[:MAX_ROWS]:
-            c = _scan_cells(s)
-            stages = "; ".join(x for x in (c["counts"], c["items"] and "unmatched " + c["items"],
-                                           c["flipped"] and c["flipped"] + " test(s) flipped")
+            sc = _scan_cells(s)
+            stages = "; ".join(x for x in (sc["counts"], sc["items"] and "unmatched " + sc["items"],
+                                           sc["flipped"] and sc["flipped"] + " test(s) flipped")
                                if x)
-            cells = [c["status"], c["surfaces"], c["scores"], stages]
+            cells = [sc["status"], sc["surfaces"], sc["scores"], stages]
             if any_picks:
-                cells.append(c["picks"])
+                cells.append(sc["picks"])
             style = "red" if s.regression or s.status == "error" else None
             t.add_row(str(s.scan), "REG" if s.regression else "",
                       *(escape(x) for x in cells), style=style)
@@ -381,9 +381,9 @@ def svg_bars(categories: Sequence[str], series: dict[str, Sequence[float]],
     vmax = _nice_max(vmax, integer=integer)
     body = []
     for t in range(5):  # the grid under everything else
-        v = vmax * t / 4
+        tick = vmax * t / 4
         y = top + ph - ph * t / 4
-        body.append(f'<text x="{left - 4}" y="{y + 4:.0f}" text-anchor="end">{v:g}</text>'
+        body.append(f'<text x="{left - 4}" y="{y + 4:.0f}" text-anchor="end">{tick:g}</text>'
                     f'<line x1="{left}" y1="{y:.0f}" x2="{left + pw}" y2="{y:.0f}" '
                     'stroke="#eee"/>')
     body += [f'<line x1="{left}" y1="{top + ph}" x2="{left + pw}" y2="{top + ph}" '
