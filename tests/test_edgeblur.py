@@ -7,7 +7,7 @@ import tomllib
 
 import numpy as np
 import pytest
-from cli_run import run
+from cli_run import invoke
 from scenes import box, scene, wall
 
 from boxloc.config import Config
@@ -135,12 +135,12 @@ def test_soft_votes_keep_the_count_and_sharp_points_vote_in_their_bin():
 def test_cli_prints_a_usable_line(tmp_path, boxes):
     p = tmp_path / "boxes.npz"
     save_npz(scene([box(0.0, 0.0, 0.45, 0.30, 0.25, 0.2)], distance=1.2, seed=4), p)
-    r = run("calibrate-edges", str(p))
+    r = invoke("calibrate-edges", str(p))
     assert r.returncode == 0, r.stderr
     px = tomllib.loads(r.stdout)["edge_px"]
     assert 0.0 <= px < 1.0
     Config().with_overrides([f"noise.edge_px={px}"])  # usable as given
-    bad = run("calibrate-edges", str(tmp_path / "missing.npz"))
+    bad = invoke("calibrate-edges", str(tmp_path / "missing.npz"))
     assert bad.returncode == 2
     assert "missing.npz" in bad.stderr and "Traceback" not in bad.stderr
 

@@ -7,7 +7,7 @@ import tomllib
 
 import numpy as np
 import pytest
-from cli_run import run
+from cli_run import invoke
 from real_data import MOSD
 from scenes import box, scene, wall
 
@@ -76,12 +76,12 @@ def test_a_scan_without_corners_is_an_input_error():
 def test_cli_prints_a_toml_line(tmp_path, boxes):
     p = tmp_path / "pallet.npz"
     save_npz(simulate("pallet", seed=1), p)
-    r = run("calibrate-angles", str(p))
+    r = invoke("calibrate-angles", str(p))
     assert r.returncode == 0, r.stderr
     tol = tomllib.loads(r.stdout)["angle_tolerance"]
     assert 0.0 <= tol < Config().angle_tolerance
     Config().with_overrides([f"angle_tolerance={tol}"])  # usable as given
-    bad = run("calibrate-angles", str(tmp_path / "missing.npz"))
+    bad = invoke("calibrate-angles", str(tmp_path / "missing.npz"))
     assert bad.returncode == 2
     assert "missing.npz" in bad.stderr and "Traceback" not in bad.stderr
 
