@@ -10,6 +10,7 @@ test that cannot run where it is run fails, saying why.
 
 from __future__ import annotations
 
+from pathlib import Path
 from typing import Any
 
 import pytest
@@ -77,3 +78,24 @@ class SkipGuard:
 def pytest_configure(config: pytest.Config) -> None:
     if not hasattr(config, "workerinput"):  # on an xdist worker, the controller decides
         config.pluginmanager.register(SkipGuard(), "boxloc-skip-guard")
+
+
+# --- recorded logs shared by several test files (once per xdist worker) ----------------------
+
+
+@pytest.fixture(scope="session")
+def recorded_log(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """The real pipeline on replay_helpers' six small scenes, default config: test_diff's
+    baseline and the log test_explain explains. Read-only: copy it before annotating."""
+    import replay_helpers
+
+    return replay_helpers.record(tmp_path_factory.mktemp("recorded") / "base.mcap")
+
+
+@pytest.fixture(scope="session")
+def replay_logs(tmp_path_factory: pytest.TempPathFactory) -> list[Path]:
+    """Three logs of two scans each (replay_support.make_logs), for test_replay and
+    test_replay_versions. Read-only."""
+    from replay_support import make_logs
+
+    return make_logs(tmp_path_factory.mktemp("replay-logs"), n_logs=3, scans_per_log=2)

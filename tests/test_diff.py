@@ -42,10 +42,10 @@ from replay.report import bless, exit_code, print_table, write_outputs
 
 
 @pytest.fixture(scope="module")
-def logs(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
+def logs(tmp_path_factory: pytest.TempPathFactory, recorded_log: Path) -> dict[str, Path]:
     d = tmp_path_factory.mktemp("logs")
     return {
-        "base": helpers.record(d / "base.mcap"),
+        "base": recorded_log,  # tests/conftest.py
         # the same scans and config again: another file, the same products bit for bit
         "same": helpers.record(d / "same.mcap"),
         # MDL's cost per model so high that no hypothesis pays: every surface is dropped

@@ -30,8 +30,8 @@ STOPS = {"scan", "edges", "lines", "vertices", "dimensions", "verification", "se
 
 
 @pytest.fixture(scope="module")
-def log(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    return helpers.record(tmp_path_factory.mktemp("explain") / "base.mcap")
+def log(recorded_log: Path) -> Path:
+    return recorded_log  # replay_helpers' scenes, default config (tests/conftest.py)
 
 
 @pytest.fixture(scope="module")

@@ -9,7 +9,7 @@ from pathlib import Path
 
 import pytest
 from click.testing import CliRunner
-from replay_support import make_log, make_logs, product_differences, snapshot
+from replay_support import make_log, product_differences, snapshot
 
 from boxloc.cli import cli
 from boxloc.config import Config
@@ -29,9 +29,9 @@ from replay.replay import (
 
 
 @pytest.fixture(scope="module")
-def logs(tmp_path_factory: pytest.TempPathFactory) -> list[Path]:
-    """Three recorded logs of two scans each (read-only for the tests)."""
-    return make_logs(tmp_path_factory.mktemp("logs"), n_logs=3, scans_per_log=2)
+def logs(replay_logs: list[Path]) -> list[Path]:
+    """Three recorded logs of two scans each (read-only for the tests; tests/conftest.py)."""
+    return replay_logs
 
 
 def _run(*args: str) -> object:

@@ -14,7 +14,7 @@ from pathlib import Path
 
 import pytest
 from click.testing import CliRunner
-from replay_support import make_logs, product_differences, snapshot
+from replay_support import product_differences, snapshot
 
 from boxloc.cli import cli
 from boxloc.errors import InputError
@@ -71,8 +71,8 @@ def _repo(tmp_path: Path, files: dict[str, str] | None = None,
 
 
 @pytest.fixture(scope="module")
-def logs(tmp_path_factory: pytest.TempPathFactory) -> list[Path]:
-    return make_logs(tmp_path_factory.mktemp("logs"), n_logs=1, scans_per_log=2)
+def logs(replay_logs: list[Path]) -> list[Path]:
+    return replay_logs[:1]  # a log of two scans (tests/conftest.py)
 
 
 def test_missing_ref_fails_before_any_work(logs: list[Path], tmp_path: Path) -> None:
