@@ -113,12 +113,15 @@ def test_baseline_respects_size_priors() -> None:
     from boxloc.config import Config
 
     scan = _cast(_pose(0.0))
-    # The 0.4 x 0.3 and 0.3 x 0.4 tops are both too small for min_edge = 0.35.
+    assert len(baseline_surfaces(scan)) == 2  # found with the default prior ...
+    # ... but the 0.4 x 0.3 and 0.3 x 0.4 tops are both too small for min_edge = 0.35.
     s = baseline_surfaces(scan, config=Config(min_edge=0.35))
     assert len(s) == 0
 
 
 def test_baseline_floor_only_finds_nothing() -> None:
+    # the same view with the boxes gives two tops: the empty answer is the floor's
+    assert len(baseline_surfaces(_cast(_pose(0.0)))) == 2
     scan = _cast(_pose(0.0), boxes=[])
     assert len(baseline_surfaces(scan)) == 0
 

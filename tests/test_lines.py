@@ -64,7 +64,7 @@ def test_same_seed_same_lines():
     P, s, *_ = _two_lines_and_clutter(2)
     a = find_lines(_scan(), _edge_map(P, s), config=Config(), rng=np.random.default_rng(5))
     b = find_lines(_scan(), _edge_map(P, s), config=Config(), rng=np.random.default_rng(5))
-    assert products_equal(a, b) == []
+    assert len(a) >= 2 and products_equal(a, b) == []  # the two lines, twice the same
 
 
 def test_no_edges_no_lines():
