@@ -167,4 +167,5 @@ def test_simulated_scenes_end_to_end(kind, seed):
     r = find_graspable_surfaces(sim.scan, Config())
     m = match_surfaces(r.surfaces, sim.truth)
     assert m.fp == 0
-    assert m.tp >= 1
+    # mostly right: three in four exposed faces at least (all of them today)
+    assert m.tp >= max(1, 0.75 * int(sim.truth.fully_exposed.sum()))

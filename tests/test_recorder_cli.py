@@ -227,7 +227,10 @@ def test_run_saves_to_rerun_with_the_target_as_the_next_word(tmp_path: Path) -> 
     code, out = _invoke("run", "--rerun", "save", str(rrd), SIM, "--record",
                         str(tmp_path / "r.mcap"), "-q")
     assert code == 0, out
-    assert rrd.stat().st_size > 0 and (tmp_path / "r.mcap").stat().st_size > 0
+    # the scan went to both: a whole scan in the log, and more than its range image
+    # (96 x 72 float32, 27 kB) in the recording
+    assert [(r.index, r.complete) for r in open_log(tmp_path / "r.mcap")] == [(0, True)]
+    assert rrd.stat().st_size > 96 * 72 * 4
 
 
 def test_the_real_pipeline_round_trips_through_the_log(tmp_path: Path) -> None:
