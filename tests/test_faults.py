@@ -163,6 +163,7 @@ class _Lines:
             raise AssertionError(f"no answer from the recorder zygote in {timeout} s") from None
 
 
+@pytest.mark.slow  # 20-odd kills of a live recorder: CI runs it, the local loop need not
 def test_sigkill_at_random_points_loses_no_flushed_scan(tmp_path: Path) -> None:
     env = {**os.environ, **THREADS_1}
     zyg = subprocess.Popen([sys.executable, "-c", _ZYGOTE.format(spec=SPEC, n=N_SCENES)],
