@@ -440,15 +440,24 @@ def _print_noise_report(report: dict[str, Any]) -> None:
 @click.option("--count", type=int, default=None, help="Write this many scans: PATH_stem_000.npz...")
 @click.option("--out", "-o", "out", required=True, type=click.Path(),
               help="Output .npz file, or a directory for KIND_SEED.npz files.")
-def simulate_cmd(spec_text: str, seed: int | None, count: int | None, out: str) -> None:
+@click.option("--sensor", type=click.Choice(["laser", "tof", "structured-light",
+                                             "active-stereo"]), default=None,
+              help="A physical sensor model (boxloc.sensor_zoo) instead of the default "
+                   "sensor (the localizer's noise model); overrides the spec's.")
+def simulate_cmd(spec_text: str, seed: int | None, count: int | None, out: str,
+                 sensor: str | None) -> None:
     """Simulate piled-box scans with exact ground truth (.npz with truth/...).
 
-    KIND_OR_SPEC is a kind (single, pallet, partial, mixed, touching, empty) or a spec such
-    as "mixed:seed=3,distance=2.0,bulge=0.01". Prints one line per scan.
+    KIND_OR_SPEC is a kind (single, pallet, partial, mixed, touching, empty, layered, floor)
+    or a spec such as "mixed:seed=3,distance=2.0,bulge=0.01,sensor=tof". Prints one line per
+    scan.
     """
-    from boxloc.simulate import simulate_to_files, summary_line
+    from boxloc.simulate import override_spec, parse_spec, simulate_to_files, summary_line
 
-    for path, sim in simulate_to_files(spec_text, out, seed=seed, count=count):
+    spec = parse_spec(spec_text)
+    if sensor is not None:
+        spec = override_spec(spec, [f"sensor={sensor}"])
+    for path, sim in simulate_to_files(spec, out, seed=seed, count=count):
         click.echo(summary_line(path, sim))
 
 

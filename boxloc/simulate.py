@@ -50,6 +50,7 @@ import numpy.typing as npt
 from boxloc.errors import InputError
 from boxloc.products import from_arrays, to_arrays
 from boxloc.scan import NoiseModel, PinholeModel, Scan
+from boxloc.sensor_zoo import SENSORS, STEREO_CLASSES, Rendered, draw_sensor, measure
 
 __all__ = [
     "KINDS",
@@ -64,6 +65,9 @@ __all__ = [
     "simulate_boxes",
     "look_down_pose",
     "scene_suite",
+    "matrix_suite",
+    "MATRIX_KINDS",
+    "SENSORS",
     "save_npz",
     "load_truth",
     "output_paths",
@@ -71,7 +75,11 @@ __all__ = [
     "summary_line",
 ]
 
-KINDS = ("single", "pallet", "partial", "mixed", "touching", "empty")
+KINDS = ("single", "pallet", "partial", "mixed", "touching", "empty", "layered", "floor")
+#: The kinds of :func:`scene_suite` (fixed: new kinds do not change the benchmark's scenes).
+_SUITE_KINDS = ("single", "pallet", "partial", "mixed", "touching")
+#: The kinds of :func:`matrix_suite`.
+MATRIX_KINDS = ("single", "pallet", "partial", "mixed", "touching", "layered", "empty", "floor")
 
 #: The pallet slab (x, y, z extent), metres; centred on the base origin, standing on z = 0.
 PALLET_SIZE = (1.2, 0.8, 0.144)
@@ -107,7 +115,9 @@ class SceneSpec:
     Parameters
     ----------
     kind : str
-        One of :data:`KINDS`.
+        One of :data:`KINDS`: ``layered`` is a pallet of layers packed with zero gaps and no
+        jitter (boxes touching along whole faces); ``floor`` is the bare floor (no pallet, no
+        boxes); ``empty`` the bare pallet.
     seed : int
         Seeds the layout, the sensor pose and the noise (three independent streams).
     width, height : int
@@ -155,6 +165,20 @@ class SceneSpec:
         Probability that a pixel at a jump becomes a mixed pixel.
     baseline : float
         Emitter offset along sensor x, metres (for shadows).
+    sensor : str or None
+        A physical sensor model of :mod:`boxloc.sensor_zoo` (``laser``, ``tof``,
+        ``structured-light``, ``active-stereo``); None is the default sensor, whose noise is
+        ``noise`` (with ``dropout``, ``mixed_pixels``, ``shadows``, ``mixed_fraction`` and
+        ``baseline``, which the zoo's sensors do not use: they carry their own artefacts).
+    noise_scale : float or None
+        A zoo sensor's noise times its nominal; None draws it log-uniformly in [0.5, 3]
+        from the seed.
+    sensor_class : str or None
+        ``active-stereo`` only: ``oak-d-pro`` or ``realsense``; None draws it.
+    tape, labels : float
+        Probability that a box with nothing on it has packing tape along its lid (1-3 mm
+        thick), and a label (0.5-2 mm thick). Neither is a box top in the ground truth: the
+        pixels that see them belong to the lid under them.
     """
 
     kind: str = "pallet"
@@ -181,6 +205,11 @@ class SceneSpec:
     yaw_jitter: float = math.radians(1.0)
     mixed_fraction: float = 0.5
     baseline: float = 0.075
+    sensor: str | None = None
+    noise_scale: float | None = None
+    sensor_class: str | None = None
+    tape: float = 0.0
+    labels: float = 0.0
 
     def __post_init__(self) -> None:
         if not isinstance(self.noise, NoiseModel):
@@ -233,11 +262,30 @@ class SceneSpec:
         check("yaw_jitter", 0 <= num("yaw_jitter") <= 0.2, "in [0, 0.2] rad")
         check("mixed_fraction", 0 <= num("mixed_fraction") <= 1, "in [0, 1]")
         check("baseline", 0 <= num("baseline") <= 0.5, "in [0, 0.5] m")
+        check("sensor", self.sensor is None or self.sensor in SENSORS,
+              "one of " + ", ".join(SENSORS) + " or none")
+        if self.noise_scale is not None:
+            check("noise_scale", self.sensor is not None, "none without a sensor")
+            check("noise_scale", 0.05 <= num("noise_scale") <= 20, "in [0.05, 20] or none")
+        if self.sensor_class is not None:
+            check("sensor_class", self.sensor == "active-stereo"
+                  and self.sensor_class in STEREO_CLASSES,
+                  "one of " + ", ".join(STEREO_CLASSES) + " with sensor=active-stereo, or none")
+        check("tape", 0 <= num("tape") <= 1, "in [0, 1]")
+        check("labels", 0 <= num("labels") <= 1, "in [0, 1]")
 
     def to_dict(self) -> dict[str, Any]:
-        """A JSON-ready dict (the noise model nested)."""
+        """A JSON-ready dict (the noise model nested).
+
+        The zoo and decoration fields appear only when they differ from their defaults, so a
+        default scene's dict (recorded in logs and ``.npz`` files) is what it was before they
+        existed.
+        """
         d = dataclasses.asdict(self)
         d["noise"] = self.noise.to_dict()
+        for name, default in _NEW_FIELDS.items():
+            if d[name] == default:
+                del d[name]
         return d
 
     @classmethod
@@ -255,6 +303,11 @@ class SceneSpec:
                 raise InputError(f"unknown scene key(s): {', '.join('noise.' + b for b in bad)}")
             d["noise"] = NoiseModel(**{k: float(v) for k, v in d["noise"].items()})
         return cls(**d)
+
+
+#: Fields added with the sensor zoo, and their defaults (left out of ``to_dict`` at default).
+_NEW_FIELDS: dict[str, Any] = {"sensor": None, "noise_scale": None, "sensor_class": None,
+                               "tape": 0.0, "labels": 0.0}
 
 
 @dataclass(frozen=True, eq=False)
@@ -444,7 +497,8 @@ def format_spec(spec: SceneSpec) -> str:
             continue
         v = getattr(spec, f.name)
         if v != getattr(default, f.name) or f.name == "seed":
-            items.append(f"{f.name}={'none' if v is None else repr(v).lower()}")
+            text = "none" if v is None else v if isinstance(v, str) else repr(v).lower()
+            items.append(f"{f.name}={text}")
     for f in dataclasses.fields(NoiseModel):
         v = getattr(spec.noise, f.name)
         if v != getattr(default.noise, f.name):
@@ -514,7 +568,7 @@ def _rests_on(boxes: np.ndarray) -> np.ndarray:
     overlap = _footprint_sep(boxes, boxes) < -_REST_OVERLAP
     on = touching & overlap
     np.fill_diagonal(on, False)
-    return on.any(1)
+    return np.asarray(on.any(1), dtype=bool)
 
 
 def _rot_z(yaw: float) -> np.ndarray:
@@ -670,7 +724,62 @@ def _layout(spec: SceneSpec, rng: np.random.Generator) -> np.ndarray:
         return _layout_mixed(spec, rng)
     if spec.kind == "touching":
         return _layout_touching(spec, rng)
+    if spec.kind == "layered":
+        # Zero gaps and no jitter: neighbours touch along whole faces, layer on layer.
+        layers = spec.layers if spec.layers is not None else int(rng.integers(2, 4))
+        return _layout_pallet(dataclasses.replace(spec, max_gap=0.0, jitter=0.0, yaw_jitter=0.0,
+                                                  layers=layers), rng, partial=False)
     return np.zeros((0, 7))
+
+
+# --- decorations: tape and labels on the lids --------------------------------------------------
+
+_TAPE, _LABEL = 0, 1
+#: Diffuse reflectivity of each material: cardboard, tape, label, pallet wood, concrete floor.
+_RHO_BOX, _RHO_TAPE, _RHO_LABEL, _RHO_PALLET, _RHO_FLOOR = 0.45, 0.35, 0.8, 0.4, 0.25
+
+
+def _decorations(spec: SceneSpec, boxes: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+    """Tape strips and labels on the lids that nothing rests on, (D, 9): slab (cx, cy, cz,
+    sx, sy, sz, yaw) in the base frame, host box, material (0 tape, 1 label).
+
+    Tape runs along the lid's long axis near its centre line, 48-75 mm wide (at most 0.4 of
+    the short side) and 1-3 mm thick, stopping short of the bevels; a label is 70-120 x
+    100-160 mm, 0.5-2 mm thick, anywhere on the lid it fits. Every box draws the same
+    numbers whether it gets them or not, so one box's draw never shifts another's.
+    """
+    out = []
+    free = ~_rests_on(boxes)
+    for i, b in enumerate(boxes):
+        u = rng.random(2)
+        t_w, t_th = rng.uniform(0.048, 0.075), rng.uniform(0.001, 0.003)
+        t_off = rng.uniform(-1, 1)
+        l_w, l_l = rng.uniform(0.07, 0.12), rng.uniform(0.10, 0.16)
+        l_th = rng.uniform(0.0005, 0.002)
+        l_pos = rng.uniform(-1, 1, 2)
+        if not free[i]:
+            continue
+        cx, cy, cz, sx, sy, sz, yaw = b
+        top = cz + sz / 2
+        along_x = sx >= sy
+        long_, short = (sx, sy) if along_x else (sy, sx)
+        rot = _rot_z(yaw)
+        inner = 2 * spec.bevel + 0.004
+        if u[0] < spec.tape:
+            w = min(t_w, 0.4 * short)
+            off = t_off * max(0.0, min(0.02, (short - w) / 2 - inner))
+            local = np.array([0.0, off]) if along_x else np.array([off, 0.0])
+            size = (long_ - inner, w) if along_x else (w, long_ - inner)
+            xy = b[:2] + rot @ local
+            out.append([xy[0], xy[1], top + t_th / 2, *size, t_th, yaw, i, _TAPE])
+        if u[1] < spec.labels:
+            room = np.array([sx, sy]) - inner - np.array([l_l, l_w] if along_x else [l_w, l_l])
+            if (room > 0).all():
+                local = l_pos * room / 2
+                size = (l_l, l_w) if along_x else (l_w, l_l)
+                xy = b[:2] + rot @ local
+                out.append([xy[0], xy[1], top + l_th / 2, *size, l_th, yaw, i, _LABEL])
+    return np.asarray(out, dtype=np.float64).reshape(-1, 9)
 
 
 # --- the sensor pose -----------------------------------------------------------------------------
@@ -725,7 +834,7 @@ def _draw_pose(spec: SceneSpec, boxes: np.ndarray,
         centre = (c.min(0) + c.max(0)) / 2
         z_top = float((boxes[:, 2] + boxes[:, 5] / 2).max())
     else:
-        centre, z_top = np.zeros(2), _PALLET_TOP
+        centre, z_top = np.zeros(2), (0.0 if spec.kind == "floor" else _PALLET_TOP)
     target = np.array([centre[0] + aim[0], centre[1] + aim[1], z_top])
     return look_down_pose(target, distance, tilt, azimuth, roll), distance, tilt
 
@@ -738,8 +847,11 @@ class _World:
     """Every object as half-spaces ``n . X <= d`` in the sensor frame.
 
     ``planes`` (O, K, 4) rows (n, d): boxes 0..B-1 (+x, -x, +y, -y, top, bottom, then the
-    bevels of the +x, -x, +y, -y top edges), the pallet B, the floor B+1 (its top only).
-    ``verts`` (B+1, 8, 3): nominal corners, for culling. ``top_*``: each box's top-centre
+    bevels of the +x, -x, +y, -y top edges), the decorations (tape, labels) B..B+D-1, the
+    pallet P = B+D, the floor P+1 (its top only). ``host`` (O,): the box of each box or
+    decoration (-1 for the pallet and the floor); ``lift`` (O,): a decoration's thickness;
+    ``material`` (O,): 0 tape, 1 label, -1 else.
+    ``verts`` (P+1, 8, 3): nominal corners, for culling. ``top_*``: each box's top-centre
     and local axes, for the bulge. ``n_rows`` (B+1,): real rows of each solid (the rest is
     padding). ``z_max`` (B+1,): top of each solid in the base frame; ``up`` (3,) and ``c_z``
     give a sensor-frame point's base height ``up . X + c_z``.
@@ -758,10 +870,19 @@ class _World:
     z_max: np.ndarray
     up: np.ndarray
     c_z: float
+    n_deco: int
+    host: np.ndarray
+    lift: np.ndarray
+    material: np.ndarray
 
     @property
     def flat_planes(self) -> np.ndarray:
         return self.planes.reshape(-1, 4)
+
+    @property
+    def floor(self) -> int:
+        """Object index of the floor."""
+        return self.n_boxes + self.n_deco + 1
 
 
 def _box_halfspaces(box: np.ndarray, bevel: float) -> np.ndarray:
@@ -789,36 +910,50 @@ def _box_verts(box: np.ndarray) -> np.ndarray:
     return np.concatenate([np.c_[c, np.full(4, lo)], np.c_[c, np.full(4, hi)]])
 
 
-def _build_world(boxes: np.ndarray, T: np.ndarray, bevel: float, bulge: float) -> _World:
+def _build_world(boxes: np.ndarray, T: np.ndarray, bevel: float, bulge: float,
+                 deco: np.ndarray | None = None, pallet_on: bool = True) -> _World:
+    """The scene in the sensor frame; ``deco`` (D, 9): decoration slabs (box columns, host,
+    material); ``pallet_on`` False leaves the pallet out (it is never hit)."""
     R, C = T[:3, :3], T[:3, 3]
     B = len(boxes)
+    dec = np.zeros((0, 9)) if deco is None else deco
+    D = len(dec)
+    P = B + D
     pallet = np.array([0.0, 0.0, _PALLET_TOP / 2, *PALLET_SIZE, 0.0])
-    planes = np.zeros((B + 2, _K, 4))
+    planes = np.zeros((P + 2, _K, 4))
     planes[:, :, 3] = 1.0
     for i, b in enumerate(boxes):
         planes[i] = _box_halfspaces(b, bevel)
-    planes[B] = _box_halfspaces(pallet, 0.0)
-    planes[B + 1, _TOP] = [0.0, 0.0, 1.0, 0.0]  # the floor: z <= 0
+    for j, dj in enumerate(dec):
+        planes[B + j] = _box_halfspaces(dj[:7], 0.0)
+    planes[P] = _box_halfspaces(pallet, 0.0)
+    planes[P + 1, _TOP] = [0.0, 0.0, 1.0, 0.0]  # the floor: z <= 0
     # Base half-space n.X_b <= d with X_b = R X_s + C becomes (R^T n).X_s <= d - n.C.
     n_s = planes[..., :3] @ R
     d_s = planes[..., 3] - planes[..., :3] @ C
     pad = (planes[..., :3] == 0).all(-1)
     planes = np.concatenate([n_s, d_s[..., None]], -1)
     planes[pad] = [0.0, 0.0, 0.0, 1.0]
-    verts = np.stack([_box_verts(b) for b in [*boxes, pallet]])
+    verts = np.stack([_box_verts(b) for b in [*boxes, *dec[:, :7], pallet]])
     verts = (verts - C) @ R
     yaw = boxes[:, 6] if B else np.zeros(0)
     ex = np.stack([np.cos(yaw), np.sin(yaw), np.zeros(B)], 1)
     ey = np.stack([-np.sin(yaw), np.cos(yaw), np.zeros(B)], 1)
     ez = np.tile([0.0, 0.0, 1.0], (B, 1))
     top = boxes[:, :3] + np.c_[np.zeros((B, 2)), boxes[:, 5] / 2] if B else np.zeros((0, 3))
-    n_rows = np.full(B + 1, _K if bevel > 0 else 6)
-    n_rows[B] = 6
-    z_max = np.append(boxes[:, 2] + boxes[:, 5] / 2 if B else np.zeros(0), _PALLET_TOP)
+    n_rows = np.full(P + 1, _K if bevel > 0 else 6)
+    n_rows[B:] = 6
+    z_max = np.concatenate([boxes[:, 2] + boxes[:, 5] / 2 if B else np.zeros(0),
+                            dec[:, 2] + dec[:, 5] / 2,
+                            [_PALLET_TOP if pallet_on else -np.inf]])
+    host = np.concatenate([np.arange(B), dec[:, 7].astype(np.int64), [-1, -1]])
+    lift = np.concatenate([np.zeros(B), dec[:, 5], [0.0, 0.0]])
+    material = np.concatenate([np.full(B, -1), dec[:, 8].astype(np.int64), [-1, -1]])
     return _World(planes=planes, verts=verts, top_c=(top - C) @ R, top_x=ex @ R, top_y=ey @ R,
                   top_z=ez @ R, half=boxes[:, 3:5] / 2 if B else np.zeros((0, 2)),
                   n_boxes=B, bulge=bulge, n_rows=n_rows, z_max=z_max, up=R[2].copy(),
-                  c_z=float(C[2]))
+                  c_z=float(C[2]), n_deco=D, host=host, lift=lift,
+                  material=material)
 
 
 # --- ray casting ---------------------------------------------------------------------------------
@@ -944,15 +1079,15 @@ def _cast(world: _World, O: np.ndarray, D: np.ndarray, index: _RayIndex, *,
         surf[sel] = o * _K + k[hit]
         h_best[sel] = np.where(down[sel], oz + t_in[hit] * dz[sel], -np.inf)
     if floor:
-        B = world.n_boxes
-        n, d = world.planes[B + 1, _TOP, :3], world.planes[B + 1, _TOP, 3]
+        fl = world.floor
+        n, d = world.planes[fl, _TOP, :3], world.planes[fl, _TOP, 3]
         idx = np.flatnonzero(down & (h_best < -1e-9) & index.ok)
         dn = n @ DT[:, idx]
         with np.errstate(divide="ignore", invalid="ignore"):
             t = (d - n @ O) / dn
         hit = (dn < 0) & (t > 1e-9) & (t < best[idx])
         best[idx[hit]] = t[hit]
-        surf[idx[hit]] = (B + 1) * _K + _TOP
+        surf[idx[hit]] = fl * _K + _TOP
     if not normals:
         return best, surf, None
     # Row -1 (no hit) of the table is NaN.
@@ -965,11 +1100,14 @@ def _cast(world: _World, O: np.ndarray, D: np.ndarray, index: _RayIndex, *,
 
 def _bulge(world: _World, O: np.ndarray, D: np.ndarray, t: np.ndarray, surf: np.ndarray,
            normal: np.ndarray) -> None:
-    """Move top-face hits onto the bulged surface z = bulge (1-(u/hx)^2)(1-(v/hy)^2), in place."""
-    idx = np.flatnonzero((surf >= 0) & (surf // _K < world.n_boxes) & (surf % _K == _TOP))
+    """Move top-face hits onto the bulged surface z = bulge (1-(u/hx)^2)(1-(v/hy)^2), in place
+    (a decoration's top follows its lid's bulge, raised by its thickness)."""
+    host = np.where(surf >= 0, world.host[np.maximum(surf, 0) // _K], -1)
+    idx = np.flatnonzero((host >= 0) & (surf % _K == _TOP))
     if idx.size == 0:
         return
-    o = surf[idx] // _K
+    lift = world.lift[surf[idx] // _K]
+    o = host[idx]
     c, ex, ey, ez = world.top_c[o], world.top_x[o], world.top_y[o], world.top_z[o]
     hx, hy = world.half[o, 0], world.half[o, 1]
     d = D[idx]
@@ -980,7 +1118,7 @@ def _bulge(world: _World, O: np.ndarray, D: np.ndarray, t: np.ndarray, surf: np.
         p = q0 + ti[:, None] * d
         u, v = (p * ex).sum(1), (p * ey).sum(1)
         fu, fv = 1 - (u / hx) ** 2, 1 - (v / hy) ** 2
-        h = world.bulge * np.maximum(fu, 0) * np.maximum(fv, 0)
+        h = world.bulge * np.maximum(fu, 0) * np.maximum(fv, 0) + lift
         ti = (h - z0) / dz
     p = q0 + ti[:, None] * d
     u, v = (p * ex).sum(1), (p * ey).sum(1)
@@ -1233,9 +1371,11 @@ def _measure(spec: SceneSpec, world: _World, sensor: PinholeModel, rays: np.ndar
 
 
 def _streams(spec: SceneSpec) -> list[np.random.Generator]:
-    """Independent generators for the layout, the pose and the noise."""
+    """Independent generators for the layout, the pose, the default sensor's noise, the
+    decorations and the zoo's sensor (spawned children are fixed by their index, so the first
+    three are what they were when there were three)."""
     ss = np.random.SeedSequence([spec.seed, zlib.crc32(spec.kind.encode())])
-    return [np.random.default_rng(s) for s in ss.spawn(3)]
+    return [np.random.default_rng(s) for s in ss.spawn(5)]
 
 
 def simulate(spec: SceneSpec | str, seed: int | None = None) -> SimulatedScan:
@@ -1269,11 +1409,11 @@ def simulate(spec: SceneSpec | str, seed: int | None = None) -> SimulatedScan:
         raise TypeError(f"spec must be a SceneSpec or a str, got {type(spec).__name__}")
     if seed is not None:
         spec = dataclasses.replace(spec, seed=seed)
-    rng_layout, rng_pose, rng_noise = _streams(spec)
-    boxes = _layout(spec, rng_layout)
-    T, distance, tilt = _draw_pose(spec, boxes, rng_pose)
+    streams = _streams(spec)
+    boxes = _layout(spec, streams[0])
+    T, distance, tilt = _draw_pose(spec, boxes, streams[1])
     spec = dataclasses.replace(spec, distance=distance, tilt=tilt)
-    return _render(spec, boxes, T, rng_noise)
+    return _render(spec, boxes, T, streams)
 
 
 def simulate_boxes(boxes: npt.ArrayLike, sensor_to_base: npt.ArrayLike,
@@ -1309,7 +1449,7 @@ def simulate_boxes(boxes: npt.ArrayLike, sensor_to_base: npt.ArrayLike,
         raise InputError(f"sensor_to_base must be a finite (4, 4) matrix, got {T.shape}")
     if not np.allclose(T[:3, :3] @ T[:3, :3].T, np.eye(3), atol=1e-9):
         raise InputError("sensor_to_base must have an orthonormal rotation")
-    return _render(spec, b, T, _streams(spec)[2])
+    return _render(spec, b, T, _streams(spec))
 
 
 @functools.lru_cache(maxsize=4)
@@ -1322,18 +1462,21 @@ def _camera(width: int, height: int, f: float) -> tuple[PinholeModel, np.ndarray
 
 
 def _render(spec: SceneSpec, boxes: np.ndarray, T: np.ndarray,
-            rng: np.random.Generator) -> SimulatedScan:
+            streams: list[np.random.Generator]) -> SimulatedScan:
     H, W = spec.height, spec.width
     sensor, rays, index = _camera(W, H, float(spec.f))
-    world = _build_world(boxes, T, spec.bevel, spec.bulge)
+    deco = _decorations(spec, boxes, streams[3]) if (spec.tape or spec.labels) else None
+    world = _build_world(boxes, T, spec.bevel, spec.bulge, deco, spec.kind != "floor")
     r0, surf, normal = _cast(world, np.zeros(3), rays, index)
     r0 = np.where(np.isfinite(r0), r0, np.nan)
-    labels, at_jump = _edge_labels(world, rays, r0, surf, (H, W), spec.bevel)
+    # A decoration is part of its lid for the truth: its pixels see the host's top face.
+    surf_t = _as_host_top(world, surf)
+    labels, at_jump = _edge_labels(world, rays, r0, surf_t, (H, W), spec.bevel)
     B = len(boxes)
-    obj, k = surf // _K, surf % _K
-    face_ids = np.where((surf >= 0) & (obj < B) & np.isin(k, _FACE_PLANES), obj, -1)
+    obj, k = surf_t // _K, surf_t % _K
+    face_ids = np.where((surf_t >= 0) & (obj < B) & np.isin(k, _FACE_PLANES), obj, -1)
     shadow = (_shadowed(world, r0[:, None] * rays, surf, spec.baseline, spec.f, (H, W))
-              if spec.shadows else np.zeros(H * W, bool))
+              if spec.shadows and spec.sensor is None else np.zeros(H * W, bool))
     faces = _faces(boxes, T)
     seen = np.isfinite(r0)
     vis = _visible_fraction(faces, face_ids, seen, rays, spec.f)
@@ -1344,7 +1487,17 @@ def _render(spec: SceneSpec, boxes: np.ndarray, T: np.ndarray,
         fully_exposed=exposed, box_index=np.arange(B, dtype=np.int32),
         face_ids=face_ids.reshape(H, W), edge_labels=labels, boxes=boxes, sensor_to_base=T,
     )
-    rng_range = _measure(spec, world, sensor, rays, r0, normal, at_jump, shadow, rng)
+    if spec.sensor is None:
+        assert normal is not None
+        rng_range = _measure(spec, world, sensor, rays, r0, normal, at_jump, shadow, streams[2])
+    else:
+        scale, cls = draw_sensor(spec.sensor, streams[4])
+        spec = dataclasses.replace(
+            spec, noise_scale=scale if spec.noise_scale is None else spec.noise_scale,
+            sensor_class=cls if spec.sensor_class is None else spec.sensor_class)
+        assert spec.noise_scale is not None
+        ren = _rendered(spec, world, sensor, rays, r0, surf, surf_t, normal, at_jump)
+        rng_range = measure(str(spec.sensor), ren, spec.noise_scale, spec.sensor_class, streams[4])
     scan = Scan(
         range=rng_range.reshape(H, W).astype(np.float32), sensor=sensor,
         capture_time_ns=_EPOCH_NS + (spec.seed % 2**31) * 100_000_000, index=0,
@@ -1352,6 +1505,81 @@ def _render(spec: SceneSpec, boxes: np.ndarray, T: np.ndarray,
         meta={"simulator": spec.to_dict()},
     )
     return SimulatedScan(scan=scan, truth=truth, spec=spec)
+
+
+def _as_host_top(world: _World, surf: np.ndarray) -> np.ndarray:
+    """``surf`` with every decoration hit replaced by its host box's top face."""
+    if world.n_deco == 0:
+        return surf
+    o = surf // _K
+    deco = (surf >= 0) & (o >= world.n_boxes) & (o < world.n_boxes + world.n_deco)
+    return np.where(deco, world.host[np.maximum(o, 0)] * _K + _TOP, surf)
+
+
+def _concave_pixels(world: _World, rays: np.ndarray, r0: np.ndarray, surf: np.ndarray,
+                    shape: tuple[int, int], f: float) -> np.ndarray:
+    """Pixels on an inside corner, (N,) bool: two neighbours on different surfaces, each
+    outside the other's half-space by > 1 mm, and close in space (a crease, not a jump)."""
+    p, q = _edge_pairs(shape)
+    sel = (surf[p] != surf[q]) & (surf[p] >= 0) & (surf[q] >= 0)
+    p, q = p[sel], q[sel]
+    X = r0[:, None] * rays
+    A, Bp = world.flat_planes[surf[p]], world.flat_planes[surf[q]]
+    out_a = (A[:, :3] * X[q]).sum(1) - A[:, 3]
+    out_b = (Bp[:, :3] * X[p]).sum(1) - Bp[:, 3]
+    close = np.linalg.norm(X[p] - X[q], axis=1) < 0.01 + 3 * r0[p] / f
+    c = (out_a > 1e-3) & (out_b > 1e-3) & close
+    m = np.zeros(r0.size, bool)
+    m[p[c]] = True
+    m[q[c]] = True
+    return m
+
+
+def _rendered(spec: SceneSpec, world: _World, sensor: PinholeModel, rays: np.ndarray,
+              r0: np.ndarray, surf: np.ndarray, surf_t: np.ndarray, normal: np.ndarray | None,
+              at_jump: np.ndarray) -> Rendered:
+    """What a zoo sensor measures: the render with its materials and callbacks."""
+    H, W = spec.height, spec.width
+    assert normal is not None
+    B, D = world.n_boxes, world.n_deco
+    rho_obj = np.full(B + D + 3, _RHO_BOX)
+    shiny_obj = np.zeros(B + D + 3, bool)
+    tape = world.material[: B + D + 2] == _TAPE
+    rho_obj[: B + D + 2][tape] = _RHO_TAPE
+    rho_obj[: B + D + 2][world.material[: B + D + 2] == _LABEL] = _RHO_LABEL
+    shiny_obj[: B + D + 2][tape] = True
+    rho_obj[B + D], rho_obj[B + D + 1], rho_obj[-1] = _RHO_PALLET, _RHO_FLOOR, 0.0
+
+    def per_pixel(s: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        o = np.where(s >= 0, s // _K, -1)
+        return rho_obj[o], shiny_obj[o]
+
+    rho, shiny = per_pixel(surf)
+    cos_i = np.abs(np.einsum("ij,ij->i", normal, rays))
+    X = r0[:, None] * rays
+
+    def shadow(baseline: float) -> np.ndarray:
+        return _shadowed(world, X, surf, baseline, spec.f, (H, W))
+
+    def footprint(pix: np.ndarray, off: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        v, u = np.divmod(pix, W)
+        uu = u[:, None] + off[None, :, 0]
+        vv = v[:, None] + off[None, :, 1]
+        d = np.stack([(uu - sensor.cx) / sensor.fx, (vv - sensor.cy) / sensor.fy,
+                      np.ones_like(uu)], -1).reshape(-1, 3)
+        d /= np.linalg.norm(d, axis=1, keepdims=True)
+        t, s, n = _cast(world, np.zeros(3), d, _RayIndex(d, None))
+        assert n is not None
+        c = np.abs(np.einsum("ij,ij->i", np.nan_to_num(n), d))
+        rr, _ = per_pixel(s)
+        shape = (pix.size, off.shape[0])
+        return (np.where(np.isfinite(t), t, np.nan).reshape(shape), c.reshape(shape),
+                rr.reshape(shape))
+
+    return Rendered(shape=(H, W), f=float(spec.f), rays=rays, r0=r0, cos_i=cos_i,
+                    reflectivity=rho, shiny=shiny, at_jump=at_jump.ravel(),
+                    concave=_concave_pixels(world, rays, r0, surf_t, (H, W), spec.f),
+                    shadow=shadow, footprint=footprint)
 
 
 # --- the benchmark suite -------------------------------------------------------------------------
@@ -1372,7 +1600,7 @@ def scene_suite(n: int, seed: int = 0) -> list[SceneSpec]:
         raise InputError(f"scene suite size must be an integer >= 0, got {n!r}")
     if isinstance(seed, bool) or not isinstance(seed, int | np.integer) or seed < 0:
         raise InputError(f"scene suite seed must be an integer >= 0, got {seed!r}")
-    kinds = [k for k in KINDS if k != "empty"]
+    kinds = _SUITE_KINDS
     rng = np.random.default_rng(np.random.SeedSequence([int(seed), 0x5C3E]))
     specs = []
     for i in range(int(n)):
@@ -1382,6 +1610,55 @@ def scene_suite(n: int, seed: int = 0) -> list[SceneSpec]:
         scene_seed = int(rng.integers(0, 2**31))
         specs.append(SceneSpec(kind=kinds[i % len(kinds)], seed=scene_seed, distance=distance,
                                tilt=tilt, bulge=bulge))
+    return specs
+
+
+#: Per sensor, the focal length at 640 px width (its field of view): the paper-class scanner
+#: as the default camera, a Kinect v2 ToF (70 deg), a Kinect v1 (57 deg), an OAK-D-Pro (72 deg).
+_MATRIX_F640 = {"laser": 525.0, "tof": 456.0, "structured-light": 580.0, "active-stereo": 440.0}
+_MATRIX_SIZES = ((320, 240), (640, 480), (960, 720), (1280, 960))
+
+
+def matrix_suite(n: int, seed: int = 0) -> list[SceneSpec]:
+    """Scenes of the sensor x scene-kind matrix benchmark.
+
+    Scene ``i`` has sensor ``SENSORS[i % 4]`` and kind ``MATRIX_KINDS[(i // 4) % 8]``, so
+    every 32 scenes fill each cell once. Each draws: the camera 1-3.5 m above the top of the
+    pile (the floor for ``floor``), tilted 0-30 deg; the resolution among 320x240, 640x480,
+    960x720 and 1280x960 (the focal length follows the sensor's field of view); a bevel of
+    0-5 mm (none on a third of the scenes, and never on ``layered``: sharp touching edges);
+    a lid bulge on 40 %; tape and labels on half. The noise scale (0.5-3x) and the
+    active-stereo class are left to the scene seed.
+
+    Parameters
+    ----------
+    n : int
+        Number of scenes (>= 0).
+    seed : int
+        Seeds the draws; the same (n, seed) gives the same list, and a longer suite starts
+        with the shorter one.
+    """
+    if isinstance(n, bool) or not isinstance(n, int | np.integer) or n < 0:
+        raise InputError(f"matrix suite size must be an integer >= 0, got {n!r}")
+    if isinstance(seed, bool) or not isinstance(seed, int | np.integer) or seed < 0:
+        raise InputError(f"matrix suite seed must be an integer >= 0, got {seed!r}")
+    rng = np.random.default_rng(np.random.SeedSequence([int(seed), 0x3A7F]))
+    specs = []
+    for i in range(int(n)):
+        sensor = SENSORS[i % len(SENSORS)]
+        kind = MATRIX_KINDS[(i // len(SENSORS)) % len(MATRIX_KINDS)]
+        distance = round(float(rng.uniform(1.0, 3.5)), 3)
+        tilt = round(float(rng.uniform(0.0, math.radians(30.0))), 4)
+        w, h = _MATRIX_SIZES[int(rng.integers(len(_MATRIX_SIZES)))]
+        sharp, bevel = rng.random() < 1 / 3, round(float(rng.uniform(0.0005, 0.005)), 4)
+        bulge = round(float(rng.uniform(0.003, 0.015)), 4) if rng.random() < 0.4 else 0.0
+        deco = rng.random() < 0.5
+        scene_seed = int(rng.integers(0, 2**31))
+        specs.append(SceneSpec(
+            kind=kind, seed=scene_seed, width=w, height=h,
+            f=round(_MATRIX_F640[sensor] * w / 640, 3), distance=distance, tilt=tilt,
+            bevel=0.0 if (sharp or kind == "layered") else bevel, bulge=bulge, sensor=sensor,
+            tape=0.6 if deco else 0.0, labels=0.5 if deco else 0.0))
     return specs
 
 
@@ -1498,4 +1775,6 @@ def summary_line(path: str | os.PathLike[str], sim: SimulatedScan) -> str:
     sp = sim.spec
     return (f"{os.fspath(path)}: {sp.kind} seed={sp.seed} boxes={t.boxes.shape[0]} "
             f"faces={len(t)} graspable={int(t.fully_exposed.sum())} "
-            f"distance={sp.distance:.2f}m tilt={math.degrees(sp.tilt or 0.0):.1f}deg")
+            f"distance={sp.distance:.2f}m tilt={math.degrees(sp.tilt or 0.0):.1f}deg"
+            + (f" sensor={sp.sensor}" + (f"/{sp.sensor_class}" if sp.sensor_class else "")
+               + f" noise_scale={sp.noise_scale:g}" if sp.sensor else ""))
