@@ -23,6 +23,7 @@ search stops after t consecutive trials that find nothing.
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 from functools import lru_cache
 
 import numba as nb
@@ -292,15 +293,20 @@ def find_lines(scan: Scan, edges: EdgeMap, *, config: Config, rng: np.random.Gen
     eps0 = min(1.0, m_min / max(N, 1))
 
     lut, nbr, dirs = _direction_index(config.direction_granularity)
+    fixed = _TrialInputs(
+        points=P, covariances=C, cov_trace=np.einsum("nii->n", C), edge_kinds=edges.kinds,
+        directions=dirs, lut=lut, neighbours=nbr, k2=k2, chi2_2=chi2_2, spacing=spacing,
+        m_min=m_min, min_edge=config.min_edge,
+    )
     ptree = cKDTree(P)
-    trC = np.einsum("nii->n", C)  # bounds each point's covariance (``_may_lie_on``)
+    radius = min(config.max_edge, VOTE_RADIUS_EDGES * config.min_edge)
 
     alive = np.ones(N, bool)
     n_alive = N
-    lines: list[dict] = []
+    segments: list[_Segment] = []
+    trial_of: list[int] = []  # the trial that found each segment
     trial = 0
     fails = 0
-    line_tests: list[TestTable] = []
 
     def needed_trials(n: int) -> int:
         eps = min(1.0, m_min / max(n, 1))
@@ -312,32 +318,80 @@ def find_lines(scan: Scan, edges: EdgeMap, *, config: Config, rng: np.random.Gen
         trial += 1
         alive_idx = np.flatnonzero(alive)
         i0 = int(alive_idx[rng.integers(len(alive_idx))])
-        p0 = P[i0]
-        radius = min(config.max_edge, VOTE_RADIUS_EDGES * config.min_edge)
-        nb = np.asarray(ptree.query_ball_point(p0, radius), dtype=np.int64)
+        nb = np.asarray(ptree.query_ball_point(P[i0], radius), dtype=np.int64)
         nb = nb[alive[nb] & (nb != i0)]
-        found = False
-        if len(nb) >= m_min:
-            found = _trial(
-                i0, nb, P, C, trC, edges.kinds, alive, rng, dirs, lut, nbr, k2, chi2_2, spacing,
-                m_min, config, trial, lines, line_tests,
-            )
+        found = _trial(fixed, i0, nb, alive, rng) if len(nb) >= m_min else []
+        for seg in found:
+            alive[seg.support] = False
+            segments.append(seg)
+            trial_of.append(trial)
         if found:
             n_alive = int(alive.sum())
             fails = 0
         else:
             fails += 1
 
-    return _to_lineset(lines, line_tests, trial, eps0, config, config.seed_for(scan.seed))
+    return _to_lineset(segments, trial_of, trial, eps0, config, config.seed_for(scan.seed))
 
 
-def _trial(
-    i0: int, nb: np.ndarray, P: np.ndarray, C: np.ndarray, trC: np.ndarray,
-    edge_kinds: np.ndarray, alive: np.ndarray,
-    rng: np.random.Generator, dirs: np.ndarray, lut: np.ndarray, nbr: np.ndarray,
-    k2: float, chi2_2: float, spacing: float, m_min: int, config: Config, trial: int,
-    lines: list[dict], line_tests: list[TestTable],
-) -> bool:
+@dataclass(frozen=True)
+class _TrialInputs:
+    """What every Hough trial of one scan reads: the edge points and the voting tables."""
+
+    points: np.ndarray  # (N, 3) float64, metres
+    covariances: np.ndarray  # (N, 3, 3) float64, m^2
+    cov_trace: np.ndarray  # (N,) their traces, which bound them (``_may_lie_on``)
+    edge_kinds: np.ndarray  # (N,) EdgeKind
+    directions: np.ndarray  # (C, 3) the hemisphere's cells (``_direction_index``)
+    lut: np.ndarray  # (P, A) int32, the nearest cell of each (polar, azimuth) bin
+    neighbours: np.ndarray  # (C, K) int32, the cells a vote can reach from each cell
+    k2: float  # sqrt(chi2_2): the error regions' radius in standard deviations
+    chi2_2: float  # critical value of the point-on-line test, chi2(2) at alpha
+    spacing: float  # expected edge-point spacing along an edge, metres
+    m_min: int  # the fewest points that make a line
+    min_edge: float  # the shortest box edge, metres
+
+
+@dataclass(frozen=True)
+class _Segment:
+    """A line segment one trial found: a row of the ``LineSet``."""
+
+    point: np.ndarray  # (3,) centroid of the support, metres
+    direction: np.ndarray  # (3,) unit
+    cov: np.ndarray  # (6, 6) of (point, direction)
+    start: np.ndarray  # (3,) metres
+    end: np.ndarray  # (3,) metres
+    support: np.ndarray  # (n,) edge-point indices, ordered along the direction
+    stat: np.ndarray  # (n,) their chi2(2) point-on-line statistics, same order
+    kind: int  # the EdgeKind most of the support has
+    dir_votes: float  # height of the direction accumulator's peak
+    pos_votes: float  # height of the position accumulator's peak
+
+
+def _trial(fixed: _TrialInputs, i0: int, nb: np.ndarray, alive: np.ndarray,
+           rng: np.random.Generator) -> list[_Segment]:
+    """One constrained Hough trial from the distinguished edge point ``i0``.
+
+    Parameters
+    ----------
+    fixed : _TrialInputs
+    i0 : int
+        The distinguished point.
+    nb : ndarray (n,) int64
+        Its live neighbours within the vote radius (``i0`` excluded), the voters.
+    alive : ndarray (N,) bool
+        Points no earlier segment took; the inliers are sought among them (not changed).
+    rng : numpy.random.Generator
+        Draws the voters when there are more than ``MAX_VOTERS``.
+
+    Returns
+    -------
+    list of _Segment
+        The segments of the line found, in order along it; empty when the trial finds
+        none.
+    """
+    P, C, m_min, k2, chi2_2 = (fixed.points, fixed.covariances, fixed.m_min, fixed.k2,
+                               fixed.chi2_2)
     p0 = P[i0]
     V = P[nb] - p0
     ell = np.linalg.norm(V, axis=1)
@@ -351,21 +405,21 @@ def _trial(
     rad = k2 * sig_theta
     use = rad <= MAX_VOTE_RADIUS
     if use.sum() < m_min:
-        return False
+        return []
     vi = np.flatnonzero(use)
     if len(vi) > MAX_VOTERS:
         vi = np.sort(rng.choice(vi, MAX_VOTERS, replace=False))
     # each point votes for every cell of its error region
-    acc = _vote_directions(d[vi], rad[vi], lut, nbr, dirs)
+    acc = _vote_directions(d[vi], rad[vi], fixed.lut, fixed.neighbours, fixed.directions)
     peak = int(np.argmax(acc))
-    b = dirs[peak]
+    b = fixed.directions[peak]
     dir_votes = float(acc[peak])
     # points whose error region contains the peak: refine the direction from them
     cosang = np.abs(d @ b)
     agree = np.arccos(np.clip(cosang, -1, 1)) <= np.maximum(rad, 2 * np.arcsin(0.5 * 1e-3))
     agree &= use
     if agree.sum() < m_min - 1:
-        return False
+        return []
     dd = d[agree] * np.sign(d[agree] @ b)[:, None]
     b = dd.mean(0)
     b /= np.linalg.norm(b)
@@ -398,79 +452,74 @@ def _trial(
     inl = live[:0]
     for _ in range(2):
         # the full test on the points the trace bound leaves: the same inliers, cheaper
-        cand = live[_may_lie_on(P[live], trC[live], c, bb, chi2_2)]
+        cand = live[_may_lie_on(P[live], fixed.cov_trace[live], c, bb, chi2_2)]
         T, _t = _point_on_line_stat(P[cand], C[cand], c, bb)
         inl = cand[T <= chi2_2]
         if len(inl) < m_min:
-            return False
+            return []
         c, bb, _w = _tls(P[inl])
     T, t = _point_on_line_stat(P[inl], C[inl], c, bb)
     keep = T <= chi2_2
     inl, T, t = inl[keep], T[keep], t[keep]
     if len(inl) < m_min:
-        return False
+        return []
     # segments: split at gaps larger than a quarter of the shortest box edge
-    gap = max(0.25 * config.min_edge, 4.0 * spacing)
-    found = False
+    gap = max(0.25 * fixed.min_edge, 4.0 * fixed.spacing)
+    found: list[_Segment] = []
     for grp in _split_at_gaps(t, gap):
         if len(grp) < m_min:
             continue
         idx = inl[grp]
         extent = float(t[grp].max() - t[grp].min())
-        if extent < 0.5 * config.min_edge:
+        if extent < 0.5 * fixed.min_edge:
             continue
         cs, bs, cov, ts = fit_segment(P[idx], C[idx])
         if bs @ b < 0:
             bs = -bs
             ts = -ts
         Tseg, _ = _point_on_line_stat(P[idx], C[idx], cs, bs)
-        kinds = np.bincount(edge_kinds[idx], minlength=5)
-        lines.append(
-            dict(
-                point=cs, direction=bs, cov=cov, start=cs + ts.min() * bs,
-                end=cs + ts.max() * bs, support=idx[np.argsort(ts)],
-                stat=Tseg[np.argsort(ts)], kind=int(np.argmax(kinds[1:]) + 1),
-                trial=trial, dir_votes=dir_votes, pos_votes=pos_votes,
-            )
-        )
-        alive[idx] = False
-        line_tests.append(
-            TestTable.chi2(TestKind.POINT_ON_LINE, len(lines) - 1, len(idx), float(Tseg.max()), 2.0,
-                           config.alpha)
-        )
-        found = True
+        kinds = np.bincount(fixed.edge_kinds[idx], minlength=5)
+        order = np.argsort(ts)
+        found.append(_Segment(
+            point=cs, direction=bs, cov=cov, start=cs + ts.min() * bs, end=cs + ts.max() * bs,
+            support=idx[order], stat=Tseg[order], kind=int(np.argmax(kinds[1:]) + 1),
+            dir_votes=dir_votes, pos_votes=pos_votes,
+        ))
     return found
 
 
 def _to_lineset(
-    lines: list[dict], tests: list[TestTable], n_trials: int, eps0: float, config: Config,
+    segments: list[_Segment], trial_of: list[int], n_trials: int, eps0: float, config: Config,
     seed: int,
 ) -> LineSet:
-    L = len(lines)
-    sup = [ln["support"] for ln in lines]
+    L = len(segments)
+    sup = [s.support for s in segments]
     offs = np.zeros(L + 1, np.int64)
     if L:
         offs[1:] = np.cumsum([len(s) for s in sup])
 
-    def stack(key: str, shape: tuple[int, ...]) -> np.ndarray:
-        return np.array([ln[key] for ln in lines], dtype=np.float64).reshape((L, *shape))
+    def stack(rows: list[np.ndarray], shape: tuple[int, ...]) -> np.ndarray:
+        return np.array(rows, dtype=np.float64).reshape((L, *shape))
 
+    # one point-on-line test per segment: its worst support point
+    tests = [TestTable.chi2(TestKind.POINT_ON_LINE, i, len(s.support), float(s.stat.max()), 2.0,
+                            config.alpha) for i, s in enumerate(segments)]
     return LineSet(
-        points=stack("point", (3,)),
-        directions=stack("direction", (3,)),
-        covariances=stack("cov", (6, 6)),
-        starts=stack("start", (3,)),
-        ends=stack("end", (3,)),
+        points=stack([s.point for s in segments], (3,)),
+        directions=stack([s.direction for s in segments], (3,)),
+        covariances=stack([s.cov for s in segments], (6, 6)),
+        starts=stack([s.start for s in segments], (3,)),
+        ends=stack([s.end for s in segments], (3,)),
         n_support=np.array([len(s) for s in sup], np.int32),
         support_offsets=offs,
         support=(np.concatenate(sup) if L else np.zeros(0)).astype(np.int32),
         support_statistic=(
-            np.concatenate([ln["stat"] for ln in lines]) if L else np.zeros(0)
+            np.concatenate([s.stat for s in segments]) if L else np.zeros(0)
         ).astype(np.float32),
-        kinds=np.array([ln["kind"] for ln in lines], np.uint8),
-        trial=np.array([ln["trial"] for ln in lines], np.int32),
-        direction_votes=np.array([ln["dir_votes"] for ln in lines], np.float64),
-        position_votes=np.array([ln["pos_votes"] for ln in lines], np.float64),
+        kinds=np.array([s.kind for s in segments], np.uint8),
+        trial=np.array(trial_of, np.int32),
+        direction_votes=np.array([s.dir_votes for s in segments], np.float64),
+        position_votes=np.array([s.pos_votes for s in segments], np.float64),
         n_trials=int(n_trials),
         epsilon=float(eps0),
         p_success=float(config.p_success),
