@@ -6,17 +6,6 @@ rectangle's plane with their propagated uncertainty (point-on-plane, chi2(1) at 
 
 * ``VERIFY_TILT`` — the face's normal is within ``max_tilt`` of up (a prior: graspable
   faces are tops);
-* ``VERIFY_EXPOSED`` — points significantly *in front* of the face's refitted plane
-  (something resting on it or hanging over it), counted in the core beyond twice the
-  border margin, are not more frequent than points significantly behind it (noise is symmetric,
-  occluders are not: a sign test at alpha, which does not depend on the noise model being
-  exact; row 0), and not more frequent than the noise model puts there (alpha/2 of the
-  points) over the core (row 1) or in its busiest cell (row 2, Bonferroni over the cells).
-  The face is covered if row 0 rejects and row 1 or row 2 does;
-* ``VERIFY_INLIERS`` — at least ``min_inlier_fraction`` of the pixels inside are on the
-  plane (the rest are dropouts and noise);
-* ``VERIFY_MEAN`` — the inliers' mean signed distance is zero within the propagated
-  uncertainty of the plane and of the mean (chi2(1));
 * ``VERIFY_INTERIOR`` — no edge crosses the interior: the interior's edge points (beyond
   the band where the sides' own edges lie) make no significant straight line parallel to a
   side, against the same number of points scattered uniformly over the interior (Poisson,
@@ -42,14 +31,29 @@ rectangle's plane with their propagated uncertainty (point-on-plane, chi2(1) at 
   neighbours (``VERIFY_SEAM_SIDE``, searched across the band where the side's edges are
   counted). Edge evidence alone does not make a side where the plane runs on: sensor
   artefacts (structured-light depth) put short lines of jump edges inside faces, and a
-  rectangle cut short there would be accepted first and hide the whole face.
+  rectangle cut short there would be accepted first and hide the whole face;
+* ``VERIFY_EXPOSED`` — points significantly *in front* of the face's refitted plane
+  (something resting on it or hanging over it), counted in the core beyond twice the
+  border margin, are not more frequent than points significantly behind it (noise is symmetric,
+  occluders are not: a sign test at alpha, which does not depend on the noise model being
+  exact; row 0), and not more frequent than the noise model puts there (alpha/2 of the
+  points) over the core (row 1) or in its busiest cell (row 2, Bonferroni over the cells).
+  The face is covered if row 0 rejects and row 1 or row 2 does;
+* ``VERIFY_INLIERS`` — at least ``min_inlier_fraction`` of the pixels inside are on the
+  plane (the rest are dropouts and noise);
+* ``VERIFY_MEAN`` — the inliers' mean signed distance is zero within the propagated
+  uncertainty of the plane and of the mean (chi2(1)).
+
+Each test has its function (``_test_tilt`` ... ``_test_mean``), in this order, the README's.
+:func:`verify` runs them cheapest first, and the continuation last: it needs the plane
+refitted to the points inside.
 """
 
 from __future__ import annotations
 
 import math
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 from scipy import stats as st
@@ -402,6 +406,421 @@ def rasterize(scan: Scan, corners: np.ndarray) -> tuple[np.ndarray, np.ndarray] 
     return rr, cc
 
 
+@dataclass(frozen=True)
+class _Hypothesis:
+    """One rectangle to verify, in its own frame, with the scales its tests derive from it."""
+
+    origin: np.ndarray  # (3,) the generating vertex, metres
+    x_axis: np.ndarray  # (3,) unit
+    y_axis: np.ndarray  # (3,) unit
+    normal: np.ndarray  # (3,) unit, toward the sensor
+    width: float  # extent along x_axis, metres
+    length: float  # extent along y_axis, metres
+    plane_cov: np.ndarray  # (6, 6) covariance of (origin, normal)
+    centre: np.ndarray  # (3,) metres
+    attempt_id: int  # entity ``a`` of every test
+    alpha: float
+    k: float  # critical |z| of one point: sqrt(chi2(1)) at alpha
+    spacing: float  # edge-point spacing at the centre, metres
+    margin: float  # the border margin: the bevel and mixed pixels of the edge itself, metres
+    interior_margin: float  # edges beyond it from every side are interior, metres
+    band: float  # a side's edges lie within it of the side, metres
+
+    @property
+    def flank(self) -> float:
+        """How far beyond the rectangle the seam tests read range points, metres."""
+        return (SEAM_FLANK[1] + 1.0) * self.spacing
+
+
+def _hypothesis(ctx: VerifyContext, origin: np.ndarray, x_axis: np.ndarray, y_axis: np.ndarray,
+                normal: np.ndarray, width: float, length: float, plane_cov: np.ndarray,
+                config: Config, attempt_id: int) -> _Hypothesis:
+    centre = origin + 0.5 * width * x_axis + 0.5 * length * y_axis
+    spacing = ctx.spacing_at(centre)
+    m = 2.0 * spacing
+    # the interior lies beyond the band where the boundary's own edges lie (rounded or
+    # bevelled cardboard gives a second, parallel edge a few mm inside)
+    return _Hypothesis(
+        origin=origin, x_axis=x_axis, y_axis=y_axis, normal=normal, width=width, length=length,
+        plane_cov=plane_cov, centre=centre, attempt_id=attempt_id, alpha=config.alpha,
+        k=float(np.sqrt(chi2_critical(1.0, config.alpha))), spacing=spacing, margin=m,
+        interior_margin=max(m, BOUNDARY_BAND * config.min_edge), band=1.5 * m,
+    )
+
+
+@dataclass(frozen=True)
+class _FaceEdges:
+    """The edge points the tests of one rectangle read: those within a side's band of it."""
+
+    u: np.ndarray  # (n,) along x_axis from the origin, metres
+    v: np.ndarray  # (n,) along y_axis from the origin, metres
+    kinds: np.ndarray  # (n,) EdgeKind
+    near_plane: np.ndarray  # (n,) bool: on the rectangle's plane
+    interior: np.ndarray  # (n,) bool: on the plane and beyond the interior margin
+
+
+def _face_edges(ctx: VerifyContext, hyp: _Hypothesis, config: Config) -> _FaceEdges:
+    E = ctx.edge_points - hyp.origin
+    eu, ev = E @ hyp.x_axis, E @ hyp.y_axis
+    # every edge test looks at most a side's band beyond the rectangle: the rest of the
+    # scan's edge points need no plane test
+    band, width, length = hyp.band, hyp.width, hyp.length
+    reach = (eu >= -band) & (eu <= width + band) & (ev >= -band) & (ev <= length + band)
+    E, eu, ev = E[reach], eu[reach], ev[reach]
+    ew = E @ hyp.normal
+    sig_e = face_sigma(config, hyp.centre)
+    # a face's boundary, seam and crossing edges lie on its plane (a jump point is placed
+    # half a sample beyond the face's last point, hence the spacing)
+    # ... and the rectangle's own plane is uncertain: a small error of its normal moves
+    # the far sides' edges off it by the error times their distance from the vertex
+    near_plane = (np.abs(ew) <= hyp.k * np.sqrt(sig_e**2 + plane_var(hyp.plane_cov, hyp.normal, E))
+                  + hyp.spacing)
+    mi = hyp.interior_margin
+    interior = near_plane & (eu > mi) & (eu < width - mi) & (ev > mi) & (ev < length - mi)
+    return _FaceEdges(eu, ev, ctx.edge_kinds[reach], near_plane, interior)
+
+
+@dataclass
+class _Sides:
+    """What the boundary tests found of each side 0-3 (v=0, v=length, u=0, u=width)."""
+
+    covered: list[int]  # distinct positions along the side with boundary edges
+    ok: list[bool]  # the side is a boundary
+    expected: list[float]  # edge points expected along the side (its length in the image)
+    seams: set[int] = field(default_factory=set)  # sides shown to be seams (or gaps)
+
+    def fraction(self) -> float:
+        """The fraction of the perimeter covered."""
+        return float(sum(self.covered) / sum(self.expected))
+
+    def bound(self, support_fraction: float) -> bool:
+        """Every side a boundary, together covering ``support_fraction`` of the perimeter."""
+        return all(self.ok) and self.fraction() >= support_fraction
+
+
+@dataclass(frozen=True)
+class _FaceFit:
+    """The valid pixels inside the rectangle (shrunk by the border margin), fitted by a plane."""
+
+    rows: np.ndarray  # (n,) pixel rows
+    cols: np.ndarray  # (n,) pixel columns
+    points: np.ndarray  # (n, 3) metres
+    offset: np.ndarray  # (n,) signed distance to the rectangle's plane, metres
+    var: np.ndarray  # (n,) each point's variance along the normal, flatness included, m^2
+    centre: np.ndarray  # (3,) the refitted plane's point, metres
+    normal: np.ndarray  # (3,) the refitted plane's normal, toward the sensor
+    cov: np.ndarray  # (6, 6) of (centre, normal)
+    z: np.ndarray  # (n,) normalized distance to the refitted plane
+    inliers: np.ndarray  # (n,) bool: |z| <= k
+    core: np.ndarray  # (n,) bool: beyond twice the border margin from every side
+    front: np.ndarray  # (n,) bool: in the core, significantly in front of the plane
+    behind: np.ndarray  # (n,) bool: in the core, significantly behind it
+    du: np.ndarray  # (n,) along x_axis from the origin, metres
+    dv: np.ndarray  # (n,) along y_axis from the origin, metres
+    rms: float  # of the inliers' distances to the refitted plane, metres (NaN: none)
+    error: float  # sum of the inliers' squared z (the MDL xi)
+
+
+# --- the tests, in the order of the README's table ------------------------------------------
+
+
+def _test_tilt(hyp: _Hypothesis, up: np.ndarray, max_tilt: float) -> tuple[bool, TestTable]:
+    """VERIFY_TILT: the face's normal within ``max_tilt`` of up. Returns (tilted, row)."""
+    tilt = float(np.arccos(np.clip(hyp.normal @ up, -1, 1)))
+    return tilt > max_tilt, TestTable.decision(
+        TestKind.VERIFY_TILT, hyp.attempt_id, -1, tilt, max_tilt, tilt <= max_tilt, hyp.alpha)
+
+
+def _test_interior(edges: _FaceEdges, hyp: _Hypothesis) -> tuple[bool, TestTable]:
+    """VERIFY_INTERIOR: no straight line of edge points crosses the interior."""
+    inside = edges.interior
+    line_count, line_p = _interior_line(edges.u[inside], edges.v[inside], hyp.width,
+                                        hyp.length, hyp.spacing, hyp.interior_margin)
+    min_line = float(MIN_LINE_POINTS)
+    line_ok = not (line_count >= min_line and line_p < hyp.alpha)
+    return line_ok, TestTable.decision(TestKind.VERIFY_INTERIOR, hyp.attempt_id, -1, line_count,
+                                       min_line, line_ok, hyp.alpha, p_value=line_p)
+
+
+def _test_boundary(edges: _FaceEdges, hyp: _Hypothesis, ctx: VerifyContext,
+                   support_fraction: float) -> tuple[_Sides, TestTable]:
+    """VERIFY_BOUNDARY: each side a significant line of convex edges (jump, convex crease,
+    groove), outnumbering the concave creases along it; all four covering the fraction p
+    of the perimeter (the paper's |P_f| > p, over all four sides)."""
+    u, v, band = edges.u, edges.v, hyp.band
+    width, length, spacing, mi = hyp.width, hyp.length, hyp.spacing, hyp.interior_margin
+    convex = edges.near_plane & np.isin(edges.kinds, (EdgeKind.JUMP, EdgeKind.CREASE_CONVEX,
+                                                      EdgeKind.GROOVE))
+    sides = (
+        (np.abs(v) <= band, u, width),
+        (np.abs(v - length) <= band, u, width),
+        (np.abs(u) <= band, v, length),
+        (np.abs(u - width) <= band, v, length),
+    )
+    # background: convex edge points scattered over the interior, per unit area
+    area_in = max((width - 2 * mi) * (length - 2 * mi), spacing * spacing)
+    density = float((convex & edges.interior).sum()) / area_in
+
+    def side_lines(kind_mask: np.ndarray) -> tuple[list[int], list[float]]:
+        counts, p_values = [], []
+        for near, along, L in sides:
+            sel = kind_mask & near & (along >= 0) & (along <= L)
+            # distinct positions along the side (one per spacing): coverage, not density
+            k_s = len(np.unique(np.floor(along[sel] / spacing).astype(np.int64)))
+            counts.append(k_s)
+            p_values.append(float(st.poisson.sf(k_s - 1, density * L * 2 * band))
+                            if k_s else 1.0)
+        return counts, p_values
+
+    covered, side_p = side_lines(convex)
+    # concave creases along a side: the face meets a wall rising from it (the pallet or a
+    # lower box beside a taller one), which a top face's side never does
+    concave, _ = side_lines(edges.near_plane & (edges.kinds == EdgeKind.CREASE_CONCAVE))
+    side_min = [max(MIN_LINE_POINTS, kc) for kc in concave]
+    corners = rectangle_corners(hyp.origin, hyp.x_axis, hyp.y_axis, width, length)
+    expected = [ctx.samples_along(corners[a], corners[b]) for a, b in SIDE_CORNERS]
+    ok = [(k >= kmin and pv < hyp.alpha) for k, kmin, pv in zip(covered, side_min, side_p)]
+    result = _Sides(covered, ok, expected)
+    frac = result.fraction()
+    return result, TestTable.decision(
+        TestKind.VERIFY_BOUNDARY, hyp.attempt_id, -1, np.r_[covered, frac],
+        np.r_[side_min, support_fraction], np.r_[ok, frac >= support_fraction], hyp.alpha,
+        p_value=np.r_[side_p, np.nan])
+
+
+def _test_seam_sides(fp: FacePoints, hyp: _Hypothesis, sides: _Sides,
+                     support_fraction: float) -> list[TestTable]:
+    """VERIFY_SEAM_SIDE: a side without its line of edges, or whose line covers too little,
+    is a boundary if it is a seam between touching faces along its whole length.
+
+    Completes ``sides`` (``ok``, ``covered``, ``seams``) with the seams found.
+    """
+    tests: list[TestTable] = []
+
+    def seams_along(tried: list[int]) -> None:
+        zz = np.array([_side_seam(fp, si, hyp.width, hyp.length, hyp.spacing, hyp.alpha)
+                       for si in tried])
+        for si, (zs, zc) in zip(tried, zz):
+            if zs > zc:
+                sides.seams.add(si)
+                sides.ok[si] = True
+                sides.covered[si] = int(sides.expected[si])
+        tests.append(TestTable.decision(TestKind.VERIFY_SEAM_SIDE, hyp.attempt_id, tried,
+                                        zz[:, 0], zz[:, 1], zz[:, 0] > zz[:, 1], hyp.alpha))
+
+    if not all(sides.ok) and len(fp):
+        seams_along([si for si in range(4) if not sides.ok[si]])
+    if (all(sides.ok) and len(fp)
+            and sum(sides.covered) < support_fraction * sum(sides.expected)):
+        # every side has its line, but together they cover too little of the perimeter:
+        # a side whose line is a few points of a seam between equal neighbours is covered
+        # by the seam along its whole length
+        seams_along([si for si in range(4) if si not in sides.seams])
+    return tests
+
+
+def _test_seam_interior(fp: FacePoints, hyp: _Hypothesis) -> tuple[bool, list[TestTable]]:
+    """VERIFY_SEAM_INTERIOR: no seam crosses the face (the points of the interior, binned
+    along x and along y). Returns (crossed, its row, if any points)."""
+    if not len(fp):
+        return False, []
+    mi, width, length = hyp.interior_margin, hyp.width, hyp.length
+    int_z, int_crit = [], []
+    for coord, other, lo_hi, ext in ((fp.u, fp.v, (mi, width - mi), length),
+                                     (fp.v, fp.u, (mi, length - mi), width)):
+        sel = (other >= mi) & (other <= ext - mi)
+        found = find_seams(coord[sel], fp.w[sel], fp.scale, lo_hi[0], lo_hi[1],
+                           hyp.spacing, hyp.alpha, fp.row[sel], fp.row_corr)
+        # the strongest groove anywhere inside, significant or not (NaN: none measurable)
+        int_z.append(found.z_max if np.isfinite(found.z_max) else np.nan)
+        int_crit.append(found.critical)
+    row = TestTable.decision(TestKind.VERIFY_SEAM_INTERIOR, hyp.attempt_id, [0, 1], int_z,
+                             int_crit, [not z > c for z, c in zip(int_z, int_crit)], hyp.alpha)
+    return any(z > c for z, c in zip(int_z, int_crit)), [row]
+
+
+def _test_continuation(ctx: VerifyContext, fp: FacePoints, hyp: _Hypothesis, fit: _FaceFit,
+                       sides: _Sides, min_inlier_fraction: float
+                       ) -> tuple[np.ndarray, np.ndarray, list[TestTable]]:
+    """VERIFY_CONTINUATION: the face ends at each side, its plane does not run on beyond,
+    unless the side is a seam or a gap between equal neighbours (a rectangle cut short
+    inside a face is not a face).
+
+    Returns
+    -------
+    ends : (4,) bool
+        The face ends at the side.
+    cut : (4,) bool
+        The side's strip leaves the image with too few points to test, and the side is no
+        seam: the face may run on out of sight.
+    rows : list of TestTable
+        VERIFY_SEAM_SIDE for the sides whose plane runs on, if any, then
+        VERIFY_CONTINUATION.
+    """
+    m = hyp.margin
+    cont, _, in_image = continuation(ctx, hyp.origin, hyp.x_axis, hyp.y_axis, hyp.width,
+                                     hyp.length, fit.centre, fit.normal, m, hyp.flank - m,
+                                     hyp.k)
+    continues = cont >= min_inlier_fraction
+    ends = ~continues
+    extra_seam: list[tuple[int, float, float]] = []
+    for si in np.flatnonzero(continues):
+        if si in sides.seams:
+            ends[si] = True
+            continue
+        # anywhere in the band where the side's boundary edges are counted
+        zs, zc = (_side_seam(fp, int(si), hyp.width, hyp.length, hyp.spacing, hyp.alpha,
+                             hyp.band, True) if len(fp) else (-np.inf, np.inf))
+        extra_seam.append((int(si), zs, zc))
+        ends[si] = zs > zc
+        if ends[si]:
+            sides.seams.add(int(si))
+    rows = []
+    if extra_seam:
+        es = np.array(extra_seam)
+        rows.append(TestTable.decision(TestKind.VERIFY_SEAM_SIDE, hyp.attempt_id,
+                                       es[:, 0].astype(int), es[:, 1], es[:, 2],
+                                       es[:, 1] > es[:, 2], hyp.alpha))
+    # a side whose strip leaves the image cannot show that the face ends there, unless
+    # the strip's part in the image has points enough to test or the side is a seam: the
+    # face may run on out of sight
+    cut = np.array([not in_image[si] and not np.isfinite(cont[si]) and si not in sides.seams
+                    for si in range(4)])
+    ends &= ~cut
+    rows.append(TestTable.decision(TestKind.VERIFY_CONTINUATION, hyp.attempt_id, [0, 1, 2, 3],
+                                   cont, min_inlier_fraction, ends, hyp.alpha))
+    return ends, cut, rows
+
+
+def _test_exposed(fit: _FaceFit, hyp: _Hypothesis) -> tuple[bool, TestTable]:
+    """VERIFY_EXPOSED: nothing rests on the face. Covered only if the points in front of
+    its plane outnumber those behind (sign test) and are more frequent than the noise
+    model puts there, over the core or in its busiest cell."""
+    alpha = hyp.alpha
+    n_front, n_behind = int(fit.front.sum()), int(fit.behind.sum())
+    m_out = n_front + n_behind
+    p_front = float(st.binom.sf(n_front - 1, m_out, 0.5)) if n_front else 1.0
+    # ... and more frequent than the noise model puts in front (alpha/2 of the points:
+    # z > k), so that a handful of stray points, with none behind, is no occluder
+    core = fit.core
+    n_core = int(core.sum())
+    p_rate = float(st.binom.sf(n_front - 1, n_core, alpha / 2)) if n_front else 1.0
+    # ... or, in one place (the corner of a box above, a few square centimetres), more
+    # frequent than that: the busiest cell of the core (cells of four border margins),
+    # Bonferroni over the cells
+    cell = 4.0 * hyp.margin
+    cid = (np.floor(fit.du[core] / cell) * 1e6 + np.floor(fit.dv[core] / cell)).astype(np.int64)
+    ids, inv = np.unique(cid, return_inverse=True)
+    n_cell = np.bincount(inv, minlength=len(ids))
+    f_cell = np.bincount(inv, weights=fit.front[core].astype(np.float64), minlength=len(ids))
+    n_cells = max(len(ids), 1)
+    if n_front:
+        p_cells = np.asarray(st.binom.sf(f_cell - 1, n_cell, alpha / 2))
+        c_best = int(np.argmin(np.where(f_cell > 0, p_cells, np.inf)))
+        p_local = float(min(p_cells[c_best] * n_cells, 1.0))
+        f_local, n_local = int(f_cell[c_best]), int(n_cell[c_best])
+    else:
+        p_local, f_local, n_local = 1.0, 0, int(n_cell.max()) if len(n_cell) else 0
+    exposed = p_front >= alpha or (p_rate >= alpha and p_local >= alpha)
+    return exposed, TestTable.decision(
+        TestKind.VERIFY_EXPOSED, hyp.attempt_id, [m_out, n_core, n_local],
+        [n_front, n_front, f_local],
+        [float(st.binom.isf(alpha, m_out, 0.5)) if m_out else 0.0,
+         float(st.binom.isf(alpha, n_core, alpha / 2)),
+         float(st.binom.isf(alpha / n_cells, n_local, alpha / 2))],
+        [p_front >= alpha, p_rate >= alpha, p_local >= alpha], alpha,
+        p_value=[p_front, p_rate, p_local])
+
+
+def _test_inliers(fit: _FaceFit, n_inside: int, hyp: _Hypothesis,
+                  min_inlier_fraction: float) -> tuple[float, TestTable]:
+    """VERIFY_INLIERS: the fraction of the pixels inside on the plane. Returns (it, row)."""
+    frac = int(fit.inliers.sum()) / max(n_inside, 1)
+    return frac, TestTable.decision(TestKind.VERIFY_INLIERS, hyp.attempt_id, n_inside, frac,
+                                    min_inlier_fraction, frac >= min_inlier_fraction, hyp.alpha)
+
+
+def _test_mean(fit: _FaceFit, hyp: _Hypothesis, flatness: float
+               ) -> tuple[float, float, TestTable]:
+    """VERIFY_MEAN: the inliers' mean distance to the rectangle's plane is zero within the
+    propagated uncertainty. Returns (the mean, its variance, m^2, row)."""
+    inl = fit.inliers
+    n_in = int(inl.sum())
+    if n_in >= 3:
+        mean = float(fit.offset[inl].mean())
+        dc = fit.points[inl].mean(0) - hyp.origin
+        # the face may depart from R's plane by the flatness prior as a whole (bulge)
+        s2_mean = float(fit.var[inl].mean() / n_in
+                        + plane_var(hyp.plane_cov, hyp.normal, dc[None])[0] + flatness**2)
+        T_mean = mean**2 / s2_mean
+    else:
+        mean, s2_mean, T_mean = np.nan, np.nan, np.inf
+    return mean, s2_mean, TestTable.chi2(TestKind.VERIFY_MEAN, hyp.attempt_id, n_in, T_mean,
+                                         1.0, hyp.alpha)
+
+
+# --- the face's points ---------------------------------------------------------------------
+
+
+def _fit_face(ctx: VerifyContext, hyp: _Hypothesis, rows: np.ndarray, cols: np.ndarray,
+              flatness: float) -> _FaceFit | None:
+    """The points at valid pixels (rows, cols) inside the rectangle, against its plane and
+    against the plane refitted to them; None if fewer than 3 lie on the rectangle's."""
+    k, m, normal = hyp.k, hyp.margin, hyp.normal
+    P = ctx.points[rows, cols]
+    D = P - hyp.origin
+    w0 = D @ normal
+    # each point's noise along the normal; the flatness prior covers cardboard bulge
+    var_pt = ctx.var_along(rows, cols, normal) + flatness**2
+    # 1) points on the plane of R, with R's own uncertainty
+    var_pl = plane_var(hyp.plane_cov, normal, D)
+    on0 = np.abs(w0) <= k * np.sqrt(var_pt + var_pl)
+    if on0.sum() < 3:
+        return None
+    # 2) the face's plane refitted to them, with covariance
+    Q = P[on0]
+    c = Q.mean(0)
+    lam, V = np.linalg.eigh((Q - c).T @ (Q - c))
+    nf = V[:, 0] if V[:, 0] @ normal > 0 else -V[:, 0]
+    # 3) inliers, front and behind against the refitted plane (point noise only)
+    z = ((P - c) @ nf) / np.sqrt(var_pt)
+    inl = np.abs(z) <= k
+    # front and behind count in the core only, beyond twice the border margin: next to
+    # a jump edge structured-light sensors pull the points toward the sensor by up to a
+    # centimetre, a few pixels further in than the margin; an occluder resting on the
+    # face reaches into the core (a strip of a face hidden by a taller neighbour is
+    # wider than those pixels)
+    du, dv = D @ hyp.x_axis, D @ hyp.y_axis
+    mc = 2.0 * m
+    core = (du > mc) & (du < hyp.width - mc) & (dv > mc) & (dv < hyp.length - mc)
+    if not core.any():
+        core[:] = True
+    n_in = int(inl.sum())
+    s2 = float(max(lam[0] / max(int(on0.sum()) - 3, 1), np.median(var_pt[on0])))
+    cov = np.zeros((6, 6))
+    cov[:3, :3] = s2 / max(n_in, 1) * np.eye(3)
+    cov[3:, 3:] = s2 * (np.outer(V[:, 1], V[:, 1]) / max(lam[1], 1e-12)
+                        + np.outer(V[:, 2], V[:, 2]) / max(lam[2], 1e-12))
+    rms = float(np.sqrt(np.mean(((P[inl] - c) @ nf) ** 2))) if n_in else np.nan
+    return _FaceFit(rows=rows, cols=cols, points=P, offset=w0, var=var_pt, centre=c, normal=nf,
+                    cov=cov, z=z, inliers=inl, core=core, front=(z > k) & core,
+                    behind=(z < -k) & core, du=du, dv=dv, rms=rms,
+                    error=float((z[inl] ** 2).sum()))
+
+
+def _failed(reason: VerifyReason, tests: list[TestTable], alpha: float, *, n_inside: int = 0,
+            n_valid: int = 0, n_interior_edges: int = 0) -> VerifyOutcome:
+    """The outcome of a rectangle rejected before its plane was refitted."""
+    return VerifyOutcome(
+        n_inside=n_inside, n_valid=n_valid, n_inliers=0, n_front=0, n_behind=0,
+        inlier_fraction=0.0, mean_distance=np.nan, sigma_mean=np.nan,
+        n_interior_edges=n_interior_edges, plane_center=np.full(3, np.nan),
+        plane_normal=np.full(3, np.nan), plane_cov=np.full((6, 6), np.nan), rms=np.nan,
+        error=np.nan, accepted=False, reason=reason, inlier_pixels=np.zeros(0, np.int32),
+        tests=TestTable.concat(tests, alpha),
+    )
+
+
 def verify(
     scan: Scan,
     ctx: VerifyContext,
@@ -416,6 +835,12 @@ def verify(
     attempt_id: int,
 ) -> VerifyOutcome:
     """Verify one rectangle hypothesis by the range points inside it.
+
+    The tests run cheapest first, each stopping the verification when it fails: the tilt;
+    on the edge points, the interior and the boundary (completed by seams); on the range
+    points around the rectangle, the seams inside; then, on the points inside, exposure,
+    inliers, their mean, and whether the face's plane runs on beyond its sides (which
+    needs the plane refitted to those points). Every test made is recorded.
 
     Parameters
     ----------
@@ -432,303 +857,79 @@ def verify(
     -------
     VerifyOutcome
     """
-    alpha = config.alpha
-    chi1 = chi2_critical(1.0, alpha)
-    k = float(np.sqrt(chi1))
-    centre = origin + 0.5 * width * x_axis + 0.5 * length * y_axis
-    spacing = ctx.spacing_at(centre)
-    m = 2.0 * spacing  # border margin: the bevel and mixed pixels of the edge itself
+    hyp = _hypothesis(ctx, origin, x_axis, y_axis, normal, width, length, plane_cov, config,
+                      attempt_id)
+    alpha, m = hyp.alpha, hyp.margin
     tests: list[TestTable] = []
 
-    def fail(reason: VerifyReason, **kw: object) -> VerifyOutcome:
-        base = dict(
-            n_inside=0, n_valid=0, n_inliers=0, n_front=0, n_behind=0, inlier_fraction=0.0,
-            mean_distance=np.nan, sigma_mean=np.nan, n_interior_edges=0,
-            plane_center=np.full(3, np.nan), plane_normal=np.full(3, np.nan),
-            plane_cov=np.full((6, 6), np.nan), rms=np.nan, error=np.nan, accepted=False,
-            reason=reason, inlier_pixels=np.zeros(0, np.int32),
-            tests=TestTable.concat(tests, alpha),
-        )
-        base.update(kw)
-        return VerifyOutcome(**base)  # type: ignore[arg-type]
-
-    tilt = float(np.arccos(np.clip(normal @ ctx.up, -1, 1)))
-    tests.append(TestTable.decision(TestKind.VERIFY_TILT, attempt_id, -1, tilt, config.max_tilt,
-                                    tilt <= config.max_tilt, alpha))
-    if tilt > config.max_tilt:
-        return fail(VerifyReason.TILTED)
+    tilted, row = _test_tilt(hyp, ctx.up, config.max_tilt)
+    tests.append(row)
+    if tilted:
+        return _failed(VerifyReason.TILTED, tests, alpha)
     if width <= 2 * m or length <= 2 * m:
-        return fail(VerifyReason.TOO_FEW_POINTS)
-    # cheap tests first, on the edge points (no rasterization): interior and boundary
-    # edge points near the face's plane, in the rectangle's frame
-    E = ctx.edge_points - origin
-    eu, ev = E @ x_axis, E @ y_axis
-    # every edge test below looks at most a side's band beyond the rectangle: the rest of
-    # the scan's edge points need no plane test
-    band = 1.5 * m
-    reach = (eu >= -band) & (eu <= width + band) & (ev >= -band) & (ev <= length + band)
-    E, eu, ev = E[reach], eu[reach], ev[reach]
-    edge_kinds = ctx.edge_kinds[reach]
-    ew = E @ normal
-    sig_e = face_sigma(config, centre)
-    # a face's boundary, seam and crossing edges lie on its plane (a jump point is placed
-    # half a sample beyond the face's last point, hence the spacing)
-    # ... and the rectangle's own plane is uncertain: a small error of its normal moves
-    # the far sides' edges off it by the error times their distance from the vertex
-    near_plane = np.abs(ew) <= k * np.sqrt(sig_e**2 + plane_var(plane_cov, normal, E)) + spacing
-    # interior edges: strictly inside, beyond the band where the boundary's own edges lie
-    # (rounded or bevelled cardboard gives a second, parallel edge a few mm inside)
-    mi = max(m, BOUNDARY_BAND * config.min_edge)
-    inside_e = near_plane & (eu > mi) & (eu < width - mi) & (ev > mi) & (ev < length - mi)
-    n_int = int(inside_e.sum())
-    line_count, line_p = _interior_line(eu[inside_e], ev[inside_e], width, length, spacing,
-                                        mi)
-    min_line = float(MIN_LINE_POINTS)
-    line_ok = not (line_count >= min_line and line_p < alpha)
-    tests.append(TestTable.decision(TestKind.VERIFY_INTERIOR, attempt_id, -1, line_count,
-                                    min_line, line_ok, alpha, p_value=line_p))
-    # boundary: every side covered by convex edge evidence (jump, convex crease, groove)
-    convex = near_plane & np.isin(edge_kinds, (EdgeKind.JUMP, EdgeKind.CREASE_CONVEX,
-                                               EdgeKind.GROOVE))
-    sides = (
-        (np.abs(ev) <= band, eu, width),
-        (np.abs(ev - length) <= band, eu, width),
-        (np.abs(eu) <= band, ev, length),
-        (np.abs(eu - width) <= band, ev, length),
-    )
-    # background: convex edge points scattered over the interior, per unit area
-    area_in = max((width - 2 * mi) * (length - 2 * mi), spacing * spacing)
-    density = float((convex & inside_e).sum()) / area_in
-
-    def side_lines(kind_mask: np.ndarray, dens: float) -> tuple[list[int], list[float]]:
-        cov_, p_ = [], []
-        for near, along, L in sides:
-            sel = kind_mask & near & (along >= 0) & (along <= L)
-            # distinct positions along the side (one per spacing): coverage, not density
-            k_s = len(np.unique(np.floor(along[sel] / spacing).astype(np.int64)))
-            cov_.append(k_s)
-            p_.append(float(st.poisson.sf(k_s - 1, dens * L * 2 * band)) if k_s else 1.0)
-        return cov_, p_
-
-    covered, side_p = side_lines(convex, density)
-    # concave creases along a side: the face meets a wall rising from it (the pallet or a
-    # lower box beside a taller one), which a top face's side never does
-    concave, _ = side_lines(near_plane & (edge_kinds == EdgeKind.CREASE_CONCAVE), density)
-    side_min = [max(MIN_LINE_POINTS, kc) for kc in concave]
-    corners = rectangle_corners(origin, x_axis, y_axis, width, length)
-    side_n = [ctx.samples_along(corners[a], corners[b]) for a, b in SIDE_CORNERS]
-    # each side a significant line of boundary edges, outnumbering any concave ones; all
-    # sides together covering the fraction p of the perimeter (the paper's |P_f| > p, over
-    # all four sides)
-    side_ok = [(k >= kmin and pv < alpha) for k, kmin, pv in zip(covered, side_min, side_p)]
-    frac = float(sum(covered) / sum(side_n))
-    bound_ok = all(side_ok) and frac >= config.support_fraction
-    tests.append(TestTable.decision(TestKind.VERIFY_BOUNDARY, attempt_id, -1,
-                                    np.r_[covered, frac], np.r_[side_min,
-                                                                config.support_fraction],
-                                    np.r_[side_ok, frac >= config.support_fraction], alpha,
-                                    p_value=np.r_[side_p, np.nan]))
-
+        return _failed(VerifyReason.TOO_FEW_POINTS, tests, alpha)
+    # cheap tests first, on the edge points (no rasterization)
+    edges = _face_edges(ctx, hyp, config)
+    n_int = int(edges.interior.sum())
+    line_ok, row = _test_interior(edges, hyp)
+    tests.append(row)
+    sides, row = _test_boundary(edges, hyp, ctx, config.support_fraction)
+    tests.append(row)
     if not line_ok:
-        return fail(VerifyReason.INTERIOR_EDGES, n_interior_edges=n_int)
+        return _failed(VerifyReason.INTERIOR_EDGES, tests, alpha, n_interior_edges=n_int)
 
     # seams, from the range points of the rectangle and a margin around it (the flanks)
-    B = (SEAM_FLANK[1] + 1.0) * spacing
+    B = hyp.flank
     fp = face_points(ctx.points, ctx.valid, ctx.sigma, ctx.project, origin, x_axis, y_axis,
-                     normal, (-B, width + B), (-B, length + B), spacing, alpha,
+                     normal, (-B, width + B), (-B, length + B), hyp.spacing, alpha,
                      config.noise.row_corr)
-    seam_sides: set[int] = set()  # sides shown to be seams (or gaps), here or below
+    tests += _test_seam_sides(fp, hyp, sides, config.support_fraction)
+    crossed, rows = _test_seam_interior(fp, hyp)
+    tests += rows
+    if crossed:
+        return _failed(VerifyReason.INTERIOR_SEAM, tests, alpha, n_interior_edges=n_int)
+    if not sides.bound(config.support_fraction):
+        return _failed(VerifyReason.BOUNDARY, tests, alpha, n_interior_edges=n_int)
 
-    def seams_along(tried: list[int]) -> None:
-        """Test the tried sides for a seam; a seam is a boundary along the whole side."""
-        zz = np.array([_side_seam(fp, si, width, length, spacing, alpha) for si in tried])
-        for si, (zs, zc) in zip(tried, zz):
-            if zs > zc:
-                seam_sides.add(si)
-                side_ok[si] = True
-                covered[si] = int(side_n[si])
-        tests.append(TestTable.decision(TestKind.VERIFY_SEAM_SIDE, attempt_id, tried,
-                                        zz[:, 0], zz[:, 1], zz[:, 0] > zz[:, 1], alpha))
-
-    if not all(side_ok) and len(fp):
-        seams_along([si for si in range(4) if not side_ok[si]])
-    if all(side_ok) and len(fp) and sum(covered) < config.support_fraction * sum(side_n):
-        # every side has its line, but together they cover too little of the perimeter:
-        # a side whose line is a few points of a seam between equal neighbours is covered
-        # by the seam along its whole length
-        seams_along([si for si in range(4) if si not in seam_sides])
-    frac = float(sum(covered) / sum(side_n))
-    bound_ok = all(side_ok) and frac >= config.support_fraction
-    # no seam inside: the points of the interior, binned along x and along y
-    int_z, int_crit = [], []
-    if len(fp):
-        for coord, other, lo_hi, ext in ((fp.u, fp.v, (mi, width - mi), length),
-                                         (fp.v, fp.u, (mi, length - mi), width)):
-            sel = (other >= mi) & (other <= ext - mi)
-            found = find_seams(coord[sel], fp.w[sel], fp.scale, lo_hi[0], lo_hi[1],
-                               spacing, alpha, fp.row[sel], fp.row_corr)
-            # the strongest groove anywhere inside, significant or not (NaN: none measurable)
-            int_z.append(found.z_max if np.isfinite(found.z_max) else np.nan)
-            int_crit.append(found.critical)
-        tests.append(TestTable.decision(TestKind.VERIFY_SEAM_INTERIOR, attempt_id, [0, 1],
-                                        int_z, int_crit,
-                                        [not z > c for z, c in zip(int_z, int_crit)], alpha))
-    if any(z > c for z, c in zip(int_z, int_crit)):
-        return fail(VerifyReason.INTERIOR_SEAM, n_interior_edges=n_int)
-    if not bound_ok:
-        return fail(VerifyReason.BOUNDARY, n_interior_edges=n_int)
-
-    inner = rectangle_corners(origin + m * x_axis + m * y_axis, x_axis, y_axis,
-                              width - 2 * m, length - 2 * m)
-    ras = rasterize(scan, inner)
+    # the points inside the rectangle shrunk by the border margin
+    ras = rasterize(scan, rectangle_corners(origin + m * x_axis + m * y_axis, x_axis, y_axis,
+                                            width - 2 * m, length - 2 * m))
     if ras is None:
-        return fail(VerifyReason.OUTSIDE_IMAGE)
-    rr, cc = ras
-    n_inside = len(rr)
-    valid = ctx.valid[rr, cc]
-    rv, cv = rr[valid], cc[valid]
+        return _failed(VerifyReason.OUTSIDE_IMAGE, tests, alpha)
+    n_inside = len(ras[0])
+    valid = ctx.valid[ras]
+    rv, cv = ras[0][valid], ras[1][valid]
     n_valid = len(rv)
     if n_valid < 3:
-        return fail(VerifyReason.TOO_FEW_POINTS, n_inside=n_inside, n_valid=n_valid)
-    P = ctx.points[rv, cv]
-    D = P - origin
-    w0 = D @ normal
-    # each point's noise along the normal; the flatness prior covers cardboard bulge
-    var_pt = ctx.var_along(rv, cv, normal) + config.flatness**2
-    # 1) points on the plane of R, with R's own uncertainty
-    var_pl = plane_var(plane_cov, normal, D)
-    on0 = np.abs(w0) <= k * np.sqrt(var_pt + var_pl)
-    if on0.sum() < 3:
-        return fail(VerifyReason.INLIERS, n_inside=n_inside, n_valid=n_valid)
-    # 2) the face's plane refitted to them, with covariance
-    Q = P[on0]
-    c = Q.mean(0)
-    lam, V = np.linalg.eigh((Q - c).T @ (Q - c))
-    nf = V[:, 0] if V[:, 0] @ normal > 0 else -V[:, 0]
-    # 3) inliers, front and behind against the refitted plane (point noise only)
-    z = ((P - c) @ nf) / np.sqrt(var_pt)
-    inl = np.abs(z) <= k
-    # front and behind count in the core only, beyond twice the border margin: next to
-    # a jump edge structured-light sensors pull the points toward the sensor by up to a
-    # centimetre, a few pixels further in than the margin; an occluder resting on the
-    # face reaches into the core (a strip of a face hidden by a taller neighbour is
-    # wider than those pixels)
-    du, dv = D @ x_axis, D @ y_axis
-    mc = 2.0 * m
-    core = (du > mc) & (du < width - mc) & (dv > mc) & (dv < length - mc)
-    if not core.any():
-        core[:] = True
-    front = (z > k) & core
-    behind = (z < -k) & core
-    n_in, n_front, n_behind = int(inl.sum()), int(front.sum()), int(behind.sum())
-    s2 = float(max(lam[0] / max(int(on0.sum()) - 3, 1), np.median(var_pt[on0])))
-    cov = np.zeros((6, 6))
-    cov[:3, :3] = s2 / max(n_in, 1) * np.eye(3)
-    cov[3:, 3:] = s2 * (np.outer(V[:, 1], V[:, 1]) / max(lam[1], 1e-12)
-                        + np.outer(V[:, 2], V[:, 2]) / max(lam[2], 1e-12))
-    rms = float(np.sqrt(np.mean(((P[inl] - c) @ nf) ** 2))) if n_in else np.nan
-    err = float((z[inl] ** 2).sum())
+        return _failed(VerifyReason.TOO_FEW_POINTS, tests, alpha, n_inside=n_inside,
+                       n_valid=n_valid)
+    fit = _fit_face(ctx, hyp, rv, cv, config.flatness)
+    if fit is None:
+        return _failed(VerifyReason.INLIERS, tests, alpha, n_inside=n_inside, n_valid=n_valid)
 
-    # exposed: a sign test, front vs behind outliers
-    m_out = n_front + n_behind
-    p_front = float(st.binom.sf(n_front - 1, m_out, 0.5)) if n_front else 1.0
-    # ... and more frequent than the noise model puts in front (alpha/2 of the points:
-    # z > k), so that a handful of stray points, with none behind, is no occluder
-    n_core = int(core.sum())
-    p_rate = float(st.binom.sf(n_front - 1, n_core, alpha / 2)) if n_front else 1.0
-    # ... or, in one place (the corner of a box above, a few square centimetres), more
-    # frequent than that: the busiest cell of the core (cells of four border margins),
-    # Bonferroni over the cells
-    cell = 4.0 * m
-    cid = (np.floor(du[core] / cell) * 1e6 + np.floor(dv[core] / cell)).astype(np.int64)
-    ids, inv = np.unique(cid, return_inverse=True)
-    n_cell = np.bincount(inv, minlength=len(ids))
-    f_cell = np.bincount(inv, weights=front[core].astype(np.float64), minlength=len(ids))
-    n_cells = max(len(ids), 1)
-    if n_front:
-        p_cells = np.asarray(st.binom.sf(f_cell - 1, n_cell, alpha / 2))
-        c_best = int(np.argmin(np.where(f_cell > 0, p_cells, np.inf)))
-        p_local = float(min(p_cells[c_best] * n_cells, 1.0))
-        f_local, n_local = int(f_cell[c_best]), int(n_cell[c_best])
-    else:
-        p_local, f_local, n_local = 1.0, 0, int(n_cell.max()) if len(n_cell) else 0
-    exposed = p_front >= alpha or (p_rate >= alpha and p_local >= alpha)
-    tests.append(TestTable.decision(
-        TestKind.VERIFY_EXPOSED, attempt_id, [m_out, n_core, n_local],
-        [n_front, n_front, f_local],
-        [float(st.binom.isf(alpha, m_out, 0.5)) if m_out else 0.0,
-         float(st.binom.isf(alpha, n_core, alpha / 2)),
-         float(st.binom.isf(alpha / n_cells, n_local, alpha / 2))],
-        [p_front >= alpha, p_rate >= alpha, p_local >= alpha], alpha,
-        p_value=[p_front, p_rate, p_local]))
-    frac = n_in / max(n_inside, 1)
-    tests.append(TestTable.decision(TestKind.VERIFY_INLIERS, attempt_id, n_inside, frac,
-                                    config.min_inlier_fraction,
-                                    frac >= config.min_inlier_fraction, alpha))
-    # mean distance of the inliers to R's plane: zero within the propagated uncertainty
-    if n_in >= 3:
-        wi = w0[inl]
-        mean = float(wi.mean())
-        dc = P[inl].mean(0) - origin
-        # the face may depart from R's plane by the flatness prior as a whole (bulge)
-        s2_mean = float(var_pt[inl].mean() / n_in + plane_var(plane_cov, normal, dc[None])[0]
-                        + config.flatness**2)
-        T_mean = mean**2 / s2_mean
-    else:
-        mean, s2_mean, T_mean = np.nan, np.nan, np.inf
-    mean_t = TestTable.chi2(TestKind.VERIFY_MEAN, attempt_id, n_in, T_mean, 1.0, alpha)
+    exposed, row = _test_exposed(fit, hyp)
+    tests.append(row)
+    frac, row = _test_inliers(fit, n_inside, hyp, config.min_inlier_fraction)
+    tests.append(row)
+    mean, s2_mean, mean_t = _test_mean(fit, hyp, config.flatness)
     tests.append(mean_t)
-    # the face ends at each side: its plane does not continue beyond, unless the side is a
-    # seam with an equal neighbour (a rectangle cut short inside a face is not a face)
-    cont, _, in_image = continuation(ctx, origin, x_axis, y_axis, width, length, c, nf, m,
-                                     B - m, k)
-    continues = cont >= config.min_inlier_fraction
-    ends = ~continues
-    extra_seam: list[tuple[int, float, float]] = []
-    for si in np.flatnonzero(continues):
-        if si in seam_sides:
-            ends[si] = True
-            continue
-        # anywhere in the band where the side's boundary edges are counted
-        zs, zc = (_side_seam(fp, int(si), width, length, spacing, alpha, band, True) if len(fp)
-                  else (-np.inf, np.inf))
-        extra_seam.append((int(si), zs, zc))
-        ends[si] = zs > zc
-        if ends[si]:
-            seam_sides.add(int(si))
-    if extra_seam:
-        es = np.array(extra_seam)
-        tests.append(TestTable.decision(TestKind.VERIFY_SEAM_SIDE, attempt_id,
-                                        es[:, 0].astype(int), es[:, 1], es[:, 2],
-                                        es[:, 1] > es[:, 2], alpha))
-    # a side whose strip leaves the image cannot show that the face ends there, unless
-    # the strip's part in the image has points enough to test or the side is a seam: the
-    # face may run on out of sight
-    cut = np.array([not in_image[si] and not np.isfinite(cont[si]) and si not in seam_sides
-                    for si in range(4)])
-    ends &= ~cut
-    tests.append(TestTable.decision(TestKind.VERIFY_CONTINUATION, attempt_id, [0, 1, 2, 3],
-                                    cont, config.min_inlier_fraction, ends, alpha))
+    ends, cut, rows = _test_continuation(ctx, fp, hyp, fit, sides, config.min_inlier_fraction)
+    tests += rows
 
-    if not exposed:
-        reason = VerifyReason.NOT_EXPOSED
-    elif frac < config.min_inlier_fraction:
-        reason = VerifyReason.INLIERS
-    elif not bool(mean_t.accepted[0]):
-        reason = VerifyReason.MEAN_OFFSET
-    elif not (ends | cut).all():
-        reason = VerifyReason.CONTINUES
-    elif cut.any():
-        reason = VerifyReason.OUTSIDE_IMAGE
-    else:
-        reason = VerifyReason.ACCEPTED
-    H, W = scan.shape
+    reason = (VerifyReason.NOT_EXPOSED if not exposed
+              else VerifyReason.INLIERS if frac < config.min_inlier_fraction
+              else VerifyReason.MEAN_OFFSET if not bool(mean_t.accepted[0])
+              else VerifyReason.CONTINUES if not (ends | cut).all()
+              else VerifyReason.OUTSIDE_IMAGE if cut.any()
+              else VerifyReason.ACCEPTED)  # the first test failed, in that order
+    inl = fit.inliers
+    W = scan.shape[1]
     return VerifyOutcome(
-        n_inside=n_inside, n_valid=n_valid, n_inliers=n_in, n_front=n_front,
-        n_behind=n_behind, inlier_fraction=frac, mean_distance=mean,
-        sigma_mean=float(np.sqrt(s2_mean)) if np.isfinite(s2_mean) else np.nan,
-        n_interior_edges=n_int, plane_center=c, plane_normal=nf, plane_cov=cov, rms=rms,
-        error=err, accepted=reason == VerifyReason.ACCEPTED, reason=reason,
-        inlier_pixels=(rv[inl] * W + cv[inl]).astype(np.int32),
+        n_inside=n_inside, n_valid=n_valid, n_inliers=int(inl.sum()),
+        n_front=int(fit.front.sum()), n_behind=int(fit.behind.sum()), inlier_fraction=frac,
+        mean_distance=mean, sigma_mean=float(np.sqrt(s2_mean)) if np.isfinite(s2_mean) else np.nan,
+        n_interior_edges=n_int, plane_center=fit.centre, plane_normal=fit.normal,
+        plane_cov=fit.cov, rms=fit.rms, error=fit.error, accepted=reason == VerifyReason.ACCEPTED,
+        reason=reason, inlier_pixels=(rv[inl] * W + cv[inl]).astype(np.int32),
         tests=TestTable.concat(tests, alpha),
     )
