@@ -903,7 +903,7 @@ def _failure_text(err: Mapping[str, Any] | None) -> str | None:
            f"{err.get('message', '')}".rstrip(": ")
 
 
-class _Scan:
+class _ScanComparison:
     """Builds the :class:`ScanDiff` of one pair of scan records."""
 
     def __init__(self, log: str, a: Any, b: Any, tol: Tolerances,
@@ -1128,7 +1128,7 @@ def diff_scans(a: Any, b: Any, tolerances: Tolerances | None = None, *, log: str
         The scan's ground truth (:func:`truth_for_scan`).
     """
     tol = tolerances or load_tolerances()
-    return _Scan(log, a, b, tol, outcomes or {}, truth).run()
+    return _ScanComparison(log, a, b, tol, outcomes or {}, truth).run()
 
 
 # --- logs and directories --------------------------------------------------------------------

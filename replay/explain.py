@@ -111,14 +111,14 @@ class _Ctx:
     config: Config
 
     def __post_init__(self) -> None:
-        p = self.rec.products
-        self.edges = p.get("edges")
-        self.lines = p.get("lines")
-        self.vertices = p.get("vertices")
-        self.hyps = p.get("hypotheses")
-        self.ver = p.get("verification")
-        self.sel = p.get("selection")
-        self.surf = p.get("surfaces")
+        products = self.rec.products
+        self.edges = products.get("edges")
+        self.lines = products.get("lines")
+        self.vertices = products.get("vertices")
+        self.hypotheses = products.get("hypotheses")
+        self.verification = products.get("verification")
+        self.selection = products.get("selection")
+        self.surfaces = products.get("surfaces")
         self.scan = self.rec.scan
 
     # -- entities --
@@ -159,10 +159,10 @@ class _Ctx:
         }
 
     def attempts_of(self, h: int) -> list[int]:
-        return [int(j) for j in np.flatnonzero(self.hyps.att_hypothesis == h)]
+        return [int(j) for j in np.flatnonzero(self.hypotheses.att_hypothesis == h)]
 
     def attempt(self, j: int) -> dict[str, Any]:
-        H = self.hyps
+        H = self.hypotheses
         src = DimensionSource(int(H.att_source[j]))
         d: dict[str, Any] = {
             "id": j, "hypothesis": int(H.att_hypothesis[j]), "source": src.name,
@@ -172,7 +172,7 @@ class _Ctx:
             "support": float(H.att_support[j]), "threshold": float(H.att_threshold[j]),
             "verified": bool(H.att_verified[j]),
         }
-        V = self.ver
+        V = self.verification
         if V is not None and j < len(V):
             reason = VerifyReason(int(V.reason[j]))
             tests = _tests(V.tests, [k for k in TestKind if k >= TestKind.VERIFY_INLIERS
@@ -199,21 +199,21 @@ class _Ctx:
                 "n_interior_edges": int(V.n_interior_edges[j]), "rms_mm": _mm(V.rms[j]),
                 "tests": tests,
             }
-        if self.sel is not None:
-            k = np.flatnonzero(self.sel.candidates == j)
+        if self.selection is not None:
+            k = np.flatnonzero(self.selection.candidates == j)
             if k.size:
-                d["selection"] = self.selection(int(k[0]), brief=True)
+                d["selection"] = self.candidate(int(k[0]), brief=True)
         return d
 
     def surface_of_attempt(self, j: int) -> int | None:
-        if self.surf is None:
+        if self.surfaces is None:
             return None
-        k = np.flatnonzero(self.surf.attempt == j)
+        k = np.flatnonzero(self.surfaces.attempt == j)
         return int(k[0]) if k.size else None
 
-    def selection(self, k: int, *, brief: bool = False) -> dict[str, Any]:
+    def candidate(self, k: int, *, brief: bool = False) -> dict[str, Any]:
         """Candidate k of the MDL selection: its terms, its fate, its competitors."""
-        S = self.sel
+        S = self.selection
         j = int(S.candidates[k])
         order = [int(x) for x in S.order]
         d: dict[str, Any] = {
@@ -252,7 +252,7 @@ class _Ctx:
 
     def dimensions(self, h: int, j: int | None) -> dict[str, Any]:
         """Where hypothesis h's dimensions (of attempt j, if any) came from."""
-        H = self.hyps
+        H = self.hypotheses
         t = H.tests
         diag_tests = _tests(t, [TestKind.COPLANAR, TestKind.PARALLEL,
                                 TestKind.FIRST_QUADRANT], a=h)
@@ -304,7 +304,7 @@ class _Ctx:
         return d
 
     def hypothesis(self, h: int, focus: int | None = None) -> dict[str, Any]:
-        H = self.hyps
+        H = self.hypotheses
         kept = int(H.attempt[h])
         j = focus if focus is not None else (kept if kept >= 0 else None)
         atts = self.attempts_of(h)
@@ -318,7 +318,7 @@ class _Ctx:
         }
 
     def surface(self, k: int) -> dict[str, Any]:
-        S = self.surf
+        S = self.surfaces
         if S is None:
             raise InputError(f"scan {self.scan.index} has no surfaces (its pipeline stopped: "
                              f"{(self.rec.error or {}).get('message', 'incomplete')})")
@@ -326,7 +326,7 @@ class _Ctx:
             raise InputError(f"scan {self.scan.index} has {len(S)} surface(s); no surface {k}"
                              + (" (ids are 0-based)" if len(S) else ""))
         h, j = int(S.hypothesis[k]), int(S.attempt[k])
-        kk = np.flatnonzero(self.sel.candidates == j)
+        kk = np.flatnonzero(self.selection.candidates == j)
         return {
             "surface": k, "pick_order": int(S.pick_order[k]), "center": _vec(S.centers[k]),
             "normal": _vec(S.normals[k]), "width_mm": _mm(S.width[k]),
@@ -335,7 +335,7 @@ class _Ctx:
             "bulge_mm": _mm(S.bulge[k]),
             "tests": _tests(S.tests, [TestKind.SURFACE_BULGE], a=j),
             "hypothesis": self.hypothesis(h, focus=j), "attempt": j,
-            "selection": self.selection(int(kk[0])) if kk.size else None,
+            "selection": self.candidate(int(kk[0])) if kk.size else None,
         }
 
 
@@ -451,7 +451,7 @@ def _extent_mm(ctx: _Ctx, mask: np.ndarray) -> list[float | None]:
 
 def _contains(ctx: _Ctx, P: np.ndarray) -> list[dict[str, Any]]:
     """Attempts whose rectangle contains P (in its plane, within half the shortest box edge)."""
-    H = ctx.hyps
+    H = ctx.hypotheses
     out = []
     tol_w = 0.5 * ctx.config.min_edge  # a box top is never closer than this to another's
     for j in range(H.n_attempts):
@@ -492,7 +492,7 @@ def explain_at(ctx: _Ctx, at: Any) -> dict[str, Any]:
     out["region"] = {"n_pixels": n_region, "n_boundary_edges": int(bound.size),
                      "boundary_edge_kinds": kinds, "extent_mm": _extent_mm(ctx, mask)}
     # everything whose rectangle contains the point, whatever generated it
-    contain = _contains(ctx, P) if ctx.hyps is not None else []
+    contain = _contains(ctx, P) if ctx.hypotheses is not None else []
     out["containing_attempts"] = contain[:MAX_ITEMS]
     out["n_containing_attempts"] = len(contain)
     chosen = [c for c in contain if ctx.surface_of_attempt(c["attempt"]) is not None]
@@ -500,10 +500,10 @@ def explain_at(ctx: _Ctx, at: Any) -> dict[str, Any]:
         k = ctx.surface_of_attempt(chosen[0]["attempt"])
         assert k is not None
         out.update(stopped_at="chosen", surface=k,
-                   why=f"surface #{k} (pick {int(ctx.surf.pick_order[k])}) contains this point",
+                   why=f"surface #{k} (pick {int(ctx.surfaces.pick_order[k])}) contains this point",
                    explanation=ctx.surface(k))
         return out
-    verified = [c for c in contain if bool(ctx.hyps.att_verified[c["attempt"]])]
+    verified = [c for c in contain if bool(ctx.hypotheses.att_verified[c["attempt"]])]
     if verified:
         j = verified[0]["attempt"]
         a = ctx.attempt(j)
@@ -590,8 +590,8 @@ def explain_at(ctx: _Ctx, at: Any) -> dict[str, Any]:
         out.update(stopped_at="vertices", why=why)
         return out
     out["vertices"] = [ctx.vertex(v) for v in vids[:MAX_ITEMS]]
-    hyps = [int(h) for h in np.flatnonzero(np.isin(ctx.hyps.vertex, vids))] \
-        if ctx.hyps is not None else []
+    hyps = [int(h) for h in np.flatnonzero(np.isin(ctx.hypotheses.vertex, vids))] \
+        if ctx.hypotheses is not None else []
     out["hypotheses"] = [ctx.hypothesis(h) for h in hyps[:MAX_ITEMS]]
     parts = []
     for hd in out["hypotheses"][:4]:
@@ -664,7 +664,7 @@ def explain(log: Any, scan: int, surface: int | None = None, at: Any = None,
     lg = log if isinstance(log, Log) else open_log(os.fspath(log), allow_truncated=True)
     rec = lg.scan(int(scan))
     ctx = _Ctx(str(lg.path), rec, lg.config or Config())
-    S = ctx.surf
+    S = ctx.surfaces
     out: dict[str, Any] = {
         "log": str(lg.path), "scan": int(scan), "alpha": ctx.config.alpha,
         "n_surfaces": None if S is None else len(S),
@@ -723,7 +723,8 @@ def _test_text(t: dict[str, Any] | None) -> str:
             f"{_num(t['critical'])}{tail}: {verdict}")
 
 
-def _p(v: list[Any] | None) -> str:
+def _point_text(v: list[Any] | None) -> str:
+    """A recorded point as ``(+x, +y, +z) m``; "n/a" when it was not recorded."""
     if not v:
         return "n/a"
     return "(" + ", ".join("n/a" if x is None else f"{x:+.3f}" for x in v) + ") m"
@@ -737,8 +738,8 @@ def _line_text(ln: dict[str, Any]) -> str:
 
 
 def _vertex_lines(v: dict[str, Any], ind: str) -> list[str]:
-    out = [f"{ind}generating vertex V{v['id']} at {_p(v.get('point'))}, normal "
-           f"{_p(v.get('normal'))[:-2]}"]
+    out = [f"{ind}generating vertex V{v['id']} at {_point_text(v.get('point'))}, normal "
+           f"{_point_text(v.get('normal'))[:-2]}"]
     par, side = v.get("parent", -1), v.get("parent_side", -1)
     if par >= 0 and side == THIRD_EDGE:
         out.append(f"{ind}  a box corner: vertex V{par}'s crease and its third edge")
@@ -757,7 +758,7 @@ def _dims_lines(d: dict[str, Any], ind: str) -> list[str]:
     out = [f"{ind}dimensions from {d['source']}"]
     if "diagonal" in d:
         g = d["diagonal"]
-        out.append(f"{ind}  diagonal vertex V{g['vertex']} at {_p(g['point'])}")
+        out.append(f"{ind}  diagonal vertex V{g['vertex']} at {_point_text(g['point'])}")
         out += [f"{ind}    {_test_text(t)}" for t in g["tests"]]
     e = d["edges"]
     if d["source"] == "EDGES" or d["source"] == "NONE":
@@ -826,9 +827,9 @@ def _selection_lines(s: dict[str, Any] | None, ind: str) -> list[str]:
 
 
 def _surface_lines(e: dict[str, Any], ind: str = "") -> list[str]:
-    out = [f"{ind}surface #{e['surface']} (pick {e['pick_order']}): centre {_p(e['center'])}, "
-           f"{e['width_mm']} x {e['length_mm']} mm, normal {_p(e['normal'])[:-2]}, score "
-           f"{e['score']:.3f}"]
+    out = [f"{ind}surface #{e['surface']} (pick {e['pick_order']}): centre "
+           f"{_point_text(e['center'])}, {e['width_mm']} x {e['length_mm']} mm, normal "
+           f"{_point_text(e['normal'])[:-2]}, score {e['score']:.3f}"]
     for t in e.get("tests", []):  # SURFACE_BULGE: is the centre on the lid or on its rim?
         where = "on the rim's plane" if not t["accepted"] else "on the points' plane"
         out.append(f"{ind}  lid bulge {e['bulge_mm']} mm, centre {where}: {_test_text(t)}")
@@ -867,7 +868,7 @@ def format_explanation(d: dict[str, Any]) -> str:
     w = a["where"]
     loc = f"pixel (x {w['pixel'][0]}, y {w['pixel'][1]})"
     if w.get("point"):
-        loc += f", point {_p(w['point'])}"
+        loc += f", point {_point_text(w['point'])}"
     lines.append(f"at {loc}")
     if w.get("no_return"):
         lines.append("  no return at that pixel" + (
