@@ -138,6 +138,10 @@ def locate(
     from boxloc.pipeline import find_graspable_surfaces
 
     result = find_graspable_surfaces(scan, cfg)
+    from boxloc.scan_noise import fit_warning
+
+    if result.noise is not None and (w := fit_warning(result.noise)):
+        click.echo(f"boxloc: warning: {w}", err=True)
     text = json.dumps(result.to_json(), indent=2)
     if output:
         Path(output).write_text(text + "\n")

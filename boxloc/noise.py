@@ -43,7 +43,8 @@ import numpy.typing as npt
 from boxloc.errors import InputError
 from boxloc.scan import NoiseModel, Scan
 
-__all__ = ["plane_residuals", "estimate_noise", "noise_toml", "NOISE_TERMS"]
+__all__ = ["plane_residuals", "tile_residuals", "TileResiduals", "estimate_noise", "fit_residuals",
+           "noise_toml", "NOISE_TERMS"]
 
 NOISE_TERMS = ("sigma0", "k1", "k2")
 #: Pixel lags of the residual correlation diagnostic (within a tile).
@@ -54,7 +55,7 @@ _MAD_TO_STD = 1.4826  # 1 / Phi^-1(3/4): MAD of a normal distribution -> its std
 
 
 @dataclass(frozen=True)
-class _TileResiduals:
+class TileResiduals:
     """Per-point residuals of accepted tiles (every valid point, the robust plane fit's
     outliers included), plus bookkeeping for the report."""
 
@@ -127,7 +128,7 @@ def plane_residuals(
     InputError
         If ``mask`` or ``labels`` do not have the scan's shape, or a parameter is out of range.
     """
-    t = _tile_residuals(scan, mask, patch=patch, labels=labels, min_valid=min_valid,
+    t = tile_residuals(scan, mask, patch=patch, labels=labels, min_valid=min_valid,
                         max_outliers=max_outliers, max_curvature_ratio=max_curvature_ratio,
                         min_cos=min_cos)
     return t.range[t.inlier], t.cos_incidence[t.inlier], t.residual[t.inlier]
@@ -142,16 +143,17 @@ def _check_image(a: npt.ArrayLike | None, shape: tuple[int, int], name: str) -> 
     return arr
 
 
-def _tiles(a: np.ndarray, patch: int) -> np.ndarray:
-    """(H, W, ...) -> (T, patch*patch, ...) for the whole tiles of the image, row-major."""
+def _tiles(a: np.ndarray, patch: int, step: int = 1) -> np.ndarray:
+    """(H, W, ...) -> (T, patch*patch, ...) for the whole tiles of the image, row-major;
+    every ``step``-th tile along rows and columns."""
     H, W = a.shape[:2]
     ty, tx = H // patch, W // patch
     rest = a.shape[2:]
-    a = a[: ty * patch, : tx * patch].reshape(ty, patch, tx, patch, *rest)
-    return a.swapaxes(1, 2).reshape(ty * tx, patch * patch, *rest)
+    a = a[: ty * patch, : tx * patch].reshape(ty, patch, tx, patch, *rest)[::step, :, ::step]
+    return a.swapaxes(1, 2).reshape(-1, patch * patch, *rest)
 
 
-def _tile_residuals(
+def tile_residuals(
     scan: Scan,
     mask: npt.ArrayLike | None,
     *,
@@ -161,7 +163,10 @@ def _tile_residuals(
     max_outliers: float,
     max_curvature_ratio: float,
     min_cos: float,
-) -> _TileResiduals:
+    step: int = 1,
+) -> TileResiduals:
+    """Residuals of the flat tiles of ``scan`` (see :func:`plane_residuals` for the
+    parameters); ``step`` > 1 examines every step-th tile along rows and columns only."""
     if not isinstance(scan, Scan):
         raise TypeError(f"scan must be a boxloc.scan.Scan, got {type(scan).__name__}")
     if not isinstance(patch, int) or patch < 4:
@@ -176,9 +181,9 @@ def _tile_residuals(
     lab = _check_image(labels, scan.shape, "labels")
     valid = scan.valid if m is None else scan.valid & m.astype(bool)
 
-    def nothing(n_tiles: int, rejected: dict[str, int]) -> _TileResiduals:
+    def nothing(n_tiles: int, rejected: dict[str, int]) -> TileResiduals:
         z = np.zeros(0)
-        return _TileResiduals(
+        return TileResiduals(
             range=z, cos_incidence=z, residual=z, tile=np.zeros(0, dtype=np.int64),
             inlier=np.zeros(0, dtype=bool), row_share=z,
             lag_sums=np.zeros((2, len(CORRELATION_LAGS), 3)), n_tiles=n_tiles, n_accepted=0,
@@ -186,13 +191,13 @@ def _tile_residuals(
 
     if scan.shape[0] < patch or scan.shape[1] < patch:
         return nothing(0, {})
-    P = _tiles(np.asarray(scan.points, dtype=np.float64), patch)  # (T, n, 3)
-    V = _tiles(valid, patch)  # (T, n)
+    P = _tiles(np.asarray(scan.points, dtype=np.float64), patch, step)  # (T, n, 3)
+    V = _tiles(valid, patch, step)  # (T, n)
     rejected: dict[str, int] = {}
     keep = V.mean(1) >= min_valid
     rejected["too few returns"] = int((~keep).sum())
     if lab is not None:
-        L = _tiles(lab, patch).astype(np.float64)
+        L = _tiles(lab, patch, step).astype(np.float64)
         Lv = np.where(V, L, np.nan)
         with np.errstate(invalid="ignore"), _quiet_nan():
             one = np.nanmin(Lv, 1) == np.nanmax(Lv, 1)
@@ -249,7 +254,7 @@ def _tile_residuals(
     e_ray = e_ray * dof
     tile = np.broadcast_to(ids[sel][:, None], wi.shape)
     vi = V[sel]  # the inliers are among them (the fit's weights are zero elsewhere)
-    return _TileResiduals(
+    return TileResiduals(
         range=r[vi], cos_incidence=np.abs(ndot[vi]), residual=e_ray[vi],
         tile=tile[vi].astype(np.int64), inlier=wi[vi], row_share=_row_share(h[sel], wi, patch),
         lag_sums=_lag_sums(h[sel], wi, patch), n_tiles=n_tiles, n_accepted=int(sel.size),
@@ -472,14 +477,35 @@ def estimate_noise(
         raise InputError(f"bin_width must be finite and > 0, got {bin_width}")
     base = base or NoiseModel()
 
+    tiles = [tile_residuals(scan, m, patch=patch, labels=lab, min_valid=0.9,
+                             max_outliers=0.05, max_curvature_ratio=1.5, min_cos=0.3)
+             for scan, m, lab in zip(scans, masks_l, labels_l)]
+    return fit_residuals(tiles, bin_width=bin_width, min_points=min_points,
+                         min_tiles=min_tiles, estimator=estimator, incidence=incidence,
+                         terms=terms, base=base)
+
+
+def fit_residuals(
+    tiles: Sequence[TileResiduals],
+    *,
+    bin_width: float = 0.1,
+    min_points: int = 2000,
+    min_tiles: int = 4,
+    estimator: str = "mad",
+    incidence: str = "model",
+    terms: Sequence[str] = NOISE_TERMS,
+    base: NoiseModel | None = None,
+) -> tuple[NoiseModel, dict[str, Any]]:
+    """:func:`estimate_noise` on flat tiles already cut (one :func:`tile_residuals` per
+    scan); same parameters and returns."""
+    terms = tuple(terms)
+    base = base or NoiseModel()
     rs, ys, cs, ts, shares = [], [], [], [], []
     lag_sums = np.zeros((2, len(CORRELATION_LAGS), 3))
     all_r, all_c, all_e = [], [], []  # every point of the accepted tiles, for the tails
     n_tiles = 0
     rejected: dict[str, int] = {}
-    for i, (scan, m, lab) in enumerate(zip(scans, masks_l, labels_l)):
-        t = _tile_residuals(scan, m, patch=patch, labels=lab, min_valid=0.9,
-                            max_outliers=0.05, max_curvature_ratio=1.5, min_cos=0.3)
+    for i, t in enumerate(tiles):
         inl = t.inlier
         rs.append(t.range[inl])
         cs.append(t.cos_incidence[inl])
@@ -499,7 +525,7 @@ def estimate_noise(
     ok = np.isfinite(r) & np.isfinite(y)
     r, y, c, tile = r[ok], y[ok], c[ok], tile[ok]
     report: dict[str, Any] = {
-        "n_scans": len(scans), "n_points": int(r.size), "n_tiles": n_tiles,
+        "n_scans": len(tiles), "n_points": int(r.size), "n_tiles": n_tiles,
         "n_tiles_used": int(np.unique(tile).size), "tiles_rejected": rejected,
         "estimator": estimator, "incidence": incidence, "terms": list(terms),
         "bin_width": float(bin_width),

@@ -16,6 +16,7 @@ if TYPE_CHECKING:
         EdgeMap,
         HypothesisSet,
         LineSet,
+        NoiseEstimate,
         Result,
         Selection,
         SurfaceSet,
@@ -29,12 +30,13 @@ if TYPE_CHECKING:
 class Observer(Protocol):
     """Receives each product of :func:`boxloc.pipeline.find_graspable_surfaces` in order.
 
-    The order for one scan is: ``on_scan``, ``on_edges``, ``on_lines``, ``on_vertices``,
-    ``on_hypotheses``, ``on_verification``, ``on_selection``, ``on_surfaces``,
+    The order for one scan is: ``on_scan``, ``on_noise``, ``on_edges``, ``on_lines``,
+    ``on_vertices``, ``on_hypotheses``, ``on_verification``, ``on_selection``, ``on_surfaces``,
     ``on_result`` (which carries the wall-clock timing).
     """
 
     def on_scan(self, scan: Scan, config: Config) -> None: ...
+    def on_noise(self, scan: Scan, noise: NoiseEstimate) -> None: ...
     def on_edges(self, scan: Scan, edges: EdgeMap) -> None: ...
     def on_lines(self, scan: Scan, lines: LineSet) -> None: ...
     def on_vertices(self, scan: Scan, vertices: VertexSet) -> None: ...
@@ -49,6 +51,9 @@ class NullObserver:
     """Does nothing; the default."""
 
     def on_scan(self, scan: Scan, config: Config) -> None:
+        pass
+
+    def on_noise(self, scan: Scan, noise: NoiseEstimate) -> None:
         pass
 
     def on_edges(self, scan: Scan, edges: EdgeMap) -> None:

@@ -1,10 +1,12 @@
 """The pipeline of the paper's Fig. 2; the only module that knows the order of the stages.
 
-    range image -> edges -> lines -> vertices -> find_graspable_surfaces -> select -> surfaces
+    range image -> (its noise) -> edges -> lines -> vertices -> find_graspable_surfaces
+    -> select -> surfaces
 """
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from collections.abc import Callable
 from typing import TypeVar
@@ -19,7 +21,8 @@ from boxloc.hypotheses import generate_hypotheses
 from boxloc.lines import find_lines
 from boxloc.observer import NullObserver, Observer
 from boxloc.products import Result
-from boxloc.scan import Scan
+from boxloc.scan import NoiseModel, Scan
+from boxloc.scan_noise import estimate_scan_noise
 from boxloc.select import select
 from boxloc.surfaces import make_surfaces
 from boxloc.up import estimate_up
@@ -69,6 +72,9 @@ def find_graspable_surfaces(
 
     Notes
     -----
+    The noise model every test uses is the scan's own (``config.noise_auto``, the
+    default), estimated before the edges and handed over as the ``noise`` product.
+
     Randomness (the Hough trials) is seeded from the scan content (and
     ``config.trial_seed``, 0 by default), so the same scan and config always give the same
     result, bit for bit. Wall-clock time enters only
@@ -86,6 +92,11 @@ def find_graspable_surfaces(
     timing: dict[str, float] = {}
 
     obs.on_scan(scan, config)
+    noise = _timed(timing, "noise", lambda: estimate_scan_noise(scan, config))
+    obs.on_noise(scan, noise)
+    # every later stage tests against the scan's model (the config's, when pinned)
+    user_config, config = config, dataclasses.replace(
+        config, noise=NoiseModel(**noise.noise_model()))
     edges = _timed(timing, "edges", lambda: detect_edges(scan, config=config))
     obs.on_edges(scan, edges)
     lines = _timed(timing, "lines", lambda: find_lines(scan, edges, config=config, rng=rng))
@@ -113,7 +124,7 @@ def find_graspable_surfaces(
         scan_index=scan.index,
         capture_time_ns=scan.capture_time_ns,
         seed=seed,
-        config_hash=config.hash,
+        config_hash=user_config.hash,
         version=__version__,
         edges=edges,
         lines=lines,
@@ -123,6 +134,7 @@ def find_graspable_surfaces(
         selection=selection,
         surfaces=surfaces,
         timing_ms=timing,
+        noise=noise,
     )
     obs.on_result(scan, result)
     return result

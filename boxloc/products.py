@@ -82,8 +82,80 @@ class SelectReason(IntEnum):
     NO_GAIN = 2
 
 
+class NoiseSource(IntEnum):
+    """Where the noise model every later stage used came from."""
+
+    #: the config pins it (``noise_auto = false``)
+    CONFIG = 0
+    #: estimated from this scan's flat regions
+    SCAN = 1
+    #: ``noise_auto``, but the scan has too little flat surface: the config's model
+    FALLBACK = 2
+
+
+#: Order of :attr:`NoiseEstimate.model`'s values (the fields of ``NoiseModel``).
+NOISE_FIELDS: tuple[str, ...] = (
+    "sigma0", "k1", "k2", "sigma_angle", "min_cos", "edge_px", "row_corr")
+
+
 def _f(*shape: int, dtype: Any = np.float64) -> np.ndarray:
     return np.zeros(shape, dtype)
+
+
+@dataclass(frozen=True, eq=False)
+class NoiseEstimate:
+    """The range-noise model of this scan (stage 1b, before the edges), and how well the
+    scan's own flat regions agree with it.
+
+    Attributes
+    ----------
+    source : int
+        :class:`NoiseSource`.
+    reason : str
+        Why that source, in words (e.g. too few flat tiles).
+    model : (7,) float64
+        The model every later stage used, in :data:`NOISE_FIELDS` order (metres, radians).
+    nominal : (7,) float64
+        The config's model (the fallback, and what a pinned run uses).
+    n_tiles, n_tiles_used, n_points : int
+        Tiles examined, flat tiles accepted, residuals in them.
+    bin_range, bin_tiles, bin_std, bin_model_std, bin_z : (B,) float64
+        Per range bin with enough tiles: median range (m), tiles, robust residual std along
+        the ray at normal incidence (m), the model's (m), and the NOISE_FIT z of the bin
+        (beyond the scale margin; positive means off by more than the margin).
+    correlation : (2, 4) float64
+        Residual correlation along rows and along columns at 1, 2, 4, 8 pixels (NaN
+        where undefined).
+    tails : (3,) float64
+        Share of residuals beyond 3, 4, 5 model sigmas (a normal: 2.7e-3, 6.3e-5, 5.7e-7).
+    tests : TestTable
+        NOISE_FIT (none when no range bin has enough flat tiles).
+    """
+
+    source: int
+    reason: str
+    model: np.ndarray
+    nominal: np.ndarray
+    n_tiles: int
+    n_tiles_used: int
+    n_points: int
+    bin_range: np.ndarray
+    bin_tiles: np.ndarray
+    bin_std: np.ndarray
+    bin_model_std: np.ndarray
+    bin_z: np.ndarray
+    correlation: np.ndarray
+    tails: np.ndarray
+    tests: TestTable
+
+    def noise_model(self) -> dict[str, float]:
+        """The model in use as ``NoiseModel`` keyword arguments."""
+        return {k: float(v) for k, v in zip(NOISE_FIELDS, self.model)}
+
+    @property
+    def fits(self) -> bool:
+        """Whether every test of the scan's residuals accepted the model in use."""
+        return bool(np.all(self.tests.accepted))
 
 
 @dataclass(frozen=True, eq=False)
@@ -537,6 +609,8 @@ class Result:
     selection: Selection
     surfaces: SurfaceSet
     timing_ms: dict[str, float] = field(default_factory=dict)
+    #: None only in results read from logs written before the noise stage
+    noise: NoiseEstimate | None = None
 
     def to_json(self) -> dict[str, Any]:
         """The public ``boxloc locate`` output."""
@@ -548,9 +622,13 @@ class Result:
 
 
 STAGES: tuple[str, ...] = (
-    "edges", "lines", "vertices", "hypotheses", "verification", "selection", "surfaces",
+    "noise", "edges", "lines", "vertices", "hypotheses", "verification", "selection",
+    "surfaces",
 )
+#: Stages that logs written before them do not have.
+OPTIONAL_STAGES: frozenset[str] = frozenset({"noise"})
 PRODUCT_TYPES: dict[str, type] = {
+    "noise": NoiseEstimate,
     "edges": EdgeMap, "lines": LineSet, "vertices": VertexSet, "hypotheses": HypothesisSet,
     "verification": Verification, "selection": Selection, "surfaces": SurfaceSet,
 }

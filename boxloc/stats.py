@@ -104,6 +104,12 @@ class TestKind(IntEnum):
     #: image border (a = edge point, b = pixel; statistic = the no-return run, pixels;
     #: critical = NO_RETURN_PX): the surface ends there, a jump with no far side
     NO_RETURN = 27
+    #: noise stage: the noise model in use predicts the scale of the scan's flat-tile
+    #: residuals within the margin that doubles a 1-dof test's rate at alpha (ln 0.102 at
+    #: 0.01): per range bin, z_b = (|mean over its tiles of ln(tile std / model std)| -
+    #: margin) / its standard error from the tiles' spread; statistic = the largest z_b,
+    #: critical = the one-sided normal quantile at alpha / bins (a = -1, b = bins)
+    NOISE_FIT = 28
 
 
 @lru_cache(maxsize=256)

@@ -157,6 +157,7 @@ SCAN_POINTS = "/scan/points"
 SCAN_LABELS = "/scan/labels"
 SCAN_END = "/scan/end"
 EDGES = "/boxloc/edges"
+NOISE = "/boxloc/noise"
 EDGE_MAP = "/boxloc/edges/map"
 EDGE_POINTS = "/boxloc/edges/points"
 LINES = "/boxloc/lines"
@@ -175,7 +176,7 @@ PICK_OUTCOME = "/pick/outcome"
 
 #: The topic of each stage's product.
 STAGE_TOPICS: dict[str, str] = {
-    "edges": EDGES, "lines": LINES, "vertices": VERTICES, "hypotheses": HYPOTHESES,
+    "noise": NOISE, "edges": EDGES, "lines": LINES, "vertices": VERTICES, "hypotheses": HYPOTHESES,
     "verification": VERIFICATION, "selection": SELECTION, "surfaces": SURFACES,
 }
 TOPIC_STAGES: dict[str, str] = {v: k for k, v in STAGE_TOPICS.items()}
@@ -210,6 +211,10 @@ CHANNELS: tuple[ChannelSpec, ...] = (
     ChannelSpec(SCAN_END, _PRODUCT, "protobuf", E.SCAN_END_RECORD, _S, _R,
                 "closes a scan recorded without running the pipeline (`boxloc import`): the "
                 "scan is whole, nothing was run on it", E.encode_scan_end, E.decode_scan_end),
+    ChannelSpec(NOISE, _PRODUCT, "protobuf", E.PRODUCT_RECORDS["noise"], _S, _R,
+                "NoiseEstimate: the noise model every test of the scan used, where it came from "
+                "(the scan's flat tiles, or the config), its fit per range bin, residual "
+                "correlation and tails (schema 1.3)", E.encode_product, E.decode_product),
     ChannelSpec(EDGES, _PRODUCT, "protobuf", E.PRODUCT_RECORDS["edges"], _S, _R,
                 "EdgeMap: labels, edge points, covariances, kinds, strengths",
                 E.encode_product, E.decode_product),

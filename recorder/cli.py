@@ -207,6 +207,7 @@ def run(source: str, count: int, seed: int | None, record: str | None, rerun: st
     """
     from boxloc.observer import FanOut
     from boxloc.pipeline import find_graspable_surfaces
+    from boxloc.scan_noise import fit_warning
     from recorder.mcap_sink import McapRecorder, RecordingError
 
     rerun_target = normalize_rerun(rerun)
@@ -261,6 +262,8 @@ def run(source: str, count: int, seed: int | None, record: str | None, rerun: st
                 else:
                     n_ok += 1
                     n_surfaces += len(result.surfaces)
+                    if result.noise is not None and (w := fit_warning(result.noise)):
+                        progress.console.print(f"scan {scan.index}: warning: {w}", markup=False)
                     if not quiet and not show:
                         progress.console.print(
                             f"scan {scan.index}: {len(result.surfaces)} surface(s) in "

@@ -62,7 +62,7 @@ from recorder.proto import PACKAGE, message_class
 #: Major version of every boxloc record; a reader refuses any other major version.
 SCHEMA_MAJOR = 1
 #: Minor version: compatible additions (new fields are ignored by older readers).
-SCHEMA_MINOR = 2
+SCHEMA_MINOR = 3
 SCHEMA_VERSION = f"{SCHEMA_MAJOR}.{SCHEMA_MINOR}"
 
 #: Frame of every geometric message (x right, y down, z forward; metres).

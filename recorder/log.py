@@ -46,7 +46,7 @@ from mcap.summary import Summary
 
 from boxloc.config import Config
 from boxloc.errors import LogError
-from boxloc.products import STAGES, Result
+from boxloc.products import OPTIONAL_STAGES, STAGES, Result
 from boxloc.scan import Scan, SensorModel
 from boxloc.stats import TestTable
 from recorder import channels as C
@@ -282,7 +282,8 @@ class ScanRecord:
 
     @property
     def complete(self) -> bool:
-        return self.result_info is not None and all(s in self.products for s in STAGES)
+        return self.result_info is not None and all(
+            s in self.products for s in STAGES if s not in OPTIONAL_STAGES)
 
     @property
     def surfaces(self) -> Any:
@@ -297,7 +298,8 @@ class ScanRecord:
         assert ri is not None
         return Result(scan_index=ri["scan_index"], capture_time_ns=ri["capture_time_ns"],
                       seed=ri["seed"], config_hash=ri["config_hash"], version=ri["version"],
-                      timing_ms=dict(self.timing_ms), **{s: self.products[s] for s in STAGES})
+                      timing_ms=dict(self.timing_ms),
+                      **{s: self.products.get(s) for s in STAGES})
 
     @property
     def tests(self) -> dict[str, TestTable]:

@@ -504,6 +504,9 @@ class McapRecorder(NullObserver):
             self._add(p, C.LOCATE, E.encode_locate_json(scan.index, product))
         p.record_s += time.perf_counter() - t0
 
+    def on_noise(self, scan: Scan, noise: Any) -> None:
+        self._stage("noise", scan, noise)
+
     def on_edges(self, scan: Scan, edges: Any) -> None:
         self._stage("edges", scan, edges)
 
@@ -528,7 +531,8 @@ class McapRecorder(NullObserver):
     def on_result(self, scan: Scan, result: Any) -> None:
         t0 = time.perf_counter()
         p = self._pending_for(scan, "result")
-        missing = [s for s in STAGES if s not in p.products]
+        missing = [s for s in STAGES
+                   if s not in p.products and getattr(result, s) is not None]
         for s in missing:  # a caller that skipped on_<stage>: the Result has them all
             self._stage(s, scan, getattr(result, s))
         p.record_s += time.perf_counter() - t0
@@ -552,8 +556,9 @@ class McapRecorder(NullObserver):
                 p = self._pending
             assert p is not None
             if stage is None:
-                done = [s for s in STAGES if s in p.products]
-                stage = STAGES[len(done)] if len(done) < len(STAGES) else "result"
+                # the stage after the last product received
+                nxt = max((STAGES.index(s) + 1 for s in p.products), default=0)
+                stage = STAGES[nxt] if nxt < len(STAGES) else "result"
             msg = str(exc).splitlines()[0] if str(exc) else ""
             self._close_scan(p, error=(type(exc).__name__, stage, msg[:2000]))
 

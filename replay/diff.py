@@ -41,6 +41,7 @@ from scipy.optimize import linear_sum_assignment
 from boxloc.errors import BoxlocError, InputError, LogError
 from boxloc.jsonable import jsonable as _jsonable
 from boxloc.products import (
+    OPTIONAL_STAGES,
     STAGES,
     DimensionSource,
     HypothesisSet,
@@ -936,7 +937,8 @@ class _ScanComparison:
         ignore = tuple(self.tol.ignore.fields)
         for s in STAGES:
             if (s in pa) != (s in pb):
-                changed.append(s)
+                if s not in OPTIONAL_STAGES:  # else one log predates the stage
+                    changed.append(s)
             elif s in pa:
                 changed += [f"{s}/{n}" for n in products_equal(pa[s], pb[s], ignore=ignore)]
         sd.changed_fields = changed

@@ -18,6 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from boxloc.products import (
+    STAGES,
     DimensionSource,
     EdgeKind,
     EdgeMap,
@@ -352,7 +353,11 @@ def make_result(scan: Scan, seed: int = 0, *, empty: bool = False) -> Result:
     empty : bool
         Return products with no entities at all (a scan where nothing was found).
     """
+    from boxloc.config import Config
+    from boxloc.scan_noise import estimate_scan_noise
+
     rng = np.random.default_rng(seed + 1000)
+    noise = estimate_scan_noise(scan, Config())
     edges = make_edges(scan, rng, n=0 if empty else 60)
     if empty:
         lines = make_lines(edges, rng, n=0, seed=scan.seed)
@@ -370,7 +375,7 @@ def make_result(scan: Scan, seed: int = 0, *, empty: bool = False) -> Result:
     return Result(scan_index=scan.index, capture_time_ns=scan.capture_time_ns, seed=scan.seed,
                   config_hash="0123456789abcdef", version="0.1.0", edges=edges, lines=lines,
                   vertices=vertices, hypotheses=hyps, verification=ver, selection=sel,
-                  surfaces=surf, timing_ms=timing)
+                  surfaces=surf, timing_ms=timing, noise=noise)
 
 
 def _empty_vertices() -> VertexSet:
@@ -389,9 +394,9 @@ def feed(observer: object, scan: Scan, result: Result, config: object = None, *,
     cfg = config if config is not None else Config()
     if start:
         observer.on_scan(scan, cfg)  # type: ignore[attr-defined]
-    for stage in ("edges", "lines", "vertices", "hypotheses", "verification", "selection",
-                  "surfaces"):
-        getattr(observer, f"on_{stage}")(scan, getattr(result, stage))
+    for stage in STAGES:
+        if getattr(result, stage) is not None:
+            getattr(observer, f"on_{stage}")(scan, getattr(result, stage))
     observer.on_result(scan, result)  # type: ignore[attr-defined]
 
 

@@ -32,6 +32,7 @@ def _writer_before_full_provenance(cfg: Config) -> dict[str, Any]:
         del d["trial_seed"]
     if d["end_tolerance"] == 0.75:
         del d["end_tolerance"]
+    del d["noise_auto"]  # came with full provenance
     return d
 
 
@@ -49,11 +50,12 @@ def _set_defaults(monkeypatch: pytest.MonkeyPatch, cls: type, **values: Any) -> 
 @pytest.fixture
 def later_defaults(monkeypatch: pytest.MonkeyPatch) -> None:
     """Every key old logs left out, and one they always recorded, get another default."""
-    _set_defaults(monkeypatch, Config, end_tolerance=0.5, trial_seed=3, alpha=0.05)
+    _set_defaults(monkeypatch, Config, end_tolerance=0.5, trial_seed=3, alpha=0.05,
+                  noise_auto=True)
     _set_defaults(monkeypatch, NoiseModel, edge_px=0.7, row_corr=0.2)
     # the patch took: a fresh config is another config
     assert Config().end_tolerance == 0.5 and Config().trial_seed == 3
-    assert Config().noise.edge_px == 0.7 and Config().alpha == 0.05
+    assert Config().noise.edge_px == 0.7 and Config().alpha == 0.05 and Config().noise_auto
 
 
 def test_a_log_records_every_value_defaults_included(tmp_path: Path) -> None:
@@ -71,16 +73,18 @@ def test_an_old_log_keeps_saying_what_it_ran_after_the_defaults_change(
     with monkeypatch.context() as m:
         m.setattr(Config, "to_dict", _writer_before_full_provenance)
         old = make_log(tmp_path / "old.mcap", [1, 2])
-    assert set(UNRECORDED_KEYS) == {"trial_seed", "end_tolerance", "noise.edge_px",
-                                    "noise.row_corr"}
+    assert set(UNRECORDED_KEYS) == {"noise_auto", "trial_seed", "end_tolerance",
+                                    "noise.edge_px", "noise.row_corr"}
     assert "end_tolerance" not in _recorded(old)  # an old log indeed
     assert open_log(old).config == Config()
-    _set_defaults(monkeypatch, Config, end_tolerance=0.5, trial_seed=3, alpha=0.05)
+    _set_defaults(monkeypatch, Config, end_tolerance=0.5, trial_seed=3, alpha=0.05,
+                  noise_auto=True)
     _set_defaults(monkeypatch, NoiseModel, edge_px=0.7, row_corr=0.2)
     assert Config().end_tolerance == 0.5 and Config().noise.row_corr == 0.2
     said = open_log(old).config
     assert said is not None
     assert (said.end_tolerance, said.trial_seed, said.alpha) == (0.75, 0, 0.01)
+    assert said.noise_auto is False
     assert (said.noise.edge_px, said.noise.row_corr) == (0.0, 0.0)
     # and its replay runs that config: the products bit for bit, every value recorded
     o = replay_log(old, out_dir=tmp_path / "out")
@@ -88,12 +92,13 @@ def test_an_old_log_keeps_saying_what_it_ran_after_the_defaults_change(
     assert product_differences(old, Path(o.output)) == []
     d = _recorded(Path(o.output))
     assert (d["end_tolerance"], d["trial_seed"], d["alpha"]) == (0.75, 0, 0.01)
+    assert d["noise_auto"] is False
     assert (d["noise"]["edge_px"], d["noise"]["row_corr"]) == (0.0, 0.0)
 
 
 def test_a_new_log_replays_its_values_whatever_the_defaults_become(
         tmp_path: Path, later_defaults: None) -> None:
-    cfg = Config(end_tolerance=0.75, trial_seed=0, alpha=0.01,
+    cfg = Config(end_tolerance=0.75, trial_seed=0, alpha=0.01, noise_auto=False,
                  noise=NoiseModel(edge_px=0.0, row_corr=0.0))
     with pytest.MonkeyPatch.context() as m:  # recorded by today's code, before the change
         m.setattr(Config, "to_dict", lambda c: {**dataclasses.asdict(c),

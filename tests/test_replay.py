@@ -144,7 +144,7 @@ def test_a_crashing_stage_is_that_scans_result(logs: list[Path], tmp_path: Path,
     assert recs[0].error is None and recs[0].complete
     assert recs[1].error["stage"] == "vertices"
     assert recs[1].error["error_type"] == "RuntimeError"
-    assert set(recs[1].products) == {"edges", "lines"}  # what ran before the crash
+    assert set(recs[1].products) == {"noise", "edges", "lines"}  # what ran before the crash
 
 
 # --- outputs are never overwritten -----------------------------------------------------------

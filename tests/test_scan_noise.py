@@ -1,0 +1,111 @@
+"""The scan's own noise model (boxloc.scan_noise) and its NOISE_FIT test."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+from boxloc.config import Config
+from boxloc.pipeline import find_graspable_surfaces
+from boxloc.products import NoiseSource, products_equal
+from boxloc.scan import NoiseModel
+from boxloc.scan_noise import MIN_FLAT_TILES, estimate_scan_noise
+from boxloc.simulate import simulate
+from boxloc.stats import TestKind
+
+SCENE = "pallet:width=320,height=240,f=262.5,distance=1.5"
+
+
+def _median_range(sim) -> float:  # type: ignore[no-untyped-def]
+    return float(np.nanmedian(sim.scan.range))
+
+
+@pytest.fixture(scope="module")
+def noisy():  # type: ignore[no-untyped-def]
+    """A scan whose range noise is 2.5x the default model's."""
+    nm = NoiseModel()
+    return simulate(f"{SCENE},noise.sigma0={2.5 * nm.sigma0},noise.k2={2.5 * nm.k2}", 3)
+
+
+def test_auto_estimates_the_scans_own_noise(noisy) -> None:  # type: ignore[no-untyped-def]
+    est = estimate_scan_noise(noisy.scan, Config(noise_auto=True))
+    assert est.source == NoiseSource.SCAN and "flat tiles" in est.reason
+    assert est.n_tiles_used >= MIN_FLAT_TILES
+    r = _median_range(noisy)
+    truth = noisy.spec.noise.sigma_range(r)
+    got = NoiseModel(**est.noise_model()).sigma_range(r)
+    assert got == pytest.approx(truth, rel=0.15)
+    # the terms a scan cannot measure come from the config
+    assert est.noise_model()["sigma_angle"] == Config().noise.sigma_angle
+    assert est.fits and est.tests.kind.tolist() == [TestKind.NOISE_FIT]
+
+
+def test_a_pinned_model_that_is_wrong_for_the_scan_fails_its_test(noisy) -> None:  # type: ignore[no-untyped-def]
+    est = estimate_scan_noise(noisy.scan, Config())
+    assert est.source == NoiseSource.CONFIG
+    np.testing.assert_array_equal(est.model, est.nominal)
+    fit = est.tests.of_kind(TestKind.NOISE_FIT)
+    assert len(fit) == 1 and not fit.accepted[0] and fit.p_value[0] < 1e-6
+    # per bin, the scan's scatter is about 2.5x the model's
+    assert np.median(est.bin_std / est.bin_model_std) == pytest.approx(2.5, rel=0.15)
+
+
+def test_the_right_pinned_model_passes_its_test() -> None:
+    sim = simulate(SCENE, 3)  # noise drawn from the default model
+    fit = estimate_scan_noise(sim.scan, Config()).tests.of_kind(TestKind.NOISE_FIT)
+    assert len(fit) == 1 and fit.accepted[0]
+
+
+def test_too_little_flat_surface_falls_back_to_the_config() -> None:
+    sim = simulate(SCENE, 3)
+    rng = np.random.default_rng(0)
+    holes = rng.random(sim.scan.shape) < 0.3  # no 16x16 tile is 90 % full
+    scan = dataclasses.replace(sim.scan, range=np.where(holes, np.nan, sim.scan.range))
+    est = estimate_scan_noise(scan, Config(noise_auto=True))
+    assert est.source == NoiseSource.FALLBACK and "fewer than" in est.reason
+    np.testing.assert_array_equal(est.model, est.nominal)
+
+
+def test_the_estimate_is_deterministic(noisy) -> None:  # type: ignore[no-untyped-def]
+    a = estimate_scan_noise(noisy.scan, Config(noise_auto=True))
+    b = estimate_scan_noise(dataclasses.replace(noisy.scan), Config(noise_auto=True))
+    assert products_equal(a, b) == []
+
+
+def test_the_pipeline_tests_against_the_scans_model(noisy) -> None:  # type: ignore[no-untyped-def]
+    pinned = find_graspable_surfaces(noisy.scan, Config())
+    auto = find_graspable_surfaces(noisy.scan, Config(noise_auto=True))
+    assert auto.noise is not None and auto.noise.source == NoiseSource.SCAN
+    # the default model, 2.5x too tight, makes noise into edges; the scan's own does not
+    assert len(auto.edges) < 0.7 * len(pinned.edges)
+    assert auto.config_hash == Config(noise_auto=True).hash
+
+
+def test_a_given_noise_model_pins_it() -> None:
+    auto = Config(noise_auto=True)
+    assert Config.from_dict({"noise": {"k2": 0.001}}).noise_auto is False
+    assert Config.from_dict({"noise_auto": True, "noise": {"k2": 0.001}}).noise_auto is True
+    assert auto.with_overrides(["noise.k2=0.001"]).noise_auto is False
+    assert auto.with_overrides(["noise.k2=0.001", "noise_auto=true"]).noise_auto is True
+    # terms a scan cannot measure do not pin the model
+    assert auto.with_overrides(["noise.edge_px=0.5"]).noise_auto is True
+    assert Config.from_dict({"noise": {"edge_px": 0.5}, "noise_auto": True}).noise_auto
+    assert Config.from_toml(auto.to_toml()) == auto
+
+
+def test_locate_warns_when_the_model_does_not_fit(noisy, tmp_path) -> None:  # type: ignore[no-untyped-def]
+    from click.testing import CliRunner
+
+    from boxloc.cli import cli
+    from boxloc.simulate import save_npz
+
+    path = tmp_path / "noisy.npz"
+    save_npz(noisy, path)
+    res = CliRunner().invoke(cli, ["locate", str(path)])
+    assert res.exit_code == 0, res.output
+    assert "warning: the noise model does not fit this scan" in res.stderr
+    assert "noise_auto = true" in res.stderr
+    res = CliRunner().invoke(cli, ["locate", str(path), "--set", "noise_auto=true"])
+    assert res.exit_code == 0 and "warning" not in res.stderr
