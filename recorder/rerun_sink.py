@@ -22,6 +22,9 @@ so that two runs can share one recording::
     stats/tests/<measure>/<KIND>    per scan: n_tested, n_accepted, accepted_fraction,
                                     median_ratio and max_ratio of statistic / critical
     stats/counts/<what>             per scan: edge points, lines, vertices, hypotheses, ...
+    stats/noise/<what>              per scan: the range sigma of the model in use at the
+                                    scan's median range (mm), its row_corr, the NOISE_FIT z,
+                                    the source (0 config, 1 scan, 2 fallback); text: how
     stats/selection/objective       the MDL objective m^T Q m
     stats/timing/<stage>            wall-clock per stage, milliseconds
 
@@ -71,10 +74,13 @@ from boxloc.config import Config
 from boxloc.errors import BoxlocError, InputError
 from boxloc.observer import NullObserver
 from boxloc.products import (
+    STAGES,
     EdgeKind,
     EdgeMap,
     HypothesisSet,
     LineSet,
+    NoiseEstimate,
+    NoiseSource,
     Result,
     Selection,
     SurfaceSet,
@@ -82,7 +88,7 @@ from boxloc.products import (
     VerifyReason,
     VertexSet,
 )
-from boxloc.scan import PinholeModel, Scan, SensorModel
+from boxloc.scan import NoiseModel, PinholeModel, Scan, SensorModel
 from boxloc.stats import TestKind, TestTable
 
 # --- entity paths --------------------------------------------------------------------------
@@ -106,6 +112,7 @@ SURFACE_NORMALS = "world/surfaces/normals"
 STATS_TESTS = "stats/tests"
 STATS_COUNTS = "stats/counts"
 STATS_SELECTION = "stats/selection"
+STATS_NOISE = "stats/noise"
 STATS_TIMING = "stats/timing"
 
 #: per-kind test measures logged under ``stats/tests/<measure>/<KIND>``
@@ -485,6 +492,23 @@ def log_surfaces(rec: rr.RecordingStream, surfaces: SurfaceSet, *, prefix: str =
     log_tests(rec, surfaces.tests, prefix=prefix)
 
 
+def log_noise(rec: rr.RecordingStream, noise: NoiseEstimate, *, prefix: str = "") -> None:
+    """The noise model the scan's tests used: where it came from, its sigma, its fit."""
+    model = NoiseModel(**noise.noise_model())
+    r = float(np.median(noise.bin_range)) if noise.bin_range.size else float("nan")
+    if math.isfinite(r):
+        _scalar(rec, entity(prefix, f"{STATS_NOISE}/sigma_mm"),
+                1e3 * float(model.sigma_range(r)))
+    _scalar(rec, entity(prefix, f"{STATS_NOISE}/row_corr"), model.row_corr)
+    _scalar(rec, entity(prefix, f"{STATS_NOISE}/source"), float(noise.source))
+    fit = noise.tests.of_kind(TestKind.NOISE_FIT)
+    if len(fit):
+        _scalar(rec, entity(prefix, f"{STATS_NOISE}/fit_z"), float(fit.statistic[0]))
+    rec.log(entity(prefix, f"{STATS_NOISE}/reason"),
+            rr.TextDocument(f"{NoiseSource(noise.source).name}: {noise.reason}"))
+    log_tests(rec, noise.tests, prefix=prefix)
+
+
 def log_timing(
     rec: rr.RecordingStream, timing_ms: Mapping[str, float], *, prefix: str = ""
 ) -> None:
@@ -497,6 +521,7 @@ def log_timing(
 
 #: the product loggers in pipeline order (hypotheses are drawn with the verification)
 _PRODUCT_LOGGERS: tuple[tuple[str, Callable[..., None]], ...] = (
+    ("noise", log_noise),
     ("edges", log_edges),
     ("lines", log_lines),
     ("vertices", log_vertices),
@@ -520,9 +545,7 @@ def log_products(
         milliseconds, or a :class:`Result`); missing stages are skipped.
     """
     if isinstance(products, Result):
-        products = {**{s: getattr(products, s) for s in ("edges", "lines", "vertices",
-                                                          "hypotheses", "verification",
-                                                          "selection", "surfaces")},
+        products = {**{s: getattr(products, s) for s in STAGES},
                     "timing": products.timing_ms}
     set_scan_time(rec, scan)
     log_scan(rec, scan, prefix=prefix, max_points=max_points)
@@ -699,6 +722,9 @@ class RerunSink(NullObserver):
 
     def on_scan(self, scan: Scan, config: Config) -> None:
         self._submit(self._do_scan, scan, config)
+
+    def on_noise(self, scan: Scan, noise: NoiseEstimate) -> None:
+        self._submit(self._do, log_noise, scan, noise)
 
     def on_edges(self, scan: Scan, edges: EdgeMap) -> None:
         self._submit(self._do, log_edges, scan, edges)

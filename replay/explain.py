@@ -41,7 +41,15 @@ from scipy import ndimage
 from boxloc.config import Config
 from boxloc.errors import InputError
 from boxloc.jsonable import jsonable as _jsonable
-from boxloc.products import DimensionSource, EdgeKind, SelectReason, VerifyReason
+from boxloc.products import (
+    NOISE_FIELDS,
+    DimensionSource,
+    EdgeKind,
+    NoiseSource,
+    SelectReason,
+    VerifyReason,
+)
+from boxloc.scan import NoiseModel
 from boxloc.stats import TestKind, TestTable
 from boxloc.vertices import THIRD_EDGE
 
@@ -624,6 +632,22 @@ def _kinds_text(kinds: dict[str, int]) -> str:
 # --- the entry point -------------------------------------------------------------------------
 
 
+def _noise(noise: Any) -> dict[str, Any] | None:
+    """The noise model the scan's tests used, where it came from and how it fits (None for
+    a log written before the noise stage)."""
+    if noise is None:
+        return None
+    model = dict(zip(NOISE_FIELDS, (float(v) for v in noise.model)))
+    fit = noise.tests.of_kind(TestKind.NOISE_FIT)
+    r = float(np.median(noise.bin_range)) if noise.bin_range.size else None
+    return {
+        "source": _name(NoiseSource, noise.source), "reason": noise.reason, "model": model,
+        "range_m": r,
+        "sigma_mm": None if r is None else 1e3 * float(NoiseModel(**model).sigma_range(r)),
+        "fit": _tests(fit, [TestKind.NOISE_FIT])[0] if len(fit) else None,
+    }
+
+
 def explain(log: Any, scan: int, surface: int | None = None, at: Any = None,
             failed_picks: bool = False) -> dict[str, Any]:
     """The chain of decisions for a surface of a recorded scan (see the module notes).
@@ -669,6 +693,7 @@ def explain(log: Any, scan: int, surface: int | None = None, at: Any = None,
         "log": str(lg.path), "scan": int(scan), "alpha": ctx.config.alpha,
         "n_surfaces": None if S is None else len(S),
         "pipeline_error": rec.error,
+        "noise": _noise(rec.products.get("noise")),
     }
     if failed_picks:
         out["mode"] = "failed_picks"
@@ -852,6 +877,14 @@ def format_explanation(d: dict[str, Any]) -> str:
     """The explanation as indented plain text for a terminal."""
     lines = [f"scan {d['scan']} of {d['log']} (alpha {d['alpha']}): "
              f"{_num(d['n_surfaces'])} surface(s)"]
+    nz = d.get("noise")
+    if nz:
+        sig = (f"sigma {_num(nz['sigma_mm'])} mm at {_num(nz['range_m'])} m, "
+               if nz.get("sigma_mm") is not None else "")
+        lines.append(f"noise model: {nz['source'].lower()}, {sig}row_corr "
+                     f"{_num(nz['model']['row_corr'])} ({nz['reason']})")
+        if nz.get("fit"):
+            lines.append(f"  {_test_text(nz['fit'])}")
     if d.get("pipeline_error"):
         e = d["pipeline_error"]
         lines.append(f"the pipeline failed on this scan: {e.get('error_type')} in "

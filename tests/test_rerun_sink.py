@@ -112,6 +112,8 @@ EXPECTED = {
     "/stats/tests/accepted_fraction/JUMP": "Scalars:scalars",
     "/stats/tests/median_ratio/VERIFY_MEAN": "Scalars:scalars",
     "/stats/tests/n_tested/POINT_ON_LINE": "Scalars:scalars",
+    "/stats/noise/source": "Scalars:scalars",
+    "/stats/noise/reason": "TextDocument:text",
 }
 
 
@@ -276,6 +278,7 @@ def test_the_real_pipeline_through_the_sink(tmp_path: Path) -> None:
     assert "Scalars:scalars" in ents["/stats/timing/total"]
     assert "Points3D:positions" in ents["/world/edges/points"]
     assert "Scalars:scalars" in ents["/stats/counts/surfaces"]
+    assert "TextDocument:text" in ents["/stats/noise/reason"]
     assert result.timing_ms["total"] > 0
 
 

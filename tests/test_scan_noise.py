@@ -109,3 +109,23 @@ def test_locate_warns_when_the_model_does_not_fit(noisy, tmp_path) -> None:  # t
     assert "noise_auto = true" in res.stderr
     res = CliRunner().invoke(cli, ["locate", str(path), "--set", "noise_auto=true"])
     assert res.exit_code == 0 and "warning" not in res.stderr
+
+
+def test_the_estimate_is_recorded_and_explained(noisy, tmp_path) -> None:  # type: ignore[no-untyped-def]
+    from recorder.log import open_log
+    from recorder.mcap_sink import McapRecorder
+    from replay.explain import explain, format_explanation
+
+    cfg = Config(noise_auto=True)
+    with McapRecorder(tmp_path / "n.mcap", config=cfg, fsync=False) as rec:
+        result = find_graspable_surfaces(noisy.scan, cfg, observer=rec)
+    back = next(open_log(tmp_path / "n.mcap").scans())
+    assert result.noise is not None
+    assert products_equal(back.products["noise"], result.noise) == []
+    assert "NOISE_FIT" in {r["kind"] for r in back.tests["noise"].rows()}
+    d = explain(tmp_path / "n.mcap", 0)
+    assert d["noise"]["source"] == "SCAN" and d["noise"]["fit"]["accepted"]
+    r = d["noise"]["range_m"]
+    assert d["noise"]["sigma_mm"] == pytest.approx(1e3 * noisy.spec.noise.sigma_range(r),
+                                                   rel=0.15)
+    assert "noise model: scan, sigma" in format_explanation(d)
