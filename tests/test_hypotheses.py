@@ -63,13 +63,14 @@ def test_dimensions_from_edges_when_no_diagonal_vertex():
     # from the edge accumulators (or the hypothesis fails as outside the image)
     sim = scene([box(0.0, 0.0, 0.45, 0.30, 0.25)], seed=6)
     e, L, V, H, ver = _stages(sim, Config())
-    src = H.att_source[H.att_source == DimensionSource.EDGES]
-    if len(src):
-        j = int(np.flatnonzero(H.att_source == DimensionSource.EDGES)[0])
+    from_edges = np.flatnonzero(H.att_source == DimensionSource.EDGES)
+    # (was skipped silently when no attempt took its dimensions from the edges)
+    assert len(from_edges), "no attempt took its dimensions from the edge accumulators"
+    for j in from_edges:
         h = H.att_hypothesis[j]
         assert H.att_support[j] > H.att_threshold[j]  # |P_f| > p
         assert H.peaks_x_offsets[h + 1] > H.peaks_x_offsets[h]
-        assert len(H.tests.of_kind(TestKind.EDGE_SUPPORT)) > 0
+    assert len(H.tests.of_kind(TestKind.EDGE_SUPPORT)) > 0
 
 
 def test_verification_rejects_a_face_with_a_box_on_it():
