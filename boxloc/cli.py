@@ -174,8 +174,8 @@ def _print_surfaces(result: Any) -> None:
 
 
 @cli.command()
-@click.option("--n", "n", type=click.IntRange(min=1), default=100, show_default=True,
-              help="Number of simulated scenes.")
+@click.option("--n", "n", type=click.IntRange(min=1), default=None,
+              help="Number of simulated scenes [default: 100; 320 with --matrix].")
 @click.option("--seed", type=int, default=0, show_default=True, help="Seed of the scene suite.")
 @click.option("--out", type=click.Path(file_okay=False), default=None,
               help="Directory to write bench.json into.")
@@ -202,33 +202,79 @@ def _print_surfaces(result: Any) -> None:
 @click.option("--pose", type=click.Choice(["plane", "none"]), default="plane",
               show_default=True,
               help="With --real: sensor pose from each frame's dominant plane, or none.")
-@click.option("--seeds", type=click.IntRange(min=1), default=3, show_default=True,
+@click.option("--seeds", type=click.IntRange(min=1), default=None,
               help="Run each scene (or --real frame) N times, with trial_seed +0..N-1 (other "
                    "draws of the random trials); the figures pool them, each draw's is listed. "
                    "One draw is one sample of the trials' luck, and the default one is what "
-                   "development was checked on.")
+                   "development was checked on. [default: 3; 1 with --matrix]")
+@click.option("--matrix", is_flag=True,
+              help="The sensor x scene-kind matrix (boxloc.simulate.matrix_suite) with the "
+                   "default configuration only (no --set, no --config; the box size range is "
+                   "the simulator's); --out gets bench_matrix.json and bench_matrix.txt.")
+@click.option("--jobs", type=click.IntRange(min=1), default=None,
+              help="With --matrix: worker processes (results identical to one). [default: 1]")
+@click.option("--held-out", "held_out", default=None, metavar="SENSOR",
+              help="With --matrix: the sensor model kept out of development, reported "
+                   "apart. [default: tof]")
+@click.option("--scan-timeout", "scan_timeout", type=click.FloatRange(min=0, min_open=True),
+              default=None, metavar="SECONDS",
+              help="With --matrix: a scan still running after this long is killed and "
+                   "counts as a failure. [default: 120]")
 @click.option("--scene-set", "scene_sets", multiple=True, metavar="KEY=VALUE",
               help="Set a field of every simulated scene (repeatable; scene-spec keys, e.g. "
                    "noise.row_corr=0.276 for a sensor whose rows share part of their noise).")
 @config_options
 def bench(
-    n: int, seed: int, out: str | None, no_baseline: bool, real_dir: str | None,
+    n: int | None, seed: int, out: str | None, no_baseline: bool, real_dir: str | None,
     frames: str | None, noise_source: str, squareness: str, pose: str,
     config_path: str | None, overrides: tuple[str, ...], replay_only: bool = False,
     sections: tuple[str, ...] = (), fuzz_cases: int | None = None,
-    scene_sets: tuple[str, ...] = (), seeds: int = 3,
+    scene_sets: tuple[str, ...] = (), seeds: int | None = None, matrix: bool = False,
+    jobs: int | None = None, held_out: str | None = None, scan_timeout: float | None = None,
 ) -> None:
     """Benchmark the localizer against the open3d baseline on N simulated scenes.
 
     Prints both side by side with the targets; with --out writes DIR/bench.json. Extra
     sections come from the `boxloc.bench` entry-point group (see boxloc.bench). With
-    --real DIR, the real labelled scans of DIR instead (see boxloc.bench_real).
+    --real DIR, the real labelled scans of DIR instead (see boxloc.bench_real). With
+    --matrix, the sensor x scene-kind matrix, default configuration only (see
+    boxloc.bench_matrix).
     """
     import os
 
     # The time target is per core: pin the thread pools before the heavy imports read them.
     for var in ("OMP_NUM_THREADS", "NUMBA_NUM_THREADS", "OPENBLAS_NUM_THREADS"):
         os.environ.setdefault(var, "1")
+    matrix_only = {"jobs": jobs, "held-out": held_out, "scan-timeout": scan_timeout}
+    if matrix:
+        not_with = {"config": config_path, "set": overrides, "scene-set": scene_sets,
+                    "real": real_dir, "frames": frames, "section": sections,
+                    "replay": replay_only, "fuzz": fuzz_cases}
+        bad = [f"--{k}" for k, v in not_with.items() if v]
+        ctx = click.get_current_context()
+        bad += [f"--{k}" for k in ("noise", "squareness", "pose")
+                if ctx.get_parameter_source(k if k != "noise" else "noise_source")
+                is click.core.ParameterSource.COMMANDLINE]
+        if bad:
+            _fail(f"--matrix runs the default configuration only and its own scenes: "
+                  f"{', '.join(bad)} cannot be used with it")
+        from boxloc.bench_matrix import (
+            DEFAULT_N,
+            DEFAULT_SCAN_TIMEOUT,
+            HELD_OUT,
+            run_matrix_bench,
+        )
+
+        run_matrix_bench(n or DEFAULT_N, seed, out=Path(out) if out else None, jobs=jobs or 1,
+                         seeds=seeds or 1, held_out=held_out or HELD_OUT,
+                         scan_timeout=scan_timeout or DEFAULT_SCAN_TIMEOUT)
+        return
+    given = [f"--{k}" for k, v in matrix_only.items() if v is not None]
+    if given:
+        _fail(f"{', '.join(given)} only apply with --matrix")
+    n = 100 if n is None else n
+    seeds = 3 if seeds is None else seeds
+
     cfg = load_config(config_path, overrides)
     only = [*sections, *(["replay"] if replay_only else []),
             *(["fuzz"] if fuzz_cases and "fuzz" not in sections else [])]
