@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 import pytest
@@ -76,11 +78,18 @@ def _truth(T: np.ndarray, boxes: list = BOXES) -> _Truth:
                   np.ones(len(boxes), bool))
 
 
+@functools.cache
+def _found(tilt: float) -> tuple[Scan, Any]:
+    """The scan of BOXES at ``tilt`` degrees and the baseline's surfaces (computed once:
+    RANSAC takes seconds; the tests only read them)."""
+    scan = _cast(_pose(tilt))
+    return scan, baseline_surfaces(scan)
+
+
 @pytest.mark.parametrize("tilt", [0.0, 20.0])
 def test_baseline_finds_box_tops(tilt: float) -> None:
     T = _pose(tilt)
-    scan = _cast(T)
-    s = baseline_surfaces(scan)
+    scan, s = _found(tilt)
     truth = _truth(T)
     assert len(s) == 2
     m = match_surfaces(s, truth)
@@ -112,8 +121,8 @@ def test_baseline_is_deterministic() -> None:
 def test_baseline_respects_size_priors() -> None:
     from boxloc.config import Config
 
-    scan = _cast(_pose(0.0))
-    assert len(baseline_surfaces(scan)) == 2  # found with the default prior ...
+    scan, found = _found(0.0)
+    assert len(found) == 2  # found with the default prior ...
     # ... but the 0.4 x 0.3 and 0.3 x 0.4 tops are both too small for min_edge = 0.35.
     s = baseline_surfaces(scan, config=Config(min_edge=0.35))
     assert len(s) == 0
@@ -121,7 +130,7 @@ def test_baseline_respects_size_priors() -> None:
 
 def test_baseline_floor_only_finds_nothing() -> None:
     # the same view with the boxes gives two tops: the empty answer is the floor's
-    assert len(baseline_surfaces(_cast(_pose(0.0)))) == 2
+    assert len(_found(0.0)[1]) == 2
     scan = _cast(_pose(0.0), boxes=[])
     assert len(baseline_surfaces(scan)) == 0
 
