@@ -21,14 +21,16 @@ def run(*args: str, cwd: Path | None = None) -> subprocess.CompletedProcess[str]
                           cwd=cwd)
 
 
-def invoke(*args: str, cwd: Path | None = None) -> subprocess.CompletedProcess[str]:
-    """The same command through click's test runner, in this process.
+def invoke(*args: str, cwd: Path | None = None,
+           env: dict[str, str] | None = None) -> subprocess.CompletedProcess[str]:
+    """The same command through click's test runner, in this process (in ``cwd``, with
+    ``env`` added to the environment, both restored after).
 
     An exception the command line lets out (which a user would see as a traceback) is
     raised here, so the test fails with it.
     """
     with contextlib.chdir(cwd) if cwd is not None else contextlib.nullcontext():
-        r = CliRunner().invoke(cli, list(args), prog_name="boxloc")
+        r = CliRunner(env=env).invoke(cli, list(args), prog_name="boxloc")
     if r.exception is not None and not isinstance(r.exception, SystemExit):
         raise r.exception
     return subprocess.CompletedProcess(["boxloc", *args], r.exit_code, r.stdout, r.stderr)
