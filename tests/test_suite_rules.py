@@ -98,3 +98,29 @@ def test_the_rule_holds_across_xdist_workers(pytester: pytest.Pytester) -> None:
     assert r.ret == pytest.ExitCode.TESTS_FAILED
     r.stdout.fnmatch_lines(["*SKIPPED (not allowed) test_it.py::test_many?3?: only on a worker*"])
     r.stdout.no_fnmatch_line("*not allowed*test_absent_frame*")
+
+
+def _real_data_tests() -> tuple[set[str], set[str]]:
+    """(tests marked real_data, tests whose body names MOSD) in this folder."""
+    import ast
+
+    marked, reading = set(), set()
+    for f in sorted(HERE.glob("test_*.py")):
+        for node in ast.walk(ast.parse(f.read_text())):
+            if not (isinstance(node, ast.FunctionDef) and node.name.startswith("test_")):
+                continue
+            name = f"{f.name}::{node.name}"
+            if any("real_data" in ast.unparse(d) for d in node.decorator_list):
+                marked.add(name)
+            if any(isinstance(n, ast.Name) and n.id == "MOSD" for n in ast.walk(node)):
+                reading.add(name)
+    return marked, reading
+
+
+def test_the_real_data_set_is_exactly_the_tests_that_read_it() -> None:
+    # a test reading the frames without the marker would fail where they are absent; one
+    # marked without reading them could skip for no reason
+    marked, reading = _real_data_tests()
+    assert reading, "no test reads the mOSD frames any more: update tests/real_data.py"
+    assert marked == reading, {"unmarked": sorted(reading - marked),
+                               "marked without reading": sorted(marked - reading)}
