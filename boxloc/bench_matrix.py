@@ -177,8 +177,8 @@ def site_box_range() -> tuple[float, float]:
     ``min_edge`` and ``max_edge`` (``matrix_suite`` never changes them)."""
     from boxloc.simulate import SceneSpec
 
-    d = {f.name: f.default for f in dataclasses.fields(SceneSpec)}
-    return float(d["min_edge"]), float(d["max_edge"])
+    spec = SceneSpec()
+    return float(spec.min_edge), float(spec.max_edge)
 
 
 def matrix_config(specs: Sequence[Any]) -> tuple[Config, dict[str, Any]]:
@@ -716,8 +716,8 @@ def _report(outs: list[_Outcome], specs: Sequence[Any], cfg: Config, site: dict[
         timeouts.append({"scene": None, "trial_seed": None, "sensor": None, "kind": None,
                          "spec_text": None, "phase": "warmup", "limit_s": scan_timeout,
                          "count": info["warmup_timeouts"]})
-    lo = [m for o in outs if (m := o.meta.get("edge_min")) is not None]
-    hi = [m for o in outs if (m := o.meta.get("edge_max")) is not None]
+    lo = [float(o.meta["edge_min"]) for o in outs if o.meta.get("edge_min") is not None]
+    hi = [float(o.meta["edge_max"]) for o in outs if o.meta.get("edge_max") is not None]
     site = {**site, "observed": {"min_edge": min(lo) if lo else None,
                                  "max_edge": max(hi) if hi else None}}
     runs = [o.run if o.run is not None else _MethodRun(wall_ms=o.wall_ms) for o in outs]
@@ -772,15 +772,15 @@ def _row(name: str, fig: dict[str, Any]) -> list[str]:
     if nb is None:
         cells += ["", "", ""]
     else:
-        epp = nb["false_edge_points_per_pixel"]
+        epp = [nb["edge_points_per_pixel"], nb["false_edge_points_per_pixel"]]
         cells += [f"{nb['false_surfaces_per_scan']:.2f}", f"{nb['zero_surface_share']:.2f}",
-                  "-" if epp is None else f"{epp:.4f}"]
+                  " / ".join("-" if v is None else f"{v:.4f}" for v in epp)]
     return cells
 
 
 _COLUMNS = ("", "scenes", "tops", "TP / FP / FN", "P", "R", "grasp med / p95 [mm]",
             "time med / p99 / max [s]", "max/med", "t-out / err", "no-box FS/scan",
-            "no-box zero", "false edge/px")
+            "no-box zero", "no-box edge/px all / false")
 
 
 def _table(title: str) -> Any:
