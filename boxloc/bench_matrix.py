@@ -59,9 +59,10 @@ are millimetres where named ``*_mm``, times milliseconds where named ``*_ms``):
 
 Figures of a group (:func:`group_figures`): ``n_scenes``, ``n_scans``, every key of
 :func:`boxloc.metrics.aggregate_matches` (``n_exposed`` exposed tops, ``tp``, ``fp``,
-``fn`` misses, ``precision``, ``recall``, ``grasp_err_median_mm``, ``grasp_err_p95_mm``,
-...), ``errors``, ``timeouts``, ``time`` (``median_ms``, ``p99_ms``, ``max_ms``,
-``max_over_median``) and ``no_box`` (null without a scan of a no-box kind):
+``fn`` misses, ``n_pred`` surfaces found, ``precision``, ``recall``,
+``grasp_err_median_mm``, ``grasp_err_p95_mm``, ...), ``errors``, ``timeouts``, ``time``
+(``median_ms``, ``p99_ms``, ``max_ms``, ``max_over_median``) and ``no_box`` (null without a
+scan of a no-box kind):
 ``n_scans``, ``false_surfaces``, ``false_surfaces_per_scan``, ``zero_surface_scans``,
 ``zero_surface_share`` (a timed-out or crashed scan is not a clean one), ``edge_scans``
 (the scans with an edge map), ``pixels`` (their image pixels), ``edge_points`` (pixels

@@ -20,6 +20,17 @@ from boxloc.baseline import surface_set_from_rects
 from boxloc.cli import cli
 from boxloc.config import Config
 
+#: The report's top-level keys: a stable structure that docs tables are generated from.
+TOP_KEYS = {
+    "schema", "version", "mode", "n", "seed", "jobs", "scan_timeout_s", "warmup", "threads",
+    "default_configuration", "config", "config_hash", "site", "held_out", "sensors", "kinds",
+    "no_box_kinds", "seeds", "groups", "targets", "timeouts", "errors", "timing", "memory",
+    "scenes",
+}
+GROUP_KEYS = {"n_scenes", "n_scans", "tp", "fp", "fn", "n_pred", "n_exposed", "precision",
+              "recall", "grasp_err_median_mm", "grasp_err_p95_mm", "errors", "timeouts",
+              "time", "no_box"}
+
 #: matrix_suite indices: single (0-3), pallet (4-7) and floor (28-31) of every sensor
 PICK = (0, 1, 2, 3, 4, 5, 6, 7, 28, 29, 30, 31)
 
@@ -168,6 +179,11 @@ def test_report_on_disk_and_default_configuration(report: dict[str, Any]) -> Non
     assert on_disk == {k: v for k, v in report.items() if k != "_out"}
     table = (out / bm.TABLE_NAME).read_text()
     assert "held out: the tof cells" in table and "FAIL" in table
+    assert set(on_disk) == TOP_KEYS
+    assert GROUP_KEYS <= set(report["groups"]["overall"]["all"])
+    doc = bm.__doc__ or ""
+    for key in (*TOP_KEYS, *GROUP_KEYS):  # every key is documented in the module docstring
+        assert f"``{key}``" in doc, key
     assert report["schema"] == bm.SCHEMA and report["default_configuration"] is True
     lo, hi = report["site"]["min_edge"], report["site"]["max_edge"]
     assert (lo, hi) == (sim.SceneSpec().min_edge, sim.SceneSpec().max_edge)
