@@ -10,6 +10,7 @@ import hashlib
 import json
 import math
 import tomllib
+from collections.abc import Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -303,8 +304,10 @@ class Config:
         ``noise_auto`` is set too.
         """
         d = self.to_dict()
-        items = assignments.items() if isinstance(assignments, dict) else None
-        if items is None:
+        items: Iterable[tuple[str, Any]]
+        if isinstance(assignments, dict):
+            items = assignments.items()
+        else:
             parsed = []
             for a in assignments:
                 if "=" not in a:

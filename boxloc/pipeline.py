@@ -92,11 +92,11 @@ def find_graspable_surfaces(
     timing: dict[str, float] = {}
 
     obs.on_scan(scan, config)
-    noise = _timed(timing, "noise", lambda: estimate_scan_noise(scan, config))
+    user_config = config
+    noise = _timed(timing, "noise", lambda: estimate_scan_noise(scan, user_config))
     obs.on_noise(scan, noise)
     # every later stage tests against the scan's model (the config's, when pinned)
-    user_config, config = config, dataclasses.replace(
-        config, noise=NoiseModel(**noise.noise_model()))
+    config = dataclasses.replace(user_config, noise=NoiseModel(**noise.noise_model()))
     edges = _timed(timing, "edges", lambda: detect_edges(scan, config=config))
     obs.on_edges(scan, edges)
     lines = _timed(timing, "lines", lambda: find_lines(scan, edges, config=config, rng=rng))

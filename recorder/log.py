@@ -147,8 +147,9 @@ def scan_records(
             state.end_offset = off
             continue
         try:
+            # no reader: a message (the other records without one were skipped above)
             rec: Any = (Message.read(ReadDataStream(io.BytesIO(body)), length)
-                        if opcode == Opcode.MESSAGE else reader(ReadDataStream(io.BytesIO(body))))
+                        if reader is None else reader(ReadDataStream(io.BytesIO(body))))
         except Exception as e:  # noqa: BLE001 - the mcap readers raise many kinds
             why = str(e)[:200] or type(e).__name__
             state.truncated = f"record at byte {rec_off} is malformed: {why}"
@@ -296,10 +297,11 @@ class ScanRecord:
             return None
         ri = self.result_info
         assert ri is not None
+        products: dict[str, Any] = {s: self.products.get(s) for s in STAGES}
         return Result(scan_index=ri["scan_index"], capture_time_ns=ri["capture_time_ns"],
                       seed=ri["seed"], config_hash=ri["config_hash"], version=ri["version"],
                       timing_ms=dict(self.timing_ms),
-                      **{s: self.products.get(s) for s in STAGES})
+                      **products)
 
     @property
     def tests(self) -> dict[str, TestTable]:
@@ -516,7 +518,8 @@ class Log:
         if state.truncated and not self.complete:
             self.truncated = state.truncated
         if (state.damage or state.truncated) and not self.allow_truncated:
-            raise LogError(f"{self.path} is damaged: {(state.damage or [state.truncated])[0]}; "
+            first = state.damage[0] if state.damage else state.truncated
+            raise LogError(f"{self.path} is damaged: {first}; "
                            f"`boxloc recover {self.path}` saves what is left")
 
     def scans(self, *, views: bool = False) -> Iterator[ScanRecord]:

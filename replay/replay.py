@@ -370,9 +370,13 @@ def replay_log(
         Only for a bad ``config``/``overrides`` with a version that cannot report it
         per log (never for the current code: there it is the outcome's error).
     """
-    from replay.versions import CURRENT, CurrentVersion
+    from replay.versions import CURRENT, CurrentVersion, GitRevision
 
     v = CURRENT if version is None else version
+    if isinstance(v, GitRevision):  # prepared for this call, removed after
+        with v.prepare() as wt:
+            return wt.replay(Path(path), out_dir=Path(out_dir), config=config,
+                             overrides=tuple(overrides), out_name=out_name)
     if not isinstance(v, CurrentVersion):
         return v.replay(Path(path), out_dir=Path(out_dir), config=config,
                         overrides=tuple(overrides), out_name=out_name)
@@ -452,9 +456,9 @@ def _replay_here(path: Path, out_dir: Path, config: Config | None,
 
     t0, c0 = time.perf_counter(), time.process_time()
     version = _current_version()
-    base = {"input": str(path), "version": version}
+    base: dict[str, Any] = {"input": str(path), "version": version}
 
-    def took() -> dict[str, float]:
+    def took() -> dict[str, Any]:
         return {"seconds": time.perf_counter() - t0, "cpu_seconds": time.process_time() - c0}
 
     def failed(msg: str, **kw: Any) -> ReplayOutcome:
