@@ -636,6 +636,13 @@ def run_matrix_bench(
         outs[t] = o
         if bar is not None:
             bar.advance(task_id)
+            if not con.is_terminal:  # a log file sees no bar: one line per scan instead
+                m = o.match
+                con.print(f"[{sum(x is not None for x in outs)}/{len(tasks)}] scene {i} "
+                          f"({o.sensor}, {o.kind}, {spec.width}x{spec.height}): {o.status}"
+                          + (f", {o.wall_ms / 1e3:.1f} s" if o.wall_ms is not None else "")
+                          + (f", TP {m.tp} FP {m.fp} FN {m.fn}" if m is not None else ""),
+                          markup=False, highlight=False)
 
     def on_start(t: int) -> None:
         if bar is not None:
