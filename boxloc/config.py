@@ -31,10 +31,11 @@ UNRECORDED_KEYS: dict[str, Any] = {
     "end_tolerance": 0.75,
     "noise.edge_px": 0.0,
     "noise.row_corr": 0.0,
+    "noise.incidence_exponent": 1.0,
 }
 
 #: The noise terms ``noise_auto`` estimates from each scan; giving any of them pins the model.
-ESTIMATED_NOISE_TERMS = frozenset({"sigma0", "k1", "k2", "row_corr"})
+ESTIMATED_NOISE_TERMS = frozenset({"sigma0", "k1", "k2", "row_corr", "incidence_exponent"})
 
 #: Config fields that change how a result is computed, never what it is.
 EXECUTION_FIELDS = frozenset({"workers"})

@@ -49,6 +49,9 @@ __all__ = ["plane_residuals", "tile_residuals", "TileResiduals", "estimate_noise
 NOISE_TERMS = ("sigma0", "k1", "k2")
 #: Pixel lags of the residual correlation diagnostic (within a tile).
 CORRELATION_LAGS = (1, 2, 4, 8)
+#: Incidence exponents ``incidence="fit"`` chooses from (1/cos**g; 0: laser, time of
+#: flight; 1: triangulation).
+INCIDENCE_EXPONENTS = (0.0, 0.5, 1.0, 1.5)
 #: Model sigmas of the tail diagnostic.
 TAIL_SIGMAS = (3.0, 4.0, 5.0)
 _MAD_TO_STD = 1.4826  # 1 / Phi^-1(3/4): MAD of a normal distribution -> its std
@@ -412,12 +415,15 @@ def estimate_noise(
         Per-bin standard deviation: 1.4826 * MAD (robust, exact for Gaussian noise; it
         overestimates uniform quantization noise by ~28 %), or the 3-sigma-clipped sample
         standard deviation. Both are reported.
-    incidence : {"model", "ignore"}
+    incidence : {"model", "ignore", "fit"}
         "model": each residual along the ray is multiplied by ``max(cos_incidence,
         min_cos)`` before binning, matching the NoiseModel's ``1 / cos`` factor, so the
         fitted model predicts the along-ray scatter at every incidence. "ignore": the raw
         along-ray residuals are binned (the model then over-predicts at oblique incidence,
         by ``1 / cos``); useful to compare with sensor data sheets quoted along the ray.
+        "fit": the factor is ``max(cos_incidence, min_cos)**g`` with g of
+        :data:`INCIDENCE_EXPONENTS` whose fitted model leaves the least scatter of the
+        bins' stds around it (ties keep the smaller g); the returned model carries it.
     terms : sequence of {"sigma0", "k1", "k2"}
         Which terms of the model to fit; the others are 0.
     base : NoiseModel, optional
@@ -468,8 +474,8 @@ def estimate_noise(
                          f"{len(labels_l)} label images")
     if estimator not in ("mad", "clipped"):
         raise InputError(f"estimator must be 'mad' or 'clipped', got {estimator!r}")
-    if incidence not in ("model", "ignore"):
-        raise InputError(f"incidence must be 'model' or 'ignore', got {incidence!r}")
+    if incidence not in ("model", "ignore", "fit"):
+        raise InputError(f"incidence must be 'model', 'ignore' or 'fit', got {incidence!r}")
     terms = tuple(terms)
     if not terms or any(t not in NOISE_TERMS for t in terms) or len(set(terms)) != len(terms):
         raise InputError(f"terms must be a non-empty subset of {NOISE_TERMS}, got {terms}")
@@ -565,7 +571,32 @@ def fit_residuals(
         )
     e_ray = y / np.maximum(c, base.min_cos) if incidence == "model" else y
     report["incidence_exponent"] = _incidence_exponent(r, c, e_ray, used)
-    model, x = _fit(used, terms, base)
+    g = 1.0
+    if incidence == "fit":
+        # The incidence law that explains the binned scatter best. The within-bin slope
+        # (the report's incidence_exponent) is too noisy to use: range and incidence go
+        # together on a tilted plane.
+        best = math.inf
+        for g_try in INCIDENCE_EXPONENTS:
+            y_try = e_ray * np.maximum(c, base.min_cos) ** g_try
+            rows_try = [dict(row) for row in rows]
+            for row in rows_try:
+                yb = y_try[which == int(round((row["lo"] - lo) / bin_width))]
+                row["std_mad"], row["std_clipped"] = _robust_std(yb), _clipped_std(yb)
+                row["std"] = row["std_mad"] if estimator == "mad" else row["std_clipped"]
+            used_try = [row for row in rows_try if row["used"] and row["std"] > 0]
+            if not used_try:
+                continue
+            m_try, _ = fit_bins(used_try, terms, base)
+            # scatter of a bin around the model, in ln, weighted by its points
+            s = np.array([row["std"] for row in used_try])
+            w = np.array([row["count"] for row in used_try], dtype=np.float64)
+            r_b = np.array([row["range"] for row in used_try])
+            cost = float(np.sum(w * np.log(s / m_try.sigma_range(r_b)) ** 2) / w.sum())
+            if cost < best - 1e-12:
+                best, g, rows, used = cost, g_try, rows_try, used_try
+    model, x = fit_bins(used, terms, base)
+    model = dataclasses.replace(model, incidence_exponent=g)
     # the row-shared share of the variance: the mean of the tiles' ANOVA estimates (each
     # noisy, some negative; a little low: scans simulated with 0.276 give 0.26)
     share = np.concatenate(shares)
@@ -586,7 +617,7 @@ def fit_residuals(
     ra, ca, ea = (np.concatenate(a) for a in (all_r, all_c, all_e))
     fin = np.isfinite(ea)
     ra, ca, ea = ra[fin], ca[fin], ea[fin]
-    za = np.abs(ea) / model.sigma_range(ra, ca if incidence == "model" else 1.0)
+    za = np.abs(ea) / model.sigma_range(ra, ca if incidence != "ignore" else 1.0)
     report["tails"] = {
         "sigmas": list(TAIL_SIGMAS), "n_points": int(za.size),
         "observed": [float(np.mean(za > k)) for k in TAIL_SIGMAS] if za.size else None,
@@ -631,9 +662,11 @@ def _incidence_exponent(
     return float(-(x @ yv) / (x @ x))
 
 
-def _fit(
+def fit_bins(
     used: list[dict[str, Any]], terms: tuple[str, ...], base: NoiseModel
 ) -> tuple[NoiseModel, np.ndarray]:
+    """The range terms fitted to per-bin stds (rows with ``range``, ``std``, ``count``) by
+    non-negative least squares on the variances; ``base`` supplies the other terms."""
     from scipy.optimize import nnls
 
     r = np.array([row["range"] for row in used])

@@ -89,13 +89,17 @@ class NoiseSource(IntEnum):
     CONFIG = 0
     #: estimated from this scan's flat regions
     SCAN = 1
-    #: ``noise_auto``, but the scan has too little flat surface: the config's model
+    #: ``noise_auto``, but the scan has neither flat tiles nor smooth scan lines to fit: the
+    #: config's model
     FALLBACK = 2
+    #: ``noise_auto``, too few flat tiles (noise too strong or quantized for a tile to pass
+    #: as flat): fitted to the second differences of the ranges along rows and columns
+    DIFFERENCES = 3
 
 
 #: Order of :attr:`NoiseEstimate.model`'s values (the fields of ``NoiseModel``).
 NOISE_FIELDS: tuple[str, ...] = (
-    "sigma0", "k1", "k2", "sigma_angle", "min_cos", "edge_px", "row_corr")
+    "sigma0", "k1", "k2", "sigma_angle", "min_cos", "edge_px", "row_corr", "incidence_exponent")
 
 
 def _f(*shape: int, dtype: Any = np.float64) -> np.ndarray:
@@ -113,9 +117,9 @@ class NoiseEstimate:
         :class:`NoiseSource`.
     reason : str
         Why that source, in words (e.g. too few flat tiles).
-    model : (7,) float64
+    model : (8,) float64
         The model every later stage used, in :data:`NOISE_FIELDS` order (metres, radians).
-    nominal : (7,) float64
+    nominal : (8,) float64
         The config's model (the fallback, and what a pinned run uses).
     n_tiles, n_tiles_used, n_points : int
         Tiles examined, flat tiles accepted, residuals in them.

@@ -204,7 +204,9 @@ SensorModel = PinholeModel | RayTableModel
 class NoiseModel:
     """Standard deviation of a range measurement as a function of range and incidence.
 
-    ``sigma_range(r, cos_i) = sqrt(sigma0**2 + (k1*r)**2 + (k2*r**2)**2) / max(cos_i, min_cos)``
+    ``sigma_range(r, cos_i) = sqrt(sigma0**2 + (k1*r)**2 + (k2*r**2)**2) / max(cos_i, min_cos)**g``
+
+    with ``g`` the ``incidence_exponent``.
 
     The quadratic term models triangulation sensors (Kinect-style depth quantization
     grows with range squared); the constant term models time-of-flight scanners.
@@ -233,6 +235,10 @@ class NoiseModel:
         Structured-light sensors have one (the mOSD Kinect frames: 0.28); it does not
         average out along a row, so tests that average points along a line (seams) need
         it. An ideal scanner has 0.
+    incidence_exponent : float
+        How the range noise grows as the surface turns from the ray: by ``1 / cos**g``.
+        1 is a triangulation sensor whose footprint stretches along the ray; a laser or
+        time-of-flight sensor's range noise hardly depends on the incidence (g near 0).
     """
 
     sigma0: float = 0.0010
@@ -242,6 +248,7 @@ class NoiseModel:
     min_cos: float = 0.2
     edge_px: float = 0.0
     row_corr: float = 0.0
+    incidence_exponent: float = 1.0
 
     def __post_init__(self) -> None:
         for name in ("sigma0", "k1", "k2", "sigma_angle", "min_cos", "edge_px"):
@@ -252,6 +259,9 @@ class NoiseModel:
             raise InputError("noise model needs sigma0, k1 or k2 > 0")
         if not (np.isfinite(self.row_corr) and 0 <= self.row_corr < 1):
             raise InputError(f"noise parameter row_corr must be in [0, 1), got {self.row_corr}")
+        if not (np.isfinite(self.incidence_exponent) and 0 <= self.incidence_exponent <= 3):
+            raise InputError("noise parameter incidence_exponent must be in [0, 3], got "
+                             f"{self.incidence_exponent}")
         if not 0 < self.min_cos <= 1:
             raise InputError(f"noise parameter min_cos must be in (0, 1], got {self.min_cos}")
 
@@ -268,7 +278,7 @@ class NoiseModel:
         r = np.asarray(r, dtype=np.float64)
         s = np.sqrt(self.sigma0**2 + (self.k1 * r) ** 2 + (self.k2 * r * r) ** 2)
         c = np.maximum(np.abs(np.asarray(cos_incidence, dtype=np.float64)), self.min_cos)
-        return s / c
+        return s / c**self.incidence_exponent
 
     def sigma_lateral(self, r: FloatArray, pixel_angle: float) -> np.ndarray:
         """Lateral standard deviation perpendicular to the ray, metres."""

@@ -5,7 +5,8 @@ configured for one sensor and used on another makes every test fire at the wrong
 (with the true noise at 2x the model a chi-square(1) test at alpha = 0.01 fires at 0.20), so
 by default (``Config.noise_auto``) each scan gets the model fitted to its own flat tiles
 (:func:`boxloc.noise.tile_residuals`, :func:`boxloc.noise.fit_residuals`): the range terms
-``sigma0``, ``k1``, ``k2`` and the row-shared share ``row_corr``. The terms a single scan
+``sigma0``, ``k1``, ``k2``, the incidence law (``incidence_exponent``) and the row-shared
+share ``row_corr``. The terms a single scan
 cannot measure (``sigma_angle``, ``min_cos``, ``edge_px``) come from the config's model.
 
 Whatever the source, the scan's residuals are tested against the model in use
@@ -17,6 +18,7 @@ give 3x a normal's rate), so a tail test would not keep its level.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
@@ -24,7 +26,15 @@ from scipy import stats as _st
 
 from boxloc.config import Config
 from boxloc.errors import InputError
-from boxloc.noise import CORRELATION_LAGS, TAIL_SIGMAS, TileResiduals, fit_residuals, tile_residuals
+from boxloc.noise import (
+    CORRELATION_LAGS,
+    NOISE_TERMS,
+    TAIL_SIGMAS,
+    TileResiduals,
+    fit_bins,
+    fit_residuals,
+    tile_residuals,
+)
 from boxloc.products import NOISE_FIELDS, NoiseEstimate, NoiseSource
 from boxloc.scan import NoiseModel, Scan
 from boxloc.stats import TestKind, TestTable
@@ -72,7 +82,7 @@ def estimate_scan_noise(scan: Scan, config: Config) -> NoiseEstimate:
                            step=step)
     model, source, reason = nominal, NoiseSource.CONFIG, "the config pins the noise model"
     if config.noise_auto:
-        model, source, reason = _auto(tiles, nominal, config.alpha)
+        model, source, reason = _auto(scan, tiles, nominal, config.alpha)
     bins, tests = _fit_tests(tiles, model, config.alpha)
     corr = _correlation(tiles)
     tails = _tail_rates(tiles, model)
@@ -105,16 +115,21 @@ def _as_array(model: NoiseModel) -> np.ndarray:
     return np.array([getattr(model, k) for k in NOISE_FIELDS], dtype=np.float64)
 
 
-def _auto(tiles: TileResiduals, nominal: NoiseModel, alpha: float
+def _auto(scan: Scan, tiles: TileResiduals, nominal: NoiseModel, alpha: float
           ) -> tuple[NoiseModel, NoiseSource, str]:
     if tiles.n_accepted < MIN_FLAT_TILES:
-        return nominal, NoiseSource.FALLBACK, (
-            f"{tiles.n_accepted} flat tiles of {PATCH_PX}x{PATCH_PX} px, fewer than "
-            f"{MIN_FLAT_TILES}: the config's model")
+        few = (f"{tiles.n_accepted} flat tiles of {PATCH_PX}x{PATCH_PX} px, fewer than "
+               f"{MIN_FLAT_TILES}")
+        model = _from_differences(scan, nominal)
+        if model is None:
+            return nominal, NoiseSource.FALLBACK, (
+                f"{few}, and too few smooth scan lines: the config's model")
+        return model, NoiseSource.DIFFERENCES, f"{few}: fitted to second differences"
     try:
         fitted, report = fit_residuals([tiles], bin_width=BIN_WIDTH,
                                        min_points=MIN_BIN_TILES * PATCH_PX**2 // 2,
-                                       min_tiles=MIN_BIN_TILES, base=nominal)
+                                       min_tiles=MIN_BIN_TILES, base=nominal,
+                                       incidence="fit")
     except InputError as e:
         return nominal, NoiseSource.FALLBACK, f"no fit ({e}): the config's model"
     # a row-shared share the tiles cannot tell from 0 (one-sided z at alpha) is 0: the
@@ -124,11 +139,47 @@ def _auto(tiles: TileResiduals, nominal: NoiseModel, alpha: float
     row_corr = fitted.row_corr if se and fitted.row_corr > _st.norm.isf(alpha) * se else 0.0
     model = NoiseModel(sigma0=fitted.sigma0, k1=fitted.k1, k2=fitted.k2,
                        sigma_angle=nominal.sigma_angle, min_cos=nominal.min_cos,
-                       edge_px=nominal.edge_px, row_corr=row_corr)
+                       edge_px=nominal.edge_px, row_corr=row_corr,
+                       incidence_exponent=fitted.incidence_exponent)
     used = sum(1 for row in report["rows"] if row["used"])
     return model, NoiseSource.SCAN, (
         f"fitted to {tiles.n_accepted} flat tiles ({report['n_points']} points, "
         f"{used} range bins)")
+
+
+def _from_differences(scan: Scan, nominal: NoiseModel) -> NoiseModel | None:
+    """The range terms fitted to the second differences of the ranges along rows and
+    columns, per range bin: ``1.4826 MAD / sqrt(6)`` is the std of white noise (the MAD
+    ignores the few triplets that straddle an edge). Correlated noise partly cancels in a
+    difference, so this reads low on a sensor whose noise is correlated; it serves scans
+    whose tiles cannot pass as flat, where the noise dwarfs that error."""
+    r = scan.range.astype(np.float64)
+    d2 = [r[:, :-2] - 2.0 * r[:, 1:-1] + r[:, 2:], r[:-2] - 2.0 * r[1:-1] + r[2:]]
+    mid = [r[:, 1:-1], r[1:-1]]
+    dd = np.concatenate([d.ravel() for d in d2])
+    rr = np.concatenate([m.ravel() for m in mid])
+    ok = np.isfinite(dd) & np.isfinite(rr)
+    dd, rr = dd[ok], rr[ok]
+    if dd.size < MIN_FLAT_TILES * PATCH_PX**2:
+        return None
+    b = np.floor(rr / BIN_WIDTH).astype(np.int64)
+    rows = []
+    for k in np.unique(b):
+        q = b == k
+        if q.sum() < PATCH_PX**2:
+            continue
+        med = np.median(dd[q])
+        std = 1.4826 * float(np.median(np.abs(dd[q] - med))) / math.sqrt(6.0)
+        if std > 0:
+            rows.append({"range": float(np.median(rr[q])), "std": std, "count": int(q.sum())})
+    if not rows:
+        return None
+    try:
+        fitted, _ = fit_bins(rows, NOISE_TERMS, nominal)
+    except InputError:
+        return None
+    return dataclasses.replace(nominal, sigma0=fitted.sigma0, k1=fitted.k1, k2=fitted.k2,
+                               row_corr=0.0, incidence_exponent=1.0)
 
 
 def _tile_stats(tiles: TileResiduals, model: NoiseModel
@@ -141,7 +192,8 @@ def _tile_stats(tiles: TileResiduals, model: NoiseModel
         z = np.zeros(0)
         return z, z, z
     # along the ray, back to normal incidence as the model's 1/max(cos, min_cos) factor
-    e = np.abs(tiles.residual[inl]) * np.maximum(tiles.cos_incidence[inl], model.min_cos)
+    e = np.abs(tiles.residual[inl]) * np.maximum(
+        tiles.cos_incidence[inl], model.min_cos) ** model.incidence_exponent
     r = tiles.range[inl]
     _, inv, counts = np.unique(tid, return_inverse=True, return_counts=True)
     starts = np.concatenate([[0], np.cumsum(counts)[:-1]])

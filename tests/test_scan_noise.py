@@ -58,13 +58,24 @@ def test_the_right_pinned_model_passes_its_test() -> None:
     assert len(fit) == 1 and fit.accepted[0]
 
 
-def test_too_little_flat_surface_falls_back_to_the_config() -> None:
+def test_too_few_flat_tiles_fits_second_differences() -> None:
     sim = simulate(SCENE, 3)
     rng = np.random.default_rng(0)
     holes = rng.random(sim.scan.shape) < 0.3  # no 16x16 tile is 90 % full
     scan = dataclasses.replace(sim.scan, range=np.where(holes, np.nan, sim.scan.range))
     est = estimate_scan_noise(scan, Config(noise_auto=True))
-    assert est.source == NoiseSource.FALLBACK and "fewer than" in est.reason
+    assert est.source == NoiseSource.DIFFERENCES and "fewer than" in est.reason
+    r = _median_range(sim)
+    got = NoiseModel(**est.noise_model()).sigma_range(r)
+    assert got == pytest.approx(sim.spec.noise.sigma_range(r), rel=0.2)
+
+
+def test_nothing_to_fit_falls_back_to_the_config() -> None:
+    sim = simulate(SCENE, 3)
+    checker = (np.indices(sim.scan.shape).sum(0) % 2) == 1  # no two neighbours both valid
+    scan = dataclasses.replace(sim.scan, range=np.where(checker, np.nan, sim.scan.range))
+    est = estimate_scan_noise(scan, Config(noise_auto=True))
+    assert est.source == NoiseSource.FALLBACK and "config's model" in est.reason
     np.testing.assert_array_equal(est.model, est.nominal)
 
 
@@ -129,3 +140,14 @@ def test_the_estimate_is_recorded_and_explained(noisy, tmp_path) -> None:  # typ
     assert d["noise"]["sigma_mm"] == pytest.approx(1e3 * noisy.spec.noise.sigma_range(r),
                                                    rel=0.15)
     assert "noise model: scan, sigma" in format_explanation(d)
+
+
+@pytest.mark.parametrize(("spec", "g"), [
+    # a laser's range noise does not grow with incidence; the default sensor's, as 1/cos
+    ("floor:sensor=laser,width=320,height=240,f=262.5,distance=2.56,tilt=0.45", 0.0),
+    ("floor:width=320,height=240,f=262.5,distance=1.5,tilt=0.45", 1.0),
+])
+def test_the_incidence_law_is_the_scans(spec: str, g: float) -> None:
+    est = estimate_scan_noise(simulate(spec, 100).scan, Config(noise_auto=True))
+    assert est.noise_model()["incidence_exponent"] == g
+    assert est.fits
