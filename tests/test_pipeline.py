@@ -144,8 +144,8 @@ def test_observer_receives_every_product_in_order(single):
     sim, _ = single
     obs = _Recorder()
     r = find_graspable_surfaces(sim.scan, Config(), observer=obs)
-    assert obs.calls == ["scan", "noise", "edges", "lines", "vertices", "hypotheses", "verification",
-                         "selection", "surfaces", "result"]
+    assert obs.calls == ["scan", "noise", "edges", "lines", "vertices", "hypotheses",
+                         "verification", "selection", "surfaces", "result"]
     assert set(STAGES) <= {f for f in r.__dataclass_fields__}
 
 
