@@ -47,8 +47,9 @@ are millimetres where named ``*_mm``, times milliseconds where named ``*_ms``):
   ``kind``, ``spec_text``, ``phase`` (``simulate``, ``localize`` or ``warmup``), ``limit_s``
 - ``errors``: ``total`` and ``list`` (``scene``, ``trial_seed``, ``sensor``, ``kind``,
   ``phase``, ``error``) of scans that crashed (localizer, simulator, worker process)
-- ``timing``: ``stages_ms`` and ``total_ms`` (median, p95 over all scans),
-  ``per_scan_ms`` (in the order of ``scenes``; a timed-out scan's is the limit), ``run_s``
+- ``timing``: ``stages_ms`` (median, p95 per stage over the scans that finished),
+  ``total_ms`` (median, p95 over all scans), ``per_scan_ms`` (in the order of ``scenes``; a
+  timed-out scan's is the limit, so a maximum or ratio over it is a lower bound), ``run_s``
 - ``memory``: the workers' peak RSS per scan (median and max, MB) and this process's
 - ``scenes``: one deterministic row per scan (scene and draw, in suite order): ``index``,
   ``trial_seed``, ``sensor``, ``kind``, ``held_out``, ``spec``, ``spec_text``,
