@@ -32,6 +32,8 @@ UNRECORDED_KEYS: dict[str, Any] = {
     "noise.edge_px": 0.0,
     "noise.row_corr": 0.0,
     "noise.incidence_exponent": 1.0,
+    "max_line_work": 0,
+    "max_vertices": 0,
 }
 
 #: The noise terms ``noise_auto`` estimates from each scan; giving any of them pins the model.
@@ -103,6 +105,16 @@ class Config:
         Largest scan accepted, pixels; larger scans are refused before any work.
     direction_granularity : int
         Subdivision level of the icosahedral direction accumulator (4 gives 1281 cells).
+    max_line_work : int
+        Budget of the line stage: neighbour points its Hough trials may examine in all
+        (each trial examines the live edge points within its vote radius; about 4 us
+        each). Ordinary scans need up to ~2e5 (mOSD frames, simulated piles); a scan of
+        noise edges needed 2e7 (77 s). At the budget (5x the most an ordinary scan needs)
+        the stage stops with the lines found and records a BUDGET row. 0: no budget.
+    max_vertices : int
+        Budget of the hypothesis stage: vertices whose rectangles are searched and
+        verified (~20-50 ms each), the highest first; ordinary scans have up to ~25. 0: no
+        budget.
     trial_seed : int
         Which stream of random trials to draw (the Hough trials' distinguished points and
         voters, the up estimate's and the baseline's RANSAC): 0, the default, seeds them
@@ -135,6 +147,8 @@ class Config:
     workers: int = 1
     max_pixels: int = 16_777_216
     direction_granularity: int = 4
+    max_line_work: int = 1_000_000
+    max_vertices: int = 500
     trial_seed: int = 0
 
     def __post_init__(self) -> None:
@@ -157,6 +171,10 @@ class Config:
             check(k, math.isfinite(getattr(self, k)) and getattr(self, k) >= 0, "finite and >= 0")
         check("workers", isinstance(self.workers, int) and self.workers >= 1, "an integer >= 1")
         check("max_pixels", isinstance(self.max_pixels, int) and self.max_pixels > 0, "> 0")
+        for k in ("max_line_work", "max_vertices"):
+            v = getattr(self, k)
+            check(k, isinstance(v, int) and not isinstance(v, bool) and v >= 0,
+                  "an integer >= 0 (0: no budget)")
         check("direction_granularity", self.direction_granularity in range(2, 7), "in 2..6")
         check("trial_seed", isinstance(self.trial_seed, int) and not isinstance(
             self.trial_seed, bool) and 0 <= self.trial_seed < 2**63, "an integer >= 0")

@@ -51,7 +51,7 @@ from boxloc.products import (
 )
 from boxloc.scan import Scan
 from boxloc.seams import face_points, find_seams
-from boxloc.stats import TestKind, TestTable, chi2_critical
+from boxloc.stats import BUDGET_HYPOTHESES, TestKind, TestTable, chi2_critical
 from boxloc.verify import (
     BOUNDARY_BAND,
     SIDE_CORNERS,
@@ -512,7 +512,9 @@ def generate_hypotheses(
     """
     up = scan.up if up is None else np.asarray(up, dtype=np.float64)
     ctx = _Context.build(scan, edges, vertices, config, up)
-    works = _work_on(list(range(len(vertices))), ctx)
+    budget = _VertexBudget(config.max_vertices)
+    ids = range(len(vertices))
+    works = _work_on(ids, budget.take(ids, ctx.vertices, up), ctx)
     new_from = 0
     for _ in range(MAX_NEIGHBOUR_ROUNDS):
         V = neighbour_vertices(ctx.vertices, works, new_from, config)
@@ -521,11 +523,47 @@ def generate_hypotheses(
             ctx = dataclasses.replace(ctx, vertices=V)
             break
         ctx = dataclasses.replace(ctx, vertices=V, normal_cov=normal_covariance(V))
-        works += _work_on(list(range(new_from, len(V))), ctx)
-    return ctx.vertices, *_assemble(works, ctx.vertices, config, up)
+        ids = range(new_from, len(V))
+        works += _work_on(ids, budget.take(ids, V, up), ctx)
+    hyps, ver = _assemble(works, ctx.vertices, config, up)
+    row = TestTable.budget(BUDGET_HYPOTHESES, budget.needed, budget.budget, budget.exhausted,
+                           config.alpha)
+    hyps = dataclasses.replace(hyps, tests=TestTable.concat([hyps.tests, row], config.alpha))
+    return ctx.vertices, hyps, ver
 
 
-def _work_on(ids: list[int], ctx: _Context) -> list[_VertexWork]:
+@dataclass
+class _VertexBudget:
+    """``Config.max_vertices``: how many vertices get their rectangles searched (0: all)."""
+
+    budget: int
+    done: int = 0
+    needed: int = 0
+    exhausted: bool = False
+
+    def take(self, ids: range, vertices: VertexSet, up: np.ndarray) -> list[int]:
+        """The ``ids`` to work on, in order: over the budget, the highest vertices (along
+        ``up``), as graspable tops are on top of the pile."""
+        ids_l = list(ids)
+        self.needed += len(ids_l)
+        room = len(ids_l) if not self.budget else max(0, self.budget - self.done)
+        if room >= len(ids_l):
+            self.done += len(ids_l)
+            return ids_l
+        self.exhausted = True
+        height = vertices.points[ids_l] @ up
+        self.done += room
+        return sorted(ids_l[j] for j in np.argsort(-height, kind="stable")[:room])
+
+
+def _work_on(ids: range, todo: list[int], ctx: _Context) -> list[_VertexWork]:
+    """The work on each vertex of ``ids``, in order; those not in ``todo`` (over the
+    budget) get none."""
+    done = {w.vertex: w for w in _work_on_ids(todo, ctx)}
+    return [done.get(i) or _VertexWork(vertex=i) for i in ids]
+
+
+def _work_on_ids(ids: list[int], ctx: _Context) -> list[_VertexWork]:
     config = ctx.config
     if config.workers > 1 and len(ids) > 1:
         chunks = [ids[k :: config.workers] for k in range(config.workers)]

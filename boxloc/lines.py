@@ -33,7 +33,7 @@ from scipy.spatial import cKDTree
 from boxloc.config import Config
 from boxloc.products import EdgeMap, LineSet
 from boxloc.scan import Scan
-from boxloc.stats import TestKind, TestTable, chi2_critical
+from boxloc.stats import BUDGET_LINES, TestKind, TestTable, chi2_critical
 
 #: Largest angular error region a direction vote may spread over; nearer points carry
 #: almost no direction information and only slow the accumulator down.
@@ -264,7 +264,8 @@ def find_lines(scan: Scan, edges: EdgeMap, *, config: Config, rng: np.random.Gen
     edges : EdgeMap
         Edge points with covariances.
     config : Config
-        Uses ``alpha``, ``p_success``, ``min_edge``, ``max_edge``, ``direction_granularity``.
+        Uses ``alpha``, ``p_success``, ``min_edge``, ``max_edge``, ``direction_granularity``,
+        ``max_line_work``.
     rng : numpy.random.Generator
         Source of the distinguished points (seeded from the scan by the pipeline).
 
@@ -307,6 +308,9 @@ def find_lines(scan: Scan, edges: EdgeMap, *, config: Config, rng: np.random.Gen
     trial_of: list[int] = []  # the trial that found each segment
     trial = 0
     fails = 0
+    work = 0  # neighbour points examined, against config.max_line_work
+    budget = config.max_line_work
+    exhausted = False
 
     def needed_trials(n: int) -> int:
         eps = min(1.0, m_min / max(n, 1))
@@ -315,11 +319,15 @@ def find_lines(scan: Scan, edges: EdgeMap, *, config: Config, rng: np.random.Gen
         return int(math.ceil(math.log(1.0 - config.p_success) / math.log(1.0 - eps)))
 
     while n_alive >= m_min and fails < needed_trials(n_alive):
+        if budget and work >= budget:
+            exhausted = True
+            break
         trial += 1
         alive_idx = np.flatnonzero(alive)
         i0 = int(alive_idx[rng.integers(len(alive_idx))])
         nb = np.asarray(ptree.query_ball_point(P[i0], radius), dtype=np.int64)
         nb = nb[alive[nb] & (nb != i0)]
+        work += len(nb)
         found = _trial(fixed, i0, nb, alive, rng) if len(nb) >= m_min else []
         for seg in found:
             alive[seg.support] = False
@@ -331,7 +339,8 @@ def find_lines(scan: Scan, edges: EdgeMap, *, config: Config, rng: np.random.Gen
         else:
             fails += 1
 
-    return _to_lineset(segments, trial_of, trial, eps0, config, config.seed_for(scan.seed))
+    return _to_lineset(segments, trial_of, trial, eps0, config, config.seed_for(scan.seed),
+                       TestTable.budget(BUDGET_LINES, work, budget, exhausted, alpha))
 
 
 @dataclass(frozen=True)
@@ -490,7 +499,7 @@ def _trial(fixed: _TrialInputs, i0: int, nb: np.ndarray, alive: np.ndarray,
 
 def _to_lineset(
     segments: list[_Segment], trial_of: list[int], n_trials: int, eps0: float, config: Config,
-    seed: int,
+    seed: int, budget_row: TestTable,
 ) -> LineSet:
     L = len(segments)
     sup = [s.support for s in segments]
@@ -524,5 +533,5 @@ def _to_lineset(
         epsilon=float(eps0),
         p_success=float(config.p_success),
         seed=int(seed),
-        tests=TestTable.concat(tests, config.alpha),
+        tests=TestTable.concat([*tests, budget_row], config.alpha),
     )

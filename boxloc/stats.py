@@ -110,6 +110,18 @@ class TestKind(IntEnum):
     #: margin) / its standard error from the tiles' spread; statistic = the largest z_b,
     #: critical = the one-sided normal quantile at alpha / bins (a = -1, b = bins)
     NOISE_FIT = 28
+    #: a stage stopped at its work budget (a = the stage: 1 lines, 2 hypotheses; statistic
+    #: = the work it needed, or did when stopped; critical = the budget; always rejected:
+    #: a row only where it was hit) and the scan finished with what it had. Lines count the
+    #: neighbour points their Hough trials examined, hypotheses the vertices worked on
+    #: (the highest first). Counted in work, not seconds, so a replay stops where the run
+    #: did.
+    BUDGET = 29
+
+
+#: ``TestKind.BUDGET`` rows' ``a``: the stage whose budget it is.
+BUDGET_LINES = 1
+BUDGET_HYPOTHESES = 2
 
 
 @lru_cache(maxsize=256)
@@ -290,6 +302,16 @@ class TestTable:
             },
             alpha=self.alpha,
         )
+
+    @classmethod
+    def budget(cls, stage: int, work: int, budget: int, exhausted: bool,
+               alpha: float) -> TestTable:
+        """A stage's BUDGET row where it stopped at its budget; none where it did not (so
+        a scan's products are those of a run without budgets unless one was hit)."""
+        if not exhausted:
+            return cls.empty(alpha)
+        return cls.decision(TestKind.BUDGET, stage, -1, float(work), float(budget), False,
+                            alpha)
 
     def of_kind(self, kind: TestKind) -> TestTable:
         return self.select(self.kind == int(kind))

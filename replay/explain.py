@@ -50,7 +50,7 @@ from boxloc.products import (
     VerifyReason,
 )
 from boxloc.scan import NoiseModel
-from boxloc.stats import TestKind, TestTable
+from boxloc.stats import BUDGET_HYPOTHESES, BUDGET_LINES, TestKind, TestTable
 from boxloc.vertices import THIRD_EDGE
 
 #: How a test's statistic is compared with its critical value when the relation holds.
@@ -648,6 +648,25 @@ def _noise(noise: Any) -> dict[str, Any] | None:
     }
 
 
+#: What each stage's BUDGET row counts.
+_BUDGET_WORK = {BUDGET_LINES: ("lines", "neighbour points examined by the Hough trials"),
+                BUDGET_HYPOTHESES: ("hypotheses", "vertices needing a rectangle search")}
+
+
+def _budgets(products: dict[str, Any]) -> list[dict[str, Any]]:
+    """The stages that stopped at their work budget on this scan."""
+    out = []
+    for stage in ("lines", "hypotheses"):
+        p = products.get(stage)
+        if p is None:
+            continue
+        for row in p.tests.of_kind(TestKind.BUDGET).rows():
+            name, what = _BUDGET_WORK.get(int(row["a"]), (stage, "work"))
+            out.append({"stage": name, "work": row["statistic"], "budget": row["critical"],
+                        "counts": what})
+    return out
+
+
 def explain(log: Any, scan: int, surface: int | None = None, at: Any = None,
             failed_picks: bool = False) -> dict[str, Any]:
     """The chain of decisions for a surface of a recorded scan (see the module notes).
@@ -694,6 +713,7 @@ def explain(log: Any, scan: int, surface: int | None = None, at: Any = None,
         "n_surfaces": None if S is None else len(S),
         "pipeline_error": rec.error,
         "noise": _noise(rec.products.get("noise")),
+        "budgets": _budgets(rec.products),
     }
     if failed_picks:
         out["mode"] = "failed_picks"
@@ -885,6 +905,10 @@ def format_explanation(d: dict[str, Any]) -> str:
                      f"{_num(nz['model']['row_corr'])} ({nz['reason']})")
         if nz.get("fit"):
             lines.append(f"  {_test_text(nz['fit'])}")
+    for b in d.get("budgets") or []:
+        lines.append(f"budget exhausted: the {b['stage']} stage stopped at {_num(b['budget'])} "
+                     f"{b['counts']} (it needed {_num(b['work'])}); the scan finished with "
+                     "what it had")
     if d.get("pipeline_error"):
         e = d["pipeline_error"]
         lines.append(f"the pipeline failed on this scan: {e.get('error_type')} in "

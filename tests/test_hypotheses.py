@@ -247,3 +247,19 @@ def test_interior_boxes_of_a_neat_layer_are_found_through_their_neighbours():
     assert m.fp == 0 and m.tp >= 8  # 2 without the neighbours' corners
     hyp = r.hypotheses.att_hypothesis[r.surfaces.attempt]
     assert (r.vertices.parent[hyp] >= 0).sum() >= 4
+
+
+def test_the_hypothesis_stage_works_on_the_highest_vertices_within_its_budget():
+    # a low box and a high one: with room for one vertex, the high box's is worked on
+    sim = scene([box(-0.3, 0.0, 0.40, 0.30, 0.15, 0.0), box(0.3, 0.0, 0.40, 0.30, 0.35, 0.0)],
+                seed=3)
+    _, _, V, H, ver = _stages(sim, Config(max_vertices=1))
+    (row,) = H.tests.of_kind(TestKind.BUDGET).rows()
+    assert not row["accepted"] and row["critical"] == 1 and row["statistic"] == len(V) > 1
+    worked = np.unique(H.att_hypothesis)
+    assert len(worked) == 1
+    height = V.points @ sim.scan.up
+    assert height[worked[0]] == height.max()
+    # without the cut every vertex is worked on, and no budget row is recorded
+    _, _, V2, H2, _ = _stages(sim)
+    assert len(H2.tests.of_kind(TestKind.BUDGET)) == 0 and len(np.unique(H2.att_hypothesis)) > 1

@@ -9,7 +9,7 @@ from boxloc.config import Config
 from boxloc.lines import find_lines, fit_segment, hemisphere_directions
 from boxloc.products import EdgeMap, products_equal
 from boxloc.scan import PinholeModel, Scan
-from boxloc.stats import TestTable
+from boxloc.stats import TestKind, TestTable
 
 
 @pytest.mark.parametrize("g,n", [(0, 6), (1, 21), (2, 81), (3, 321), (4, 1281)])
@@ -57,7 +57,8 @@ def test_two_lines_are_found_among_clutter():
     # most of each line's points are its support; the clutter mostly is not
     assert L.n_support.sum() > 0.85 * (na + nb)
     assert L.n_trials >= 2 and 0 < L.epsilon < 1
-    assert len(L.tests) == 2
+    assert len(L.tests.of_kind(TestKind.POINT_ON_LINE)) == 2
+    assert len(L.tests.of_kind(TestKind.BUDGET)) == 0  # the work budget was not hit
 
 
 def test_same_seed_same_lines():
@@ -113,3 +114,19 @@ def test_inlier_search_with_the_prefilter_finds_the_same_lines(monkeypatch):
     monkeypatch.setattr(L, "_may_lie_on", lambda P, tr, c, b, crit: np.ones(len(P), bool))
     b_ = find_lines(_scan(), _edge_map(P, s), config=Config(), rng=np.random.default_rng(0))
     assert len(a) >= 2 and products_equal(a, b_) == []
+
+
+def test_the_line_stage_stops_at_its_work_budget():
+    P, s, *_ = _two_lines_and_clutter(1)
+    rng = np.random.default_rng
+    full = find_lines(_scan(), _edge_map(P, s), config=Config(), rng=rng(0))
+    cut = find_lines(_scan(), _edge_map(P, s), config=Config(max_line_work=200), rng=rng(0))
+    (row,) = cut.tests.of_kind(TestKind.BUDGET).rows()
+    assert not row["accepted"] and row["critical"] == 200 and row["statistic"] >= 200
+    assert cut.n_trials < full.n_trials
+    # the same budget stops at the same place: a replay reproduces it
+    again = find_lines(_scan(), _edge_map(P, s), config=Config(max_line_work=200), rng=rng(0))
+    assert again.n_trials == cut.n_trials and len(again) == len(cut)
+    # no budget: never hit
+    free = find_lines(_scan(), _edge_map(P, s), config=Config(max_line_work=0), rng=rng(0))
+    assert len(free.tests.of_kind(TestKind.BUDGET)) == 0 and free.n_trials == full.n_trials

@@ -33,7 +33,8 @@ def _writer_before_full_provenance(cfg: Config) -> dict[str, Any]:
         del d["trial_seed"]
     if d["end_tolerance"] == 0.75:
         del d["end_tolerance"]
-    del d["noise_auto"]  # came with full provenance
+    for k in ("noise_auto", "max_line_work", "max_vertices"):
+        del d[k]  # came with or after full provenance
     return d
 
 
@@ -76,9 +77,11 @@ def test_an_old_log_keeps_saying_what_it_ran_after_the_defaults_change(
         old = make_log(tmp_path / "old.mcap", [1, 2])
     assert set(UNRECORDED_KEYS) == {"noise_auto", "trial_seed", "end_tolerance",
                                     "noise.edge_px", "noise.row_corr",
-                                    "noise.incidence_exponent"}
+                                    "noise.incidence_exponent", "max_line_work",
+                                    "max_vertices"}
     assert "end_tolerance" not in _recorded(old)  # an old log indeed
-    assert open_log(old).config == Config()
+    # what the old code ran: no budgets yet
+    assert open_log(old).config == Config(max_line_work=0, max_vertices=0)
     _set_defaults(monkeypatch, Config, end_tolerance=0.5, trial_seed=3, alpha=0.05,
                   noise_auto=True)
     _set_defaults(monkeypatch, NoiseModel, edge_px=0.7, row_corr=0.2)
@@ -123,7 +126,8 @@ def test_a_recorded_config_missing_another_key_is_refused() -> None:
 
 def test_the_hash_names_the_same_config_as_before_full_provenance() -> None:
     # the hash the recorder wrote for the default config before every value was recorded
-    assert Config().hash == "6931a5b73eb71291"
+    # (the budgets came later: a run without them is that config)
+    assert Config(max_line_work=0, max_vertices=0).hash == "6931a5b73eb71291"
     assert Config(trial_seed=2).hash != Config().hash
     assert Config(end_tolerance=0.5).hash != Config().hash
     assert Config(workers=2).hash == Config().hash

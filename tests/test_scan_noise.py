@@ -151,3 +151,4 @@ def test_the_incidence_law_is_the_scans(spec: str, g: float) -> None:
     est = estimate_scan_noise(simulate(spec, 100).scan, Config(noise_auto=True))
     assert est.noise_model()["incidence_exponent"] == g
     assert est.fits
+
