@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# Set up, then run the linter and the test suite.
+# Set up, then run the linter, the type checker and the test suite.
 #
 # In CI (CI=true, as .ci/run is run) every test runs, the slow ones included (-m "").
 # Elsewhere pyproject.toml's addopts deselect the tests marked slow, for a quicker loop;
@@ -11,6 +11,7 @@ bash "$ROOT/scripts/setup.sh"
 VENV="${BOXLOC_VENV:-$ROOT/.venv}"
 cd "$ROOT"
 "$VENV/bin/ruff" check boxloc recorder replay tests
+"$VENV/bin/mypy"  # mypy.ini: boxloc, recorder, replay
 ALL=()
 case "${CI:-}" in
   ""|false|0) ;;
