@@ -247,15 +247,18 @@ def read_scan(
 
 
 def read_scans(path_or_dir: PathLike, **same: Any) -> Iterator[Scan]:
-    """Read one scan file, or every supported file in a directory sorted by name.
+    """Read one scan file, or every supported file in a directory sorted by name, or the
+    depth frames of a ROS 2 bag (:func:`boxloc.rosbag.open_bag`).
 
     Parameters
     ----------
     path_or_dir : str or Path
-        A scan file, or a directory of them (not recursive; other files are skipped).
+        A scan file, or a directory of them (not recursive; other files are skipped), or a
+        ROS 2 bag (a rosbag2 directory, an ``.mcap`` file of profile ``ros2``, a ``.db3``).
     **same
         Keyword arguments of :func:`read_scan`, the same for every file. In a directory
-        ``index`` counts from its value (default 0) in name order.
+        ``index`` counts from its value (default 0) in name order. ``depth_topic``,
+        ``info_topic`` and ``base_frame`` are for bags (ignored for other inputs).
 
     Yields
     ------
@@ -267,6 +270,14 @@ def read_scans(path_or_dir: PathLike, **same: Any) -> Iterator[Scan]:
         As :func:`read_scan`; also for a directory without any scan file.
     """
     p = Path(path_or_dir)
+    # ROS 2 bags (boxloc.rosbag, its reader imported only for a bag): their own options.
+    bag_kw: dict[str, Any] = {k: same.pop(k) for k in ("depth_topic", "info_topic",
+                                                        "base_frame") if k in same}
+    from boxloc.rosbag import is_rosbag
+
+    if is_rosbag(p):
+        yield from _read_bag(p, bag_kw, same)
+        return
     if not p.is_dir():
         yield read_scan(p, **same)
         return
@@ -277,6 +288,12 @@ def read_scans(path_or_dir: PathLike, **same: Any) -> Iterator[Scan]:
     start = int(same.pop("index", 0))
     for i, f in enumerate(files):
         yield read_scan(f, index=start + i, **same)
+
+
+def _read_bag(p: Path, bag_kw: dict[str, Any], same: dict[str, Any]) -> Iterator[Scan]:
+    from boxloc.rosbag import open_bag
+
+    yield from open_bag(p, **bag_kw, **same)
 
 
 def read_labels(path: PathLike, *, max_pixels: int = DEFAULT_MAX_PIXELS) -> np.ndarray:

@@ -94,9 +94,24 @@ class Source:
     kind: str = "file"
 
 
+def rosbag_options(f: Any) -> Any:
+    """``--depth-topic``, ``--info-topic``, ``--base-frame``: which frames of a ROS 2 bag."""
+    f = click.option("--base-frame", default=None, metavar="FRAME",
+                     help="ROS 2 bag: the frame of the sensor pose from /tf, /tf_static "
+                          "(default: the root of the camera frame's tree).")(f)
+    f = click.option("--info-topic", default=None, metavar="TOPIC",
+                     help="ROS 2 bag: the CameraInfo topic (default: beside the depth topic).")(f)
+    f = click.option("--depth-topic", default=None, metavar="TOPIC",
+                     help="ROS 2 bag: the depth Image or organized PointCloud2 topic (needed "
+                          "when the bag has several).")(f)
+    return f
+
+
 def open_source(source: str, *, count: int, seed: int | None, intrinsics: str | None,
-                depth_scale: float | None, max_pixels: int) -> Source:
-    """Turn SOURCE into scans: ``sim:KIND[:k=v,...]``, a scan file or directory, or a log."""
+                depth_scale: float | None, max_pixels: int, depth_topic: str | None = None,
+                info_topic: str | None = None, base_frame: str | None = None) -> Source:
+    """Turn SOURCE into scans: ``sim:KIND[:k=v,...]``, a scan file or directory, a ROS 2
+    bag (:func:`boxloc.rosbag.open_bag`, opened and checked here), or a log."""
     if source.startswith("sim:"):
         from boxloc.simulate import parse_spec, simulate
 
@@ -110,6 +125,15 @@ def open_source(source: str, *, count: int, seed: int | None, intrinsics: str | 
 
         return Source(sims(), count, kind="sim")
     p = Path(source)
+    from boxloc.rosbag import is_rosbag
+
+    if is_rosbag(p):
+        from boxloc.rosbag import open_bag
+
+        bag = open_bag(p, depth_topic=depth_topic, info_topic=info_topic,
+                       base_frame=base_frame, intrinsics=intrinsics, depth_scale=depth_scale,
+                       max_pixels=max_pixels)
+        return Source(iter(bag), bag.count, kind="rosbag")
     if p.suffix.lower() == ".mcap":
         from recorder.log import open_log
 
@@ -190,20 +214,29 @@ def _progress(enabled: bool, total: int | None) -> Any:
               help="Start a new MCAP file when the current one reaches MB megabytes.")
 @click.option("--rotate-duration", type=click.FloatRange(min=0.001), default=None,
               metavar="SECONDS", help="Start a new MCAP file after SECONDS of log time.")
-@click.option("--force", is_flag=True, help="Overwrite an existing --record FILE.")
+@click.option("--force", is_flag=True,
+              help="Overwrite an existing --record FILE (and --publish-ros2 file).")
 @click.option("--workers", type=int, default=None, help="Processes for per-vertex work.")
 @click.option("--quiet", "-q", is_flag=True, help="No progress bar or per-scan lines.")
+@click.option("--publish-ros2", "publish_ros2", type=click.Path(dir_okay=False), default=None,
+              metavar="OUT.mcap", help="Also write the surfaces as a ROS 2 bag: PoseArray "
+              "/boxloc/grasp_poses and MarkerArray /boxloc/surfaces, on each scan's stamp "
+              "and frame.")
+@rosbag_options
 @scan_options
 @config_options
 def run(source: str, count: int, seed: int | None, record: str | None, rerun: str,
         rotate_size: float | None, rotate_duration: float | None, force: bool,
-        workers: int | None, quiet: bool, intrinsics: str | None, depth_scale: float | None,
-        config_path: str | None, overrides: tuple[str, ...]) -> None:
+        workers: int | None, quiet: bool, publish_ros2: str | None, depth_topic: str | None,
+        info_topic: str | None, base_frame: str | None, intrinsics: str | None,
+        depth_scale: float | None, config_path: str | None,
+        overrides: tuple[str, ...]) -> None:
     """Run the localizer on SOURCE, recording every scan and product.
 
     SOURCE is a simulator spec (sim:KIND[:key=value,...], with --count), a scan file, a
-    directory of scans, or an MCAP log (its scans are re-run; with the log's config unless
-    --config is given). Ctrl-C (or SIGTERM) stops after closing the log cleanly.
+    directory of scans, a ROS 2 bag (a rosbag2 directory, .mcap or .db3; --depth-topic,
+    --info-topic, --base-frame), or an MCAP log (its scans are re-run; with the log's config
+    unless --config is given). Ctrl-C (or SIGTERM) stops after closing the log cleanly.
     """
     from boxloc.observer import FanOut
     from boxloc.pipeline import find_graspable_surfaces
@@ -213,7 +246,8 @@ def run(source: str, count: int, seed: int | None, record: str | None, rerun: st
     rerun_target = normalize_rerun(rerun)
     cfg = load_config(config_path, overrides, workers=workers)
     src = open_source(source, count=count, seed=seed, intrinsics=intrinsics,
-                      depth_scale=depth_scale, max_pixels=cfg.max_pixels)
+                      depth_scale=depth_scale, max_pixels=cfg.max_pixels,
+                      depth_topic=depth_topic, info_topic=info_topic, base_frame=base_frame)
     if src.log_config is not None and config_path is None:
         cfg = src.log_config.with_overrides(list(overrides)) if overrides else src.log_config
         if workers is not None:
@@ -230,6 +264,12 @@ def run(source: str, count: int, seed: int | None, record: str | None, rerun: st
                 rotate_seconds=rotate_duration))
             session = rec.session
         observers: list[Any] = [rec] if rec is not None else []
+        if publish_ros2:
+            from recorder.ros2_publish import Ros2Publisher
+
+            pub = Ros2Publisher(publish_ros2, overwrite=force)
+            stack.callback(pub.close)
+            observers.append(pub)
         if rerun_target != "none":
             try:
                 from recorder.rerun_sink import open_rerun_sink

@@ -28,6 +28,7 @@ from boxloc.cli import config_options, load_config, scan_options
 from boxloc.config import Config
 from boxloc.errors import InputError
 from boxloc.scan import Scan
+from recorder.cli import rosbag_options
 
 __all__ = ["ImportReport", "import_scans", "import_cmd"]
 
@@ -56,12 +57,12 @@ class ImportReport:
 
 
 def _scans(sources: Sequence[str | os.PathLike[str]], *, intrinsics: Any,
-           depth_scale: float | None, max_pixels: int) -> Iterator[Scan]:
+           depth_scale: float | None, max_pixels: int, **bag: Any) -> Iterator[Scan]:
     from boxloc.io import read_scans
 
     for src in sources:
         yield from read_scans(src, intrinsics=intrinsics, depth_scale=depth_scale,
-                              max_pixels=max_pixels)
+                              max_pixels=max_pixels, **bag)
 
 
 def _labels_of(scan: Scan, max_pixels: int) -> np.ndarray | None:
@@ -90,6 +91,9 @@ def import_scans(
     labels: bool = True,
     overwrite: bool = False,
     rotate_bytes: int | None = None,
+    depth_topic: str | None = None,
+    info_topic: str | None = None,
+    base_frame: str | None = None,
 ) -> ImportReport:
     """Record the scans of ``sources`` (files or directories) into an MCAP log.
 
@@ -110,6 +114,9 @@ def import_scans(
         Replace an existing log.
     rotate_bytes : int, optional
         Start a new file when the current one reaches this size.
+    depth_topic, info_topic, base_frame : str, optional
+        For ROS 2 bags (:func:`boxloc.rosbag.open_bag`); each scan keeps the bag, topic and
+        message times in its ``source`` and ``meta["rosbag"]``.
 
     Returns
     -------
@@ -127,7 +134,8 @@ def import_scans(
         raise InputError("import needs at least one scan file or directory")
     cfg = config or Config()
     scans = _scans(sources, intrinsics=intrinsics, depth_scale=depth_scale,
-                   max_pixels=cfg.max_pixels)
+                   max_pixels=cfg.max_pixels, depth_topic=depth_topic, info_topic=info_topic,
+                   base_frame=base_frame)
     first = next(scans, None)  # a bad first file is refused before any log is created
     if first is None:
         raise InputError("no scan was imported")
@@ -161,21 +169,25 @@ def import_scans(
 @click.option("--force", is_flag=True, help="Overwrite an existing LOG.mcap.")
 @click.option("--rotate-size", type=click.FloatRange(min=0.001), default=None, metavar="MB",
               help="Start a new MCAP file when the current one reaches MB megabytes.")
+@rosbag_options
 @scan_options
 @config_options
 def import_cmd(sources: tuple[str, ...], out: str, no_labels: bool, force: bool,
-               rotate_size: float | None, intrinsics: str | None, depth_scale: float | None,
+               rotate_size: float | None, depth_topic: str | None, info_topic: str | None,
+               base_frame: str | None, intrinsics: str | None, depth_scale: float | None,
                config_path: str | None, overrides: tuple[str, ...]) -> None:
-    """Record real scans (files or directories, in order) into an MCAP log, without running
-    the localizer: `boxloc run LOG.mcap` processes them later.
+    """Record real scans (files, directories or ROS 2 bags, in order) into an MCAP log,
+    without running the localizer: `boxloc run LOG.mcap` processes them later.
 
     Each scan keeps its range bit for bit and its sensor model; PCD/PLY labels (mOSD ground
-    truth) go on /scan/labels. --config/--set set the config stored with the log.
+    truth) go on /scan/labels; a bag's frames keep the bag, topic and message times.
+    --config/--set set the config stored with the log.
     """
     cfg = load_config(config_path, overrides)
     rep = import_scans(sources, out, intrinsics=intrinsics, depth_scale=depth_scale,
                        config=cfg, labels=not no_labels, overwrite=force,
-                       rotate_bytes=None if rotate_size is None else int(rotate_size * 1e6))
+                       rotate_bytes=None if rotate_size is None else int(rotate_size * 1e6),
+                       depth_topic=depth_topic, info_topic=info_topic, base_frame=base_frame)
     paths = ", ".join(str(p) for p in rep.paths)
     click.echo(f"imported {rep.n_scans} scan(s) ({rep.n_labelled} with labels) -> {paths}",
                err=True)
