@@ -191,10 +191,16 @@ def _diff(outcomes: list[Any], out_dir: Path, tol: Any, bless: str | None) -> li
     """Diff each new log against its input (:mod:`replay.diff`), print the table and write
     ``diff.jsonl`` / ``summary.json`` / ``report.html`` (:mod:`replay.report`) into
     ``out_dir``."""
+    from boxloc.rosbag import is_rosbag
     from replay.diff import diff_logs
     from replay.report import print_table, write_outputs
 
-    diffs = [diff_logs(o.input, o.output, tol) for o in outcomes if o.output is not None]
+    bags = [o for o in outcomes if o.output is not None and is_rosbag(o.input)]
+    if bags:  # a bag holds scans only: there is nothing to diff the new log against
+        _echo(f"{len(bags)} ROS 2 bag(s) replayed into new logs, not diffed (a bag has no "
+              "products; diff those logs against later replays)")
+    diffs = [diff_logs(o.input, o.output, tol) for o in outcomes
+             if o.output is not None and o not in bags]
     if diffs:
         print_table(diffs, bless_command=bless)
         write_outputs(diffs, out_dir, title="boxloc replay")
@@ -204,9 +210,11 @@ def _diff(outcomes: list[Any], out_dir: Path, tol: Any, bless: str | None) -> li
 def _side_by_side(outcomes: list[Any], diffs: list[Any], target: str, tol: Any) -> None:
     """Show one input log and its replay side by side in Rerun: the first pair that differs
     (else the first pair)."""
+    from boxloc.rosbag import is_rosbag
     from replay.side_by_side import log_side_by_side
 
-    pairs = [(o.input, o.output) for o in outcomes if o.output is not None]
+    pairs = [(o.input, o.output) for o in outcomes
+             if o.output is not None and not is_rosbag(o.input)]
     if not pairs:
         _echo("--rerun: no log was replayed")
         return

@@ -158,17 +158,20 @@ class ReplayOutcome:
 
 def collect_logs(args: Iterable[str | os.PathLike[str]]) -> list[Path]:
     """The logs named by ``args``: files as given, directories' ``*.mcap`` (sorted, not
-    recursive; temporary ``*.partial.mcap`` files are left out).
+    recursive; temporary ``*.partial.mcap`` files are left out). A ROS 2 bag (a rosbag2
+    directory, or a bag's ``.mcap``/``.db3`` file) is one input: its frames are replayed.
 
     Raises
     ------
     InputError
         A path that does not exist, or a directory without logs.
     """
+    from boxloc.rosbag import is_rosbag
+
     out: list[Path] = []
     for a in args:
         p = Path(a)
-        if p.is_dir():
+        if p.is_dir() and not is_rosbag(p):  # a rosbag2 directory is one input
             found = sorted(q for q in p.glob("*.mcap")
                            if q.is_file() and not q.name.endswith(PARTIAL_SUFFIX))
             if not found:
@@ -419,10 +422,29 @@ def _current_version() -> dict[str, Any]:
 
 def _sha256(path: Path) -> str:
     h = hashlib.sha256()
-    with open(path, "rb") as f:
-        for block in iter(lambda: f.read(1 << 20), b""):
-            h.update(block)
+    for p in sorted(path.iterdir()) if path.is_dir() else [path]:  # a rosbag2 directory
+        if p.is_file():
+            with open(p, "rb") as f:
+                for block in iter(lambda: f.read(1 << 20), b""):
+                    h.update(block)
     return h.hexdigest()
+
+
+class _BagInput:
+    """A ROS 2 bag as a replay input: its depth frames (:func:`boxloc.rosbag.open_bag`,
+    the topics chosen by type), no recorded config or run metadata."""
+
+    config = None
+    run: dict[str, str] = {}
+
+    def __init__(self, path: Path) -> None:
+        from boxloc.rosbag import open_bag
+
+        self.bag = open_bag(path)
+
+    def scans(self, cfg: Config) -> Iterator[Scan]:
+        self.bag.max_pixels = cfg.max_pixels
+        return iter(self.bag)
 
 
 def _replay_metadata(path: Path, log: Log, cfg: Config, source: str,
@@ -464,9 +486,17 @@ def _replay_here(path: Path, out_dir: Path, config: Config | None,
     def failed(msg: str, **kw: Any) -> ReplayOutcome:
         return ReplayOutcome(**base, error=msg, **took(), **kw)
 
+    from boxloc.rosbag import is_rosbag
+
+    bag = is_rosbag(path)
     try:
-        log = open_log(path)
-        check_schema(log)
+        if bag:
+            log: Any = _BagInput(path)
+        else:
+            log = open_log(path)
+            check_schema(log)
+    except InputError as e:  # a bag without usable depth frames
+        return failed(_named(path, _one_line(e)))
     except LogError as e:
         return failed(_diagnose(path, e))
     except OSError as e:
@@ -478,7 +508,7 @@ def _replay_here(path: Path, out_dir: Path, config: Config | None,
     except BoxlocError as e:
         return failed(_named(path, _one_line(e)))
     warnings: list[str] = []
-    if not log.run:
+    if not log.run and not bag:
         warnings.append(f"{path}: no boxloc.run metadata; replayed with the default config")
 
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -489,7 +519,7 @@ def _replay_here(path: Path, out_dir: Path, config: Config | None,
     statuses: list[ScanStatus] = []
     error: str | None = None
     try:
-        for scan in iter_input_scans(log):
+        for scan in (log.scans(cfg) if bag else iter_input_scans(log)):
             if rec is None:  # created at the first scan: a log without scans leaves nothing
                 rec = McapRecorder(
                     tmp, config=cfg, session=f"replay-{path.stem}", fsync=False,
@@ -508,6 +538,9 @@ def _replay_here(path: Path, out_dir: Path, config: Config | None,
                                            n_surfaces=len(result.surfaces)))
     except LogError as e:
         error = _named(path, _one_line(e))
+    except InputError as e:  # a damaged bag: `boxloc import` keeps its readable frames
+        error = (_named(path, _one_line(e)) + f" (`boxloc import {path} --out LOG.mcap` "
+                 "keeps the readable frames)")
     except BoxlocError as e:  # the recorder could not write
         error = f"{path}: {_one_line(e)}"
     except Exception as e:  # noqa: BLE001 - a reader bug on a hostile file: name the log
