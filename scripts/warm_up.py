@@ -1,0 +1,79 @@
+"""Compile boxloc's numba kernels into numba's on-disk cache; scripts/setup.sh runs it.
+
+The kernels (``@numba.njit(cache=True)`` in boxloc/edges.py and boxloc/lines.py) compile on
+their first call, about 11 s on one core, and are then written to numba's cache: beside the
+sources (``boxloc/__pycache__/*.nbi, *.nbc``) for a checkout or an editable install, or under
+``NUMBA_CACHE_DIR`` when that is set (then it must be set the same way when boxloc runs).
+An entry is valid until its source file changes (numba keys it on the file's time stamp and
+size), so after a ``git pull`` that touches a kernel, running set-up again rebuilds it.
+
+Running the whole pipeline once on a small simulated scan (160 x 120) compiles every kernel
+with the argument types of any scan, since the stages convert their inputs to float64 and
+int64 arrays first; then the first ``boxloc locate`` after set-up loads compiled code, as the
+second does. Exit status 1 if a kernel was never called (a new kernel the scan here does not
+reach: make it reach it).
+
+Usage: python scripts/warm_up.py
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import sys
+import time
+from typing import Any
+
+
+def kernels() -> dict[str, Any]:
+    """Every numba dispatcher in the loaded boxloc modules, by qualified name."""
+    from numba.core.registry import CPUDispatcher
+
+    found = {}
+    for name, mod in list(sys.modules.items()):
+        if name == "boxloc" or name.startswith("boxloc."):
+            for attr, obj in vars(mod).items():
+                if isinstance(obj, CPUDispatcher) and obj.__module__ == name:
+                    found[f"{name}.{attr}"] = obj
+    return found
+
+
+def _cached(kernel: Any) -> bool:
+    """Whether numba's cache holds code for KERNEL's current source (a kernel called only
+    from other kernels gets no signatures in a process that loads its callers' code)."""
+    try:  # numba's own check: the index is empty when the source's stamp changed
+        return bool(kernel._cache._cache_file._load_index())
+    except Exception:  # noqa: BLE001 - numba's private API moved: count it as not cached
+        return False
+
+
+def warm_up() -> int:
+    """Run the pipeline on a 160 x 120 simulated scan; print what was compiled or loaded.
+
+    Returns
+    -------
+    int
+        0 when every kernel has compiled code; 1 when one was never called.
+    """
+    from boxloc.config import Config
+    from boxloc.pipeline import find_graspable_surfaces
+    from boxloc.simulate import scene_suite, simulate
+
+    t0 = time.perf_counter()
+    spec = scene_suite(1, 0)[0]
+    spec = dataclasses.replace(spec, width=160, height=120,
+                               f=float(spec.f) * 160 / spec.width)
+    find_graspable_surfaces(simulate(spec).scan, Config())
+    found = kernels()
+    compiled = sum(sum(k.stats.cache_misses.values()) for k in found.values())
+    loaded = sum(sum(k.stats.cache_hits.values()) for k in found.values())
+    idle = sorted(n for n, k in found.items() if not k.signatures and not _cached(k))
+    print(f"warm-up: {len(found)} numba kernels, {compiled} compiled and cached, {loaded} "
+          f"loaded from the cache, in {time.perf_counter() - t0:.1f} s", file=sys.stderr)
+    if idle:
+        print(f"warm-up: never called, so not cached: {', '.join(idle)}", file=sys.stderr)
+        return 1
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(warm_up())
