@@ -32,12 +32,15 @@ UNRECORDED_KEYS: dict[str, Any] = {
     "noise.edge_px": 0.0,
     "noise.row_corr": 0.0,
     "noise.incidence_exponent": 1.0,
+    "noise.corr_px_rows": 0.0,
+    "noise.corr_px_cols": 0.0,
     "max_line_work": 0,
     "max_vertices": 0,
 }
 
 #: The noise terms ``noise_auto`` estimates from each scan; giving any of them pins the model.
-ESTIMATED_NOISE_TERMS = frozenset({"sigma0", "k1", "k2", "row_corr", "incidence_exponent"})
+ESTIMATED_NOISE_TERMS = frozenset({"sigma0", "k1", "k2", "row_corr", "incidence_exponent",
+                                   "corr_px_rows", "corr_px_cols"})
 
 #: Config fields that change how a result is computed, never what it is.
 EXECUTION_FIELDS = frozenset({"workers"})
@@ -62,8 +65,8 @@ class Config:
         own flat regions before the edge stage (:mod:`boxloc.scan_noise`; the estimate is
         the scan's ``noise`` product), so a sensor nobody calibrated gets tests at their
         level. A config file or ``--set`` that gives any of those terms without
-        ``noise_auto`` pins the model (``noise_auto = false``). Off by default for now;
-        with it off the scan's residuals are still tested against the model (NOISE_FIT).
+        ``noise_auto`` pins the model (``noise_auto = false``); pinned, the scan's
+        residuals are still tested against the model (NOISE_FIT).
     min_edge, max_edge : float
         Prior: shortest and longest box edge, metres. The shortest edge sets the smallest
         line worth finding (and so the number of Hough trials); the longest bounds the
@@ -126,10 +129,7 @@ class Config:
     alpha: float = 0.01
     p_success: float = 0.9
     noise: NoiseModel = field(default_factory=NoiseModel)
-    # not yet the default: with the bench's sensor model the estimate changes which noise
-    # edges line up on a bare floor (one false surface in five empty scenes), so the tests'
-    # size on real noise comes first
-    noise_auto: bool = False
+    noise_auto: bool = True
     min_edge: float = 0.10
     max_edge: float = 1.00
     max_tilt: float = math.radians(45.0)

@@ -244,6 +244,7 @@ def _scan_line_edges(
     min_crease: float,
     z_crease: float,
     min_pts: int,
+    rho: np.ndarray,
     out_pix: np.ndarray,
     out_pt: np.ndarray,
     out_along: np.ndarray,
@@ -257,8 +258,10 @@ def _scan_line_edges(
 ) -> int:
     """Edge points of one scan line (valid samples only, in order).
 
-    P (n, 3) points, S (n,) their noise sigma, pix (n,) their position in the image line.
-    Appends to the out_* arrays from index n_out; returns the new count.
+    P (n, 3) points, S (n,) their noise sigma, pix (n,) their position in the image line,
+    rho (K + 1,) the noise's correlation at 0..K pixels along the line (rho[0] = 1; one
+    value: white noise). Appends to the out_* arrays from index n_out; returns the new
+    count.
     """
     n = P.shape[0]
     if n < 2 * min_pts:
@@ -280,7 +283,9 @@ def _scan_line_edges(
         c, d = _fit(P, B[k, 0], B[k, 1])
         cs[j] = c
         ds[j] = d
-        # direction variance of a line fit: mean sigma^2 / sum (t - t_mean)^2
+        # direction variance of a line fit: mean sigma^2 / sum (t - t_mean)^2 for white
+        # noise; for correlated noise sum_ij t_i t_j s_i s_j rho(|i - j|) / (sum t^2)^2
+        # (a fold of a few pixels' wobble is no crease where the wobble spans them)
         st2 = 0.0
         ss = 0.0
         for i in range(B[k, 0], B[k, 1] + 1):
@@ -288,6 +293,20 @@ def _scan_line_edges(
             st2 += t * t
             ss += S[i] * S[i]
         vd[j] = ss / (B[k, 1] - B[k, 0] + 1) / max(st2, 1e-30)
+        if rho.shape[0] > 1:
+            K = rho.shape[0] - 1
+            num = 0.0
+            for i in range(B[k, 0], B[k, 1] + 1):
+                ti = (P[i, 0] - c[0]) * d[0] + (P[i, 1] - c[1]) * d[1] + (P[i, 2] - c[2]) * d[2]
+                for q in range(i, B[k, 1] + 1):
+                    lag = abs(pix[q] - pix[i])
+                    if lag > K:
+                        break
+                    tq = ((P[q, 0] - c[0]) * d[0] + (P[q, 1] - c[1]) * d[1]
+                          + (P[q, 2] - c[2]) * d[2])
+                    w = ti * tq * S[i] * S[q] * rho[lag]
+                    num += w if q == i else 2.0 * w
+            vd[j] = max(vd[j], num / max(st2 * st2, 1e-60))
     # grooves inside a segment: a short run of samples significantly behind its line, with
     # the samples around it back on the line (a seam narrower than the split test can see)
     for j in range(nk):
@@ -488,8 +507,10 @@ def _all_lines(
     z_crease: float,
     min_pts: int,
     axis: int,
+    rho: np.ndarray,
 ):
-    """Run the scan-line detector over every row (axis=0) or column (axis=1)."""
+    """Run the scan-line detector over every row (axis=0) or column (axis=1); ``rho`` is
+    the noise's correlation along them at 0..K pixels."""
     H, W = S.shape
     nlines = H if axis == 0 else W
     L = W if axis == 0 else H
@@ -529,7 +550,7 @@ def _all_lines(
         n0 = n_out
         n_out = _scan_line_edges(
             buf[:nv], sbuf[:nv], pbuf[:nv], thr, run_thr, jump_crit, min_crease, z_crease,
-            min_pts,
+            min_pts, rho,
             out_pix, out_pt, out_along, out_sig, out_kind, out_strength, out_stat,
             out_crit, out_test, n_out,
         )
@@ -585,6 +606,15 @@ def run_thresholds(n_max: int, alpha: float) -> np.ndarray:
     n = np.arange(n_max + 2, dtype=np.float64)
     n[0] = 1
     return st.norm.isf((alpha / n) ** (1.0 / GROOVE_MIN_RUN)).astype(np.float64)
+
+
+def correlation_lags(length_px: float) -> np.ndarray:
+    """The noise's correlation at 0..K pixels, exp(-k / length) (``NoiseModel.corr_px_*``),
+    out to where it falls below 0.01; ``[1.0]`` (white noise) for length 0."""
+    if not length_px > 0:
+        return np.ones(1)
+    K = max(1, int(math.ceil(length_px * math.log(100.0))))
+    return np.exp(-np.arange(K + 1) / length_px)
 
 
 def point_sigma(scan: Scan, config: Config) -> np.ndarray:
@@ -660,7 +690,9 @@ def detect_edges(scan: Scan, *, config: Config) -> EdgeMap:
     for axis in (0, 1):
         parts.append(
             _all_lines(P, S, thr, run_thr, jump_crit, config.min_crease_angle, z_crease,
-                       MIN_SEGMENT_POINTS, axis)
+                       MIN_SEGMENT_POINTS, axis,
+                       correlation_lags(config.noise.corr_px_rows if axis == 0
+                                        else config.noise.corr_px_cols))
         )
     rows, cols = [], []
     pts, along, sig, kinds, strength, stat, crit, test, sdir = [], [], [], [], [], [], [], [], []

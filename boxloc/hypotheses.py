@@ -132,7 +132,7 @@ class _Context:
             normal_cov=normal_covariance(vertices) if len(vertices) else np.zeros((0, 3, 3)),
             edge_points=edges.points, edge_cov=edges.covariances,
             edge_tree=cKDTree(edges.points) if len(edges) else None,
-            verify_ctx=VerifyContext.build(scan, edges, config, up),
+            verify_ctx=VerifyContext.build(scan, edges, config, up, len(vertices)),
         )
 
 
@@ -346,7 +346,8 @@ def _seam_peaks(R: Rectangle, ctx: _Context, work: _VertexWork, px: np.ndarray,
 
     Where the edge stage saw a seam between touching boxes only in part, its accumulator
     has no peak there; the range points of the region, binned across each axis, still show
-    the groove (:func:`boxloc.seams.find_seams`, at alpha over the positions). The region
+    the groove (:func:`boxloc.seams.find_seams`, at the scan's seam level over the
+    positions, :func:`boxloc.verify.seam_alpha`). The region
     runs to the farthest edge peak on each axis (``max_edge`` where there is none).
     """
     cfg = ctx.config
@@ -360,7 +361,7 @@ def _seam_peaks(R: Rectangle, ctx: _Context, work: _VertexWork, px: np.ndarray,
     for b, (coord, other, ext) in enumerate(((fp.u, fp.v, U), (fp.v, fp.u, V))):
         sel = other > band
         pos, z, crit, _ = find_seams(coord[sel], fp.w[sel], fp.scale, lo, ext - lo, spacing,
-                                     cfg.alpha, fp.row[sel], fp.row_corr)
+                                     vc.seam_alpha, fp.row[sel], fp.row_corr)
         found.append(pos)
         if len(pos):
             work.tests.append(TestTable.decision(TestKind.SEAM_PEAK, R.vertex, b, z, crit,

@@ -239,6 +239,12 @@ class NoiseModel:
         How the range noise grows as the surface turns from the ray: by ``1 / cos**g``.
         1 is a triangulation sensor whose footprint stretches along the ray; a laser or
         time-of-flight sensor's range noise hardly depends on the incidence (g near 0).
+    corr_px_rows, corr_px_cols : float
+        Correlation length of the range noise along image rows and along columns, pixels:
+        two samples k pixels apart correlate by exp(-k / length). Stereo and
+        structured-light sensors match windows of several pixels, so neighbouring samples
+        share their error and a line fitted to a few of them wobbles as a whole (the edge
+        stage's crease test takes it into account). 0: white noise, as a scanner's.
     """
 
     sigma0: float = 0.0010
@@ -249,9 +255,12 @@ class NoiseModel:
     edge_px: float = 0.0
     row_corr: float = 0.0
     incidence_exponent: float = 1.0
+    corr_px_rows: float = 0.0
+    corr_px_cols: float = 0.0
 
     def __post_init__(self) -> None:
-        for name in ("sigma0", "k1", "k2", "sigma_angle", "min_cos", "edge_px"):
+        for name in ("sigma0", "k1", "k2", "sigma_angle", "min_cos", "edge_px",
+                     "corr_px_rows", "corr_px_cols"):
             v = getattr(self, name)
             if not np.isfinite(v) or v < 0:
                 raise InputError(f"noise parameter {name} must be finite and >= 0, got {v}")

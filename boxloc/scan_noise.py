@@ -137,10 +137,13 @@ def _auto(scan: Scan, tiles: TileResiduals, nominal: NoiseModel, alpha: float
     rc = report["row_corr"]
     se = rc["std_error"]
     row_corr = fitted.row_corr if se and fitted.row_corr > _st.norm.isf(alpha) * se else 0.0
+    along_rows, along_cols = _correlation(tiles)
     model = NoiseModel(sigma0=fitted.sigma0, k1=fitted.k1, k2=fitted.k2,
                        sigma_angle=nominal.sigma_angle, min_cos=nominal.min_cos,
                        edge_px=nominal.edge_px, row_corr=row_corr,
-                       incidence_exponent=fitted.incidence_exponent)
+                       incidence_exponent=fitted.incidence_exponent,
+                       corr_px_rows=correlation_length(along_rows),
+                       corr_px_cols=correlation_length(along_cols))
     used = sum(1 for row in report["rows"] if row["used"])
     return model, NoiseSource.SCAN, (
         f"fitted to {tiles.n_accepted} flat tiles ({report['n_points']} points, "
@@ -270,6 +273,26 @@ def _tail_rates(tiles: TileResiduals, model: NoiseModel) -> np.ndarray:
     if z.size == 0:
         return np.full(len(TAIL_SIGMAS), np.nan)
     return np.array([np.mean(z > k) for k in TAIL_SIGMAS])
+
+
+#: Lag-1 correlation below which the noise counts as white (a plane fit's own residuals
+#: correlate a little).
+WHITE_CORRELATION = 0.1
+
+
+def correlation_length(corr: np.ndarray) -> float:
+    """Correlation length (pixels) of exp(-k / L) fitted through the origin to ln of the
+    measured correlation at :data:`boxloc.noise.CORRELATION_LAGS`, over the lags where it is
+    above 0.05 (further it is the plane fit's and the estimate's noise); 0 where the lag-1
+    correlation is below :data:`WHITE_CORRELATION`."""
+    lags = np.asarray(CORRELATION_LAGS, dtype=np.float64)
+    c = np.asarray(corr, dtype=np.float64)
+    if not (np.isfinite(c[0]) and c[0] >= WHITE_CORRELATION):
+        return 0.0
+    ok = np.isfinite(c) & (c > 0.05)
+    x, y = lags[ok], np.log(c[ok])
+    slope = float(x @ y / (x @ x))
+    return round(-1.0 / slope, 3) if slope < 0 else float(lags[-1])
 
 
 def _correlation(tiles: TileResiduals) -> np.ndarray:

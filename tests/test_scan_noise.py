@@ -43,7 +43,7 @@ def test_auto_estimates_the_scans_own_noise(noisy) -> None:  # type: ignore[no-u
 
 
 def test_a_pinned_model_that_is_wrong_for_the_scan_fails_its_test(noisy) -> None:  # type: ignore[no-untyped-def]
-    est = estimate_scan_noise(noisy.scan, Config())
+    est = estimate_scan_noise(noisy.scan, Config(noise_auto=False))
     assert est.source == NoiseSource.CONFIG
     np.testing.assert_array_equal(est.model, est.nominal)
     fit = est.tests.of_kind(TestKind.NOISE_FIT)
@@ -54,7 +54,7 @@ def test_a_pinned_model_that_is_wrong_for_the_scan_fails_its_test(noisy) -> None
 
 def test_the_right_pinned_model_passes_its_test() -> None:
     sim = simulate(SCENE, 3)  # noise drawn from the default model
-    fit = estimate_scan_noise(sim.scan, Config()).tests.of_kind(TestKind.NOISE_FIT)
+    fit = estimate_scan_noise(sim.scan, Config(noise_auto=False)).tests.of_kind(TestKind.NOISE_FIT)
     assert len(fit) == 1 and fit.accepted[0]
 
 
@@ -86,7 +86,7 @@ def test_the_estimate_is_deterministic(noisy) -> None:  # type: ignore[no-untype
 
 
 def test_the_pipeline_tests_against_the_scans_model(noisy) -> None:  # type: ignore[no-untyped-def]
-    pinned = find_graspable_surfaces(noisy.scan, Config())
+    pinned = find_graspable_surfaces(noisy.scan, Config(noise_auto=False))
     auto = find_graspable_surfaces(noisy.scan, Config(noise_auto=True))
     assert auto.noise is not None and auto.noise.source == NoiseSource.SCAN
     # the default model, 2.5x too tight, makes noise into edges; the scan's own does not
@@ -114,11 +114,12 @@ def test_locate_warns_when_the_model_does_not_fit(noisy, tmp_path) -> None:  # t
 
     path = tmp_path / "noisy.npz"
     save_npz(noisy, path)
-    res = CliRunner().invoke(cli, ["locate", str(path)])
+    # the default model pinned: 2.5x too tight for this scan
+    res = CliRunner().invoke(cli, ["locate", str(path), "--set", "noise_auto=false"])
     assert res.exit_code == 0, res.output
     assert "warning: the noise model does not fit this scan" in res.stderr
     assert "noise_auto = true" in res.stderr
-    res = CliRunner().invoke(cli, ["locate", str(path), "--set", "noise_auto=true"])
+    res = CliRunner().invoke(cli, ["locate", str(path)])  # the default: the scan's own
     assert res.exit_code == 0 and "warning" not in res.stderr
 
 

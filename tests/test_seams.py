@@ -177,10 +177,6 @@ def test_touching_boxes_of_equal_height_are_all_found(block_of_four):
     assert match_surfaces(r.surfaces, sim.truth).tp == 4
 
 
-@pytest.mark.xfail(strict=True, reason=(
-    "known regression of the neighbours' corners (README, 'What is weak'): a false groove "
-    "inside one top, z 3.8 against the interior search's 3.3-3.4, cuts it into two "
-    "rectangles, 0.19 and 0.11 m wide, and the 0.11 m one is a false positive"))
 def test_touching_boxes_of_equal_height_are_parted_at_their_seams(block_of_four):
     sim, r = block_of_four
     m = match_surfaces(r.surfaces, sim.truth)

