@@ -29,12 +29,14 @@ bag's only CameraInfo topic.
   transforms interpolated between the samples around it, never extrapolated): the scan's
   ``sensor_to_base``, so "up" is the base's z.
 - Every scan's ``source`` is the bag and its ``meta["rosbag"]`` holds the topic, the
-  message's receive time and header stamp, its ordinal on the topic, the frame, the
-  encoding and scale, and the CameraInfo used: enough to find the frame in the bag again.
+  message's receive time (the bag's timestamp of the message) and header stamp, the frame,
+  the encoding and scale, and the CameraInfo used: enough to find the frame in the bag again.
 
 A damaged bag (a truncated or corrupt MCAP file, a truncated sqlite3 file) is read record by
 record: every frame that decodes is yielded, then one :class:`~boxloc.errors.InputError`
-line says what was lost. Nothing from ``rosbags`` or the bag escapes as another exception.
+line says what was lost. In MCAP the unit of loss is the chunk (about 1 MB): a damaged
+chunk, or a compressed chunk cut short, loses its frames; an uncompressed chunk cut short
+keeps the frames before the cut. Nothing from ``rosbags`` or the bag escapes as another exception.
 
 The library
 -----------
@@ -425,28 +427,19 @@ def _walk(fh: io.BufferedReader | None, buf: bytes | None, schemas: dict[int, st
 
 
 def _partial_chunk(body: bytes) -> bytes:
-    """The records of the start of a chunk cut short: plain, or the output a streaming
-    decompressor gives for the compressed bytes there are (no CRC: the chunk is not whole;
-    a record cut short is not read, a damaged message does not decode)."""
+    """The records of the start of an uncompressed chunk cut short (no CRC: the chunk is not
+    whole; a record cut short is not read, a damaged message does not decode). A compressed
+    chunk cut short is lost: a zstd frame written in one piece (single segment, as rosbag2's
+    and rosbags' writers do) gives nothing until it is whole."""
     r = _Rec(body)
     r.u64()
     r.u64()
     size, _crc = r.u64(), r.u32()
     compression = r.str()
     r.u64()
-    data = body[r.i :]
-    limit = min(size, _MAX_CHUNK)
-    if compression == "":
-        return data[:limit]
-    if compression == "zstd":
-        import zstandard
-
-        return bytes(zstandard.ZstdDecompressor().decompressobj().decompress(data))[:limit]
-    if compression == "lz4":
-        import lz4.frame  # type: ignore[import-untyped]  # rosbags' dependency
-
-        return bytes(lz4.frame.LZ4FrameDecompressor().decompress(data, max_length=limit))
-    raise ValueError(f"unknown chunk compression {compression!r}")
+    if compression != "":
+        raise ValueError(f"a {compression} chunk cut short")
+    return body[r.i :][: min(size, _MAX_CHUNK)]
 
 
 def _chunk(body: bytes) -> bytes:
@@ -763,9 +756,9 @@ class BagScans:
     def __iter__(self) -> Iterator[Scan]:
         n_read = n_lost = 0
         cameras: dict[tuple[int, int, int], _Camera] = {}
-        for ordinal, raw in enumerate(self.bag.messages([self.depth_topic], self.damage)):
+        for raw in self.bag.messages([self.depth_topic], self.damage):
             try:
-                scan = self._scan(raw, ordinal, self.index + n_read, cameras)
+                scan = self._scan(raw, self.index + n_read, cameras)
             except _Stop as e:
                 n_lost += 1
                 self.damage.add(str(e))
@@ -786,7 +779,7 @@ class BagScans:
                              f"{self.depth_topic} read, {lost}the rest unreadable: "
                              f"{self.damage.first}{more}")
 
-    def _scan(self, raw: _Raw, ordinal: int, index: int,
+    def _scan(self, raw: _Raw, index: int,
               cameras: dict[tuple[int, int, int], _Camera]) -> Scan:
         where = f"{self.path}: {self.depth_topic}"
         msgtype = IMAGE if self.kind == "image" else POINT_CLOUD
@@ -796,7 +789,7 @@ class BagScans:
         frame = _frame(msg.header.frame_id)
         meta: dict[str, Any] = {
             "bag": str(self.path), "topic": self.depth_topic, "type": msgtype,
-            "ordinal": ordinal, "log_time_ns": raw.log_time_ns, "stamp_ns": stamp,
+            "log_time_ns": raw.log_time_ns, "stamp_ns": stamp,
             "capture_time": "header.stamp" if t == stamp else "log_time", "frame_id": frame,
         }
         pose = self._pose(frame, t, meta)
