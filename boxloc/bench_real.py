@@ -9,14 +9,21 @@ its timing, memory and report helpers.
 
 Inputs both methods get, and the report says which:
 
-* **noise** -- ``"estimate"`` (default): the range-noise model fitted to the frames
+* **noise** -- ``"auto"`` (default): the config as given, so with its default
+  ``noise_auto`` each scan's own model (:mod:`boxloc.scan_noise`), nothing fitted on the
+  benchmarked frames; ``"estimate"``: the range-noise model fitted to the frames
   themselves with :func:`boxloc.noise.estimate_noise` (flat tiles, kept inside one label
   segment), then its ``edge_px`` measured on them with
-  :func:`boxloc.edgeblur.estimate_edge_px` (no labels); ``"config"``: the config's ``noise``
-  as given (e.g. from a calibrated TOML).
-* **squareness** -- ``"estimate"`` (default): the prior ``angle_tolerance`` measured on
-  the frames with :func:`boxloc.squareness.estimate_angle_tolerance` (after the noise
-  model; the Kinect shears receding box sides by degrees); ``"config"``: as given.
+  :func:`boxloc.edgeblur.estimate_edge_px` (no labels), and pinned -- fitted on the frames
+  it scores, so not a default-configuration figure; ``"config"``: the config's ``noise``
+  pinned as given (e.g. from a calibrated TOML). The ground truth
+  (:func:`boxloc.real.top_faces`) and the poses always use a model fitted with the labels:
+  they are the benchmark's, not the localizer's.
+* **squareness** -- ``"cross"`` (default): the prior ``angle_tolerance`` measured with
+  :func:`boxloc.squareness.estimate_angle_tolerance` on the frames of the *other* groups
+  (the box frames are scored with the tolerance of the stacked ones and vice versa), so no
+  frame is scored with a prior fitted on it; ``"estimate"``: measured on all the frames,
+  those scored included; ``"config"``: as given.
 * **pose** -- ``"plane"`` (default): ``sensor_to_base`` from each frame's dominant plane
   (:func:`boxloc.real.support_plane_pose`, no labels), the stand-in for a robot cell's
   camera calibration. mOSD's Kinect looks down at ~50 degrees, so without it "up" is the
@@ -81,7 +88,7 @@ from boxloc.bench import (
 from boxloc.config import Config
 from boxloc.errors import InputError
 from boxloc.metrics import Match, aggregate_matches, percentiles_ms
-from boxloc.scan import Scan
+from boxloc.scan import NoiseModel, Scan
 
 __all__ = ["REAL_TARGETS", "GROUPS", "list_frames", "run_real_bench", "print_real_report"]
 
@@ -223,11 +230,25 @@ def _load(paths: Sequence[Path], config: Config,
     return frames
 
 
+def _truth_noise(frames: list[_Frame]) -> NoiseModel:
+    """The model the ground truth and the poses use: fitted with the labels (tiles within
+    one segment). The benchmark's own, never handed to the localizer by default."""
+    from boxloc.noise import estimate_noise
+
+    model, _ = estimate_noise([f.scan for f in frames], labels=[f.labels for f in frames])
+    return model
+
+
 def _noise(frames: list[_Frame], config: Config, source: str) -> tuple[Config, dict[str, Any]]:
+    if source == "auto":
+        return config, {"source": "auto: the config as given" + (
+            " (noise_auto: each scan's own model)" if config.noise_auto else " (pinned)"),
+            "model": config.noise.to_dict()}
     if source == "config":
-        return config, {"source": "config", "model": config.noise.to_dict()}
+        pinned = dataclasses.replace(config, noise_auto=False)
+        return pinned, {"source": "config (pinned)", "model": config.noise.to_dict()}
     if source != "estimate":
-        raise InputError(f"noise must be 'estimate' or 'config', got {source!r}")
+        raise InputError(f"noise must be 'auto', 'estimate' or 'config', got {source!r}")
     from boxloc.edgeblur import estimate_edge_px
     from boxloc.noise import estimate_noise
 
@@ -247,26 +268,46 @@ def _noise(frames: list[_Frame], config: Config, source: str) -> tuple[Config, d
         "edge_blur": {"source": "estimate_edge_px on the benchmarked frames (no labels)",
                       **erep},
     }
-    return dataclasses.replace(config, noise=model), info
+    return dataclasses.replace(config, noise=model, noise_auto=False), info
 
 
 def _squareness(frames: list[_Frame], config: Config,
-                source: str) -> tuple[Config, dict[str, Any]]:
+                source: str) -> tuple[dict[str, Config], dict[str, Any]]:
+    """The config of each frame group, with its ``angle_tolerance``, and the report."""
+    groups = sorted({f.group for f in frames})
     if source == "config":
-        return config, {"source": "config", "angle_tolerance_deg":
-                        math.degrees(config.angle_tolerance)}
-    if source != "estimate":
-        raise InputError(f"squareness must be 'estimate' or 'config', got {source!r}")
+        return {g: config for g in groups}, {
+            "source": "config", "angle_tolerance_deg": math.degrees(config.angle_tolerance)}
+    if source not in ("estimate", "cross"):
+        raise InputError(f"squareness must be 'cross', 'estimate' or 'config', got {source!r}")
     from boxloc.squareness import estimate_angle_tolerance
 
-    tol, rep = estimate_angle_tolerance([f.scan for f in frames], config)
-    info = {"source": "estimate_angle_tolerance on the benchmarked frames (no labels)",
+    if source == "estimate":
+        tol, rep = estimate_angle_tolerance([f.scan for f in frames], config)
+        info = {"source": "estimate_angle_tolerance on the benchmarked frames (no labels)",
+                "angle_tolerance_deg": math.degrees(tol),
+                **{k: v for k, v in rep.items() if k != "per_scan"}}
+        return {g: dataclasses.replace(config, angle_tolerance=tol) for g in groups}, info
+    per: dict[str, Config] = {}
+    info = {"source": "estimate_angle_tolerance on the other groups' frames (no labels): "
+                      "no frame is scored with a prior fitted on it", "per_group": {}}
+    for g in groups:
+        others = [f.scan for f in frames if f.group != g]
+        if not others:  # one group only: nothing to fit on that is not scored
+            per[g] = config
+            info["per_group"][g] = {"fitted_on": "none (config)",
+                                    "angle_tolerance_deg": math.degrees(config.angle_tolerance)}
+            continue
+        tol, rep = estimate_angle_tolerance(others, config)
+        per[g] = dataclasses.replace(config, angle_tolerance=tol)
+        info["per_group"][g] = {
+            "fitted_on": sorted({f.group for f in frames if f.group != g}),
             "angle_tolerance_deg": math.degrees(tol),
             **{k: v for k, v in rep.items() if k != "per_scan"}}
-    return dataclasses.replace(config, angle_tolerance=tol), info
+    return per, info
 
 
-def _pose(frames: list[_Frame], config: Config, pose: str) -> str:
+def _pose(frames: list[_Frame], noise: NoiseModel, pose: str) -> str:
     if pose == "none":
         return "none: scans as read (up = sensor -z unless the file has a pose)"
     if pose != "plane":
@@ -274,7 +315,7 @@ def _pose(frames: list[_Frame], config: Config, pose: str) -> str:
     from boxloc.real import support_plane_pose
 
     for f in frames:
-        T = support_plane_pose(f.scan, noise=config.noise)
+        T = support_plane_pose(f.scan, noise=noise)
         f.scan = dataclasses.replace(f.scan, sensor_to_base=T)
     return "plane: sensor_to_base from each frame's dominant plane (no labels)"
 
@@ -286,8 +327,8 @@ def run_real_bench(
     out: Path | str | None = None,
     baseline: bool = True,
     progress: bool = True,
-    noise: str = "estimate",
-    squareness: str = "estimate",
+    noise: str = "auto",
+    squareness: str = "cross",
     pose: str = "plane",
     frames: Sequence[str] | None = None,
     localizer: Callable[[Scan, Config], Any] | None = None,
@@ -302,16 +343,17 @@ def run_real_bench(
     data_dir : path
         A directory of organized PCD/PLY files with a ``label`` field (mOSD).
     config : Config, optional
-        The localizer's configuration (its noise is replaced when ``noise="estimate"``).
+        The localizer's configuration (its noise is pinned to a fit when
+        ``noise="estimate"``).
     out : path, optional
         Directory for ``bench_real.json`` (created); nothing is written without it.
     baseline : bool
         Also run the open3d baseline on the same frames.
     progress : bool
         Show a progress bar and print the report (rich, on stderr).
-    noise : {"estimate", "config"}
+    noise : {"auto", "estimate", "config"}
         Where the noise model comes from (module docstring).
-    squareness : {"estimate", "config"}
+    squareness : {"cross", "estimate", "config"}
         Where ``angle_tolerance`` comes from (module docstring).
     pose : {"plane", "none"}
         Whether to give each scan a ``sensor_to_base`` from its dominant plane.
@@ -355,12 +397,13 @@ def run_real_bench(
         con.print(f"reading {len(paths)} frame(s) from {data_dir}")
     loaded = _load(paths, cfg, skipped)
     cfg_run, noise_info = _noise(loaded, cfg, noise)
-    cfg_run, square_info = _squareness(loaded, cfg_run, squareness)
-    pose_info = _pose(loaded, cfg_run, pose)
+    group_cfg, square_info = _squareness(loaded, cfg_run, squareness)
+    truth_noise = _truth_noise(loaded)
+    pose_info = _pose(loaded, truth_noise, pose)
     scored: list[_Frame] = []
     for f in loaded:
         try:
-            f.truth = top_faces(f.scan, f.labels, noise=cfg_run.noise)
+            f.truth = top_faces(f.scan, f.labels, noise=truth_noise)
         except Exception as e:  # noqa: BLE001 - a frame without truth is reported, not fatal
             errors.append({"frame": f.name, "group": f.group, "method": "truth",
                            "error": _err(e)})
@@ -369,7 +412,7 @@ def run_real_bench(
 
     loc = localizer or _default_localizer
     methods = METHODS if baseline else METHODS[:1]
-    draws = trial_configs(cfg_run, seeds)
+    draws = {g: trial_configs(c, seeds) for g, c in group_cfg.items()}
     runs: dict[str, list[_Run]] = {m: [] for m in methods}
     rows: list[dict[str, Any]] = []
     bar, task = (progress_bar(con, "bench --real", len(scored) * seeds) if progress
@@ -378,9 +421,9 @@ def run_real_bench(
         if warmup and scored:
             for m in methods:
                 with contextlib.suppress(Exception):
-                    _calls(m, scored[0], cfg_run, loc)()
+                    _calls(m, scored[0], group_cfg[scored[0].group], loc)()
         for f in scored:
-            for c in draws:
+            for c in draws[f.group]:
                 row: dict[str, Any] = {"frame": f.name, "group": f.group,
                                        "index": f.scan.index, "trial_seed": c.trial_seed,
                                        "truth": f.truth.to_dict()}
@@ -412,9 +455,13 @@ def run_real_bench(
         "version": __version__,
         "data_dir": str(data_dir),
         "n_frames": len(scored),
-        "seeds": draw_figures(runs, methods, [c.trial_seed for c in draws], GROUPS),
+        "seeds": draw_figures(runs, methods,
+                              [c.trial_seed for c in next(iter(draws.values()))], GROUPS),
         "config": cfg_run.to_dict(),
         "config_hash": cfg_run.hash,
+        "group_configs": {g: {"angle_tolerance_deg": math.degrees(c.angle_tolerance),
+                              "config_hash": c.hash} for g, c in group_cfg.items()},
+        "truth_noise": truth_noise.to_dict(),
         "noise": noise_info,
         "squareness": square_info,
         "pose": pose_info,
@@ -561,12 +608,13 @@ def print_real_report(report: dict[str, Any], console: Any) -> None:
     console.print(escape(f"noise ({report['noise']['source']}): ")
                   + ", ".join(f"{k} {v:.3g}" for k, v in nz.items()))
     sq = report.get("squareness", {})
-    if sq:
-        console.print(escape(f"angle_tolerance ({sq['source']}): "
-                             f"{sq['angle_tolerance_deg']:.2f} deg"
-                             + (f" from {sq['n_corners']} corners, spread "
-                                f"{sq['sigma_deg']:.2f} deg, propagated "
-                                f"{sq['propagated_deg']:.2f} deg" if "n_corners" in sq else "")))
+    for name, s in ({"": sq} if "angle_tolerance_deg" in sq else sq.get("per_group", {})).items():
+        console.print(escape(f"angle_tolerance{' of ' + name if name else ''} "
+                             f"({s.get('fitted_on', sq.get('source'))}): "
+                             f"{s['angle_tolerance_deg']:.2f} deg"
+                             + (f" from {s['n_corners']} corners, spread "
+                                f"{s['sigma_deg']:.2f} deg, propagated "
+                                f"{s['propagated_deg']:.2f} deg" if "n_corners" in s else "")))
     console.print(escape(f"pose: {report['pose']}"))
     errs = report["errors"]
     if errs["total"]:

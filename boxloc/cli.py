@@ -252,12 +252,14 @@ def _print_surfaces(result: Any) -> None:
                    "e.g. mOSD) instead of simulated scenes; --out gets bench_real.json.")
 @click.option("--frames", default=None, metavar="NAME,...",
               help="With --real: only these frames (file stems, comma-separated).")
-@click.option("--noise", "noise_source", type=click.Choice(["estimate", "config"]),
-              default="estimate", show_default=True,
-              help="With --real: fit the noise model to the frames, or use the config's.")
-@click.option("--squareness", type=click.Choice(["estimate", "config"]), default="estimate",
-              show_default=True,
-              help="With --real: measure angle_tolerance on the frames, or use the config's.")
+@click.option("--noise", "noise_source", type=click.Choice(["auto", "estimate", "config"]),
+              default="auto", show_default=True,
+              help="With --real: the config as given (each scan's own model by default), a "
+                   "model fitted to the scored frames and pinned, or the config's pinned.")
+@click.option("--squareness", type=click.Choice(["cross", "estimate", "config"]),
+              default="cross", show_default=True,
+              help="With --real: angle_tolerance measured on the other frame groups, on all "
+                   "the frames, or the config's.")
 @click.option("--pose", type=click.Choice(["plane", "none"]), default="plane",
               show_default=True,
               help="With --real: sensor pose from each frame's dominant plane, or none.")

@@ -444,10 +444,15 @@ def test_real_bench_harness_on_constructed_frames(tmp_path: Path) -> None:
         "crashes (all frames)": True}
     assert "baseline" in rep["summary"] and rep["groups"]["boxes"]["baseline"]["n_exposed"] == 3
     assert [f["frame"] for f in rep["frames"]] == ["learn2", "learn10", "learn17"]
-    # angle_tolerance measured on the frames (rendered square: no more than the default)
+    # angle_tolerance measured on the other group's frames: no frame is scored with a
+    # prior fitted on it (rendered square: no more than the default)
     sq = rep["squareness"]
-    assert sq["source"].startswith("estimate") and sq["n_corners"] > 0
-    assert math.radians(sq["angle_tolerance_deg"]) == rep["config"]["angle_tolerance"]
+    assert sq["source"].startswith("estimate_angle_tolerance on the other groups")
+    assert sq["per_group"]["boxes"]["fitted_on"] == ["stacked"]
+    assert sq["per_group"]["stacked"]["fitted_on"] == ["boxes"]
+    assert sq["per_group"]["boxes"]["n_corners"] > 0
+    for g, s in sq["per_group"].items():
+        assert rep["group_configs"][g]["angle_tolerance_deg"] == s["angle_tolerance_deg"]
 
 
 def test_real_bench_pools_draws_of_the_random_trials(tmp_path: Path) -> None:
@@ -538,7 +543,8 @@ def test_bench_real_cli_on_two_mosd_frames(tmp_path: Path) -> None:
     assert [f["frame"] for f in rep["frames"]] == ["learn0", "learn17"]
     assert set(rep["groups"]) == {"boxes", "stacked"}
     assert set(rep["summary"]) == {"boxloc", "baseline"}
-    assert rep["noise"]["source"].startswith("estimate_noise")
+    # the default: each scan's own noise model, nothing fitted on the scored frames
+    assert rep["noise"]["source"].startswith("auto") and rep["config"]["noise_auto"]
     assert rep["frames"][0]["truth"]["n_exposed"] == 2
     assert rep["frames"][1]["truth"]["n_exposed"] == 1
     assert rep["errors"]["count"]["truth"] == 0
