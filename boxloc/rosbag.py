@@ -792,8 +792,8 @@ class BagScans:
             "log_time_ns": raw.log_time_ns, "stamp_ns": stamp,
             "capture_time": "header.stamp" if t == stamp else "log_time", "frame_id": frame,
         }
-        pose = self._pose(frame, t, meta)
         try:
+            pose = self._pose(frame, t, meta)
             if self.kind == "cloud":
                 P = _cloud_points(msg, where, self.max_pixels)
                 meta["encoding"] = "PointCloud2"
@@ -960,8 +960,8 @@ def open_bag(
             continue
         try:
             firsts[raw.topic] = _decode(raw, topics[raw.topic].msgtype)
-        except _Stop:
-            continue
+        except _Stop as e:
+            probe.add(str(e))
     if damage.first is None and probe.first is not None:
         damage.add(probe.first)
 

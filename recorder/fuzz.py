@@ -19,6 +19,12 @@ Every case is one bad (or odd) input handed to the code that reads untrusted dat
     PNG/TIFF depth images (adversarial content, headers claiming huge sizes, other formats
     under a depth-image name), organized PCD/PLY clouds (adversarial content and headers),
     and byte mutations of valid files of each format.
+``bag``
+    ROS 2 bags (:mod:`boxloc.rosbag`): a small ``.mcap`` and ``.db3`` bag with their bytes
+    mutated, or written valid by ``rosbags`` with hostile messages (image sizes, steps,
+    encodings and data lengths that disagree, non-finite or zero intrinsics, distortion,
+    unorganized or malformed clouds, degenerate or cyclic /tf). Every frame read is recorded
+    and read back bit for bit; a damaged bag must end in one clean error.
 ``scan``, ``pipeline``
     :class:`boxloc.scan.Scan`, :meth:`~boxloc.scan.Scan.from_points` and the sensor models on
     adversarial arrays, and :func:`boxloc.pipeline.find_graspable_surfaces` (recorded, read
@@ -81,11 +87,11 @@ from boxloc.errors import BoxlocError
 #: The case categories, and the order in which cases cycle through them (weights: how
 #: often each appears in 20 consecutive cases).
 CATEGORIES: tuple[str, ...] = ("log-bytes", "log-records", "npz", "image", "cloud", "scan",
-                               "pipeline")
+                               "pipeline", "bag")
 _CYCLE: tuple[str, ...] = (
     "log-bytes", "log-records", "npz", "image", "cloud", "scan", "pipeline",
     "log-bytes", "log-records", "npz", "log-bytes", "log-records", "npz", "image",
-    "cloud", "scan", "pipeline", "log-bytes", "log-records", "log-bytes",
+    "cloud", "scan", "pipeline", "log-bytes", "log-records", "log-bytes", "bag",
 )
 
 #: Default per-case wall-time limit, seconds (the worker is killed past it).
@@ -224,6 +230,16 @@ def build_corpus(d: Path, sample_logs: Sequence[str | os.PathLike[str]] = ()) ->
         q = d / f"cloud-{fmt}.ply"
         q.write_bytes(ply_bytes(P, fmt, labels=point_labels))
         clouds.append(q)
+    from boxloc.rosbag import write_depth_bag
+
+    bag_scans = [simulate("single:width=48,height=36,f=39.4", seed=k).scan for k in (3, 4)]
+    for name in ("bag.mcap", "bag.db3", "cloud.mcap"):  # a writer never overwrites
+        (d / name).unlink(missing_ok=True)
+    bags = [write_depth_bag(d / "bag.mcap", bag_scans, single_file=True),
+            write_depth_bag(d / "bag.db3", bag_scans, storage="sqlite3", encoding="32FC1",
+                            single_file=True),
+            write_depth_bag(d / "cloud.mcap", bag_scans[:1], encoding="cloud",
+                            single_file=True)]
     # Copies: the originals may be regenerated while a long run reads them.
     logs: list[Path] = []
     for x in sample_logs:
@@ -239,6 +255,7 @@ def build_corpus(d: Path, sample_logs: Sequence[str | os.PathLike[str]] = ()) ->
         "clouds": [str(x) for x in clouds],
         "intrinsics": intr,
         "depth_scale": 0.001,
+        "bags": [str(x) for x in bags],
     }
 
 
@@ -1353,9 +1370,118 @@ def _gen_pipeline(rng: np.random.Generator, corpus: dict[str, Any], d: Path) -> 
     return Job(f"{kind}-{H}x{W}-f{f:g}", [("find_graspable_surfaces", run)])
 
 
+def bag_steps(path: Path, d: Path) -> list[Step]:
+    """Read every frame of a bag; record each and read it back bit for bit."""
+
+    def read() -> None:
+        from boxloc.rosbag import open_bag
+
+        for scan in open_bag(path, max_pixels=1 << 20):
+            _ = (scan.points, scan.seed, scan.up)
+            _roundtrip(scan, d)
+
+    return [("read_bag", read)]
+
+
+_HOSTILE_IMAGE = ("size", "step", "short", "encoding", "bigendian", "storm")
+_HOSTILE_INFO = ("nan-k", "zero-k", "distortion", "roi", "binning", "info-size")
+_HOSTILE_OTHER = ("cloud-flat", "cloud-fields", "cloud-short", "tf-cycle", "tf-zero-quat",
+                  "tf-nan", "stamp-zero")
+
+
+def _hostile_bag(rng: np.random.Generator, p: Path) -> str:
+    """A valid bag (written by rosbags) whose messages disagree with themselves."""
+    from boxloc.rosbag import (
+        BagWriter,
+        camera_info_message,
+        cloud_message,
+        image_message,
+        tf_message,
+    )
+    from boxloc.scan import PinholeModel
+
+    H, W = int(_pick(rng, [1, 2, 7, 36])), int(_pick(rng, [1, 3, 48]))
+    sensor = PinholeModel(39.4, 39.4, (W - 1) / 2, (H - 1) / 2, W, H)
+    what = str(_pick(rng, _HOSTILE_IMAGE + _HOSTILE_INFO + _HOSTILE_OTHER))
+    t = 1_700_000_000_000_000_000
+    z, _ = _storm(rng, (H, W), np.float64)
+    with np.errstate(all="ignore"):
+        depth = (np.clip(np.nan_to_num(z * 1000, nan=0), 0, 65535).astype(np.uint16)
+                 if rng.random() < 0.5 else z.astype(np.float32))
+    with BagWriter(p, storage="mcap" if p.suffix == ".mcap" else "sqlite3",
+                   single_file=True) as w:
+        T = w.types
+        info = camera_info_message(T, sensor, t, "cam")
+        img = image_message(T, depth, t, "cam")
+        if what == "size":
+            img.height, img.width = int(_pick(rng, [0, 2**31 - 1, 2**32 - 1, 70000])), W
+        elif what == "step":
+            img.step = int(_pick(rng, [0, 1, 2**32 - 1]))
+        elif what == "short":
+            img.data = img.data[: int(rng.integers(0, max(1, img.data.size)))]
+        elif what == "encoding":
+            img.encoding = str(_pick(rng, ["", "rgb8", "16SC1", "64FC1", "\x00", "mono16"]))
+        elif what == "bigendian":
+            img.is_bigendian = 1
+        elif what == "nan-k":
+            info.k = np.full(9, np.nan)
+        elif what == "zero-k":
+            info.k = np.zeros(9)
+        elif what == "distortion":
+            info.distortion_model = str(_pick(rng, ["plumb_bob", "equidistant", "", "x"]))
+            info.d = rng.normal(0, float(_pick(rng, [0.01, 1.0, 1e6])),
+                                int(_pick(rng, [0, 1, 4, 5, 8, 14])))
+        elif what == "roi":
+            info.roi.x_offset, info.roi.width = int(rng.integers(0, 2**31)), W
+        elif what == "binning":
+            info.binning_x = int(_pick(rng, [2, 2**31 - 1]))
+        elif what == "info-size":
+            info.width = W + 1
+        if what.startswith("cloud"):
+            P = rng.normal(0, 1, (H, W, 3)).astype(np.float32)
+            c = cloud_message(T, P.reshape(1, -1, 3) if what == "cloud-flat" else P, t, "cam")
+            if what == "cloud-fields":
+                c.fields[int(rng.integers(0, 3))].datatype = int(_pick(rng, [1, 2, 7, 8, 99]))
+                c.fields[0].offset = int(_pick(rng, [0, 11, 2**31]))
+            elif what == "cloud-short":
+                c.point_step = int(_pick(rng, [0, 4, 12]))
+                c.data = c.data[: int(rng.integers(0, max(1, c.data.size)))]
+            w.write("/cam/points", c, t)
+        else:
+            w.write("/cam/camera_info", info, t)
+            if what == "stamp-zero":
+                img.header.stamp.sec, img.header.stamp.nanosec = 0, 0
+            w.write("/cam/image_raw", img, t)
+        if what.startswith("tf"):
+            M = np.eye(4)
+            tf = tf_message(T, "base", "cam", M, t)
+            q = tf.transforms[0].transform.rotation
+            if what == "tf-zero-quat":
+                q.x = q.y = q.z = q.w = 0.0
+            elif what == "tf-nan":
+                tf.transforms[0].transform.translation.x = float("nan")
+            w.write("/tf_static", tf, t)
+            if what == "tf-cycle":
+                w.write("/tf_static", tf_message(T, "cam", "base", M, t), t)
+    return what
+
+
+def _gen_bag(rng: np.random.Generator, corpus: dict[str, Any], d: Path) -> Job:
+    if rng.random() < 0.6:
+        src = Path(str(_pick(rng, corpus["bags"])))
+        data, op = mutate_bytes(rng, src.read_bytes())
+        p = d / f"fuzzed{src.suffix}"
+        p.write_bytes(data)
+        return Job(f"bag-mutate-{op}", bag_steps(p, d))
+    p = d / f"fuzzed{_pick(rng, ['.mcap', '.db3'])}"
+    what = _hostile_bag(rng, p)
+    return Job(f"bag-hostile-{what}", bag_steps(p, d))
+
+
 _GENERATORS: dict[str, Callable[[np.random.Generator, dict[str, Any], Path], Job]] = {
     "log-bytes": _gen_log_bytes, "log-records": _gen_log_records, "npz": _gen_npz,
     "image": _gen_image, "cloud": _gen_cloud, "scan": _gen_scan, "pipeline": _gen_pipeline,
+    "bag": _gen_bag,
 }
 
 
@@ -1857,6 +1983,8 @@ def reproduce(case_dir: str | os.PathLike[str]) -> dict[str, Any]:
 def _steps_for_saved(case: Case, info: dict[str, Any], d: Path) -> Job:
     """The steps of a file case, on its saved input (the corpus is not needed)."""
     files = sorted(p for p in d.iterdir() if p.name.startswith("fuzzed"))
+    if case.category == "bag" and files:
+        return Job(info.get("kind", ""), bag_steps(files[0], d))
     mcap = [p for p in files if p.suffix == ".mcap"]
     if mcap:
         return Job(info.get("kind", ""), log_steps(mcap[0], d))
