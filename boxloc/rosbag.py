@@ -1211,7 +1211,7 @@ def write_depth_bag(
     namespace: str = "/camera/depth",
     frame_id: str = "camera_depth_optical_frame",
     base_frame: str = "base_link",
-    tf_static: bool = True,
+    tf: bool = True,
     camera_info: bool = True,
     compress: bool = False,
     single_file: bool = False,
@@ -1231,10 +1231,11 @@ def write_depth_bag(
         Depth image in millimetres or metres on ``<namespace>/image_raw`` with CameraInfo on
         ``<namespace>/camera_info``, or an organized PointCloud2 on ``<namespace>/points``.
     frame_id, base_frame : str
-        The optical frame, and the parent frame of its ``/tf_static`` transform (the scan's
+        The optical frame, and the parent frame of its transform (the scan's
         ``sensor_to_base``; scans without one are written without).
-    tf_static, camera_info : bool
-        Write the ``/tf_static`` transform, the CameraInfo messages.
+    tf, camera_info : bool
+        Write the poses (on ``/tf_static`` when every scan has the same, else on ``/tf`` at
+        each frame's stamp), the CameraInfo messages.
     stamps_ns : sequence of int, optional
         Header stamps; default each scan's capture time, else 1 s apart from 1.7e18 ns.
     extra : callable, optional
@@ -1248,11 +1249,16 @@ def write_depth_bag(
     with BagWriter(p, storage=storage, compress=compress, single_file=single_file) as w:
         T = w.types
         pose = scans[0].sensor_to_base if scans else None
-        if tf_static and pose is not None:
+        static = pose is not None and all(
+            s.sensor_to_base is not None and np.array_equal(s.sensor_to_base, pose)
+            for s in scans)
+        if tf and static:
             w.write("/tf_static", tf_message(T, base_frame, frame_id, pose, 0), 1)
         for i, scan in enumerate(scans):
             t = int(stamps_ns[i]) if stamps_ns is not None else (
                 scan.capture_time_ns or 1_700_000_000_000_000_000 + i * 1_000_000_000)
+            if tf and not static and scan.sensor_to_base is not None:
+                w.write("/tf", tf_message(T, base_frame, frame_id, scan.sensor_to_base, t), t)
             if encoding == "cloud":
                 w.write(f"{namespace}/points", cloud_message(T, scan.points, t, frame_id), t)
             else:

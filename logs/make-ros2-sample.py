@@ -3,7 +3,8 @@
 
 A rosbag2 directory (MCAP storage, zstd chunks): ``/camera/depth/image_raw`` 16UC1
 millimetres with ``/camera/depth/camera_info`` on the same stamps, and the camera's pose on
-``/tf_static`` (``base_link`` -> ``camera_depth_optical_frame``). Written by rosbags
+``/tf`` at each stamp (``base_link`` -> ``camera_depth_optical_frame``; the simulator moves
+the camera a little between scans). Written by rosbags
 (:func:`boxloc.rosbag.write_depth_bag`); the same rosbags version writes the same bytes.
 Run by ``make-samples.sh``, or from the repository root: ``python logs/make-ros2-sample.py``.
 """

@@ -269,12 +269,13 @@ def test_distortion(tmp_path: Path, scans: list[Scan]) -> None:
 
 def test_tf_static_gives_the_sensor_pose_and_up(tmp_path: Path, scans: list[Scan]) -> None:
     bag = write_depth_bag(tmp_path / "bag", scans[:1])
+    assert "/tf_static" in open_bag(bag).bag.topics and "/tf" not in open_bag(bag).bag.topics
     (s,) = list(read_scans(bag))
     assert s.sensor_to_base is not None
     np.testing.assert_allclose(s.sensor_to_base, scans[0].sensor_to_base, atol=1e-12)
     np.testing.assert_allclose(s.up, scans[0].up, atol=1e-12)
     assert s.meta["rosbag"]["base_frame"] == "base_link"
-    none = write_depth_bag(tmp_path / "none", scans[:1], tf_static=False)
+    none = write_depth_bag(tmp_path / "none", scans[:1], tf=False)
     (n,) = list(read_scans(none))
     assert n.sensor_to_base is None
 
@@ -420,7 +421,9 @@ def test_run_on_a_bag_records_its_provenance_and_replays_with_zero_diff(
         assert s.source == str(bag) and m["bag"] == str(bag)
         assert (m["topic"], m["stamp_ns"], m["log_time_ns"]) == (
             "/camera/depth/image_raw", stamps[k], stamps[k])
+        # each scan's own pose, from /tf at its stamp (the two poses differ)
         assert s.sensor_to_base is not None
+        np.testing.assert_allclose(s.sensor_to_base, scans[k].sensor_to_base, atol=1e-12)
     r = invoke("replay", str(log), "--out", str(tmp_path / "rep"), "-j", "1", "--quiet")
     assert r.returncode == 0, r.stderr
     assert product_differences(log, tmp_path / "rep" / "run.mcap") == []
@@ -521,3 +524,20 @@ def test_a_boxloc_log_is_not_a_bag_and_bags_cost_nothing_at_start_up(tmp_path: P
                        timeout=120)
     assert p.returncode == 0, p.stderr
     assert p.stdout.strip() == "[]"
+
+
+def test_the_sample_bag_in_logs(tmp_path: Path) -> None:
+    """logs/ros2-pallet-320x240: the two pallet scans of logs/pallet-320x240.mcap, as a
+    camera records them, within the sample budget (1.5 MB)."""
+    bag = Path(__file__).resolve().parent.parent / "logs" / "ros2-pallet-320x240"
+    assert is_rosbag(bag)
+    assert sum(f.stat().st_size for f in bag.iterdir()) <= 1_500_000
+    got = list(read_scans(bag))
+    assert [s.shape for s in got] == [(240, 320)] * 2
+    for k, s in enumerate(got):
+        sim = simulate("pallet:width=320,height=240,f=262.5", seed=k + 1).scan
+        assert s.sensor == sim.sensor and s.capture_time_ns == sim.capture_time_ns
+        assert s.sensor_to_base is not None
+        np.testing.assert_allclose(s.sensor_to_base, sim.sensor_to_base, atol=1e-12)
+        assert s.range.tobytes() == _expected_range(depth_of(sim, "16UC1"), 0.001,
+                                                    sim.sensor).tobytes()
