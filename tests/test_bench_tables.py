@@ -1,0 +1,406 @@
+"""scripts/bench_tables.py: the docs' benchmark tables come from the bench's JSON reports.
+
+Small fixture reports, shaped like the three benches' (bench_matrix.json, bench_real.json,
+bench.json), go through the script into a scratch checkout; the tables must show their
+figures, a second run must change nothing, and a report of the wrong schema must stop the
+script with one line and exit status 2 before it writes anything.
+"""
+
+from __future__ import annotations
+
+import copy
+import importlib.util
+import json
+import subprocess
+import sys
+from pathlib import Path
+from types import ModuleType
+from typing import Any
+
+import pytest
+
+ROOT = Path(__file__).resolve().parent.parent
+SCRIPT = ROOT / "scripts" / "bench_tables.py"
+
+
+def _load() -> ModuleType:
+    spec = importlib.util.spec_from_file_location("bench_tables", SCRIPT)
+    assert spec is not None and spec.loader is not None
+    mod = importlib.util.module_from_spec(spec)
+    sys.modules["bench_tables"] = mod
+    spec.loader.exec_module(mod)
+    return mod
+
+
+bt = _load()
+
+README = """# boxloc
+
+Prose before the tables stays as it is.
+
+<!-- bench:matrix:summary -->
+stale text
+<!-- /bench -->
+
+Prose between them too.
+
+<!-- bench:real:summary -->
+<!-- /bench -->
+"""
+
+BENCHMARKS = """# Benchmarks
+
+<!-- bench:matrix:targets -->
+<!-- /bench -->
+
+<!-- bench:matrix:kinds -->
+<!-- /bench -->
+
+<!-- bench:matrix:cells -->
+<!-- /bench -->
+
+<!-- bench:matrix:stages -->
+<!-- /bench -->
+
+<!-- bench:real:targets -->
+<!-- /bench -->
+
+<!-- bench:real:draws -->
+<!-- /bench -->
+
+<!-- bench:real:inputs -->
+<!-- /bench -->
+
+<!-- bench:real:stages -->
+<!-- /bench -->
+
+<!-- bench:sim:summary -->
+<!-- /bench -->
+
+<!-- bench:sim:kinds -->
+<!-- /bench -->
+
+<!-- bench:sim:draws -->
+<!-- /bench -->
+
+<!-- bench:sim:stages -->
+<!-- /bench -->
+"""
+
+
+# --- fixture reports (the fields the benches write, few scans) -----------------------------
+
+
+def _fig(tp: int, fp: int, fn: int, **extra: Any) -> dict[str, Any]:
+    n_pred, n_exp = tp + fp, tp + fn
+    p = tp / n_pred if n_pred else 1.0
+    r = tp / n_exp if n_exp else 1.0
+    return {"n_scans": 2, "tp": tp, "fp": fp, "fn": fn, "n_pred": n_pred, "n_exposed": n_exp,
+            "precision": p, "recall": r, "f1": 2 * p * r / (p + r) if p + r else 0.0,
+            "grasp_err_median_mm": 2.25, "grasp_err_p95_mm": 7.75,
+            "center_err_median_mm": 2.0, "dim_err_median_mm": 3.0, "dim_err_p95_mm": 9.0,
+            "normal_err_median_deg": 0.5, "normal_err_p95_deg": 1.5, "iou_median": 0.9,
+            **extra}
+
+
+def _group(tp: int, fp: int, fn: int, no_box: dict[str, Any] | None = None) -> dict[str, Any]:
+    return {"n_scenes": 2, **_fig(tp, fp, fn), "errors": 0, "timeouts": 1,
+            "time": {"median_ms": 1500.0, "p99_ms": 9000.0, "max_ms": 9100.0,
+                     "max_over_median": 6.07}, "no_box": no_box}
+
+
+NO_BOX = {"n_scans": 2, "false_surfaces": 0, "false_surfaces_per_scan": 0.0,
+          "zero_surface_scans": 2, "zero_surface_share": 1.0, "edge_scans": 2,
+          "pixels": 1000, "edge_points": 12, "false_edge_points": 7,
+          "edge_points_per_pixel": 0.012, "false_edge_points_per_pixel": 0.007}
+
+
+def matrix_report() -> dict[str, Any]:
+    laser, tof = _group(17, 12, 46, NO_BOX), _group(21, 2, 48, NO_BOX)
+    cells = {f"{s}/{k}": {"sensor": s, "kind": k, "held_out": s == "tof",
+                          **_group(3, 1, 2, NO_BOX if k == "empty" else None)}
+             for s in ("laser", "tof") for k in ("single", "empty")}
+    return {
+        "schema": "boxloc.bench_matrix/1", "version": "0.1.0", "mode": "matrix", "n": 8,
+        "seed": 0, "jobs": 2, "scan_timeout_s": 120.0, "warmup": True, "threads": {},
+        "default_configuration": True, "config": {"alpha": 0.01}, "config_hash": "feedc0de",
+        "site": {"min_edge": 0.15, "max_edge": 0.6},
+        "held_out": {"sensor": "tof", "cells": ["tof/single", "tof/empty"]},
+        "sensors": ["laser", "tof"], "kinds": ["single", "empty"], "no_box_kinds": ["empty"],
+        "seeds": {"n": 1, "trial_seeds": [0], "per_seed": [], "spread": {}},
+        "groups": {"overall": {"development": laser, "all": _group(38, 14, 94, NO_BOX)},
+                   "sensors": {"laser": laser, "tof": tof},
+                   "kinds": {k: {"development": _group(5, 1, 9), "all": _group(6, 1, 9)}
+                             for k in ("single", "empty")},
+                   "cells": cells},
+        "targets": [{"name": "recall overall", "key": "recall", "over": "overall", "op": ">=",
+                     "bound": 0.9, "target": ">= 0.9", "unit": "",
+                     "development": {"value": 0.2698, "where": "overall", "pass": False},
+                     "all": {"value": 0.2879, "where": "overall", "pass": False}}],
+        "timeouts": [{"scene": 3, "trial_seed": 0, "sensor": "tof", "kind": "empty",
+                      "spec_text": "empty:seed=1", "phase": "localize", "limit_s": 120.0}],
+        "errors": {"total": 0, "list": []},
+        "timing": {"stages_ms": {"edges": {"median": 257.8, "p95": 1660.2}},
+                   "total_ms": {"median": 1500.0, "p95": 9000.0},
+                   "per_scan_ms": [1500.0] * 8, "run_s": 61.0},
+        "memory": {"worker_peak_rss_mb_median": 438.2, "worker_peak_rss_mb_max": 642.8},
+        "scenes": [{"index": i, "status": "ok"} for i in range(8)],
+    }
+
+
+def real_report() -> dict[str, Any]:
+    boxes = {"n_frames": 4, "boxloc": {**_fig(35, 1, 3), "errors": 0},
+             "baseline": {**_fig(37, 57, 1), "errors": 0}}
+    spread = {m: {k: {"min": 0.89, "max": 0.95, "mean": 0.92} for k in ("precision", "recall")}
+              for m in ("boxloc", "baseline")}
+    config = {"alpha": 0.01, "min_edge": 0.035, "noise_auto": True, "noise": {"sigma0": 0.001}}
+    return {
+        "version": "0.1.0", "data_dir": "../shared/data/mosd", "n_frames": 2,
+        "seeds": {"n": 2, "trial_seeds": [0, 1],
+                  "per_seed": [{"trial_seed": s, "groups": {"boxes": {
+                      "boxloc": _fig(17 + s, 1, 2), "baseline": _fig(18, 28, 1)}}}
+                      for s in (0, 1)],
+                  "spread": {"boxes": spread}},
+        "config": config, "config_hash": "abad1dea",
+        "noise": {"source": "auto: the config as given (noise_auto: each scan's own model)",
+                  "model": {"sigma0": 0.001, "k2": 0.0006}},
+        "squareness": {"source": "config", "angle_tolerance_deg": 1.0},
+        "pose": "plane: sensor_to_base from each frame's dominant plane (no labels)",
+        "summary": {"boxloc": _fig(35, 1, 3), "baseline": _fig(37, 57, 1)},
+        "groups": {"boxes": boxes},
+        "targets": [{"name": "recall (box frames)", "key": "boxes.recall", "target": ">= 0.9",
+                     "value": 35 / 38, "baseline": 37 / 38, "unit": "", "pass": True}],
+        "timing": {m: {"stages_ms": {"lines": {"median": 454.0, "p95": 900.0}},
+                       "total_ms": {"median": 894.0, "p95": 2000.0},
+                       "per_frame_ms": [894.0, 895.0]} for m in ("boxloc", "baseline")},
+        "memory": {}, "errors": {"count": {"boxloc": 0, "baseline": 0}, "total": 0, "list": []},
+        "skipped": [], "frames": [{"frame": "learn0"}, {"frame": "learn1"}],
+    }
+
+
+def sim_report() -> dict[str, Any]:
+    targets = [{"name": "precision", "key": "precision", "target": ">= 0.99", "value": 0.984,
+                "baseline": 0.747, "unit": "", "pass": False},
+               {"name": "median grasp error", "key": "grasp_err_median_mm",
+                "target": "<= 5 mm", "value": 2.4, "baseline": 3.5, "unit": "mm", "pass": True}]
+    return {
+        "version": "0.1.0", "n": 2, "seed": 0,
+        "seeds": {"n": 1, "trial_seeds": [0], "per_seed": [
+            {"trial_seed": 0, "figures": {"boxloc": _fig(343, 4, 20),
+                                          "baseline": _fig(118, 39, 245)}}]},
+        "config": {"alpha": 0.01}, "config_hash": "0ddba11",
+        "summary": {"boxloc": _fig(343, 4, 20), "baseline": _fig(118, 39, 245)},
+        "edges": {"any": {"precision": 0.83, "recall": 0.85}},
+        "per_kind": {"pallet": {"n_scenes": 1, "boxloc": _fig(10, 0, 1),
+                                "baseline": _fig(0, 0, 11)}},
+        "targets": targets,
+        "timing": {"boxloc": {"stages_ms": {}, "total_ms": {"median": 480.0, "p95": 900.0},
+                              "per_scene_total_ms": [480.0, 481.0]}},
+        "memory": {"boxloc_peak_rss_mb": 645.0},
+        "errors": {"count": {}, "total": 0, "list": []},
+        "scenes": [{"index": 0}, {"index": 1}],
+    }
+
+
+# --- helpers -----------------------------------------------------------------------------------
+
+
+@pytest.fixture()
+def checkout(tmp_path: Path) -> Path:
+    """A scratch repository root with a README and docs/benchmarks.md to regenerate."""
+    root = tmp_path / "repo"
+    (root / "docs").mkdir(parents=True)
+    (root / "README.md").write_text(README)
+    (root / "docs" / "benchmarks.md").write_text(BENCHMARKS)
+    return root
+
+
+def _write(path: Path, report: dict[str, Any]) -> Path:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps(report))
+    return path
+
+
+def _run(root: Path, *args: str) -> int:
+    return int(bt.main(["--root", str(root), *args]))
+
+
+def _ingest_all(root: Path, tmp: Path) -> int:
+    return _run(root, "--matrix", str(_write(tmp / "m" / "bench_matrix.json", matrix_report())),
+                "--real", str(_write(tmp / "r" / "bench_real.json", real_report())),
+                "--sim", str(_write(tmp / "s" / "bench.json", sim_report())),
+                "--date", "2026-11-25 10:45 UTC", "--commit", "abc1234")
+
+
+def _snapshot(root: Path) -> dict[str, bytes]:
+    return {str(p.relative_to(root)): p.read_bytes() for p in sorted(root.rglob("*"))
+            if p.is_file()}
+
+
+# --- tests -------------------------------------------------------------------------------------
+
+
+def test_tables_are_generated_from_the_reports(checkout: Path, tmp_path: Path) -> None:
+    assert _ingest_all(checkout, tmp_path) == 0
+    readme = (checkout / "README.md").read_text()
+    # the prose outside the regions is untouched, the stale text inside is gone
+    assert readme.startswith("# boxloc\n\nProse before the tables stays as it is.\n")
+    assert "Prose between them too." in readme and "stale text" not in readme
+    # the simulated table: per sensor, the held-out one marked, the two overall rows
+    rows = {line.split(" | ")[0].strip("| *"): line for line in readme.splitlines()
+            if line.startswith("| ")}
+    assert "17 / 12 / 46 | 0.586 | 0.270 | 2.2 / 7.8 | 1.50 / 9.10 | 1 / 0" in rows["laser"]
+    assert "21 / 2 / 48 | 0.913 | 0.304" in rows["tof (held out)"]
+    assert "38 / 14 / 94" in rows["all sensors"] and "all but tof" in rows
+    # stamped with the date, the commit and the command, linked to the committed copy
+    assert ("*2026-11-25 10:45 UTC, commit abc1234, boxloc 0.1.0, config feedc0de: `boxloc "
+            "bench --matrix --n 8 --seed 0 --seeds 1 --jobs 2 --held-out tof --scan-timeout "
+            "120 --out DIR` (reconstructed); [report](docs/results/bench_matrix.json).*"
+            ) in readme
+    # the real-data table: pooled figures with the worst and best draw, per group
+    assert ("| box frames (learn0–16) | 19 | 35 / 1 / 3 | 0.921 (0.890–0.950) | "
+            "0.972 (0.890–0.950) | 37 / 57 / 1 |") in readme
+    assert ("`boxloc bench --real ../shared/data/mosd --set min_edge=0.035 --seeds 2 --noise "
+            "auto --squareness config --pose plane --out DIR`") in readme
+
+    bench = (checkout / "docs" / "benchmarks.md").read_text()
+    assert "[report](results/bench_matrix.json)" in bench  # relative to docs/
+    assert "| recall overall | >= 0.9 | 0.270 | miss | 0.288 | miss |" in bench
+    assert "| tof/single (held out) | 2 | 5 | 3 / 1 / 2 |" in bench
+    # nothing found and nothing to find: no precision and no recall, not 1.0
+    assert "| laser/empty | 2 | 5 |" in bench
+    assert "scene 3 (tof/empty, localize)" in bench and "The run took 61 s" in bench
+    assert "| 0 | 17 / 1 / 2 | 18 / 28 / 1 |" in bench and "| 1 | 18 / 1 / 2 |" in bench
+    assert "| precision | 0.984 | 0.747 | >= 0.99 | miss |" in bench
+    assert "| median grasp error | 2.4 mm | 3.5 mm | <= 5 mm | pass |" in bench
+    assert "| TP / FP / FN | 343 / 4 / 20 | 118 / 39 / 245 |" in bench
+    assert "| pallet | 1 | 10 / 0 / 1 | 1.000 / 0.909 |" in bench
+    assert "No report yet" not in bench
+
+
+def test_committed_copies_are_trimmed_and_stamped(checkout: Path, tmp_path: Path) -> None:
+    assert _ingest_all(checkout, tmp_path) == 0
+    results = checkout / "docs" / "results"
+    m = json.loads((results / "bench_matrix.json").read_text())
+    assert "scenes" not in m and "per_scan_ms" not in m["timing"]
+    assert m["groups"] == matrix_report()["groups"]  # the figures themselves are kept
+    assert m["provenance"]["commit"] == "abc1234" and not m["provenance"]["commit_inferred"]
+    assert m["provenance"]["trimmed"] == ["scenes", "timing.per_scan_ms"]
+    r = json.loads((results / "bench_real.json").read_text())
+    assert "frames" not in r and "per_frame_ms" not in r["timing"]["boxloc"]
+    s = json.loads((results / "bench.json").read_text())
+    assert "scenes" not in s and s["provenance"]["date"] == "2026-11-25 10:45 UTC"
+
+
+def test_a_second_run_changes_nothing(checkout: Path, tmp_path: Path) -> None:
+    assert _ingest_all(checkout, tmp_path) == 0
+    first = _snapshot(checkout)
+    assert _run(checkout) == 0
+    assert _snapshot(checkout) == first
+    assert _run(checkout, "--check") == 0
+    # ingesting a committed copy again keeps its stamp: the same bytes
+    copy_ = tmp_path / "again" / "bench_matrix.json"
+    copy_.parent.mkdir()
+    copy_.write_bytes((checkout / "docs" / "results" / "bench_matrix.json").read_bytes())
+    assert _run(checkout, "--matrix", str(copy_)) == 0
+    assert _snapshot(checkout) == first
+
+
+def test_check_finds_a_table_older_than_its_report(checkout: Path, tmp_path: Path,
+                                                   capsys: pytest.CaptureFixture[str]) -> None:
+    assert _ingest_all(checkout, tmp_path) == 0
+    path = checkout / "docs" / "results" / "bench_matrix.json"
+    rep = json.loads(path.read_text())
+    rep["groups"]["sensors"]["laser"]["tp"] = 99
+    path.write_text(json.dumps(rep))
+    capsys.readouterr()
+    assert _run(checkout, "--check") == 1
+    assert "README.md" in capsys.readouterr().err
+    assert "99 / 12 / 46" not in (checkout / "README.md").read_text()  # --check writes nothing
+    assert _run(checkout) == 0
+    assert "99 / 12 / 46" in (checkout / "README.md").read_text()
+
+
+def test_an_absent_report_leaves_a_recipe(checkout: Path) -> None:
+    assert _run(checkout) == 0
+    readme = (checkout / "README.md").read_text()
+    assert ("No report yet. Run `boxloc bench --real ../shared/data/mosd --set min_edge=0.035 "
+            "--seeds 8 --out DIR`, then `python scripts/bench_tables.py --real "
+            "DIR/bench_real.json`") in readme
+
+
+def _bad_matrix_schema() -> dict[str, Any]:
+    return {**matrix_report(), "schema": "boxloc.bench_matrix/2"}
+
+
+def _real_without_groups() -> dict[str, Any]:
+    r = real_report()
+    del r["groups"]
+    return r
+
+
+@pytest.mark.parametrize("option, report, message", [
+    ("--matrix", _bad_matrix_schema, "schema 'boxloc.bench_matrix/2', expected "
+                                     "'boxloc.bench_matrix/1'"),
+    ("--real", matrix_report, "a boxloc.bench_matrix/1 report, not a bench_real.json"),
+    ("--sim", real_report, "not a bench.json report: no n, seed, per_kind"),
+    ("--real", _real_without_groups, "not a bench_real.json report: no groups"),
+    ("--matrix", lambda: [1, 2], "not a bench report (a JSON object), got list"),
+])
+def test_a_report_of_the_wrong_schema_is_refused(
+        checkout: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str], option: str,
+        report: Any, message: str) -> None:
+    before = _snapshot(checkout)
+    path = _write(tmp_path / "in" / "report.json", report())
+    assert _run(checkout, option, str(path)) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and err.startswith("bench_tables: ") and message in err, err
+    assert _snapshot(checkout) == before  # nothing written
+
+
+def test_a_committed_report_of_the_wrong_schema_stops_the_rewrite(
+        checkout: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    _write(checkout / "docs" / "results" / "bench_matrix.json", _bad_matrix_schema())
+    before = _snapshot(checkout)
+    assert _run(checkout) == 2
+    assert "docs/results/bench_matrix.json: schema" in capsys.readouterr().err
+    assert _snapshot(checkout) == before
+
+
+@pytest.mark.parametrize("text, message", [
+    ("<!-- bench:matrix:nonsense -->\n<!-- /bench -->\n", "unknown region bench:matrix:nonsense"),
+    ("<!-- bench:matrix:summary -->\nno end\n", "bench:matrix:summary is not closed"),
+])
+def test_a_bad_region_is_refused(checkout: Path, capsys: pytest.CaptureFixture[str],
+                                 text: str, message: str) -> None:
+    (checkout / "docs" / "other.md").write_text(text)
+    assert _run(checkout) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and message in err, err
+
+
+def test_wrong_schema_from_the_command_line_is_one_line_and_exit_2(tmp_path: Path) -> None:
+    """The script as run: exit status 2, one line on stderr, no traceback."""
+    root = tmp_path / "repo"
+    root.mkdir()
+    bad = _write(tmp_path / "bench_matrix.json", _bad_matrix_schema())
+    p = subprocess.run([sys.executable, str(SCRIPT), "--root", str(root), "--matrix", str(bad)],
+                       capture_output=True, text=True, timeout=120)
+    assert p.returncode == 2, p.stderr
+    assert p.stderr.count("\n") == 1 and "Traceback" not in p.stderr
+    assert p.stderr.startswith("bench_tables: ")
+
+
+def test_the_repository_docs_are_what_the_reports_say() -> None:
+    """README.md and docs/*.md hold the tables of docs/results/ and recorder/channels.py:
+    after a new report or a channel change, run `python scripts/bench_tables.py`."""
+    assert _run(ROOT, "--check") == 0
+
+
+def test_the_matrix_command_is_rebuilt_from_the_report() -> None:
+    rep = copy.deepcopy(matrix_report())
+    rep.update(n=320, jobs=1, scan_timeout_s=60.0, held_out={"sensor": "laser"})
+    rep["seeds"]["n"] = 3
+    assert bt.reconstruct_command(rep, bt.KINDS["matrix"]) == (
+        "boxloc bench --matrix --n 320 --seed 0 --seeds 3 --jobs 1 --held-out laser "
+        "--scan-timeout 60 --out DIR")
