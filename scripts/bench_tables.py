@@ -48,7 +48,7 @@ import sys
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, NoReturn
 
 ROOT = Path(__file__).resolve().parent.parent
 RESULTS_DIR = Path("docs") / "results"
@@ -494,6 +494,8 @@ def real_draws(r: dict[str, Any]) -> str:
 
 def real_inputs(r: dict[str, Any]) -> str:
     nz, sq = r["noise"], r["squareness"]
+    # with noise_auto each scan fits its own model: the config's is only the fallback
+    auto = bool(r["config"].get("noise_auto")) and str(nz.get("source", "")).startswith("auto")
     model = nz.get("model", {})
     terms = ", ".join(f"{k} = {v:g}" for k, v in model.items() if isinstance(v, int | float))
     if "per_group" in sq:
@@ -506,7 +508,8 @@ def real_inputs(r: dict[str, Any]) -> str:
         tol = f"{num(sq.get('angle_tolerance_deg'), 2)}°"
     rows = [["data", f"`{r['data_dir']}`, {r['n_frames']} frames"
              + (f", {len(r.get('skipped') or [])} skipped" if r.get("skipped") else "")],
-            ["noise model", f"{nz.get('source', '?')}: {terms}"],
+            ["noise model", f"{nz.get('source', '?')}; "
+             + ("fallback" if auto else "model") + f": {terms}"],
             ["`angle_tolerance`", f"{sq.get('source', '?')}: {tol}"],
             ["pose", str(r["pose"])],
             ["config", f"{r['config_hash']} (the benchmark's, before any per-group prior)"]]
@@ -673,8 +676,15 @@ def documents(root: Path) -> list[Path]:
     return docs + sorted((root / "docs").glob("*.md"))
 
 
+class _Parser(argparse.ArgumentParser):
+    def error(self, message: str) -> NoReturn:
+        """A bad option: one line and exit status 2, not the usage block."""
+        print(f"bench_tables: {message} (see --help)", file=sys.stderr)
+        raise SystemExit(2)
+
+
 def main(argv: Sequence[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap = _Parser(description=__doc__.split("\n\n")[0])
     for k in KINDS.values():
         ap.add_argument(f"--{k.name}", type=Path, metavar="FILE",
                         help=f"a {k.file} to check, trim and copy to docs/results")
@@ -690,6 +700,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         if args.check and given:
             raise ToolError("--check compares the docs with docs/results; ingest separately")
+        if args.command and len(given) > 1:
+            raise ToolError("--command names one report's command: give one report with it")
         if not given and (args.date or args.commit or args.command):
             raise ToolError("--date, --commit and --command stamp a report given with "
                             "--matrix, --real or --sim")

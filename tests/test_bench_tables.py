@@ -379,6 +379,21 @@ def test_a_bad_region_is_refused(checkout: Path, capsys: pytest.CaptureFixture[s
     assert err.count("\n") == 1 and message in err, err
 
 
+def test_bad_options_are_one_line_and_exit_2(checkout: Path, tmp_path: Path,
+                                            capsys: pytest.CaptureFixture[str]) -> None:
+    m = _write(tmp_path / "m.json", matrix_report())
+    r = _write(tmp_path / "r.json", real_report())
+    assert _run(checkout, "--matrix", str(m), "--real", str(r), "--command", "x") == 2
+    assert "--command names one report's command" in capsys.readouterr().err
+    assert _run(checkout, "--check", "--matrix", str(m)) == 2
+    assert _run(checkout, "--matrix", str(tmp_path / "absent.json")) == 2
+    assert "absent.json: no such file" in capsys.readouterr().err
+    with pytest.raises(SystemExit) as e:
+        _run(checkout, "--no-such-option")
+    err = capsys.readouterr().err
+    assert e.value.code == 2 and err.count("\n") == 1 and "--no-such-option" in err
+
+
 def test_wrong_schema_from_the_command_line_is_one_line_and_exit_2(tmp_path: Path) -> None:
     """The script as run: exit status 2, one line on stderr, no traceback."""
     root = tmp_path / "repo"
