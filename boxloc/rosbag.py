@@ -1252,7 +1252,7 @@ def write_depth_bag(
         static = pose is not None and all(
             s.sensor_to_base is not None and np.array_equal(s.sensor_to_base, pose)
             for s in scans)
-        if tf and static:
+        if tf and static and pose is not None:
             w.write("/tf_static", tf_message(T, base_frame, frame_id, pose, 0), 1)
         for i, scan in enumerate(scans):
             t = int(stamps_ns[i]) if stamps_ns is not None else (
