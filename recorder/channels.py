@@ -23,6 +23,7 @@ from functools import cache
 from typing import Any
 
 from foxglove_schemas_protobuf.CameraCalibration_pb2 import CameraCalibration
+from foxglove_schemas_protobuf.CompressedImage_pb2 import CompressedImage
 from foxglove_schemas_protobuf.FrameTransform_pb2 import FrameTransform
 from foxglove_schemas_protobuf.PointCloud_pb2 import PointCloud
 from foxglove_schemas_protobuf.RawImage_pb2 import RawImage
@@ -129,6 +130,7 @@ class ChannelSpec:
 _FOXGLOVE = {
     "foxglove.RawImage": RawImage,
     "foxglove.CameraCalibration": CameraCalibration,
+    "foxglove.CompressedImage": CompressedImage,
     "foxglove.FrameTransform": FrameTransform,
     "foxglove.PointCloud": PointCloud,
     "foxglove.SceneUpdate": SceneUpdate,
@@ -151,6 +153,7 @@ def _schema_data(schema_name: str) -> bytes:
 SCAN_SENSOR = "/scan/sensor"
 SCAN_INFO = "/scan/info"
 SCAN_RANGE = "/scan/range"
+SCAN_PREVIEW = "/scan/range/preview"
 SCAN_CALIBRATION = "/scan/calibration"
 SCAN_POSE = "/scan/pose"
 SCAN_POINTS = "/scan/points"
@@ -193,9 +196,14 @@ CHANNELS: tuple[ChannelSpec, ...] = (
     ChannelSpec(SCAN_INFO, _PRODUCT, "protobuf", E.SCAN_INFO_RECORD, _S, _R,
                 "scan index, capture time, exact sensor_to_base 4x4, source, meta, sensor hash; "
                 "opens a scan", E.encode_scan_info, E.decode_scan_info),
-    ChannelSpec(SCAN_RANGE, "foxglove.RawImage", "protobuf", None, _S, _R,
-                "range image, 32FC1, metres along each ray, float32 bit for bit",
-                E.encode_range, E.decode_range),
+    ChannelSpec(SCAN_RANGE, _PRODUCT, "protobuf", E.RANGE_RECORD, _S, _R,
+                "range image, (H, W) float32 metres along each ray, bit for bit; each pixel "
+                "predicted from its left neighbour, byte-shuffled (schema 1.4; up to 1.3 a "
+                "foxglove.RawImage 32FC1, still read)", E.encode_range, E.decode_range),
+    ChannelSpec(SCAN_PREVIEW, "foxglove.CompressedImage", "protobuf", None, _S, _V,
+                "the range image for viewers: JPEG, grey, near bright, stretched over the "
+                "scan's range, no return black (lossy; the record is /scan/range)",
+                E.encode_range_preview),
     ChannelSpec(SCAN_CALIBRATION, "foxglove.CameraCalibration", "protobuf", None, _S, _V,
                 "pinhole intrinsics (pinhole sensors only)", E.encode_calibration),
     ChannelSpec(SCAN_POSE, "foxglove.FrameTransform", "protobuf", None, _S, _V,

@@ -4,16 +4,19 @@ Two kinds of messages go into a log:
 
 * **Records of truth** (``boxloc.v1.*`` protobuf, see :mod:`recorder.proto`): every stage
   product is flattened with :func:`boxloc.products.to_arrays` into named arrays and stored
-  bit for bit; the scan's range goes into a Foxglove ``RawImage`` ``32FC1`` exactly as
-  given; the sensor model and the pose into ``boxloc.ScanInfo`` / ``boxloc.SensorModel``
-  records (float64 bits, not a quaternion). Decoding them gives back the same products
-  (:func:`boxloc.products.products_equal` is empty) and the same scan.
+  bit for bit; the scan's range goes into a ``boxloc.ScanRange`` record exactly as given
+  (float32, predicted from the left neighbour and byte-shuffled so zstd packs it; a Foxglove
+  ``RawImage`` ``32FC1`` up to schema 1.3, still read); the sensor model and the pose into
+  ``boxloc.ScanInfo`` / ``boxloc.SensorModel`` records (float64 bits, not a quaternion).
+  Decoding them gives back the same products (:func:`boxloc.products.products_equal` is
+  empty) and the same scan.
   The statistical tests of every stage are recorded once, as readable rows (stage, kind,
   entities, statistic, dof, critical value, p-value, alpha, decision) on ``/boxloc/tests``,
   and put back into their products when read.
-* **Views** for people and viewers (Foxglove well-known schemas, JSON): a decimated point
-  cloud, the edge map as an image, a ``SceneUpdate`` of lines, vertices, rectangles and
-  surfaces, the ``locate`` JSON. They are derived from the records and never read back.
+* **Views** for people and viewers (Foxglove well-known schemas, JSON): the range as a JPEG
+  preview, a decimated point cloud, the edge map as an image, a ``SceneUpdate`` of lines,
+  vertices, rectangles and surfaces, the ``locate`` JSON. They are derived from the records
+  and never read back.
 
 Decoding treats the log as untrusted: dtypes come from a whitelist, every array is bounded
 by its declared shape and by :class:`DecodeLimits`, names are checked against the product
@@ -33,6 +36,7 @@ from typing import Any
 
 import numpy as np
 from foxglove_schemas_protobuf.CameraCalibration_pb2 import CameraCalibration
+from foxglove_schemas_protobuf.CompressedImage_pb2 import CompressedImage
 from foxglove_schemas_protobuf.FrameTransform_pb2 import FrameTransform
 from foxglove_schemas_protobuf.PackedElementField_pb2 import PackedElementField
 from foxglove_schemas_protobuf.PointCloud_pb2 import PointCloud
@@ -61,8 +65,10 @@ from recorder.proto import PACKAGE, message_class
 
 #: Major version of every boxloc record; a reader refuses any other major version.
 SCHEMA_MAJOR = 1
-#: Minor version: compatible additions (new fields are ignored by older readers).
-SCHEMA_MINOR = 3
+#: Minor version: compatible additions (new fields are ignored by older readers). 1.4: the
+#: range image is a ``ScanRange`` record (filter 4) instead of a Foxglove RawImage; 1.4
+#: readers read both, 1.3 readers cannot read 1.4's range.
+SCHEMA_MINOR = 4
 SCHEMA_VERSION = f"{SCHEMA_MAJOR}.{SCHEMA_MINOR}"
 
 #: Frame of every geometric message (x right, y down, z forward; metres).
@@ -82,6 +88,7 @@ ERROR_RECORD = "ScanError"
 LOCATE_RECORD = "Locate"
 LABELS_RECORD = "ScanLabels"
 SCAN_END_RECORD = "ScanEnd"
+RANGE_RECORD = "ScanRange"
 
 _RECORD_RE = re.compile(r"^boxloc\.([A-Za-z][A-Za-z0-9]{0,63})/(\d{1,4})\.(\d{1,4})$")
 
@@ -147,6 +154,35 @@ _NAME_RE = re.compile(r"^[A-Za-z_][A-Za-z0-9_]{0,63}(?:/[A-Za-z_][A-Za-z0-9_]{0,
 #: that change slowly (sorted pixel indices, offsets) are delta-coded first. Both lossless.
 SHUFFLE_MIN_ELEMENTS = 64
 _FILTER_NONE, _FILTER_SHUFFLE, _FILTER_DELTA_SHUFFLE, _FILTER_SYMMETRIC_SHUFFLE = 0, 1, 2, 3
+#: For images (schema 1.4): each value's bits, as a little-endian unsigned integer, minus
+#: those of its left neighbour (the first column: of the pixel above), zigzag, byte shuffle.
+#: The bits of positive floats grow with the value, so a smooth surface leaves small
+#: differences; what is left is the sensor's noise. Exact for every bit pattern (NaN, -0.0).
+_FILTER_IMAGE_DELTA_SHUFFLE = 4
+
+
+def _image_delta(a: np.ndarray) -> np.ndarray:
+    """The image filter's zigzagged differences of a 2-D array, (H, W) little-endian uint."""
+    k = a.dtype.itemsize
+    u = np.frombuffer(a.tobytes(), f"<u{k}").astype(f"u{k}").reshape(a.shape)
+    d = np.empty_like(u)
+    np.subtract(u[:, 1:], u[:, :-1], out=d[:, 1:])  # wraps around: exact modulo 2**bits
+    d[0, 0] = u[0, 0]
+    np.subtract(u[1:, 0], u[:-1, 0], out=d[1:, 0])
+    one, top = np.array(1, d.dtype), np.array(8 * k - 1, d.dtype)
+    zz = (d << one) ^ (np.zeros_like(d) - (d >> top))  # small negatives to small odd numbers
+    return zz.astype(f"<u{k}")
+
+
+def _image_undelta(zz: np.ndarray, dt: np.dtype) -> np.ndarray:
+    """Invert :func:`_image_delta`: (H, W) zigzagged differences to an array of ``dt``."""
+    k = dt.itemsize
+    z = zz.astype(f"u{k}")
+    one = np.array(1, z.dtype)
+    d = (z >> one) ^ (np.zeros_like(z) - (z & one))
+    d[:, 0] = np.cumsum(d[:, 0], dtype=z.dtype)  # wraps around like the encoder
+    u = np.cumsum(d, axis=1, dtype=z.dtype)
+    return np.frombuffer(u.astype(f"<u{k}").tobytes(), dt).reshape(zz.shape)
 
 
 def _shuffle(a: np.ndarray) -> bytes:
@@ -171,8 +207,13 @@ def _bitwise_symmetric(a: np.ndarray) -> bool:
     return bool(np.array_equal(u, np.swapaxes(u, -1, -2)))
 
 
-def array_to_msg(msg: Any, name: str, a: np.ndarray, *, shuffle: bool = True) -> None:
-    """Fill a ``boxloc.v1.Array`` message with ``a`` (any shape; C-order bytes)."""
+def array_to_msg(msg: Any, name: str, a: np.ndarray, *, shuffle: bool = True,
+                 image: bool = False) -> None:
+    """Fill a ``boxloc.v1.Array`` message with ``a`` (any shape; C-order bytes).
+
+    ``image``: ``a`` is an image (2-D, numbers of 2, 4 or 8 bytes), stored with the image
+    filter, which predicts each pixel from its left neighbour.
+    """
     a = np.asarray(a)
     if not _DTYPE_RE.match(a.dtype.str):
         raise TypeError(f"array {name!r}: dtype {a.dtype} cannot be recorded")
@@ -182,7 +223,10 @@ def array_to_msg(msg: Any, name: str, a: np.ndarray, *, shuffle: bool = True) ->
     msg.dtype = a.dtype.str
     msg.shape.extend(int(s) for s in a.shape)
     big = a.dtype.itemsize > 1 and a.dtype.kind in "iuf" and a.size >= SHUFFLE_MIN_ELEMENTS
-    if shuffle and big and a.dtype.kind in "iu" and _delta_pays(a):
+    if image and a.ndim == 2 and a.size and a.dtype.kind in "iuf" and a.dtype.itemsize in (2, 4, 8):
+        msg.filter = _FILTER_IMAGE_DELTA_SHUFFLE
+        msg.data = _shuffle(_image_delta(a))
+    elif shuffle and big and a.dtype.kind in "iu" and _delta_pays(a):
         flat = a.reshape(-1)
         d = np.empty_like(flat)
         d[0] = flat[0]
@@ -234,6 +278,12 @@ def msg_to_array(msg: Any, limits: DecodeLimits = DEFAULT_LIMITS) -> np.ndarray:
             f"array {name!r}: {len(data)} bytes of data for shape {shape} of {dt} "
             f"({stored} bytes expected)"
         )
+    if msg.filter == _FILTER_IMAGE_DELTA_SHUFFLE:
+        if len(shape) != 2 or n == 0 or dt.kind not in "iuf" or dt.itemsize not in (2, 4, 8):
+            raise LogError(f"array {name!r}: image filter on shape {shape} {dt} is not valid")
+        zz = np.frombuffer(data, np.uint8).reshape(dt.itemsize, n).T.copy().view(
+            f"<u{dt.itemsize}")
+        return _image_undelta(zz.reshape(shape), dt)
     if msg.filter == _FILTER_SYMMETRIC_SHUFFLE:
         k = shape[-1]
         m = k * (k + 1) // 2
@@ -893,16 +943,45 @@ EDGE_MAP_SCALE = 85
 
 
 def encode_range(scan: Scan, t_ns: int) -> bytes:
-    """The range image, float32 little-endian, bit for bit (range along the ray, metres)."""
-    H, W = scan.shape
-    msg = RawImage(frame_id=SENSOR_FRAME, width=W, height=H, encoding=RANGE_ENCODING,
-                   step=W * 4, data=np.ascontiguousarray(scan.range, "<f4").tobytes())
-    msg.timestamp.FromNanoseconds(t_ns)
+    """The range image, float32, bit for bit (range along the ray, metres): a
+    ``boxloc.ScanRange`` record with the array ``range`` (H, W) ``<f4`` (image filter).
+
+    ``t_ns`` (the log time) is not stored: the message's own times carry it.
+    """
+    msg = message_class("Product")()
+    msg.schema = record_schema(RANGE_RECORD)
+    msg.scan_index = int(scan.index)
+    msg.capture_time_ns = int(scan.capture_time_ns)
+    array_to_msg(msg.arrays.add(), "range", np.ascontiguousarray(scan.range, "<f4"),
+                 image=True)
     return msg.SerializeToString()
 
 
+#: How a ``ScanRange`` record's bytes begin: field 1 (``schema``), its length, the name.
+_RANGE_PREFIX = b"boxloc." + RANGE_RECORD.encode() + b"/"
+
+
+def is_range_record(data: bytes) -> bool:
+    """Whether ``/scan/range`` bytes are a ``ScanRange`` record (schema >= 1.4), not a
+    Foxglove RawImage (<= 1.3), whose first field (a Timestamp) never starts so."""
+    return data[:1] == b"\x0a" and data[2:2 + len(_RANGE_PREFIX)] == _RANGE_PREFIX
+
+
 def decode_range(data: bytes, limits: DecodeLimits = DEFAULT_LIMITS) -> np.ndarray:
-    """The range image from a ``/scan/range`` RawImage, (H, W) float32, exact bits."""
+    """The range image of a ``/scan/range`` message, (H, W) float32, exact bits.
+
+    Reads both formats: the ``ScanRange`` record (schema 1.4 on) and the Foxglove RawImage
+    ``32FC1`` of older logs.
+    """
+    if is_range_record(data):
+        _, arrays = decode_arrays(data, RANGE_RECORD, limits)
+        r = arrays.get("range")
+        if r is None or r.ndim != 2 or r.dtype.str != "<f4" or len(arrays) != 1:
+            raise LogError(f"{RANGE_RECORD} record is malformed: needs one 2-D <f4 'range'")
+        if not 0 < r.size <= limits.max_pixels:
+            raise LogError(f"range image of {r.shape[1]}x{r.shape[0]} pixels is not in "
+                           f"1..{limits.max_pixels}")
+        return r.astype(np.float32)
     msg = RawImage()
     try:
         msg.ParseFromString(data)
@@ -916,6 +995,33 @@ def decode_range(data: bytes, limits: DecodeLimits = DEFAULT_LIMITS) -> np.ndarr
             f"range image of {W}x{H}, step {msg.step}, {len(msg.data)} bytes is inconsistent"
         )
     return np.frombuffer(msg.data, "<f4").reshape(H, W).astype(np.float32)
+
+
+#: JPEG quality of the range preview: 15-20 kB for a 640x480 scan (the exact range is about
+#: 700 kB), enough to see the pile.
+PREVIEW_JPEG_QUALITY = 75
+
+
+def encode_range_preview(scan: Scan, t_ns: int) -> bytes:
+    """The range image for viewers: a Foxglove CompressedImage, JPEG, grey, full size.
+
+    Near is bright and far dark, stretched over the scan's own range; no return is black.
+    Lossy, and never read back: the ``ScanRange`` record is the range.
+    """
+    import cv2
+
+    r = np.asarray(scan.range, np.float64)
+    ok = np.isfinite(r) & (r > 0)
+    grey = np.zeros(r.shape, np.uint8)
+    if ok.any():
+        lo, hi = float(r[ok].min()), float(r[ok].max())
+        grey[ok] = np.rint(255.0 - (r[ok] - lo) * (254.0 / max(hi - lo, 1e-9))).astype(np.uint8)
+    done, jpeg = cv2.imencode(".jpg", grey, [cv2.IMWRITE_JPEG_QUALITY, PREVIEW_JPEG_QUALITY])
+    if not done:
+        raise ValueError(f"cannot encode a {r.shape[1]}x{r.shape[0]} range preview as JPEG")
+    msg = CompressedImage(frame_id=SENSOR_FRAME, format="jpeg", data=jpeg.tobytes())
+    msg.timestamp.FromNanoseconds(t_ns)
+    return msg.SerializeToString()
 
 
 def encode_calibration(sensor: PinholeModel, t_ns: int) -> bytes:
@@ -966,8 +1072,16 @@ def encode_pose(sensor_to_base: np.ndarray, t_ns: int) -> bytes:
     return msg.SerializeToString()
 
 
+#: Grid of the point clouds' coordinates in the views, metres: 2**-10 (0.98 mm), below any
+#: sensor's noise, so nothing visible changes, and the low mantissa bits are zero, which
+#: halves the clouds in the log. The records keep every point exactly.
+VIEW_GRID = 2.0**-10
+
+
 def _cloud(P: np.ndarray, t_ns: int, extra: dict[str, np.ndarray] | None = None) -> bytes:
-    """A PointCloud of float32 fields x, y, z (+ extra float32 fields)."""
+    """A PointCloud of float32 fields x, y, z on the :data:`VIEW_GRID` (+ extra float32
+    fields, as they are)."""
+    P = np.rint(np.asarray(P, np.float64) / VIEW_GRID) * VIEW_GRID
     cols = [np.asarray(P[:, i], "<f4") for i in range(3)]
     names = ["x", "y", "z"]
     for k, v in (extra or {}).items():

@@ -482,6 +482,7 @@ class McapRecorder(NullObserver):
         self._pending = p
         self._add(p, C.SCAN_INFO, E.encode_scan_info(scan, digest))
         self._add(p, C.SCAN_RANGE, E.encode_range(scan, t))
+        self._add(p, C.SCAN_PREVIEW, E.encode_range_preview(scan, t))
         if isinstance(scan.sensor, PinholeModel):
             self._add(p, C.SCAN_CALIBRATION, E.encode_calibration(scan.sensor, t))
         if scan.sensor_to_base is not None:

@@ -12,7 +12,9 @@ Messages
 ``Array``      one named n-d array: numpy ``dtype.str``, shape, C-order little/big-endian
                bytes, and an optional lossless filter (byte shuffle; delta then byte
                shuffle for integers; upper triangle then byte shuffle for stacks of
-               exactly symmetric matrices), so that the chunk's zstd compresses well.
+               exactly symmetric matrices; for images, the difference from the left
+               neighbour's bits, zigzag, byte shuffle), so that the chunk's zstd
+               compresses well.
 ``Product``    a record made of named arrays (``schema`` says which, e.g.
                ``boxloc.EdgeMap/1.2``): every stage product, the scan info, the sensor model.
 ``TestRows``   every statistical test of a scan as readable rows (stage, kind, entities,
@@ -66,7 +68,8 @@ def file_descriptor_proto() -> descriptor_pb2.FileDescriptorProto:
     """The ``boxloc/v1/records.proto`` file, as a descriptor."""
     fdp = descriptor_pb2.FileDescriptorProto(name=FILE_NAME, package=PACKAGE, syntax="proto3")
     _enum(fdp, "Filter", [("FILTER_NONE", 0), ("FILTER_BYTE_SHUFFLE", 1),
-                           ("FILTER_DELTA_SHUFFLE", 2), ("FILTER_SYMMETRIC_SHUFFLE", 3)])
+                           ("FILTER_DELTA_SHUFFLE", 2), ("FILTER_SYMMETRIC_SHUFFLE", 3),
+                           ("FILTER_IMAGE_DELTA_SHUFFLE", 4)])
     # Enum values are package-scoped in protobuf, hence the TEST_ prefix.
     _enum(fdp, "TestKind", [("TEST_UNSPECIFIED", 0)]
           + [(f"TEST_{k.name}", int(k)) for k in TestKind])

@@ -144,7 +144,8 @@ def test_info_shows_scans_channels_versions_time_and_size(log_path: Path) -> Non
     assert info["size_bytes"] == log_path.stat().st_size
     assert info["time_span"]["duration_s"] == pytest.approx(0.2)
     topics = {c["topic"]: c for c in info["channels"]}
-    assert topics["/scan/range"]["schema"] == "foxglove.RawImage"
+    assert topics["/scan/range"]["record"] == f"boxloc.ScanRange/{SCHEMA_VERSION}"
+    assert topics["/scan/range/preview"]["schema"] == "foxglove.CompressedImage"
     assert topics["/boxloc/hypotheses"]["record"] == f"boxloc.HypothesisSet/{SCHEMA_VERSION}"
     assert topics["/scan/info"]["messages"] == 3
     code, text = _invoke("info", str(log_path))

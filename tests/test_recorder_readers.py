@@ -10,6 +10,7 @@ import sys
 import tomllib
 from pathlib import Path
 
+import cv2
 import numpy as np
 import pytest
 from factories import feed, make_result, make_scan
@@ -19,6 +20,7 @@ from mcap_protobuf.decoder import DecoderFactory
 
 from boxloc.config import Config
 from recorder import channels as C
+from recorder import encode as E
 from recorder.log import open_log
 from recorder.mcap_sink import McapRecorder
 
@@ -92,10 +94,17 @@ def test_foxglove_channels_decode_with_mcap_protobuf_support(log_path: Path) -> 
             assert proto.DESCRIPTOR.full_name == schema.name
             seen[channel.topic] = seen.get(channel.topic, 0) + 1
             scan = scans.get(message.sequence)
-            if channel.topic == C.SCAN_RANGE:
-                assert proto.encoding == "32FC1" and proto.step == proto.width * 4
-                assert proto.data == scan.range.astype("<f4").tobytes()
+            if channel.topic == C.SCAN_RANGE:  # a boxloc record (schema 1.4), any reader
+                assert proto.schema.startswith("boxloc.ScanRange/") and len(proto.arrays) == 1
+                a = proto.arrays[0]
+                assert (a.name, a.dtype, list(a.shape)) == ("range", "<f4",
+                                                              list(scan.range.shape))
+                assert E.msg_to_array(a).tobytes() == scan.range.astype("<f4").tobytes()
+            elif channel.topic == C.SCAN_PREVIEW:
+                assert proto.format == "jpeg"
                 assert proto.timestamp.ToNanoseconds() == message.log_time
+                img = cv2.imdecode(np.frombuffer(proto.data, np.uint8), cv2.IMREAD_UNCHANGED)
+                assert img.shape == scan.range.shape and img.dtype == np.uint8
             elif channel.topic == C.SCAN_CALIBRATION:
                 assert list(proto.K) == scan.sensor.K.reshape(-1).tolist()
                 assert (proto.width, proto.height) == (scan.sensor.width, scan.sensor.height)
@@ -118,7 +127,8 @@ def test_foxglove_channels_decode_with_mcap_protobuf_support(log_path: Path) -> 
                 assert {"lines", "vertices", "hypotheses"} <= ids
                 assert proto.deletions[0].type == 1  # ALL: nothing lingers from the last scan
     # Every protobuf channel decoded, the Foxglove ones on every scan.
-    assert seen[C.SCAN_RANGE] == seen[C.SCENE] == seen[C.SCAN_POINTS] == 4
+    assert seen[C.SCAN_RANGE] == seen[C.SCAN_PREVIEW] == seen[C.SCENE] == 4
+    assert seen[C.SCAN_POINTS] == 4
     assert seen[C.SCAN_CALIBRATION] == 3 and seen[C.SCAN_POSE] == 3
     assert seen[C.TESTS] == 4 and seen[C.PICK_OUTCOME] == 2
 

@@ -1,0 +1,196 @@
+"""Footprint of a log: the range image's lossless image filter (schema 1.4), the range
+preview, the views' point grid, and old logs (a RawImage range, schema <= 1.3) still read.
+
+Sizes here are deterministic byte counts of fixed scans, never times.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+from types import SimpleNamespace
+
+import cv2
+import numpy as np
+import pytest
+import zstandard
+from factories import feed, make_result, make_scan
+from foxglove_schemas_protobuf.CompressedImage_pb2 import CompressedImage
+from foxglove_schemas_protobuf.PointCloud_pb2 import PointCloud
+from foxglove_schemas_protobuf.RawImage_pb2 import RawImage
+from mcap.reader import make_reader
+
+from boxloc.errors import LogError
+from boxloc.scan import Scan
+from recorder import channels as C
+from recorder import encode as E
+from recorder.log import open_log
+from recorder.mcap_sink import ZSTD_LEVEL, McapRecorder
+from recorder.proto import message_class
+
+ROOT = Path(__file__).resolve().parents[1]
+
+#: bit patterns a range can hold: NaNs with payloads, both zeros, infinities, denormals
+SPECIAL_F4 = np.array([0x7FC00000, 0x7FC00001, 0xFFC12345, 0x7F800001, 0x00000000,
+                       0x80000000, 0x7F800000, 0xFF800000, 0x00000001, 0x007FFFFF,
+                       0x3F800000, 0x3F800001], np.uint32)
+
+
+def _array_msg() -> object:
+    return message_class("Product")().arrays.add()
+
+
+@pytest.mark.parametrize("dtype", ["<f4", "<f8", "<u2", "<i4", "<i8", ">f4"])
+@pytest.mark.parametrize("shape", [(1, 1), (1, 9), (9, 1), (37, 53)])
+def test_the_image_filter_keeps_every_bit(dtype: str, shape: tuple[int, int]) -> None:
+    rng = np.random.default_rng(hash((dtype, shape)) % 2**32)
+    dt = np.dtype(dtype)
+    raw = rng.integers(0, 256, size=(*shape, dt.itemsize), dtype=np.uint8).tobytes()
+    a = np.frombuffer(raw, dt).reshape(shape)
+    m = _array_msg()
+    E.array_to_msg(m, "x", a, image=True)
+    assert m.filter == 4  # type: ignore[attr-defined]
+    b = E.msg_to_array(m)
+    assert b.dtype == dt and b.shape == a.shape and b.tobytes() == a.tobytes()
+
+
+def test_the_range_record_keeps_every_bit_pattern() -> None:
+    """NaN payloads, signed zeros, infinities, denormals (a Scan refuses some of these; the
+    record does not care): the encoder reads only ``range``, ``index``, ``capture_time_ns``."""
+    r = make_scan(3, (24, 32)).range.astype("<f4").copy()
+    r.reshape(-1)[:len(SPECIAL_F4)] = SPECIAL_F4.view("<f4")
+    r[5:9, :] = np.nan  # a run of no return
+    data = E.encode_range(SimpleNamespace(range=r, index=3, capture_time_ns=5), 0)  # type: ignore[arg-type]
+    assert E.is_range_record(data)
+    assert E.decode_range(data).tobytes() == r.tobytes()
+
+
+@pytest.mark.parametrize("bad", ["ndim1", "ndim3", "bytes", "empty", "short"])
+def test_a_malformed_image_array_is_refused(bad: str) -> None:
+    a = np.arange(12, dtype="<f4").reshape(3, 4)
+    m = _array_msg()
+    E.array_to_msg(m, "x", a, image=True)
+    if bad == "ndim1":
+        del m.shape[:]  # type: ignore[attr-defined]
+        m.shape.append(12)  # type: ignore[attr-defined]
+    elif bad == "ndim3":
+        del m.shape[:]  # type: ignore[attr-defined]
+        m.shape.extend([3, 2, 2])  # type: ignore[attr-defined]
+    elif bad == "bytes":
+        m.dtype = "|u1"  # type: ignore[attr-defined]
+        del m.shape[:]  # type: ignore[attr-defined]
+        m.shape.extend([6, 8])  # type: ignore[attr-defined]
+    elif bad == "empty":
+        del m.shape[:]  # type: ignore[attr-defined]
+        m.shape.extend([0, 4])  # type: ignore[attr-defined]
+        m.data = b""  # type: ignore[attr-defined]
+    else:
+        m.data = m.data[:-1]  # type: ignore[attr-defined]
+    with pytest.raises(LogError):
+        E.msg_to_array(m)
+
+
+def test_a_malformed_range_record_is_refused() -> None:
+    msg = message_class("Product")()
+    msg.schema = E.record_schema(E.RANGE_RECORD)
+    E.array_to_msg(msg.arrays.add(), "range", np.zeros((4, 5), "<f8"), image=True)
+    with pytest.raises(LogError, match="malformed"):
+        E.decode_range(msg.SerializeToString())
+
+
+def _sim_scan() -> Scan:
+    from boxloc.simulate import scene_suite, simulate
+
+    return simulate(scene_suite(1, 0)[0]).scan
+
+
+def _rawimage(scan: Scan, t_ns: int) -> bytes:
+    """The range as schema 1.3 wrote it: a Foxglove RawImage 32FC1."""
+    H, W = scan.shape
+    msg = RawImage(frame_id=E.SENSOR_FRAME, width=W, height=H, encoding="32FC1", step=W * 4,
+                   data=np.ascontiguousarray(scan.range, "<f4").tobytes())
+    msg.timestamp.FromNanoseconds(t_ns)
+    return msg.SerializeToString()
+
+
+def test_the_range_record_takes_under_three_quarters_of_the_raw_image() -> None:
+    """On a simulated 640 x 480 scan, compressed as the recorder compresses chunks."""
+    scan = _sim_scan()
+    assert scan.shape == (480, 640)
+    z = zstandard.ZstdCompressor(level=ZSTD_LEVEL)
+    new = len(z.compress(E.encode_range(scan, 0)))
+    old = len(z.compress(_rawimage(scan, 0)))
+    assert new < 0.75 * old, (new, old)
+    assert E.decode_range(E.encode_range(scan, 0)).tobytes() == scan.range.tobytes()
+
+
+def test_an_old_raw_image_range_still_decodes_bit_for_bit() -> None:
+    scan = make_scan(1)
+    data = _rawimage(scan, 123)
+    assert not E.is_range_record(data)
+    assert E.decode_range(data).tobytes() == scan.range.astype("<f4").tobytes()
+
+
+def test_a_schema_1_3_log_reads_back(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """A log written as 1.3 wrote it (RawImage range channel) gives the same scans."""
+    scans = [make_scan(k) for k in range(2)]
+    old = dataclasses.replace(C.BY_TOPIC[C.SCAN_RANGE], schema_name="foxglove.RawImage",
+                              record=None, encoder=_rawimage)
+    with monkeypatch.context() as mp:
+        mp.setattr(E, "SCHEMA_VERSION", "1.3")
+        mp.setattr(E, "encode_range", _rawimage)
+        mp.setitem(C.BY_TOPIC, C.SCAN_RANGE, old)
+        with McapRecorder(tmp_path / "old.mcap") as rec:
+            for s in scans:
+                feed(rec, s, make_result(s, s.index))
+    with open(tmp_path / "old.mcap", "rb") as f:
+        summary = make_reader(f).get_summary()
+    assert summary is not None
+    schema = {c.topic: summary.schemas[c.schema_id].name for c in summary.channels.values()}
+    assert schema[C.SCAN_RANGE] == "foxglove.RawImage"
+    back = list(open_log(tmp_path / "old.mcap").scans())
+    assert [r.scan.range.tobytes() for r in back] == [s.range.tobytes() for s in scans]
+
+
+@pytest.mark.parametrize("name", ["mixed-640x480.mcap", "pallet-320x240.mcap"])
+def test_the_sample_logs_are_old_logs_and_read(name: str) -> None:
+    path = ROOT / "logs" / name
+    with open(path, "rb") as f:
+        summary = make_reader(f).get_summary()
+    assert summary is not None
+    schema = {c.topic: summary.schemas[c.schema_id].name for c in summary.channels.values()}
+    assert schema[C.SCAN_RANGE] == "foxglove.RawImage"
+    recs = list(open_log(path).scans())
+    assert recs and all(r.scan.range.dtype == np.float32 and np.isfinite(r.scan.range).any()
+                        for r in recs)
+
+
+def test_the_preview_is_a_jpeg_of_the_range_near_bright_no_return_black() -> None:
+    scan = make_scan(2, (60, 80))
+    msg = CompressedImage()
+    msg.ParseFromString(E.encode_range_preview(scan, 7))
+    assert msg.format == "jpeg" and msg.frame_id == E.SENSOR_FRAME
+    img = cv2.imdecode(np.frombuffer(msg.data, np.uint8), cv2.IMREAD_UNCHANGED)
+    assert img.shape == scan.shape and img.dtype == np.uint8
+    r = scan.range
+    ok = np.isfinite(r)
+    near, far = r[ok] < np.quantile(r[ok], 0.2), r[ok] > np.quantile(r[ok], 0.8)
+    assert img[ok][near].mean() > img[ok][far].mean() + 50
+    if (~ok).any():
+        assert img[~ok].mean() < img[ok].mean()
+    empty = dataclasses.replace(scan, range=np.full(scan.shape, np.nan, np.float32))
+    msg.ParseFromString(E.encode_range_preview(empty, 7))
+    assert cv2.imdecode(np.frombuffer(msg.data, np.uint8), cv2.IMREAD_UNCHANGED).max() <= 2
+
+
+def test_the_view_clouds_lie_on_the_grid_within_half_a_step() -> None:
+    scan = make_scan(4)
+    msg = PointCloud()
+    msg.ParseFromString(E.encode_points(scan, 0, 10**9))
+    P = np.frombuffer(msg.data, "<f4").reshape(-1, 3).astype(np.float64)
+    exact = scan.points.reshape(-1, 3)
+    exact = exact[np.isfinite(exact).all(1)]
+    assert P.shape == exact.shape
+    assert np.abs(P - exact).max() <= E.VIEW_GRID / 2 + 1e-7
+    k = P / E.VIEW_GRID
+    assert np.array_equal(k, np.rint(k))
