@@ -49,9 +49,12 @@ def measure_overhead(scans: Iterable[Scan], config: Config | None = None, *,
         ``scans``, ``pixels`` (mean per scan), ``pipeline_s``, ``with_recorder_s``,
         ``recorder_s``, ``recorder_fraction``, ``overhead_fraction``, ``log_bytes``,
         ``bytes_per_scan`` (file size / scans), ``max_scan_bytes`` (largest scan chunk with
-        its index) and ``per_scan`` (index, pixels, pipeline_s, recorder_s, chunk_bytes).
+        its index), ``channels`` (bytes per scan by topic, see
+        :func:`recorder.footprint.log_footprint`) and ``per_scan`` (index, pixels,
+        pipeline_s, recorder_s, chunk_bytes).
     """
     from boxloc.pipeline import find_graspable_surfaces
+    from recorder.footprint import log_footprint
     from recorder.log import open_log
     from recorder.mcap_sink import McapRecorder
 
@@ -85,6 +88,7 @@ def measure_overhead(scans: Iterable[Scan], config: Config | None = None, *,
         finish_s = time.perf_counter() - t3
         recorder_s = rec.record_seconds + finish_s
         size = path.stat().st_size
+        channels = log_footprint(path)["channels"]
         log = open_log(path)
         chunks = sorted(log.summary.chunk_indexes if log.summary else [],
                         key=lambda c: c.chunk_start_offset)
@@ -102,5 +106,6 @@ def measure_overhead(scans: Iterable[Scan], config: Config | None = None, *,
         "log_bytes": size,
         "bytes_per_scan": size / n,
         "max_scan_bytes": max((r.get("chunk_bytes", 0) for r in per_scan), default=0),
+        "channels": channels,
         "per_scan": per_scan,
     }

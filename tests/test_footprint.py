@@ -194,3 +194,44 @@ def test_the_view_clouds_lie_on_the_grid_within_half_a_step() -> None:
     assert np.abs(P - exact).max() <= E.VIEW_GRID / 2 + 1e-7
     k = P / E.VIEW_GRID
     assert np.array_equal(k, np.rint(k))
+
+
+def test_log_footprint_splits_each_scans_bytes_by_channel(tmp_path: Path) -> None:
+    from recorder.footprint import format_table, log_footprint
+
+    scans = [make_scan(k, (60, 80)) for k in range(3)]
+    with McapRecorder(tmp_path / "a.mcap") as rec:
+        for s in scans:
+            feed(rec, s, make_result(s, s.index))
+    fp = log_footprint(tmp_path / "a.mcap")
+    assert fp["scans"] == 3 and len(fp["scan_bytes"]) == 3
+    assert fp["bytes_per_scan"] == (tmp_path / "a.mcap").stat().st_size / 3
+    ch = fp["channels"]
+    assert {C.SCAN_RANGE, C.SCAN_PREVIEW, C.EDGES, C.TESTS} <= set(ch)
+    # the range's raw bytes are its record: the array and a few bytes of header
+    assert 80 * 60 * 4 <= ch[C.SCAN_RANGE]["raw"] < 80 * 60 * 4 + 200
+    zs = [c["zstd"] for c in ch.values()]
+    assert zs == sorted(zs, reverse=True)  # largest first
+    # compressed alone, the channels add up to about the chunks
+    assert 0.8 < sum(zs) / (sum(fp["scan_bytes"]) / 3) < 1.3
+    assert C.SCAN_RANGE in format_table(fp)
+
+
+def test_footprint_command_names_a_missing_log_in_one_line(tmp_path: Path,
+                                                           capsys: pytest.CaptureFixture[str]
+                                                           ) -> None:
+    from recorder.footprint import main
+
+    assert main(["--log", str(tmp_path / "none.mcap")]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("footprint: error:") and len(err.strip().splitlines()) == 1
+
+
+def test_the_matrix_suite_at_640x480_keeps_each_sensors_field_of_view() -> None:
+    from boxloc.simulate import matrix_suite
+    from recorder.footprint import suite
+
+    for orig, s in zip(matrix_suite(8, 0), suite("matrix", 8)):
+        assert (s.width, s.height) == (640, 480)
+        assert s.f / s.width == pytest.approx(orig.f / orig.width, rel=1e-3)
+        assert (s.kind, s.sensor, s.seed) == (orig.kind, orig.sensor, orig.seed)
