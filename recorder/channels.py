@@ -201,8 +201,9 @@ CHANNELS: tuple[ChannelSpec, ...] = (
                 "predicted from its left neighbour, byte-shuffled (schema 1.4; up to 1.3 a "
                 "foxglove.RawImage 32FC1, still read)", E.encode_range, E.decode_range),
     ChannelSpec(SCAN_PREVIEW, "foxglove.CompressedImage", "protobuf", None, _S, _V,
-                "the range image for viewers: JPEG, grey, near bright, stretched over the "
-                "scan's range, no return black (lossy; the record is /scan/range)",
+                "the range image for viewers: JPEG, grey, at most 320 pixels wide, near "
+                "bright, stretched over the scan's range, no return black (lossy; the record "
+                "is /scan/range)",
                 E.encode_range_preview),
     ChannelSpec(SCAN_CALIBRATION, "foxglove.CameraCalibration", "protobuf", None, _S, _V,
                 "pinhole intrinsics (pinhole sensors only)", E.encode_calibration),

@@ -171,13 +171,17 @@ def test_the_preview_is_a_jpeg_of_the_range_near_bright_no_return_black() -> Non
     msg.ParseFromString(E.encode_range_preview(scan, 7))
     assert msg.format == "jpeg" and msg.frame_id == E.SENSOR_FRAME
     img = cv2.imdecode(np.frombuffer(msg.data, np.uint8), cv2.IMREAD_UNCHANGED)
-    assert img.shape == scan.shape and img.dtype == np.uint8
+    assert img.shape == scan.shape and img.dtype == np.uint8  # 80 wide: full size
     r = scan.range
     ok = np.isfinite(r)
     near, far = r[ok] < np.quantile(r[ok], 0.2), r[ok] > np.quantile(r[ok], 0.8)
     assert img[ok][near].mean() > img[ok][far].mean() + 50
     if (~ok).any():
         assert img[~ok].mean() < img[ok].mean()
+    big = make_scan(2, (480, 700))  # 700 wide: every third pixel, 234 wide
+    msg.ParseFromString(E.encode_range_preview(big, 7))
+    img = cv2.imdecode(np.frombuffer(msg.data, np.uint8), cv2.IMREAD_UNCHANGED)
+    assert img.shape == (160, 234)
     empty = dataclasses.replace(scan, range=np.full(scan.shape, np.nan, np.float32))
     msg.ParseFromString(E.encode_range_preview(empty, 7))
     assert cv2.imdecode(np.frombuffer(msg.data, np.uint8), cv2.IMREAD_UNCHANGED).max() <= 2
