@@ -80,11 +80,11 @@ def estimate_scan_noise(scan: Scan, config: Config) -> NoiseEstimate:
     tiles = tile_residuals(scan, None, patch=PATCH_PX, labels=None, min_valid=0.9,
                            max_outliers=0.05, max_curvature_ratio=1.5, min_cos=0.3,
                            step=step)
+    corr = _correlation(tiles)
     model, source, reason = nominal, NoiseSource.CONFIG, "the config pins the noise model"
     if config.noise_auto:
-        model, source, reason = _auto(scan, tiles, nominal, config.alpha)
+        model, source, reason = _auto(scan, tiles, corr, nominal, config.alpha)
     bins, tests = _fit_tests(tiles, model, config.alpha)
-    corr = _correlation(tiles)
     tails = _tail_rates(tiles, model)
     return NoiseEstimate(
         source=int(source), reason=reason,
@@ -115,8 +115,8 @@ def _as_array(model: NoiseModel) -> np.ndarray:
     return np.array([getattr(model, k) for k in NOISE_FIELDS], dtype=np.float64)
 
 
-def _auto(scan: Scan, tiles: TileResiduals, nominal: NoiseModel, alpha: float
-          ) -> tuple[NoiseModel, NoiseSource, str]:
+def _auto(scan: Scan, tiles: TileResiduals, corr: np.ndarray, nominal: NoiseModel,
+          alpha: float) -> tuple[NoiseModel, NoiseSource, str]:
     if tiles.n_accepted < MIN_FLAT_TILES:
         few = (f"{tiles.n_accepted} flat tiles of {PATCH_PX}x{PATCH_PX} px, fewer than "
                f"{MIN_FLAT_TILES}")
@@ -137,7 +137,7 @@ def _auto(scan: Scan, tiles: TileResiduals, nominal: NoiseModel, alpha: float
     rc = report["row_corr"]
     se = rc["std_error"]
     row_corr = fitted.row_corr if se and fitted.row_corr > _st.norm.isf(alpha) * se else 0.0
-    along_rows, along_cols = _correlation(tiles)
+    along_rows, along_cols = corr
     model = NoiseModel(sigma0=fitted.sigma0, k1=fitted.k1, k2=fitted.k2,
                        sigma_angle=nominal.sigma_angle, min_cos=nominal.min_cos,
                        edge_px=nominal.edge_px, row_corr=row_corr,

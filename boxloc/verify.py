@@ -92,7 +92,7 @@ class VerifyContext:
     project: Callable[[np.ndarray], np.ndarray]  # the sensor's projection to pixels
     #: level of a seam as a face's boundary (SEAM_PEAK, VERIFY_SEAM_SIDE): alpha over the
     #: scan's seam searches (:func:`seam_alpha`)
-    seam_alpha: float = 0.01
+    seam_alpha: float
 
     @classmethod
     def build(cls, scan: Scan, edges: EdgeMap, config: Config, up: np.ndarray,
