@@ -197,7 +197,7 @@ def locate(
     from boxloc.pipeline import find_graspable_surfaces
 
     result = find_graspable_surfaces(scan, cfg)
-    from boxloc.scan_noise import fit_warning
+    from boxloc.stages.scan_noise import fit_warning
 
     if result.noise is not None and (w := fit_warning(result.noise)):
         click.echo(f"boxloc: warning: {w}", err=True)
@@ -296,10 +296,10 @@ def bench(
     """Benchmark the localizer against the open3d baseline on N simulated scenes.
 
     Prints both side by side with the targets; with --out writes DIR/bench.json. Extra
-    sections come from the `boxloc.bench` entry-point group (see boxloc.bench). With
-    --real DIR, the real labelled scans of DIR instead (see boxloc.bench_real). With
+    sections come from the `boxloc.bench` entry-point group (see boxloc.evaluate.scene_bench). With
+    --real DIR, the real labelled scans of DIR instead (see boxloc.evaluate.real_bench). With
     --matrix, the sensor x scene-kind matrix, default configuration only (see
-    boxloc.bench_matrix).
+    boxloc.evaluate.matrix_bench).
     """
     import os
 
@@ -319,7 +319,7 @@ def bench(
         if bad:
             _fail(f"--matrix runs the default configuration only and its own scenes: "
                   f"{', '.join(bad)} cannot be used with it")
-        from boxloc.bench_matrix import (
+        from boxloc.evaluate.matrix_bench import (
             DEFAULT_N,
             DEFAULT_SCAN_TIMEOUT,
             HELD_OUT,
@@ -340,19 +340,19 @@ def bench(
     only = [*sections, *(["replay"] if replay_only else []),
             *(["fuzz"] if fuzz_cases and "fuzz" not in sections else [])]
     if only:  # selected by name: boxloc does not import replay or recorder
-        from boxloc.bench import run_sections
+        from boxloc.evaluate.scene_bench import run_sections
 
         run_sections(only, fuzz_cases or n, seed, config=cfg, out=Path(out) if out else None)
         return
     if real_dir is not None:
-        from boxloc.bench_real import run_real_bench
+        from boxloc.evaluate.real_bench import run_real_bench
 
         names = [f.strip() for f in frames.split(",") if f.strip()] if frames else None
         run_real_bench(real_dir, config=cfg, out=Path(out) if out else None,
                        baseline=not no_baseline, noise=noise_source, squareness=squareness,
                        pose=pose, frames=names, seeds=seeds)
         return
-    from boxloc.bench import run_bench
+    from boxloc.evaluate.scene_bench import run_bench
 
     specs = None
     if scene_sets:
@@ -399,9 +399,9 @@ def calibrate_noise(
     (row_corr). Prints a TOML [noise] table (usable with --config) on stdout and the
     per-range-bin table on stderr.
     """
+    from boxloc.calibrate.noise import estimate_noise, noise_toml
     from boxloc.errors import InputError
     from boxloc.io import read_labels, read_scans
-    from boxloc.noise import estimate_noise, noise_toml
 
     scans, labels = [], []
     for p in scan_paths:
@@ -438,14 +438,14 @@ def calibrate_angles(
     Runs the edge, line and vertex stages on SCAN files (or directories) of boxes, with the
     config's noise model (calibrate that first), and takes the robust spread of the
     departures from 90 degrees of lines that meet at corners, less what their propagated
-    error explains (see boxloc.squareness). Prints `angle_tolerance = ...` (radians, usable
-    in a --config TOML) on stdout and the figures on stderr.
+    error explains (see boxloc.calibrate.squareness). Prints `angle_tolerance = ...` (radians,
+    usable in a --config TOML) on stdout and the figures on stderr.
     """
     import math
 
     from rich.console import Console
 
-    from boxloc.squareness import estimate_angle_tolerance
+    from boxloc.calibrate.squareness import estimate_angle_tolerance
 
     cfg = load_config(config_path, overrides)
     tol, rep = estimate_angle_tolerance(_read_all(scan_paths, intrinsics, depth_scale), cfg)
@@ -470,12 +470,12 @@ def calibrate_edges(
     Runs the edge and line stages on SCAN files (or directories) of boxes, with the
     config's range-noise model (calibrate that first), and takes the robust spread of the
     edge points around their lines in pixels, less what their covariance explains (see
-    boxloc.edgeblur). Prints `edge_px = ...` (pixels; the [noise] table of a --config TOML,
-    or --set noise.edge_px=...) on stdout and the figures on stderr.
+    boxloc.calibrate.edgeblur). Prints `edge_px = ...` (pixels; the [noise] table of a
+    --config TOML, or --set noise.edge_px=...) on stdout and the figures on stderr.
     """
     from rich.console import Console
 
-    from boxloc.edgeblur import estimate_edge_px
+    from boxloc.calibrate.edgeblur import estimate_edge_px
 
     cfg = load_config(config_path, overrides)
     edge_px, rep = estimate_edge_px(_read_all(scan_paths, intrinsics, depth_scale), cfg)
@@ -553,7 +553,7 @@ def _print_noise_report(report: dict[str, Any]) -> None:
               help="Output .npz file, or a directory for KIND_SEED.npz files.")
 @click.option("--sensor", type=click.Choice(["laser", "tof", "structured-light",
                                              "active-stereo"]), default=None,
-              help="A physical sensor model (boxloc.sensor_zoo) instead of the default "
+              help="A physical sensor model (boxloc.simulate.zoo) instead of the default "
                    "sensor (the localizer's noise model); overrides the spec's.")
 def simulate_cmd(spec_text: str, seed: int | None, count: int | None, out: str,
                  sensor: str | None) -> None:

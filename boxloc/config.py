@@ -62,7 +62,7 @@ class Config:
         flat surface; ``sigma_angle``, ``min_cos`` and ``edge_px`` are always used.
     noise_auto : bool
         Estimate each scan's range noise (``sigma0``, ``k1``, ``k2``, ``row_corr``) from its
-        own flat regions before the edge stage (:mod:`boxloc.scan_noise`; the estimate is
+        own flat regions before the edge stage (:mod:`boxloc.stages.scan_noise`; the estimate is
         the scan's ``noise`` product), so a sensor nobody calibrated gets tests at their
         level. A config file or ``--set`` that gives any of those terms without
         ``noise_auto`` pins the model (``noise_auto = false``); pinned, the scan's

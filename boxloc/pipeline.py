@@ -15,18 +15,18 @@ import numpy as np
 
 from boxloc import __version__
 from boxloc.config import Config
-from boxloc.edges import detect_edges
 from boxloc.errors import InputError
-from boxloc.hypotheses import generate_hypotheses
-from boxloc.lines import find_lines
 from boxloc.observer import NullObserver, Observer
 from boxloc.products import Result
 from boxloc.scan import NoiseModel, Scan
-from boxloc.scan_noise import estimate_scan_noise
-from boxloc.select import select
-from boxloc.surfaces import make_surfaces
-from boxloc.up import estimate_up
-from boxloc.vertices import find_vertices
+from boxloc.stages.edges import detect_edges
+from boxloc.stages.hypotheses import generate_hypotheses
+from boxloc.stages.lines import find_lines
+from boxloc.stages.scan_noise import estimate_scan_noise
+from boxloc.stages.select import select
+from boxloc.stages.surfaces import make_surfaces
+from boxloc.stages.up import estimate_up
+from boxloc.stages.vertices import find_vertices
 
 T = TypeVar("T")
 

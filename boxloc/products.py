@@ -43,9 +43,9 @@ class DimensionSource(IntEnum):
     NONE = 0
     VERTICES = 1
     EDGES = 2
-    #: from the edge accumulators and a seam (:mod:`boxloc.seams`) for a far side
+    #: from the edge accumulators and a seam (:mod:`boxloc.stages.seams`) for a far side
     SEAMS = 3
-    #: from how far the face's plane runs along each arm (:func:`boxloc.verify.face_extent`)
+    #: from how far the face's plane runs along each arm (:func:`boxloc.stages.verify.face_extent`)
     #: for a far side the edge accumulators did not show
     EXTENT = 4
 
@@ -288,7 +288,7 @@ class VertexSet:
         A neighbour's corner (added by the hypothesis stage): the vertex whose verified
         rectangle has this corner on its seam side ``parent_side`` (0-3: v=0, v=length,
         u=0, u=width); or a box corner's vertex of the face across a crease
-        (``parent_side`` 4, :func:`boxloc.vertices.corner_vertices`), whose parent is the
+        (``parent_side`` 4, :func:`boxloc.stages.vertices.corner_vertices`), whose parent is the
         vertex of two lines it was derived from; -1 for a vertex of two lines. Logs
         written before these fields existed read back as all -1.
     """
@@ -353,7 +353,7 @@ class HypothesisSet:
         |P_f| and the threshold p (edges); the diagonal's test statistic total (vertices).
     att_verified : (k,) bool
     up : (3,) float64
-        The up direction the tilt prior and the pick order used (see :mod:`boxloc.up`).
+        The up direction the tilt prior and the pick order used (see :mod:`boxloc.stages.up`).
     tests : TestTable
         COPLANAR, PARALLEL, FIRST_QUADRANT, POINT_ON_PLANE and EDGE_SUPPORT.
     """
@@ -536,11 +536,11 @@ class SurfaceSet:
         0 is picked first.
     bulge : (s,) float64
         How far the middle of the lid stands above the rim's plane (the box's top),
-        metres (:func:`boxloc.surfaces.fit_bulge`); the centre is on the rim's plane when
+        metres (:func:`boxloc.stages.surfaces.fit_bulge`); the centre is on the rim's plane when
         its SURFACE_BULGE test rejects a flat lid, else on the points' plane.
     tests : TestTable
         SURFACE_BULGE per surface (``a`` = attempt) whose inliers determine the fit (at
-        least ``boxloc.surfaces.MIN_BULGE_POINTS``, not all on one line); a surface
+        least ``boxloc.stages.surfaces.MIN_BULGE_POINTS``, not all on one line); a surface
         without one has ``bulge`` 0 and its centre on the points' plane.
 
     Logs written before ``bulge`` and ``tests`` existed read back with zeros and no tests.

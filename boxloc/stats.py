@@ -93,7 +93,7 @@ class TestKind(IntEnum):
     #: a known place is stronger evidence than a search for one anywhere inside
     VERIFY_SEAM_CROSSING = 24
     #: result stage: the lid of chosen attempt a is flat: its rim-supported bulge term is
-    #: zero (:func:`boxloc.surfaces.fit_bulge`; statistic (k / sigma_k)^2, 1 dof); rejected
+    #: zero (:func:`boxloc.stages.surfaces.fit_bulge`; statistic (k / sigma_k)^2, 1 dof); rejected
     #: puts the surface's centre on the rim's plane
     SURFACE_BULGE = 25
     #: vertex stage: the box corner at vertex a's convex-crease arm (b = the crease line)

@@ -5,7 +5,7 @@ A rosbag2 directory (MCAP storage, zstd chunks): ``/camera/depth/image_raw`` 16U
 millimetres with ``/camera/depth/camera_info`` on the same stamps, and the camera's pose on
 ``/tf`` at each stamp (``base_link`` -> ``camera_depth_optical_frame``; the simulator moves
 the camera a little between scans). Written by rosbags
-(:func:`boxloc.rosbag.write_depth_bag`); the same rosbags version writes the same bytes.
+(:func:`boxloc.io.rosbag.write_depth_bag`); the same rosbags version writes the same bytes.
 Run by ``make-samples.sh``, or from the repository root: ``python logs/make-ros2-sample.py``.
 """
 
@@ -15,7 +15,7 @@ import dataclasses
 import shutil
 from pathlib import Path
 
-from boxloc.rosbag import write_depth_bag
+from boxloc.io.rosbag import write_depth_bag
 from boxloc.simulate import simulate
 
 OUT = Path(__file__).resolve().parent / "ros2-pallet-320x240"

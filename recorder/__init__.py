@@ -4,14 +4,14 @@
 
 MCAP (the record of truth)
 --------------------------
-- :mod:`recorder.channels`: the log layout, one table of topic -> schema -> encoder/decoder.
-- :mod:`recorder.encode`: products and scans to messages and back, bit for bit.
-- :mod:`recorder.mcap_sink`: :class:`McapRecorder`, the observer that writes logs.
-- :mod:`recorder.log`: :func:`open_log`, reading logs back.
-- :mod:`recorder.recover`: :func:`recover_log`, a complete log from a truncated one.
+- :mod:`recorder.mcap.channels`: the log layout, one table of topic -> schema -> encoder/decoder.
+- :mod:`recorder.mcap.encode`: products and scans to messages and back, bit for bit.
+- :mod:`recorder.mcap.sink`: :class:`McapRecorder`, the observer that writes logs.
+- :mod:`recorder.mcap.log`: :func:`open_log`, reading logs back.
+- :mod:`recorder.mcap.recover`: :func:`recover_log`, a complete log from a truncated one.
 - :mod:`recorder.annotate`: pick outcomes in a sidecar next to a log.
 - :mod:`recorder.overhead`: :func:`measure_overhead`, what recording costs.
-- :mod:`recorder.cli`: ``boxloc run``, ``info``, ``annotate``, ``recover``.
+- :mod:`recorder.commands`: ``boxloc run``, ``info``, ``annotate``, ``recover``.
 
 The names below are imported lazily, so ``import recorder`` stays cheap.
 """
@@ -22,15 +22,15 @@ from importlib import import_module
 from typing import Any
 
 _LAZY = {
-    "McapRecorder": "recorder.mcap_sink",
-    "RecordingError": "recorder.mcap_sink",
-    "open_log": "recorder.log",
-    "Log": "recorder.log",
-    "ScanRecord": "recorder.log",
-    "recover_log": "recorder.recover",
+    "McapRecorder": "recorder.mcap.sink",
+    "RecordingError": "recorder.mcap.sink",
+    "open_log": "recorder.mcap.log",
+    "Log": "recorder.mcap.log",
+    "ScanRecord": "recorder.mcap.log",
+    "recover_log": "recorder.mcap.recover",
     "append_outcome": "recorder.annotate",
     "read_sidecar": "recorder.annotate",
-    "PickOutcome": "recorder.encode",
+    "PickOutcome": "recorder.mcap.encode",
     "measure_overhead": "recorder.overhead",
 }
 

@@ -3,7 +3,7 @@
 A log is never rewritten to add an outcome (``boxloc annotate`` must not endanger recorded
 data). Outcomes reported after recording go into ``LOG.mcap.outcomes.jsonl``, one JSON
 object per line, appended with ``O_APPEND`` under an exclusive lock and fsync'd. Every
-reader (:func:`recorder.log.open_log`) merges the sidecar with the log's own
+reader (:func:`recorder.mcap.log.open_log`) merges the sidecar with the log's own
 ``/pick/outcome`` channel.
 
 Sidecar line (version 1)::
@@ -21,7 +21,7 @@ from pathlib import Path
 from typing import Any
 
 from boxloc.errors import InputError, LogError
-from recorder.encode import PickOutcome
+from recorder.mcap.encode import PickOutcome
 
 SIDECAR_SUFFIX = ".outcomes.jsonl"
 SIDECAR_VERSION = 1
@@ -95,7 +95,7 @@ def append_outcome(
 
 
 def _check_target(log_path: Path, scan_index: int, surface_id: int) -> None:
-    from recorder.log import open_log
+    from recorder.mcap.log import open_log
 
     log = open_log(log_path, allow_truncated=True)
     n = None

@@ -3,12 +3,12 @@
 Field data then flows through ``run``, ``replay`` and ``diff`` like any recording:
 ``boxloc import frames/ --out field.mcap`` then ``boxloc run field.mcap --record out.mcap``.
 
-Every scan is written with :meth:`recorder.mcap_sink.McapRecorder.record_scan`: the range bit
+Every scan is written with :meth:`recorder.mcap.sink.McapRecorder.record_scan`: the range bit
 for bit, the sensor model, the pose if the file has one, and, for PCD/PLY files with an
 integer ``label`` field (mOSD), the labels on ``/scan/labels`` so that logs can be scored.
 Scans are numbered 0, 1, ... in the order given (files of a directory in name order, as
 :func:`boxloc.io.read_scans` reads them); a file without a capture time gets none, so its
-log time is ``index * 100 ms`` (:func:`recorder.channels.scan_log_time`): deterministic,
+log time is ``index * 100 ms`` (:func:`recorder.mcap.channels.scan_log_time`): deterministic,
 never the clock.
 """
 
@@ -28,7 +28,7 @@ from boxloc.cli import config_options, load_config, scan_options
 from boxloc.config import Config
 from boxloc.errors import InputError
 from boxloc.scan import Scan
-from recorder.cli import rosbag_options
+from recorder.commands import rosbag_options
 
 __all__ = ["ImportReport", "import_scans", "import_cmd"]
 
@@ -115,7 +115,7 @@ def import_scans(
     rotate_bytes : int, optional
         Start a new file when the current one reaches this size.
     depth_topic, info_topic, base_frame : str, optional
-        For ROS 2 bags (:func:`boxloc.rosbag.open_bag`); each scan keeps the bag, topic and
+        For ROS 2 bags (:func:`boxloc.io.rosbag.open_bag`); each scan keeps the bag, topic and
         message times in its ``source`` and ``meta["rosbag"]``.
 
     Returns
@@ -128,7 +128,7 @@ def import_scans(
         No source, an unreadable scan (the log written so far is finished and valid), an
         existing output without ``overwrite``.
     """
-    from recorder.mcap_sink import McapRecorder
+    from recorder.mcap.sink import McapRecorder
 
     if not sources:
         raise InputError("import needs at least one scan file or directory")

@@ -50,13 +50,13 @@ def measure_overhead(scans: Iterable[Scan], config: Config | None = None, *,
         ``recorder_s``, ``recorder_fraction``, ``overhead_fraction``, ``log_bytes``,
         ``bytes_per_scan`` (file size / scans), ``max_scan_bytes`` (largest scan chunk with
         its index), ``channels`` (bytes per scan by topic, see
-        :func:`recorder.footprint.log_footprint`) and ``per_scan`` (index, pixels,
+        :func:`recorder.mcap.footprint.log_footprint`) and ``per_scan`` (index, pixels,
         pipeline_s, recorder_s, chunk_bytes).
     """
     from boxloc.pipeline import find_graspable_surfaces
-    from recorder.footprint import log_footprint
-    from recorder.log import open_log
-    from recorder.mcap_sink import McapRecorder
+    from recorder.mcap.footprint import log_footprint
+    from recorder.mcap.log import open_log
+    from recorder.mcap.sink import McapRecorder
 
     cfg = config or Config()
     scans = list(scans)

@@ -12,7 +12,7 @@ scan index) and returns a :class:`LogDiff`: for every scan a :class:`ScanDiff` w
   rejected in the other;
 * surfaces added, removed or moved (centre in mm, angle in degrees, width/length in mm),
   paired by an optimal assignment on centre distance, and changes of the pick order;
-* scores where ground truth exists (:func:`boxloc.metrics.match_surfaces`) and the fate of
+* scores where ground truth exists (:func:`boxloc.evaluate.metrics.match_surfaces`) and the fate of
   annotated picks (did the candidate change the surface whose pick failed?);
 * timing per stage, on a channel of its own: it never counts as a difference.
 
@@ -854,7 +854,7 @@ def truth_for_scan(scan: Any, sources: Sequence[str] = _TRUTH_SOURCES) -> Any:
 
 
 def _score(surfaces: SurfaceSet, truth: Any, tol: ScoreTol) -> Any:
-    from boxloc.metrics import match_surfaces
+    from boxloc.evaluate.metrics import match_surfaces
 
     return match_surfaces(surfaces, truth, iou_min=tol.iou_min,
                           max_normal_deg=tol.max_normal_deg,
@@ -1120,7 +1120,7 @@ class _ScanComparison:
 
 def diff_scans(a: Any, b: Any, tolerances: Tolerances | None = None, *, log: str = "",
                outcomes: Mapping[int, Any] | None = None, truth: Any = None) -> ScanDiff:
-    """Compare two :class:`recorder.log.ScanRecord` of the same scan.
+    """Compare two :class:`recorder.mcap.log.ScanRecord` of the same scan.
 
     Parameters
     ----------
@@ -1180,7 +1180,7 @@ def _config_changes(a: Any, b: Any) -> dict[str, list[Any]]:
 
 
 def _pooled(log_diff: LogDiff, matches: list[tuple[Any, Any]]) -> None:
-    from boxloc.metrics import aggregate_matches
+    from boxloc.evaluate.metrics import aggregate_matches
 
     if not matches:
         return
@@ -1213,7 +1213,7 @@ def diff_logs(base: str | os.PathLike[str], candidate: str | os.PathLike[str],
     InputError
         A path that does not exist.
     """
-    from recorder.log import open_log
+    from recorder.mcap.log import open_log
 
     tol = tolerances or load_tolerances()
     pa, pb = Path(base), Path(candidate)

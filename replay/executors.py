@@ -27,7 +27,7 @@ ReplayFn = Callable[[Path], ReplayOutcome]
 #: Retries of a log whose worker was lost (a killed process, a lost Dask worker).
 RETRIES = 2
 #: Modules the local worker processes import once, before forking each worker.
-_PRELOAD = ["replay.replay", "boxloc.pipeline", "recorder.log", "recorder.mcap_sink"]
+_PRELOAD = ["replay.replay", "boxloc.pipeline", "recorder.mcap.log", "recorder.mcap.sink"]
 
 
 def default_jobs() -> int:

@@ -50,8 +50,8 @@ from boxloc.products import (
     VerifyReason,
 )
 from boxloc.scan import NoiseModel
+from boxloc.stages.vertices import THIRD_EDGE
 from boxloc.stats import BUDGET_HYPOTHESES, BUDGET_LINES, TestKind, TestTable
-from boxloc.vertices import THIRD_EDGE
 
 #: How a test's statistic is compared with its critical value when the relation holds.
 _SENSE: dict[TestKind, str] = {
@@ -188,7 +188,7 @@ class _Ctx:
                                                    TestKind.NEIGHBOUR_CORNER)],
                            a=j)
             sides = iter(_SIDES)
-            for t in tests:  # one row per side, in the order boxloc.verify tests them
+            for t in tests:  # one row per side, in the order boxloc.stages.verify tests them
                 if t["kind"] == TestKind.VERIFY_BOUNDARY.name:
                     t["side"] = next(sides, "")
             failed = None
@@ -673,7 +673,7 @@ def explain(log: Any, scan: int, surface: int | None = None, at: Any = None,
 
     Parameters
     ----------
-    log : path or recorder.log.Log
+    log : path or recorder.mcap.log.Log
         A boxloc log (a truncated one is read up to its last good record).
     scan : int
         The scan index.
@@ -699,7 +699,7 @@ def explain(log: Any, scan: int, surface: int | None = None, at: Any = None,
     LogError
         The log cannot be read or has no such scan.
     """
-    from recorder.log import Log, open_log
+    from recorder.mcap.log import Log, open_log
 
     modes = sum(x for x in (surface is not None, at is not None, bool(failed_picks)))
     if modes > 1:

@@ -5,7 +5,7 @@ arguments and result, so any executor (in-process, local processes, a Dask clust
 (after openpilot's ``process_replay``). It reads only the *inputs* of the original run (the
 sensor model, the scan info and the range image of each scan, never a product), runs
 :func:`boxloc.pipeline.find_graspable_surfaces` with the log's recorded config (or a given
-one) plus overrides, and records everything with :class:`recorder.mcap_sink.McapRecorder`.
+one) plus overrides, and records everything with :class:`recorder.mcap.sink.McapRecorder`.
 
 Guarantees
 ----------
@@ -14,7 +14,7 @@ Guarantees
   the output directory and published by a hard link (which fails if the name is taken).
   A retried task (a lost worker) therefore never sees a half-written file of its own.
 - Output log times derive from the input scans' capture times, never from the clock
-  (:func:`recorder.channels.scan_log_time`), so the same replay gives the same products
+  (:func:`recorder.mcap.channels.scan_log_time`), so the same replay gives the same products
   and the same times.
 - A stage that raises on one scan becomes that scan's recorded result (``/boxloc/error``)
   and its :class:`ScanStatus`; the other scans are still replayed.
@@ -43,7 +43,7 @@ from boxloc.errors import BoxlocError, InputError, LogError
 
 if TYPE_CHECKING:
     from boxloc.scan import Scan
-    from recorder.log import Log
+    from recorder.mcap.log import Log
     from replay.versions import Version
 
 #: Metadata record of a replayed log: what it was made from and how.
@@ -166,7 +166,7 @@ def collect_logs(args: Iterable[str | os.PathLike[str]]) -> list[Path]:
     InputError
         A path that does not exist, or a directory without logs.
     """
-    from boxloc.rosbag import is_rosbag
+    from boxloc.io.rosbag import is_rosbag
 
     out: list[Path] = []
     for a in args:
@@ -230,9 +230,8 @@ def check_schema(log: Log) -> None:
     LogError
         Naming the log, the version found and the version read.
     """
-    from recorder import channels as C
-    from recorder import encode as E
-
+    from recorder.mcap import channels as C
+    from recorder.mcap import encode as E
     run = log.run
     found = run.get("schema_version")
     if found is not None:
@@ -260,9 +259,8 @@ def iter_input_scans(log: Log) -> Iterator[Scan]:
         A malformed record, a scan without its range or sensor model, or (at the end of
         the iteration) damage found in the log.
     """
-    from recorder import channels as C
-    from recorder import encode as E
-
+    from recorder.mcap import channels as C
+    from recorder.mcap import encode as E
     lim = log.limits
     sensors: dict[str, Any] = {}
     info: Any = None
@@ -293,9 +291,8 @@ def iter_input_scans(log: Log) -> Iterator[Scan]:
 
 def _take(m: Any, sensors: dict[str, Any], info: Any, log: Log, lim: Any) -> Scan | None:
     """Take a sensor model (None) or a range image, which completes a scan (the scan)."""
-    from recorder import channels as C
-    from recorder import encode as E
-
+    from recorder.mcap import channels as C
+    from recorder.mcap import encode as E
     if m.topic == C.SCAN_SENSOR:
         digest, model = E.decode_sensor(m.data, lim)
         sensors[digest] = model
@@ -398,7 +395,7 @@ def _named(path: Path, msg: str) -> str:
 
 def _diagnose(path: Path, e: LogError) -> str:
     """The one-line message for a log that does not open: says "truncated" when it is."""
-    from recorder.log import open_log
+    from recorder.mcap.log import open_log
 
     try:
         partial = open_log(path, allow_truncated=True)
@@ -413,7 +410,7 @@ def _diagnose(path: Path, e: LogError) -> str:
 
 def _current_version() -> dict[str, Any]:
     import boxloc
-    from recorder.mcap_sink import git_info
+    from recorder.mcap.sink import git_info
 
     commit, dirty = git_info()
     return {"kind": "current", "boxloc_version": boxloc.__version__, "git_commit": commit,
@@ -431,14 +428,14 @@ def _sha256(path: Path) -> str:
 
 
 class _BagInput:
-    """A ROS 2 bag as a replay input: its depth frames (:func:`boxloc.rosbag.open_bag`,
+    """A ROS 2 bag as a replay input: its depth frames (:func:`boxloc.io.rosbag.open_bag`,
     the topics chosen by type), no recorded config or run metadata."""
 
     config = None
     run: dict[str, str] = {}
 
     def __init__(self, path: Path) -> None:
-        from boxloc.rosbag import open_bag
+        from boxloc.io.rosbag import open_bag
 
         self.bag = open_bag(path)
 
@@ -473,8 +470,8 @@ def _replay_here(path: Path, out_dir: Path, config: Config | None,
                  overrides: tuple[str, ...], out_name: str | None) -> ReplayOutcome:
     """:func:`replay_log` with the code of this process."""
     from boxloc.pipeline import find_graspable_surfaces
-    from recorder.log import open_log
-    from recorder.mcap_sink import McapRecorder, RecordingError
+    from recorder.mcap.log import open_log
+    from recorder.mcap.sink import McapRecorder, RecordingError
 
     t0, c0 = time.perf_counter(), time.process_time()
     version = _current_version()
@@ -486,7 +483,7 @@ def _replay_here(path: Path, out_dir: Path, config: Config | None,
     def failed(msg: str, **kw: Any) -> ReplayOutcome:
         return ReplayOutcome(**base, error=msg, **took(), **kw)
 
-    from boxloc.rosbag import is_rosbag
+    from boxloc.io.rosbag import is_rosbag
 
     bag = is_rosbag(path)
     try:

@@ -125,7 +125,7 @@ def timing_summary(diffs: Iterable[LogDiff]) -> dict[str, dict[str, dict[str, fl
 
 def _pooled_all(diffs: Sequence[LogDiff]) -> dict[str, Any] | None:
     """Counts summed over the logs with ground truth, and precision/recall from them."""
-    from boxloc.metrics import prf
+    from boxloc.evaluate.metrics import prf
 
     tot: dict[str, dict[str, int]] = {"base": Counter(), "candidate": Counter()}
     n = 0

@@ -1,7 +1,7 @@
 """Baseline and candidate in one Rerun recording, next to each other, with what differs marked.
 
 Both runs go into one recording on the same ``scan`` timeline, each under its own prefix
-(the entity tree of :mod:`recorder.rerun_sink`)::
+(the entity tree of :mod:`recorder.rerun.sink`)::
 
     /baseline/...                   the baseline log, scan by scan
     /candidate/...                  the candidate log
@@ -31,8 +31,8 @@ import rerun.blueprint as rrb
 
 from boxloc.errors import InputError
 from boxloc.scan import Scan
-from recorder.blueprint import counts_view, tests_view, timing_view, world_view
-from recorder.rerun_sink import (
+from recorder.rerun.blueprint import counts_view, tests_view, timing_view, world_view
+from recorder.rerun.sink import (
     EDGE_IMAGE,
     LINES,
     RANGE,
@@ -98,7 +98,7 @@ def side_by_side_blueprint() -> rrb.Blueprint:
 
 
 def _set_time(rec: rr.RecordingStream, index: int, capture_time_ns: int) -> None:
-    """The timelines of one scan (as :func:`recorder.rerun_sink.set_scan_time`)."""
+    """The timelines of one scan (as :func:`recorder.rerun.sink.set_scan_time`)."""
     rec.set_time(TIMELINE_SCAN, sequence=int(index))
     if capture_time_ns > 0:
         rec.set_time(TIMELINE_CAPTURE, timestamp=np.datetime64(int(capture_time_ns), "ns"))
@@ -214,10 +214,10 @@ def log_side_by_side(
 
     Parameters
     ----------
-    base_log, cand_log : path or recorder.log.Log
+    base_log, cand_log : path or recorder.mcap.log.Log
         The baseline and the candidate log.
     target : str
-        Where the recording goes, as for :func:`recorder.rerun_sink.open_rerun_sink`:
+        Where the recording goes, as for :func:`recorder.rerun.sink.open_rerun_sink`:
         ``spawn``, ``save:FILE.rrd`` (or ``save FILE.rrd``), ``connect URL``, ``serve``,
         or several joined by commas.
     rerun : str, optional
@@ -241,8 +241,8 @@ def log_side_by_side(
     InputError
         A bad target (checked before anything is read).
     """
-    from recorder.log import Log, open_log
-    from recorder.view import log_identity
+    from recorder.mcap.log import Log, open_log
+    from recorder.rerun.view import log_identity
 
     if target is None:
         target = rerun

@@ -31,12 +31,12 @@ def check() -> dict[str, Any]:
     import boxloc
     import boxloc.pipeline  # noqa: F401 - the algorithm must import
     import recorder
-    import recorder.log  # noqa: F401
-    import recorder.mcap_sink
+    import recorder.mcap.log  # noqa: F401
+    import recorder.mcap.sink
     import replay
     import replay.replay  # noqa: F401
 
-    commit, dirty = recorder.mcap_sink.git_info()
+    commit, dirty = recorder.mcap.sink.git_info()
     return {"protocol": PROTOCOL, "boxloc_version": boxloc.__version__, "git_commit": commit,
             "git_dirty": dirty, "python": sys.version.split()[0],
             "boxloc_file": boxloc.__file__, "recorder_file": recorder.__file__,

@@ -31,7 +31,7 @@ the wrong schema, an unknown region or a region left open exits 2 with one line.
 Regions: ``bench:matrix:{summary,targets,kinds,cells,stages}``,
 ``bench:real:{summary,targets,draws,inputs,stages}``,
 ``bench:sim:{summary,kinds,draws,stages}``, each closed by ``<!-- /bench -->``; and
-``log:channels`` (from :data:`recorder.channels.CHANNELS`), closed by ``<!-- /log -->``.
+``log:channels`` (from :data:`recorder.mcap.channels.CHANNELS`), closed by ``<!-- /log -->``.
 """
 
 from __future__ import annotations
@@ -597,9 +597,9 @@ RENDERERS: dict[str, dict[str, Callable[[dict[str, Any]], str]]] = {
 
 
 def channels_table() -> str:
-    """The MCAP channels, from :data:`recorder.channels.CHANNELS` (the source of truth)."""
-    from recorder import encode
-    from recorder.channels import CHANNELS
+    """The MCAP channels, from :data:`recorder.mcap.channels.CHANNELS` (the source of truth)."""
+    from recorder.mcap import encode
+    from recorder.mcap.channels import CHANNELS
 
     rows = [[f"`{c.topic}`", f"`{c.schema_name}`" + (
         f" (`{c.record_schema}`)" if c.record else ""), c.message_encoding,

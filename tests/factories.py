@@ -354,7 +354,7 @@ def make_result(scan: Scan, seed: int = 0, *, empty: bool = False) -> Result:
         Return products with no entities at all (a scan where nothing was found).
     """
     from boxloc.config import Config
-    from boxloc.scan_noise import estimate_scan_noise
+    from boxloc.stages.scan_noise import estimate_scan_noise
 
     rng = np.random.default_rng(seed + 1000)
     noise = estimate_scan_noise(scan, Config())

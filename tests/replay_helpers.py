@@ -18,7 +18,7 @@ from typing import Any
 from boxloc.config import Config
 from boxloc.pipeline import find_graspable_surfaces
 from boxloc.simulate import parse_spec, simulate
-from recorder.mcap_sink import McapRecorder
+from recorder.mcap.sink import McapRecorder
 
 SINGLE = "single:width=160,height=120,f=131.25"
 MIXED = "mixed:width=160,height=120,f=131.25"
@@ -58,8 +58,8 @@ def record(path: Path, config: Config | None = None,
 
 def missed_faces(log_path: Path) -> list[tuple[int, int, Any]]:
     """(scan index, face, SimulatedScan) of every fully exposed face no surface matched."""
-    from boxloc.metrics import match_surfaces
-    from recorder.log import open_log
+    from boxloc.evaluate.metrics import match_surfaces
+    from recorder.mcap.log import open_log
 
     out = []
     for r in open_log(log_path).scans():

@@ -27,7 +27,7 @@ def make_log(path: Path, seeds: list[int], *, spec: str = SPEC,
     """Record one log of ``len(seeds)`` simulated scans (indices 0, 1, ...) to ``path``."""
     from boxloc.pipeline import find_graspable_surfaces
     from boxloc.simulate import parse_spec, simulate
-    from recorder.mcap_sink import McapRecorder
+    from recorder.mcap.sink import McapRecorder
 
     cfg = config or Config()
     sp = parse_spec(spec)
@@ -62,7 +62,7 @@ def product_differences(a: Path, b: Path) -> list[str]:
     Scans are paired in order; compared: count, index, log time, range bytes, every stage's
     product bit for bit (``products_equal``), the Result's own fields and the error record.
     """
-    from recorder.log import open_log
+    from recorder.mcap.log import open_log
 
     ra, rb = list(open_log(a).scans()), list(open_log(b).scans())
     out: list[str] = []

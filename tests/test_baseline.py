@@ -1,4 +1,4 @@
-"""Tests of boxloc.baseline, the open3d peer, on scenes ray-cast right here."""
+"""Tests of boxloc.evaluate.baseline, the open3d peer, on scenes ray-cast right here."""
 
 from __future__ import annotations
 
@@ -9,8 +9,8 @@ from typing import Any
 import numpy as np
 import pytest
 
-from boxloc.baseline import baseline_surfaces, empty_surface_set, surface_set_from_rects
-from boxloc.metrics import match_surfaces
+from boxloc.evaluate.baseline import baseline_surfaces, empty_surface_set, surface_set_from_rects
+from boxloc.evaluate.metrics import match_surfaces
 from boxloc.products import products_equal
 from boxloc.scan import PinholeModel, Scan
 

@@ -1,4 +1,4 @@
-"""Tests of boxloc.bench and the `boxloc bench` verb (no timing assertions)."""
+"""Tests of boxloc.evaluate.scene_bench and the `boxloc bench` verb (no timing assertions)."""
 
 from __future__ import annotations
 
@@ -12,11 +12,11 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 
-import boxloc.bench as bench
+import boxloc.evaluate.scene_bench as bench
 import boxloc.simulate as sim
-from boxloc.baseline import surface_set_from_rects
-from boxloc.bench import PeakRSS, evaluate_targets, run_bench
 from boxloc.cli import cli
+from boxloc.evaluate.baseline import surface_set_from_rects
+from boxloc.evaluate.scene_bench import PeakRSS, evaluate_targets, run_bench
 from boxloc.simulate import scene_suite
 
 TOP_KEYS = {
@@ -318,7 +318,7 @@ def test_cli_bench_scene_set_changes_every_scene(monkeypatch: pytest.MonkeyPatch
 
 
 def test_common_grasp_compares_on_the_faces_both_found() -> None:
-    from boxloc.metrics import match_surfaces
+    from boxloc.evaluate.metrics import match_surfaces
     from boxloc.simulate import simulate
 
     T = simulate("touching", seed=3).truth

@@ -1,4 +1,4 @@
-"""Tests of boxloc.bench_matrix and `boxloc bench --matrix` (tiny scenes, no timing targets)."""
+"""Tests of boxloc.evaluate.matrix_bench and `boxloc bench --matrix` (tiny scenes, no timings)."""
 
 from __future__ import annotations
 
@@ -14,11 +14,11 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 
-import boxloc.bench_matrix as bm
+import boxloc.evaluate.matrix_bench as bm
 import boxloc.simulate as sim
-from boxloc.baseline import surface_set_from_rects
 from boxloc.cli import cli
 from boxloc.config import Config
+from boxloc.evaluate.baseline import surface_set_from_rects
 
 #: The report's top-level keys: a stable structure that docs tables are generated from.
 TOP_KEYS = {

@@ -407,7 +407,7 @@ def test_wrong_schema_from_the_command_line_is_one_line_and_exit_2(tmp_path: Pat
 
 
 def test_the_repository_docs_are_what_the_reports_say() -> None:
-    """README.md and docs/*.md hold the tables of docs/results/ and recorder/channels.py:
+    """README.md and docs/*.md hold the tables of docs/results/ and recorder/mcap/channels.py:
     after a new report or a channel change, run `python scripts/bench_tables.py`."""
     assert _run(ROOT, "--check") == 0
 

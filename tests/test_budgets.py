@@ -11,7 +11,7 @@ SCENE = "pallet:width=320,height=240,f=262.5,distance=1.5"
 
 
 def test_an_exhausted_budget_is_recorded_and_explained(tmp_path) -> None:  # type: ignore[no-untyped-def]
-    from recorder.mcap_sink import McapRecorder
+    from recorder.mcap.sink import McapRecorder
     from replay.explain import explain, format_explanation
 
     sim = simulate(SCENE, 3)

@@ -24,7 +24,7 @@ from boxloc.cli import cli
 from boxloc.config import Config
 from boxloc.errors import InputError
 from recorder.annotate import append_outcome, sidecar_path
-from recorder.log import open_log
+from recorder.mcap.log import open_log
 from replay.diff import (
     DEFAULT_TOLERANCES,
     compare_surfaces,
@@ -61,7 +61,7 @@ def logs(tmp_path_factory: pytest.TempPathFactory, recorded_log: Path) -> dict[s
 @pytest.fixture(scope="module")
 def found(logs: dict[str, Path]) -> dict[int, int]:
     """Surfaces per scan of the baseline (what the tests below need of it: a few)."""
-    from boxloc.metrics import match_surfaces
+    from boxloc.evaluate.metrics import match_surfaces
 
     n, tp = {}, 0
     for r in open_log(logs["base"]).scans():

@@ -10,14 +10,14 @@ import pytest
 from cli_run import invoke
 from scenes import box, scene, wall
 
+from boxloc.calibrate.edgeblur import edge_offsets, estimate_edge_px
 from boxloc.config import Config
-from boxloc.edgeblur import edge_offsets, estimate_edge_px
-from boxloc.edges import detect_edges
 from boxloc.errors import InputError
-from boxloc.hypotheses import _soft_votes
 from boxloc.scan import Scan
 from boxloc.simulate import save_npz
-from boxloc.verify import VerifyContext
+from boxloc.stages.edges import detect_edges
+from boxloc.stages.hypotheses import _soft_votes
+from boxloc.stages.verify import VerifyContext
 
 
 @pytest.fixture(scope="module")

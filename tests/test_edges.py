@@ -6,10 +6,10 @@ import numpy as np
 import pytest
 
 from boxloc.config import Config
-from boxloc.edges import NO_RETURN_PX, detect_edges, residual_thresholds, run_thresholds
-from boxloc.metrics import edge_scores
+from boxloc.evaluate.metrics import edge_scores
 from boxloc.products import EdgeKind
 from boxloc.scan import NoiseModel, PinholeModel, Scan
+from boxloc.stages.edges import NO_RETURN_PX, detect_edges, residual_thresholds, run_thresholds
 from boxloc.stats import TestKind
 from tests.scenes import box, scene
 

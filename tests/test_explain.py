@@ -21,7 +21,7 @@ from boxloc.errors import InputError, LogError
 from boxloc.products import DimensionSource
 from boxloc.stats import TestKind
 from recorder.annotate import append_outcome
-from recorder.log import open_log
+from recorder.mcap.log import open_log
 from replay.explain import explain, format_explanation
 
 VERTEX_TESTS = {"LINES_MEET", "LINES_ORTHOGONAL", "AT_SEGMENT_ENDS"}

@@ -31,9 +31,9 @@ from boxloc.config import Config
 from boxloc.errors import LogError
 from boxloc.products import STAGES, Result, products_equal
 from boxloc.simulate import simulate
-from recorder.log import open_log
-from recorder.mcap_sink import McapRecorder, RecordingError
-from recorder.recover import recover_log
+from recorder.mcap.log import open_log
+from recorder.mcap.recover import recover_log
+from recorder.mcap.sink import McapRecorder, RecordingError
 
 ROOT = Path(__file__).resolve().parents[1]
 SPEC = "single:width=160,height=120,f=131.25"
@@ -95,7 +95,7 @@ _ZYGOTE = textwrap.dedent("""
     from boxloc.config import Config
     from boxloc.pipeline import find_graspable_surfaces
     from boxloc.simulate import simulate
-    from recorder.mcap_sink import McapRecorder
+    from recorder.mcap.sink import McapRecorder
 
     SCENES = [simulate({spec!r}, seed=100 + k).scan for k in range({n})]
     CFG = Config()

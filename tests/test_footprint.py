@@ -22,11 +22,11 @@ from mcap.reader import make_reader
 
 from boxloc.errors import LogError
 from boxloc.scan import Scan
-from recorder import channels as C
-from recorder import encode as E
-from recorder.log import open_log
-from recorder.mcap_sink import ZSTD_LEVEL, McapRecorder
-from recorder.proto import message_class
+from recorder.mcap import channels as C
+from recorder.mcap import encode as E
+from recorder.mcap.log import open_log
+from recorder.mcap.proto import message_class
+from recorder.mcap.sink import ZSTD_LEVEL, McapRecorder
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -201,7 +201,7 @@ def test_the_view_clouds_lie_on_the_grid_within_half_a_step() -> None:
 
 
 def test_log_footprint_splits_each_scans_bytes_by_channel(tmp_path: Path) -> None:
-    from recorder.footprint import format_table, log_footprint
+    from recorder.mcap.footprint import format_table, log_footprint
 
     scans = [make_scan(k, (60, 80)) for k in range(3)]
     with McapRecorder(tmp_path / "a.mcap") as rec:
@@ -224,7 +224,7 @@ def test_log_footprint_splits_each_scans_bytes_by_channel(tmp_path: Path) -> Non
 def test_footprint_command_names_a_missing_log_in_one_line(tmp_path: Path,
                                                            capsys: pytest.CaptureFixture[str]
                                                            ) -> None:
-    from recorder.footprint import main
+    from recorder.mcap.footprint import main
 
     assert main(["--log", str(tmp_path / "none.mcap")]) == 2
     err = capsys.readouterr().err
@@ -233,7 +233,7 @@ def test_footprint_command_names_a_missing_log_in_one_line(tmp_path: Path,
 
 def test_the_matrix_suite_at_640x480_keeps_each_sensors_field_of_view() -> None:
     from boxloc.simulate import matrix_suite
-    from recorder.footprint import suite
+    from recorder.mcap.footprint import suite
 
     for orig, s in zip(matrix_suite(8, 0), suite("matrix", 8)):
         assert (s.width, s.height) == (640, 480)

@@ -18,13 +18,13 @@ from hypothesis import strategies as st
 
 from boxloc.errors import BoxlocError, LogError
 from boxloc.products import STAGES, products_equal
-from recorder import encode as E
 from recorder.annotate import read_sidecar, sidecar_path
 from recorder.fuzz import _mutate_chunk_content, _mutate_record_frame, log_steps, run_step
-from recorder.log import open_log
-from recorder.mcap_sink import McapRecorder
-from recorder.proto import message_class
-from recorder.recover import recover_log
+from recorder.mcap import encode as E
+from recorder.mcap.log import open_log
+from recorder.mcap.proto import message_class
+from recorder.mcap.recover import recover_log
+from recorder.mcap.sink import McapRecorder
 
 CI = settings(max_examples=100, deadline=None, derandomize=True, database=None,
               suppress_health_check=[HealthCheck.too_slow,

@@ -8,12 +8,12 @@ import numpy as np
 import pytest
 
 from boxloc.config import Config
-from boxloc.edges import detect_edges
-from boxloc.hypotheses import generate_hypotheses, neighbour_vertices
-from boxloc.lines import find_lines
 from boxloc.products import DimensionSource, VerifyReason, VertexSet
+from boxloc.stages.edges import detect_edges
+from boxloc.stages.hypotheses import generate_hypotheses, neighbour_vertices
+from boxloc.stages.lines import find_lines
+from boxloc.stages.vertices import find_vertices
 from boxloc.stats import TestKind, TestTable
-from boxloc.vertices import find_vertices
 from tests.scenes import box, scene
 
 
@@ -92,7 +92,7 @@ def test_verification_rejects_a_face_with_a_box_on_it():
 
 
 def test_dimensions_from_extent_measure_the_face(one_box):
-    from boxloc.hypotheses import _Context, _VertexWork, align, dimensions_from_extent
+    from boxloc.stages.hypotheses import _Context, _VertexWork, align, dimensions_from_extent
     from boxloc.stats import TestTable
 
     sim, (e, _, V, H, _) = one_box
@@ -113,7 +113,7 @@ def test_dimensions_from_extent_measure_the_face(one_box):
 
 
 def _outcome(tests, accepted=True, center=(0.0, 0.0, 1.5), normal=(0.0, 0.0, -1.0)):
-    from boxloc.verify import VerifyOutcome
+    from boxloc.stages.verify import VerifyOutcome
     return VerifyOutcome(
         n_inside=100, n_valid=100, n_inliers=100, n_front=0, n_behind=0,
         inlier_fraction=1.0, mean_distance=0.0, sigma_mean=0.001, n_interior_edges=0,
@@ -134,7 +134,7 @@ def _one_vertex(o=(0.0, 0.0, 1.5)):
 
 
 def _work(vertex, width, length, seam_sides, runs_on):
-    from boxloc.hypotheses import _Attempt, _VertexWork
+    from boxloc.stages.hypotheses import _Attempt, _VertexWork
     seam = TestTable.decision(TestKind.VERIFY_SEAM_SIDE, -1, sorted(seam_sides),
                               [9.0] * len(seam_sides), [3.0] * len(seam_sides),
                               [True] * len(seam_sides), 0.01)
@@ -210,7 +210,7 @@ def test_no_neighbour_across_a_seam_to_a_lower_surface():
 def test_a_seam_side_across_another_rectangle_rejects_it():
     # rectangle A spans two boxes (0.6 along x); B, the left box, has a strong seam at
     # u = 0.3 on its side 3, which crosses A's core: A is rejected, B kept
-    from boxloc.hypotheses import _seams_across
+    from boxloc.stages.hypotheses import _seams_across
     V = dataclasses.replace(_one_vertex(), tests=TestTable.empty(0.01))
     V = VertexSet(points=np.r_[V.points, V.points], d1=np.r_[V.d1, V.d1],
                   d2=np.r_[V.d2, V.d2], normals=np.r_[V.normals, V.normals],
@@ -238,7 +238,7 @@ def test_a_seam_side_across_another_rectangle_rejects_it():
 def test_interior_boxes_of_a_neat_layer_are_found_through_their_neighbours():
     # suite scene 7: a partly unloaded neat layer whose seams the edge stage does not see;
     # the interior boxes have no vertex of two lines, only their neighbours' corners
-    from boxloc.metrics import match_surfaces
+    from boxloc.evaluate.metrics import match_surfaces
     from boxloc.pipeline import find_graspable_surfaces
     from boxloc.simulate import scene_suite, simulate
     sim = simulate(list(scene_suite(60, 0))[7])

@@ -22,8 +22,8 @@ from figures import record
 from boxloc.cli import cli
 from boxloc.config import Config
 from boxloc.errors import InputError
+from boxloc.evaluate.metrics import match_surfaces
 from boxloc.io import read_scan
-from boxloc.metrics import match_surfaces
 from boxloc.pipeline import find_graspable_surfaces
 from boxloc.scan import PinholeModel, Scan
 from boxloc.simulate import PALLET_SIZE, look_down_pose, simulate_boxes

@@ -6,9 +6,9 @@ import numpy as np
 import pytest
 
 from boxloc.config import Config
-from boxloc.lines import find_lines, fit_segment, hemisphere_directions
 from boxloc.products import EdgeMap, products_equal
 from boxloc.scan import PinholeModel, Scan
+from boxloc.stages.lines import find_lines, fit_segment, hemisphere_directions
 from boxloc.stats import TestKind, TestTable
 
 
@@ -88,7 +88,7 @@ def test_fit_segment_covariance_scales_as_expected():
 def test_trace_prefilter_never_drops_a_point_on_the_line():
     # the pre-filter of the inlier search is a bound, not an approximation: every point the
     # chi2(2) test accepts passes it, and it removes the points far off the line
-    from boxloc.lines import _may_lie_on, _point_on_line_stat
+    from boxloc.stages.lines import _may_lie_on, _point_on_line_stat
     rng = np.random.default_rng(3)
     n = 4000
     c, b = np.array([0.1, -0.2, 1.5]), np.array([0.6, 0.0, 0.8])
@@ -108,7 +108,7 @@ def test_trace_prefilter_never_drops_a_point_on_the_line():
 def test_inlier_search_with_the_prefilter_finds_the_same_lines(monkeypatch):
     # the lines of a cluttered set of edges, found with the pre-filter, are the lines of the
     # full test: the pre-filter changes only the time
-    import boxloc.lines as L
+    import boxloc.stages.lines as L
     P, s, *_ = _two_lines_and_clutter(3)
     a = find_lines(_scan(), _edge_map(P, s), config=Config(), rng=np.random.default_rng(0))
     monkeypatch.setattr(L, "_may_lie_on", lambda P, tr, c, b, crit: np.ones(len(P), bool))

@@ -1,4 +1,4 @@
-"""Tests of boxloc.metrics: rectangle IoU, surface matching, edge scores, pooling."""
+"""Tests of boxloc.evaluate.metrics: rectangle IoU, surface matching, edge scores, pooling."""
 
 from __future__ import annotations
 
@@ -7,8 +7,8 @@ from dataclasses import dataclass
 import numpy as np
 import pytest
 
-from boxloc.baseline import empty_surface_set, surface_set_from_rects
-from boxloc.metrics import (
+from boxloc.evaluate.baseline import empty_surface_set, surface_set_from_rects
+from boxloc.evaluate.metrics import (
     PredStatus,
     aggregate_edges,
     aggregate_matches,

@@ -11,11 +11,11 @@ import pytest
 from click.testing import CliRunner
 from real_data import MOSD
 
+from boxloc.calibrate.noise import estimate_noise, noise_toml, plane_residuals
 from boxloc.cli import cli
 from boxloc.config import Config
 from boxloc.errors import InputError
 from boxloc.io import write_npz
-from boxloc.noise import estimate_noise, noise_toml, plane_residuals
 from boxloc.scan import NoiseModel, PinholeModel, Scan
 
 SENSOR = PinholeModel(150.0, 150.0, 79.5, 59.5, width=160, height=120)

@@ -7,7 +7,7 @@ import pytest
 
 from boxloc.config import Config
 from boxloc.errors import InputError
-from boxloc.metrics import match_surfaces
+from boxloc.evaluate.metrics import match_surfaces
 from boxloc.observer import NullObserver
 from boxloc.pipeline import find_graspable_surfaces
 from boxloc.products import STAGES, products_equal

@@ -15,7 +15,7 @@ from replay_support import make_log, product_differences
 from boxloc.config import UNRECORDED_KEYS, Config
 from boxloc.errors import InputError
 from boxloc.scan import NoiseModel
-from recorder.log import open_log
+from recorder.mcap.log import open_log
 from replay.replay import replay_log
 
 

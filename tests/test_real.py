@@ -1,4 +1,4 @@
-"""Tests of boxloc.real (ground truth and scoring on labelled real scans), ``boxloc bench
+"""Tests of boxloc.evaluate.real (ground truth and scoring on labelled real scans), ``boxloc bench
 --real`` and ``boxloc import``.
 
 The constructed scenes are ray-cast here (axis-aligned boxes on a table, seen from above at
@@ -18,14 +18,12 @@ import pytest
 from click.testing import CliRunner
 from real_data import MOSD
 
-from boxloc.baseline import empty_surface_set, surface_set_from_rects
-from boxloc.bench_real import list_frames, run_real_bench
 from boxloc.cli import cli
 from boxloc.config import Config
 from boxloc.errors import InputError
-from boxloc.io import read_labels, read_scan, write_npz
-from boxloc.metrics import PredStatus
-from boxloc.real import (
+from boxloc.evaluate.baseline import empty_surface_set, surface_set_from_rects
+from boxloc.evaluate.metrics import PredStatus
+from boxloc.evaluate.real import (
     frame_group,
     object_masks,
     rasterize_rectangle,
@@ -34,6 +32,8 @@ from boxloc.real import (
     table_normal,
     top_faces,
 )
+from boxloc.evaluate.real_bench import list_frames, run_real_bench
+from boxloc.io import read_labels, read_scan, write_npz
 from boxloc.scan import PinholeModel, Scan
 from boxloc.stats import TestKind
 
@@ -339,7 +339,7 @@ def _import(args: list[str]) -> None:
 
 
 def test_import_npz_scans_read_back_bit_exact(tmp_path: Path) -> None:
-    from recorder.log import open_log
+    from recorder.mcap.log import open_log
 
     scans = [render(b, look_down(), seed=i)[0] for i, b in enumerate((ONE_BOX, STACK))]
     for i, s in enumerate(scans):
@@ -365,7 +365,7 @@ def test_import_npz_scans_read_back_bit_exact(tmp_path: Path) -> None:
 
 
 def test_import_keeps_pcd_labels(tmp_path: Path) -> None:
-    from recorder.log import open_log
+    from recorder.mcap.log import open_log
 
     scan, L = render(STACK, look_down())
     write_labelled_pcd(tmp_path / "learn17.pcd", scan, L)
@@ -390,7 +390,7 @@ def test_import_refuses_a_missing_source(tmp_path: Path) -> None:
 
 @pytest.mark.real_data("learn0.pcd", "learn17.pcd")
 def test_import_two_mosd_frames_bit_exact(tmp_path: Path) -> None:
-    from recorder.log import open_log
+    from recorder.mcap.log import open_log
 
     frames = [MOSD / "learn0.pcd", MOSD / "learn17.pcd"]
     out = tmp_path / "mosd.mcap"
@@ -497,7 +497,7 @@ def test_real_bench_pools_draws_of_the_random_trials(tmp_path: Path) -> None:
 
 
 def test_bench_real_cli_passes_seeds(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> None:
-    import boxloc.bench_real as br
+    import boxloc.evaluate.real_bench as br
 
     seen: dict[str, object] = {}
     monkeypatch.setattr(br, "run_real_bench", lambda d, **kw: seen.update(dir=d, **kw) or {})

@@ -19,9 +19,9 @@ from boxloc.errors import LogError
 from boxloc.pipeline import find_graspable_surfaces
 from boxloc.products import products_equal
 from recorder import annotate as A
-from recorder.encode import SCHEMA_VERSION
-from recorder.log import open_log
-from recorder.mcap_sink import McapRecorder
+from recorder.mcap.encode import SCHEMA_VERSION
+from recorder.mcap.log import open_log
+from recorder.mcap.sink import McapRecorder
 from recorder.overhead import measure_overhead
 
 SIM = "sim:single:width=96,height=72,f=80"
@@ -270,7 +270,7 @@ def test_the_rerun_option_takes_its_target_as_the_next_word(argv: list[str],
                                                             expected: str) -> None:
     import click
 
-    from recorder.cli import _RerunOption, normalize_rerun
+    from recorder.commands import _RerunOption, normalize_rerun
 
     @click.command()
     @click.argument("source")

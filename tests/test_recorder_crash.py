@@ -17,9 +17,9 @@ from test_recorder_readers import doctor, rerun_check
 
 from boxloc.errors import InputError, LogError
 from boxloc.products import products_equal
-from recorder.log import open_log
-from recorder.mcap_sink import McapRecorder, RecordingError
-from recorder.recover import recover_log
+from recorder.mcap.log import open_log
+from recorder.mcap.recover import recover_log
+from recorder.mcap.sink import McapRecorder, RecordingError
 
 TESTS = Path(__file__).parent
 ROOT = TESTS.parent
@@ -30,7 +30,7 @@ _CHILD = textwrap.dedent("""
     import sys, time
     sys.path.insert(0, {tests!r})
     from factories import FullDisk, feed, make_result, make_scan
-    from recorder.mcap_sink import McapRecorder
+    from recorder.mcap.sink import McapRecorder
     rec = McapRecorder({path!r})
     i = 0
     while True:

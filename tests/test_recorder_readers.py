@@ -19,10 +19,10 @@ from mcap.reader import make_reader
 from mcap_protobuf.decoder import DecoderFactory
 
 from boxloc.config import Config
-from recorder import channels as C
-from recorder import encode as E
-from recorder.log import open_log
-from recorder.mcap_sink import McapRecorder
+from recorder.mcap import channels as C
+from recorder.mcap import encode as E
+from recorder.mcap.log import open_log
+from recorder.mcap.sink import McapRecorder
 
 BIN = Path(sys.executable).parent
 DOCTOR = shutil.which("pymcap-cli", path=str(BIN)) or shutil.which("pymcap-cli")

@@ -12,11 +12,11 @@ from boxloc.config import Config
 from boxloc.errors import LogError
 from boxloc.products import STAGES, products_equal
 from boxloc.stats import TestKind
-from recorder import channels as C
-from recorder import encode as E
-from recorder.log import open_log
-from recorder.mcap_sink import McapRecorder
-from recorder.proto import message_class
+from recorder.mcap import channels as C
+from recorder.mcap import encode as E
+from recorder.mcap.log import open_log
+from recorder.mcap.proto import message_class
+from recorder.mcap.sink import McapRecorder
 
 
 def _same_scan(a, b) -> None:
@@ -306,7 +306,7 @@ def test_an_existing_log_is_never_overwritten(tmp_path) -> None:  # type: ignore
 
 
 def test_one_topic_has_one_schema(tmp_path) -> None:  # type: ignore[no-untyped-def]
-    from recorder.mcap_sink import McapFile
+    from recorder.mcap.sink import McapFile
 
     f = McapFile(tmp_path / "s.mcap", open(tmp_path / "s.mcap", "wb"), library="t")
     f.spec_channel(C.SCAN_RANGE)

@@ -14,10 +14,10 @@ from replay_support import make_log, product_differences, snapshot
 from boxloc.cli import cli
 from boxloc.config import Config
 from boxloc.errors import InputError
-from recorder import encode as E
-from recorder.channels import scan_log_time
-from recorder.log import open_log
-from recorder.mcap_sink import McapRecorder, git_info
+from recorder.mcap import encode as E
+from recorder.mcap.channels import scan_log_time
+from recorder.mcap.log import open_log
+from recorder.mcap.sink import McapRecorder, git_info
 from replay.replay import (
     REPLAY_METADATA,
     ReplayOutcome,

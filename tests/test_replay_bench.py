@@ -9,7 +9,7 @@ from pathlib import Path
 import pytest
 from click.testing import CliRunner
 
-import replay.bench as rb
+import replay.replay_bench as rb
 from boxloc.cli import cli
 
 

@@ -18,7 +18,7 @@ from replay_support import product_differences, snapshot
 
 from boxloc.cli import cli
 from boxloc.errors import InputError
-from recorder.log import open_log
+from recorder.mcap.log import open_log
 from replay.replay import REPLAY_METADATA
 from replay.versions import GitRevision, default_repo
 

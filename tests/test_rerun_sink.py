@@ -25,10 +25,10 @@ import rerun as rr
 from boxloc.config import Config
 from boxloc.errors import BoxlocError, InputError
 from boxloc.observer import Observer
-from recorder import mcap_sink
-from recorder import rerun_sink as rs
-from recorder.blueprint import default_blueprint, side_by_side_blueprint
-from recorder.rerun_sink import (
+from recorder.mcap import sink as mcap_sink
+from recorder.rerun import sink as rs
+from recorder.rerun.blueprint import default_blueprint, side_by_side_blueprint
+from recorder.rerun.sink import (
     RerunSink,
     log_recording,
     open_rerun_sink,
@@ -513,7 +513,7 @@ def test_headless_viewer_screenshot_is_not_blank(sample_rrd: Path, tmp_path: Pat
 def test_viewer_renders_every_view_of_the_blueprint(sample_rrd: Path, tmp_path: Path) -> None:
     """Driven through the viewer-control API: loaded, no view reports a problem, and the
     range image and 3D data are on screen (many strongly coloured pixels)."""
-    from recorder.rerun_screenshot import screenshot_rrd
+    from recorder.rerun.screenshot import screenshot_rrd
 
     png = tmp_path / "view.png"
     try:
@@ -548,8 +548,8 @@ def test_view_saves_a_log_as_a_recording(mcap_log: Path, tmp_path: Path) -> None
     from click.testing import CliRunner
 
     from boxloc.cli import cli
-    from recorder.log import open_log
-    from recorder.view import log_identity
+    from recorder.mcap.log import open_log
+    from recorder.rerun.view import log_identity
 
     ids = []
     for name in ("a.rrd", "b.rrd"):
@@ -586,7 +586,7 @@ def test_view_user_errors_are_one_line(args: list[str], match: str, mcap_log: Pa
 
 
 def test_measure_rerun_overhead_reports_both_runs() -> None:
-    from recorder.rerun_overhead import measure_rerun_overhead
+    from recorder.rerun.overhead import measure_rerun_overhead
 
     scans = [factories.make_scan(seed=i, shape=(40, 56)) for i in range(2)]
     out = measure_rerun_overhead(scans, Config())

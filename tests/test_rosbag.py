@@ -1,7 +1,7 @@
-"""ROS 2 bags in (boxloc.rosbag, run/import/replay) and results out (--publish-ros2).
+"""ROS 2 bags in (boxloc.io.rosbag, run/import/replay) and results out (--publish-ros2).
 
-Every bag here is written by ``rosbags`` itself (:func:`boxloc.rosbag.write_depth_bag`,
-:class:`boxloc.rosbag.BagWriter`) from small simulated scans (160 x 120), in both storages.
+Every bag here is written by ``rosbags`` itself (:func:`boxloc.io.rosbag.write_depth_bag`,
+:class:`boxloc.io.rosbag.BagWriter`) from small simulated scans (160 x 120), in both storages.
 """
 
 from __future__ import annotations
@@ -21,7 +21,7 @@ from replay_support import SPEC, product_differences
 
 from boxloc.errors import InputError
 from boxloc.io import range_from_depth, read_scan, read_scans
-from boxloc.rosbag import (
+from boxloc.io.rosbag import (
     BagWriter,
     camera_info_message,
     depth_of,
@@ -146,7 +146,7 @@ def test_an_organized_point_cloud(tmp_path: Path, scans: list[Scan], storage: st
 def test_an_unorganized_cloud_is_not_a_depth_topic(tmp_path: Path, scans: list[Scan]) -> None:
     flat = dataclasses.replace(scans[0])
     with BagWriter(tmp_path / "bag") as w:
-        from boxloc.rosbag import cloud_message
+        from boxloc.io.rosbag import cloud_message
 
         w.write("/points", cloud_message(w.types, flat.points.reshape(1, -1, 3), T0, "c"), T0)
     with pytest.raises(InputError, match="no depth Image .* or organized PointCloud2"):
@@ -358,7 +358,7 @@ def test_a_truncated_bag_gives_every_readable_frame_and_one_error(
     # `boxloc import` keeps them in a valid log and says what was lost, in one line
     r = invoke("import", str(cut), "--out", str(tmp_path / "cut.mcap"))
     assert "damaged bag" in _one_line_error(r)
-    from recorder.log import open_log
+    from recorder.mcap.log import open_log
 
     assert len(list(open_log(tmp_path / "cut.mcap").scans())) == len(got)
 
@@ -412,7 +412,7 @@ def test_run_on_a_bag_records_its_provenance_and_replays_with_zero_diff(
     log = tmp_path / "run.mcap"
     r = invoke("run", str(bag), "--record", str(log), "--quiet")
     assert r.returncode == 0, r.stderr
-    from recorder.log import open_log
+    from recorder.mcap.log import open_log
 
     recorded = [x.scan for x in open_log(log).scans()]
     assert [s.capture_time_ns for s in recorded] == stamps
@@ -438,7 +438,7 @@ def test_replay_and_import_take_a_bag_directly(tmp_path: Path, scans: list[Scan]
     assert "not diffed" in r.stderr
     r = invoke("import", str(bag), "--out", str(tmp_path / "imp.mcap"))
     assert r.returncode == 0, r.stderr
-    from recorder.log import open_log
+    from recorder.mcap.log import open_log
 
     direct = list(read_scans(bag))
     for path in (tmp_path / "rep" / "bag.mcap", tmp_path / "imp.mcap"):
@@ -454,7 +454,7 @@ def test_publish_ros2_writes_poses_and_markers_standard_tools_read(
     out, log = tmp_path / "surfaces.mcap", tmp_path / "run.mcap"
     r = invoke("run", str(bag), "--record", str(log), "--publish-ros2", str(out), "--quiet")
     assert r.returncode == 0, r.stderr
-    from recorder.log import open_log
+    from recorder.mcap.log import open_log
 
     results = [(x.scan, x.products["surfaces"]) for x in open_log(log).scans()]
     assert sum(len(s.width) for _, s in results) > 0
@@ -516,8 +516,8 @@ def test_a_boxloc_log_is_not_a_bag_and_bags_cost_nothing_at_start_up(tmp_path: P
     assert not is_rosbag(log) and not is_rosbag(tmp_path / "s.npz")
     assert is_rosbag(write_depth_bag(tmp_path / "b.db3", scans[:1], storage="sqlite3",
                                      single_file=True))
-    code = ("import sys; import boxloc.cli, boxloc.io, recorder.cli, recorder.import_cmd, "
-            "replay.cli; from boxloc.io import read_scans; "
+    code = ("import sys; import boxloc.cli, boxloc.io, recorder.commands, recorder.import_cmd, "
+            "replay.commands; from boxloc.io import read_scans; "
             f"list(read_scans({str(tmp_path / 's.npz')!r})); "
             "print(sorted(m for m in sys.modules if m.startswith('rosbags')))")
     p = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,

@@ -1,4 +1,4 @@
-"""The scan's own noise model (boxloc.scan_noise) and its NOISE_FIT test."""
+"""The scan's own noise model (boxloc.stages.scan_noise) and its NOISE_FIT test."""
 
 from __future__ import annotations
 
@@ -11,8 +11,8 @@ from boxloc.config import Config
 from boxloc.pipeline import find_graspable_surfaces
 from boxloc.products import NoiseSource, products_equal
 from boxloc.scan import NoiseModel
-from boxloc.scan_noise import MIN_FLAT_TILES, estimate_scan_noise
 from boxloc.simulate import simulate
+from boxloc.stages.scan_noise import MIN_FLAT_TILES, estimate_scan_noise
 from boxloc.stats import TestKind
 
 SCENE = "pallet:width=320,height=240,f=262.5,distance=1.5"
@@ -124,8 +124,8 @@ def test_locate_warns_when_the_model_does_not_fit(noisy, tmp_path) -> None:  # t
 
 
 def test_the_estimate_is_recorded_and_explained(noisy, tmp_path) -> None:  # type: ignore[no-untyped-def]
-    from recorder.log import open_log
-    from recorder.mcap_sink import McapRecorder
+    from recorder.mcap.log import open_log
+    from recorder.mcap.sink import McapRecorder
     from replay.explain import explain, format_explanation
 
     cfg = Config(noise_auto=True)

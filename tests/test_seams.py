@@ -7,10 +7,10 @@ import pytest
 from scipy import stats as st
 
 from boxloc.config import Config
-from boxloc.metrics import match_surfaces
+from boxloc.evaluate.metrics import match_surfaces
 from boxloc.pipeline import find_graspable_surfaces
 from boxloc.products import DimensionSource, VerifyReason
-from boxloc.seams import find_seams, gap_z, seam_at, seam_z
+from boxloc.stages.seams import find_seams, gap_z, seam_at, seam_z
 from boxloc.stats import TestKind
 from tests.scenes import box, scene
 
@@ -201,7 +201,7 @@ def test_seam_tests_are_recorded_for_a_post_mortem(block_of_four):
 def test_window_sums_match_a_direct_count():
     # the windows are counted over the points some window can reach: the same counts and
     # sums as over all of them, for a search across the face and for one near a side
-    from boxloc.seams import _in_reach, _window_offsets, _windows
+    from boxloc.stages.seams import _in_reach, _window_offsets, _windows
     rng = np.random.default_rng(7)
     h = 0.002
     coord = rng.uniform(-0.05, 0.25, 20000)

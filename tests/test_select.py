@@ -6,7 +6,7 @@ import numpy as np
 
 from boxloc.config import Config
 from boxloc.products import SelectReason, Verification
-from boxloc.select import select
+from boxloc.stages.select import select
 from boxloc.stats import TestTable
 
 

@@ -1,10 +1,10 @@
-"""The simulator's sensor zoo and scene additions (boxloc.sensor_zoo, boxloc.simulate).
+"""The simulator's sensor zoo and scene additions (boxloc.simulate.zoo, boxloc.simulate).
 
 The sensor models are checked against the figures they are documented by (datasheets,
 literature and the measured active-stereo figures of issue 20), with a residual estimator
 written here: 16 px tiles, a least-squares plane per tile, robust sigma, correlation at lags
 1, 2, 4, 8 along rows and columns, the row-common share (one-way ANOVA), tails. It uses
-nothing of ``boxloc.noise`` or ``NoiseModel``.
+nothing of ``boxloc.calibrate.noise`` or ``NoiseModel``.
 """
 
 from __future__ import annotations
@@ -17,7 +17,6 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 
-from boxloc import sensor_zoo as zoo
 from boxloc.cli import cli
 from boxloc.errors import InputError
 from boxloc.simulate import (
@@ -31,6 +30,7 @@ from boxloc.simulate import (
     parse_spec,
     scene_suite,
     simulate,
+    zoo,
 )
 
 LAGS = (1, 2, 4, 8)

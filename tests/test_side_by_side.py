@@ -18,7 +18,7 @@ from click.testing import CliRunner
 from boxloc.cli import cli
 from boxloc.config import Config
 from boxloc.errors import InputError
-from recorder.rerun_sink import rerun_executable
+from recorder.rerun.sink import rerun_executable
 from replay.diff import diff_logs
 from replay.side_by_side import (
     BASELINE,

@@ -12,11 +12,11 @@ import pytest
 from click.testing import CliRunner
 from scipy.ndimage import binary_dilation, binary_erosion, distance_transform_edt
 
+from boxloc.calibrate.noise import estimate_noise
 from boxloc.cli import cli
 from boxloc.config import Config
 from boxloc.errors import InputError
 from boxloc.io import read_scan
-from boxloc.noise import estimate_noise
 from boxloc.products import products_equal
 from boxloc.scan import NoiseModel, PinholeModel, Scan
 from boxloc.simulate import (

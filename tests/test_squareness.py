@@ -11,11 +11,11 @@ from cli_run import invoke
 from real_data import MOSD
 from scenes import box, scene, wall
 
+from boxloc.calibrate.squareness import corner_departures, estimate_angle_tolerance
 from boxloc.config import Config
 from boxloc.errors import InputError
 from boxloc.scan import Scan
 from boxloc.simulate import save_npz, simulate
-from boxloc.squareness import corner_departures, estimate_angle_tolerance
 
 
 @pytest.fixture(scope="module")

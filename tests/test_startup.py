@@ -23,7 +23,7 @@ ROOT = Path(__file__).resolve().parents[1]
 
 #: modules only the recording, viewing, baseline and replay verbs need
 HEAVY = ("open3d", "rerun", "dask", "distributed", "mcap", "mcap_protobuf", "pyarrow",
-         "recorder.mcap_sink", "recorder.rerun_sink", "replay.executors")
+         "recorder.mcap.sink", "recorder.rerun.sink", "replay.executors")
 #: what `boxloc --help` does without, too: the algorithm's own dependencies
 ALGORITHM = ("numpy", "scipy", "numba", "cv2", "rich")
 

@@ -7,10 +7,10 @@ import pytest
 from scipy import stats as st
 
 from boxloc.config import Config
-from boxloc.lines import fit_segment
 from boxloc.products import LineSet
+from boxloc.stages.lines import fit_segment
+from boxloc.stages.vertices import find_vertices
 from boxloc.stats import TestKind, TestTable, chi2_critical, chi2_test
-from boxloc.vertices import find_vertices
 
 
 def test_chi2_test_matches_scipy():

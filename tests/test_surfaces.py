@@ -6,10 +6,10 @@ import numpy as np
 import pytest
 
 from boxloc.config import Config
-from boxloc.metrics import match_surfaces
+from boxloc.evaluate.metrics import match_surfaces
 from boxloc.pipeline import find_graspable_surfaces
+from boxloc.stages.surfaces import fit_bulge
 from boxloc.stats import TestKind
-from boxloc.surfaces import fit_bulge
 from tests.scenes import box, scene
 
 X, Y, N = np.eye(3)

@@ -21,11 +21,11 @@ from foxglove_schemas_protobuf.RawImage_pb2 import RawImage
 
 from boxloc.errors import InputError, LogError
 from boxloc.io import read_scan
-from recorder import encode as E
 from recorder.fuzz import PICKLE_BOMB, LogModel, read_log_model, write_log_model
-from recorder.log import open_log
-from recorder.mcap_sink import McapRecorder
-from recorder.proto import message_class
+from recorder.mcap import encode as E
+from recorder.mcap.log import open_log
+from recorder.mcap.proto import message_class
+from recorder.mcap.sink import McapRecorder
 
 ROOT = Path(__file__).resolve().parents[1]
 TAG = uuid.uuid4().hex[:10]

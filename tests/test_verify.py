@@ -10,8 +10,8 @@ import pytest
 from boxloc.config import Config
 from boxloc.pipeline import find_graspable_surfaces
 from boxloc.products import EdgeKind, VerifyReason
+from boxloc.stages.verify import VerifyContext, continuation, face_extent, rasterize, verify
 from boxloc.stats import TestKind
-from boxloc.verify import VerifyContext, continuation, face_extent, rasterize, verify
 from tests.scenes import box, scene
 
 
@@ -202,7 +202,7 @@ def test_a_side_with_a_few_seam_edges_is_covered_by_its_seam():
     # bench scene 97 (a partly unloaded neat layer at 1.8 m): a top whose sides have
     # their lines of edges, or a seam, but short lines; together they covered 16 % of the
     # perimeter against p = 30 %, until the seams along them counted as whole sides
-    from boxloc.metrics import match_surfaces
+    from boxloc.evaluate.metrics import match_surfaces
     from boxloc.simulate import parse_spec, simulate
     sim = simulate(parse_spec("partial:seed=1430152010,distance=1.84,tilt=0.23,bulge=0.0146"))
     r = find_graspable_surfaces(sim.scan, Config())
@@ -263,7 +263,7 @@ def test_an_edge_crossing_the_interior_rejects_the_face(single_box):
 def test_interior_line_measures_scatter_over_the_interior_only():
     # a narrow face (5 x 20 cm, 1.6 mm spacing): its interior is a strip 15 mm wide, and
     # scatter confined to it is no line, though over the whole 5 cm it would look like one
-    from boxloc.verify import _interior_line
+    from boxloc.stages.verify import _interior_line
     w, l_, spacing, mi = 0.05, 0.20, 0.0016, 0.0175
     rng = np.random.default_rng(1)
     u, v = rng.uniform(mi, w - mi, 20), rng.uniform(mi, l_ - mi, 20)

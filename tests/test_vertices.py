@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 
 from boxloc.config import Config
+from boxloc.stages.vertices import find_vertices
 from boxloc.stats import TestKind
-from boxloc.vertices import find_vertices
 from tests.test_stats import _line, _lineset
 
 X, Y, Z = np.eye(3)
@@ -114,7 +114,7 @@ def _crease_corner(kind_a: int) -> tuple:
 
 def test_a_convex_crease_corner_is_also_a_vertex_of_the_face_across_it():
     from boxloc.products import EdgeKind
-    from boxloc.vertices import THIRD_EDGE
+    from boxloc.stages.vertices import THIRD_EDGE
     corner, L = _crease_corner(EdgeKind.CREASE_CONVEX)
     V = find_vertices(L, config=Config())
     assert len(V) == 2

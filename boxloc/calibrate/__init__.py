@@ -1,0 +1,1 @@
+"""Estimating sensor parameters from scans: range noise, edge blur, squareness."""

@@ -1,0 +1,876 @@
+"""The matrix benchmark: sensor x scene kind, with the default configuration only.
+
+``boxloc bench --matrix`` runs :func:`run_matrix_bench` on the scenes of
+:func:`boxloc.simulate.matrix_suite` (scene ``i``: sensor ``SENSORS[i % 4]``, kind
+``MATRIX_KINDS[(i // 4) % 8]``), each scan in a worker process under a wall-time limit, and
+scores every scan with :func:`boxloc.evaluate.metrics.match_surfaces` (the simulated bench's
+:func:`boxloc.evaluate.scene_bench._run_boxloc`: timing, peak RSS, match, edge report).
+
+The configuration is ``Config()`` with one site input, the smallest and largest box
+(``min_edge``, ``max_edge``): the simulator's documented box footprint range
+(``SceneSpec.min_edge``, ``SceneSpec.max_edge``), a physical fact of the scenes, the same for
+every scene. No other setting and no noise model fitted elsewhere: the verb refuses
+``--set`` and ``--config`` with ``--matrix``, so every figure here is a default-configuration
+figure. ``--seeds N`` runs each scene with ``trial_seed`` +0..N-1 (other draws of the random
+trials, not other settings); every figure pools the draws.
+
+One sensor model is held out of the localizer's development (``held_out``, default ``tof``):
+its cells are reported separately, and every overall figure and target is given twice,
+``development`` (without it) and ``all`` (with it).
+
+A scan that takes longer than ``scan_timeout`` seconds (from the end of its simulation) is
+stopped by killing its worker process; it counts as a failure: nothing found (every exposed
+top missed, no surface on a no-box scan but not a clean one either), its time the limit (a
+lower bound), and it is listed under ``timeouts``. A crash of the localizer likewise scores
+as nothing found and is listed under ``errors``. The scans' results do not depend on
+``jobs``: every scan is seeded from its own content, and the rows keep the suite's order.
+
+Layout of ``bench_matrix.json`` (schema ``boxloc.bench_matrix/1``; lengths in the figures
+are millimetres where named ``*_mm``, times milliseconds where named ``*_ms``):
+
+- ``schema``, ``version``, ``mode`` (``"matrix"``), ``n`` scenes, ``seed`` of the suite,
+  ``jobs``, ``scan_timeout_s``, ``warmup``, ``threads`` (a worker's thread pinning)
+- ``default_configuration``: true (the verb refuses anything else); ``config`` (every value
+  as run), ``config_hash``, ``site``: ``min_edge``, ``max_edge`` (metres, the only values
+  set), ``source`` and ``observed`` (the smallest and largest top edge in the scenes' truth)
+- ``held_out``: ``sensor``, ``cells`` (the keys of its cells)
+- ``sensors``, ``kinds``, ``no_box_kinds``: the axes, in order
+- ``seeds``: the draws of the random trials (:func:`boxloc.evaluate.scene_bench.draw_figures`
+  per sensor)
+- ``groups``: figures (see below) for ``overall`` (``development`` and ``all``),
+  ``sensors`` (per sensor), ``kinds`` (per kind: ``development`` and ``all``) and ``cells``
+  (key ``"sensor/kind"``; each also has ``sensor``, ``kind``, ``held_out``)
+- ``targets``: one row per entry of :data:`MATRIX_TARGETS`: ``name``, ``key``, ``over``
+  (``cell``, ``sensor`` or ``overall``), ``op``, ``bound``, ``target`` (text), ``unit``,
+  and per scope (``development``, ``all``) ``value`` (the worst group's figure for
+  ``cell``/``sensor``), ``where`` (that group) and ``pass`` (true, false, or null: no data)
+- ``timeouts``: one entry per timed-out scan: ``scene``, ``trial_seed``, ``sensor``,
+  ``kind``, ``spec_text``, ``phase`` (``simulate``, ``localize`` or ``warmup``), ``limit_s``
+- ``errors``: ``total`` and ``list`` (``scene``, ``trial_seed``, ``sensor``, ``kind``,
+  ``phase``, ``error``) of scans that crashed (localizer, simulator, worker process)
+- ``timing``: ``stages_ms`` (median, p95 per stage over the scans that finished),
+  ``total_ms`` (median, p95 over all scans), ``per_scan_ms`` (in the order of ``scenes``; a
+  timed-out scan's is the limit, so a maximum or ratio over it is a lower bound), ``run_s``
+- ``memory``: the workers' peak RSS per scan (median and max, MB) and this process's
+- ``scenes``: one deterministic row per scan (scene and draw, in suite order): ``index``,
+  ``trial_seed``, ``sensor``, ``kind``, ``held_out``, ``spec``, ``spec_text``,
+  ``n_faces``, ``n_exposed``, ``pixels``, ``status`` (``ok``, ``error``, ``timeout``),
+  ``error``, ``match`` (:meth:`boxloc.evaluate.metrics.Match.to_dict`), ``edges``
+  (:func:`boxloc.evaluate.metrics.edge_report`, null without an edge map); no durations, so two
+  runs' rows compare equal
+
+Figures of a group (:func:`group_figures`): ``n_scenes``, ``n_scans``, every key of
+:func:`boxloc.evaluate.metrics.aggregate_matches` (``n_exposed`` exposed tops, ``tp``, ``fp``,
+``fn`` misses, ``n_pred`` surfaces found, ``precision``, ``recall``,
+``grasp_err_median_mm``, ``grasp_err_p95_mm``, ...), ``errors``, ``timeouts``, ``time``
+(``median_ms``, ``p99_ms``, ``max_ms``, ``max_over_median``) and ``no_box`` (null without a
+scan of a no-box kind):
+``n_scans``, ``false_surfaces``, ``false_surfaces_per_scan``, ``zero_surface_scans``,
+``zero_surface_share`` (a timed-out or crashed scan is not a clean one), ``edge_scans``
+(the scans with an edge map), ``pixels`` (their image pixels), ``edge_points`` (pixels
+labelled an edge in ``result.edges``), ``false_edge_points`` (those farther than 1 px from
+a true edge: the bare pallet of ``empty`` has real edges), ``edge_points_per_pixel``,
+``false_edge_points_per_pixel``.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import dataclasses
+import json
+import multiprocessing
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from multiprocessing.connection import Connection
+from multiprocessing.connection import wait as mp_wait
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from boxloc import __version__
+from boxloc.config import Config
+from boxloc.errors import InputError
+from boxloc.evaluate.metrics import Match, aggregate_matches, prf
+from boxloc.evaluate.scene_bench import (
+    _default_localizer,
+    _err,
+    _fmt,
+    _jsonable,
+    _limit_threads,
+    _MethodRun,
+    _run_boxloc,
+    _spec_dict,
+    _spec_text,
+    _timing,
+    draw_figures,
+    print_draws,
+    process_max_rss_mb,
+    progress_bar,
+    trial_configs,
+)
+
+SCHEMA = "boxloc.bench_matrix/1"
+#: The sensor model left out of the localizer's development (issue 20, part 5).
+HELD_OUT = "tof"
+#: Scene kinds with no box: every surface found there is false.
+NO_BOX_KINDS: tuple[str, ...] = ("empty", "floor")
+#: Scenes of the default suite: 10 per cell.
+DEFAULT_N = 320
+#: Seconds a scan may take (from the end of its simulation) before its worker is killed.
+DEFAULT_SCAN_TIMEOUT = 120.0
+#: The two scopes of every overall figure and target.
+SCOPES: tuple[str, ...] = ("development", "all")
+REPORT_NAME = "bench_matrix.json"
+TABLE_NAME = "bench_matrix.txt"
+
+Localizer = Callable[[Any, Config], Any]
+
+
+@dataclass(frozen=True)
+class MatrixTarget:
+    """One target of the matrix benchmark.
+
+    ``key`` is a figure of :func:`group_figures` (a dotted path into it); ``over`` says
+    which groups it must hold in: ``"cell"`` (every sensor x kind cell), ``"sensor"`` (every
+    sensor) or ``"overall"``; for the first two the worst group's figure is the value.
+    The bound is ``value``, or ``alpha_times`` times the configuration's ``alpha``.
+    """
+
+    name: str
+    over: str
+    key: str
+    op: str
+    value: float | None = None
+    alpha_times: float | None = None
+    unit: str = ""
+
+    def bound(self, config: Config) -> float:
+        if self.alpha_times is not None:
+            return self.alpha_times * config.alpha
+        assert self.value is not None
+        return self.value
+
+    def text(self, config: Config) -> str:
+        b = self.bound(config)
+        if self.alpha_times is not None:
+            return f"{self.op} {self.alpha_times:g} alpha = {b:g}"
+        return f"{self.op} {b:g}{(' ' + self.unit) if self.unit else ''}"
+
+
+#: The targets of issue 20, in one place.
+MATRIX_TARGETS: tuple[MatrixTarget, ...] = (
+    MatrixTarget("precision in every cell", "cell", "precision", ">=", 0.98),
+    MatrixTarget("recall overall", "overall", "recall", ">=", 0.9),
+    MatrixTarget("no-box scans with zero surfaces, every sensor", "sensor",
+                 "no_box.zero_surface_share", ">=", 0.99),
+    MatrixTarget("median grasp error", "overall", "grasp_err_median_mm", "<=", 3.0, unit="mm"),
+    MatrixTarget("slowest scan / median scan", "overall", "time.max_over_median", "<=", 10.0),
+    MatrixTarget("false edge points per pixel on no-box scans, every sensor", "sensor",
+                 "no_box.false_edge_points_per_pixel", "<=", alpha_times=2.0),
+)
+
+
+# --- the site input ----------------------------------------------------------------------
+
+
+def site_box_range() -> tuple[float, float]:
+    """The simulator's documented box footprint range, metres: ``SceneSpec``'s defaults of
+    ``min_edge`` and ``max_edge`` (``matrix_suite`` never changes them)."""
+    from boxloc.simulate import SceneSpec
+
+    spec = SceneSpec()
+    return float(spec.min_edge), float(spec.max_edge)
+
+
+def matrix_config(specs: Sequence[Any]) -> tuple[Config, dict[str, Any]]:
+    """``Config()`` with the site's box range, and the ``site`` section that says so.
+
+    Raises
+    ------
+    InputError
+        If a scene's box range is not the simulator's documented one (the one site input
+        must be the same for every scene).
+    """
+    lo, hi = site_box_range()
+    for s in specs:
+        if (getattr(s, "min_edge", lo), getattr(s, "max_edge", hi)) != (lo, hi):
+            raise InputError(f"matrix scene with box range {s.min_edge}-{s.max_edge} m, not "
+                             f"the simulator's {lo}-{hi} m: one site input for every scene")
+    site = {"min_edge": lo, "max_edge": hi,
+            "source": "boxloc.simulate.SceneSpec min_edge/max_edge defaults: the box "
+                      "footprint range every matrix scene is drawn from"}
+    return Config(min_edge=lo, max_edge=hi), site
+
+
+# --- one scan, in a worker process ---------------------------------------------------------
+
+
+@dataclass
+class _Outcome:
+    """One scan (scene and draw) as the parent sees it."""
+
+    index: int
+    trial_seed: int
+    sensor: str
+    kind: str
+    status: str = "ok"
+    phase: str | None = None
+    error: str | None = None
+    run: _MethodRun | None = None
+    match: Match | None = None
+    meta: dict[str, Any] = field(default_factory=dict)
+    wall_ms: float | None = None
+
+    @property
+    def group(self) -> str:  # for draw_figures: the draws per sensor
+        return self.sensor
+
+    @property
+    def edges(self) -> dict[str, Any] | None:
+        return self.run.edges if self.run is not None else None
+
+
+def _nothing_found(truth: Any) -> Match:
+    """The match of "found nothing" (a crashed or timed-out scan)."""
+    from boxloc.evaluate.scene_bench import _empty_match
+
+    return _empty_match(truth)
+
+
+def _meta(sim: Any) -> dict[str, Any]:
+    truth = sim.truth
+    h, w = sim.scan.range.shape[:2]
+    t = truth if len(truth) else None
+    return {"n_faces": int(len(truth)), "n_exposed": int(np.asarray(truth.fully_exposed).sum()),
+            "pixels": int(h * w), "spec": _spec_dict(sim.spec), "spec_text": _spec_text(sim.spec),
+            "edge_min": float(np.min(t.width)) if t is not None else None,
+            "edge_max": float(np.max(t.length)) if t is not None else None,
+            "nothing": _nothing_found(truth)}
+
+
+def _scan_task(conn: Connection | None, task: int, spec: Any, config: Config,
+               localizer: Localizer) -> dict[str, Any]:
+    """Simulate one scene and run the localizer on it (``conn``: say when it starts)."""
+    from boxloc.simulate import simulate
+
+    try:
+        sim = simulate(spec)
+        meta = _meta(sim)
+    except Exception as e:  # noqa: BLE001 - a scene that cannot be made is a reported error
+        return {"status": "error", "phase": "simulate", "error": _err(e)}
+    if conn is not None:
+        conn.send(("started", task, meta))
+    run = _run_boxloc(localizer, sim.scan, sim.truth, config)
+    if run.error is not None:
+        run.match = meta["nothing"]
+        return {"status": "error", "phase": "localize", "error": run.error, "run": run,
+                "meta": meta}
+    return {"status": "ok", "run": run, "meta": meta}
+
+
+def _warmup_spec(specs: Sequence[Any]) -> Any:
+    """The first scene at 160 x 120: loads numba's cache and lazy imports, untimed."""
+    s = specs[0]
+    return dataclasses.replace(s, width=160, height=120, f=float(s.f) * 160 / s.width)
+
+
+def _worker_main(conn: Connection, localizer: Localizer, warm: tuple[Any, Config] | None) -> None:
+    """A worker: pin threads, warm up, then run the scans it is sent until ``None``."""
+    with contextlib.suppress(KeyboardInterrupt, BrokenPipeError, EOFError):
+        threads = _limit_threads()
+        if warm is not None:
+            from boxloc.simulate import simulate
+
+            with contextlib.suppress(Exception):
+                localizer(simulate(warm[0]).scan, warm[1])
+        conn.send(("ready", threads))
+        while True:
+            msg = conn.recv()
+            if msg is None:
+                return
+            task, spec, config = msg
+            conn.send(("done", task, _scan_task(conn, task, spec, config, localizer)))
+
+
+def _context() -> Any:
+    """fork where there is one: the workers inherit the imported pipeline (and, in tests, a
+    monkeypatched localizer); the parent runs no numba and no threads of its own when they
+    start, apart from the progress bar's, which they never touch."""
+    methods = multiprocessing.get_all_start_methods()
+    return multiprocessing.get_context("fork" if "fork" in methods else "spawn")
+
+
+@dataclass
+class _Slot:
+    proc: Any
+    conn: Connection
+    ready: bool = False
+    task: int | None = None
+    started: float | None = None
+    deadline: float = float("inf")
+    meta: dict[str, Any] | None = None
+
+
+class _Workers:
+    """``jobs`` worker processes, each running one scan at a time under a deadline."""
+
+    def __init__(self, localizer: Localizer, jobs: int, warm: tuple[Any, Config] | None,
+                 limit: float | None) -> None:
+        self.ctx = _context()
+        self.localizer, self.warm, self.limit = localizer, warm, limit
+        self.slots: list[_Slot] = []
+        self.threads: dict[str, Any] | None = None
+        self.warmup_timeouts = 0
+        for _ in range(jobs):
+            self.start()
+
+    def start(self, warm: bool = True) -> _Slot:
+        parent, child = self.ctx.Pipe()
+        w = self.warm if warm else None
+        proc = self.ctx.Process(target=_worker_main, args=(child, self.localizer, w),
+                                daemon=True)
+        proc.start()
+        child.close()
+        slot = _Slot(proc, parent, deadline=self._deadline())
+        self.slots.append(slot)
+        return slot
+
+    def _deadline(self) -> float:
+        return float("inf") if self.limit is None else time.monotonic() + self.limit
+
+    def kill(self, slot: _Slot) -> None:
+        """Stop a worker now (our own child, by its handle) and forget it."""
+        self.slots.remove(slot)
+        with contextlib.suppress(OSError):
+            slot.conn.close()
+        if slot.proc.is_alive():
+            slot.proc.kill()
+        slot.proc.join(timeout=10)
+
+    def close(self) -> None:
+        for slot in list(self.slots):
+            with contextlib.suppress(OSError, ValueError):
+                slot.conn.send(None)
+        for slot in list(self.slots):
+            slot.proc.join(timeout=5)
+            self.kill(slot)
+
+    def send(self, slot: _Slot, task: int, spec: Any, config: Config) -> None:
+        slot.task, slot.started, slot.meta = task, None, None
+        slot.deadline = self._deadline()  # the simulation has the same limit
+        slot.conn.send((task, spec, config))
+
+    def wait(self) -> list[_Slot]:
+        """The slots with a message, a dead process or a passed deadline."""
+        soonest = min((s.deadline for s in self.slots), default=float("inf"))
+        timeout = None if soonest == float("inf") else max(0.0, soonest - time.monotonic())
+        handles = [s.conn for s in self.slots] + [s.proc.sentinel for s in self.slots]
+        hit = set(mp_wait(handles, timeout))
+        now = time.monotonic()
+        return [s for s in self.slots
+                if s.conn in hit or s.proc.sentinel in hit or s.deadline <= now]
+
+
+def _run_tasks(tasks: Sequence[tuple[int, Any, Config]], localizer: Localizer, jobs: int,
+               limit: float | None, warm: tuple[Any, Config] | None,
+               on_done: Callable[[int, dict[str, Any]], None],
+               on_start: Callable[[int], None] | None = None) -> dict[str, Any]:
+    """Run every task on worker processes; ``on_done(task, result)`` as each ends.
+
+    A result is the worker's (:func:`_scan_task`), or ``{"status": "timeout" | "error",
+    "phase", "error", "meta", "wall_ms"}`` made here when the worker was killed at its
+    deadline or died. Returns the workers' thread pinning and the warm-up timeouts.
+    """
+    queue = list(range(len(tasks)))[::-1]
+    pool = _Workers(localizer, min(jobs, len(tasks)), warm, limit)
+    done = 0
+    try:
+        while done < len(tasks):
+            for s in pool.slots:
+                if s.ready and s.task is None and queue:
+                    i = queue.pop()
+                    pool.send(s, i, tasks[i][1], tasks[i][2])
+                    if on_start is not None:
+                        on_start(i)
+            for s in pool.wait():
+                try:
+                    msg = s.conn.recv() if s.conn.poll() else None
+                except (EOFError, OSError):
+                    msg = None
+                if msg is not None:
+                    if msg[0] == "ready":
+                        s.ready, s.deadline = True, float("inf")
+                        pool.threads = pool.threads or msg[1]
+                    elif msg[0] == "started":
+                        s.started, s.meta, s.deadline = time.monotonic(), msg[2], pool._deadline()
+                    else:
+                        assert s.task is not None
+                        on_done(s.task, msg[2])
+                        done += 1
+                        s.task, s.deadline = None, float("inf")
+                    continue
+                alive = s.proc.is_alive()
+                if alive and s.deadline > time.monotonic():
+                    continue  # woken by its sentinel's neighbour: nothing for this one
+                pool.kill(s)
+                if s.task is None:  # lost while warming up (or idle): a new one, cold
+                    pool.warmup_timeouts += alive
+                    pool.start(warm=False)
+                    continue
+                phase = "localize" if s.started is not None else "simulate"
+                if alive:
+                    res = {"status": "timeout", "phase": phase, "meta": s.meta,
+                           "error": f"no result within the scan limit of {limit:g} s",
+                           "wall_ms": None if limit is None else limit * 1e3}
+                else:
+                    res = {"status": "error", "phase": phase, "meta": s.meta,
+                           "error": f"the worker process died (exit code {s.proc.exitcode})"}
+                on_done(s.task, res)
+                done += 1
+                if queue:
+                    pool.start()
+    finally:
+        pool.close()
+    return {"threads": pool.threads, "warmup_timeouts": pool.warmup_timeouts}
+
+
+# --- figures -----------------------------------------------------------------------------
+
+
+def _pct(a: np.ndarray, q: float) -> float | None:
+    return float(np.percentile(a, q)) if a.size else None
+
+
+def _time_figures(outs: Sequence[_Outcome]) -> dict[str, Any]:
+    walls = np.asarray([o.wall_ms for o in outs if o.wall_ms is not None], dtype=np.float64)
+    med, mx = _pct(walls, 50), (float(walls.max()) if walls.size else None)
+    return {"median_ms": med, "p99_ms": _pct(walls, 99), "max_ms": mx,
+            "max_over_median": (mx / med) if med and mx is not None else None}
+
+
+def _no_box_figures(outs: Sequence[_Outcome]) -> dict[str, Any] | None:
+    sel = [o for o in outs if o.kind in NO_BOX_KINDS]
+    if not sel:
+        return None
+    n = len(sel)
+    false_surfaces = sum(o.match.n_pred for o in sel if o.match is not None)
+    clean = sum(o.status == "ok" and o.match is not None and o.match.n_pred == 0 for o in sel)
+    # (pixels, edge pixels, of which near a true edge) of the scans with an edge map
+    counts = [(int(o.meta["pixels"]), int(e["any"]["n_pred"]), int(e["any"]["correct"]))
+              for o in sel if o.status == "ok" and (e := o.edges) is not None]
+    pixels = sum(c[0] for c in counts)
+    pts = sum(c[1] for c in counts)
+    false_pts = sum(c[1] - c[2] for c in counts)
+    return {"n_scans": n, "false_surfaces": false_surfaces,
+            "false_surfaces_per_scan": false_surfaces / n, "zero_surface_scans": clean,
+            "zero_surface_share": clean / n, "edge_scans": len(counts), "pixels": pixels,
+            "edge_points": pts, "false_edge_points": false_pts,
+            "edge_points_per_pixel": pts / pixels if pixels else None,
+            "false_edge_points_per_pixel": false_pts / pixels if pixels else None}
+
+
+def group_figures(outs: Sequence[_Outcome]) -> dict[str, Any]:
+    """The figures of a group of scans (see the module docstring)."""
+    agg = aggregate_matches(o.match for o in outs if o.match is not None)
+    return {"n_scenes": len({o.index for o in outs}), **agg,
+            "errors": sum(o.status == "error" for o in outs),
+            "timeouts": sum(o.status == "timeout" for o in outs),
+            "time": _time_figures(outs), "no_box": _no_box_figures(outs)}
+
+
+def _groups(outs: Sequence[_Outcome], sensors: Sequence[str], kinds: Sequence[str],
+            held_out: str) -> dict[str, Any]:
+    dev = [o for o in outs if o.sensor != held_out]
+    cells: dict[str, Any] = {}
+    for s in sensors:
+        for k in kinds:
+            sel = [o for o in outs if o.sensor == s and o.kind == k]
+            if sel:
+                cells[f"{s}/{k}"] = {"sensor": s, "kind": k, "held_out": s == held_out,
+                                     **group_figures(sel)}
+    return {
+        "overall": {"development": group_figures(dev), "all": group_figures(outs)},
+        "sensors": {s: {"held_out": s == held_out,
+                        **group_figures([o for o in outs if o.sensor == s])}
+                    for s in sensors if any(o.sensor == s for o in outs)},
+        "kinds": {k: {"development": group_figures([o for o in dev if o.kind == k]),
+                      "all": group_figures([o for o in outs if o.kind == k])}
+                  for k in kinds if any(o.kind == k for o in outs)},
+        "cells": cells,
+    }
+
+
+def _get(fig: dict[str, Any] | None, key: str) -> Any:
+    for part in key.split("."):
+        if not isinstance(fig, dict):
+            return None
+        fig = fig.get(part)
+    return fig
+
+
+def evaluate_matrix_targets(groups: dict[str, Any], config: Config,
+                            held_out: str) -> list[dict[str, Any]]:
+    """Each of :data:`MATRIX_TARGETS` in both scopes: the worst group's value, where, pass."""
+    rows = []
+    for t in MATRIX_TARGETS:
+        b = t.bound(config)
+        row: dict[str, Any] = {"name": t.name, "key": t.key, "over": t.over, "op": t.op,
+                               "bound": b, "target": t.text(config), "unit": t.unit}
+        for scope in SCOPES:
+            if t.over == "overall":
+                cands = [("overall", groups["overall"][scope])]
+            else:
+                table = groups["cells" if t.over == "cell" else "sensors"]
+                cands = [(name, g) for name, g in table.items()
+                         if scope == "all" or not g["held_out"]]
+            vals = [(name, _get(g, t.key)) for name, g in cands]
+            vals = [(name, v) for name, v in vals if v is not None]
+            if not vals:
+                row[scope] = {"value": None, "where": None, "pass": None}
+                continue
+            where, v = (min if t.op == ">=" else max)(vals, key=lambda nv: nv[1])
+            ok = v >= b if t.op == ">=" else v <= b
+            row[scope] = {"value": v, "where": where, "pass": bool(ok)}
+        rows.append(row)
+    return rows
+
+
+# --- the run -----------------------------------------------------------------------------
+
+
+def run_matrix_bench(
+    n: int = DEFAULT_N,
+    seed: int = 0,
+    *,
+    out: Path | str | None = None,
+    jobs: int = 1,
+    seeds: int = 1,
+    held_out: str = HELD_OUT,
+    scan_timeout: float | None = DEFAULT_SCAN_TIMEOUT,
+    specs: Sequence[Any] | None = None,
+    localizer: Localizer | None = None,
+    warmup: bool = True,
+    progress: bool = True,
+    console: Any = None,
+) -> dict[str, Any]:
+    """The sensor x scene-kind benchmark with the default configuration.
+
+    Parameters
+    ----------
+    n, seed : int
+        The scenes are ``boxloc.simulate.matrix_suite(n, seed)``.
+    out : path, optional
+        Directory for ``bench_matrix.json`` and ``bench_matrix.txt`` (the printed tables).
+    jobs : int
+        Worker processes (>= 1). The rows and figures do not depend on it (times do).
+    seeds : int
+        Draws of the random trials per scene (``trial_seed`` +0..seeds-1), pooled.
+    held_out : str
+        The sensor model left out of development; reported apart and recorded.
+    scan_timeout : float or None
+        Seconds a scan may run (after its simulation) before its worker is killed and the
+        scan counts as a timed-out failure; None: no limit.
+    specs : sequence of SceneSpec, optional
+        These scenes instead of the suite (tests use tiny ones).
+    localizer : callable, optional
+        ``(scan, config) -> Result``-like; default the pipeline. Runs in the workers (fork:
+        any callable; spawn: a picklable one).
+    warmup : bool
+        Each worker runs the localizer once on a 160 x 120 copy of the first scene first.
+    progress : bool
+        Show a progress bar and print the tables (rich, stderr).
+    console : rich.console.Console, optional
+
+    Returns
+    -------
+    dict
+        The report (see the module docstring).
+
+    Raises
+    ------
+    InputError
+        On n < 1, jobs < 1, seeds < 1, a non-positive timeout or an unknown sensor.
+    """
+    from boxloc.simulate import MATRIX_KINDS, SENSORS, matrix_suite
+
+    if held_out not in SENSORS:
+        raise InputError(f"--held-out must be one of {', '.join(SENSORS)}, got {held_out!r}")
+    if isinstance(jobs, bool) or not isinstance(jobs, int) or jobs < 1:
+        raise InputError(f"--jobs must be an integer >= 1, got {jobs!r}")
+    if scan_timeout is not None and not scan_timeout > 0:
+        raise InputError(f"--scan-timeout must be > 0 seconds, got {scan_timeout!r}")
+    if specs is None:
+        if n < 1:
+            raise InputError(f"bench needs n >= 1 scenes, got {n}")
+        specs = matrix_suite(n, seed)
+    specs = list(specs)
+    if not specs:
+        raise InputError("bench needs at least one scene")
+    cfg, site = matrix_config(specs)
+    draws = trial_configs(cfg, seeds)
+    import boxloc.pipeline  # noqa: F401 - imported once here, shared by the forked workers
+
+    tasks = [(i, spec, d) for i, spec in enumerate(specs) for d in draws]
+    outs: list[_Outcome | None] = [None] * len(tasks)
+    con = console
+    if con is None and progress:
+        from rich.console import Console
+
+        con = Console(stderr=True)
+
+    def on_done(t: int, res: dict[str, Any]) -> None:
+        i, spec, d = tasks[t]
+        o = _Outcome(index=i, trial_seed=d.trial_seed, sensor=str(spec.sensor),
+                     kind=str(spec.kind), status=res["status"], phase=res.get("phase"),
+                     error=res.get("error"), run=res.get("run"))
+        meta = res.get("meta")
+        if meta is None:  # killed or crashed before the scene existed: make it here
+            meta = _parent_meta(spec)
+        o.meta = meta
+        if o.run is not None:
+            o.match, o.wall_ms = o.run.match, o.run.wall_ms
+        if o.match is None and meta.get("nothing") is not None:
+            o.match = meta["nothing"]
+        if res.get("wall_ms") is not None:
+            o.wall_ms = res["wall_ms"]
+        outs[t] = o
+        if bar is not None:
+            bar.advance(task_id)
+            if not con.is_terminal:  # a log file sees no bar: one line per scan instead
+                m = o.match
+                con.print(f"[{sum(x is not None for x in outs)}/{len(tasks)}] scene {i} "
+                          f"({o.sensor}, {o.kind}, {spec.width}x{spec.height}): {o.status}"
+                          + (f", {o.wall_ms / 1e3:.1f} s" if o.wall_ms is not None else "")
+                          + (f", TP {m.tp} FP {m.fp} FN {m.fn}" if m is not None else ""),
+                          markup=False, highlight=False)
+
+    def on_start(t: int) -> None:
+        if bar is not None:
+            i, spec, _ = tasks[t]
+            bar.update(task_id, description=f"scene {i} ({spec.sensor}, {spec.kind}, "
+                                            f"{spec.width}x{spec.height})")
+
+    t0 = time.monotonic()
+    bar, task_id = (None, None)
+    warm = (_warmup_spec(specs), cfg) if warmup else None
+    if progress and con is not None:
+        # the workers are forked before the bar's thread starts
+        bar, task_id = progress_bar(con, "matrix", len(tasks))
+    try:
+        info = _run_tasks(tasks, localizer or _default_localizer, jobs, scan_timeout, warm,
+                          on_done, on_start)
+    finally:
+        if bar is not None:
+            bar.stop()
+    run_s = time.monotonic() - t0
+    done = [o for o in outs if o is not None]
+    assert len(done) == len(tasks)
+    report = _report(done, specs, cfg, site, n=len(specs), seed=seed, jobs=jobs,
+                     held_out=held_out, scan_timeout=scan_timeout, warmup=warmup,
+                     trial_seeds=[d.trial_seed for d in draws], info=info, run_s=run_s,
+                     sensors=SENSORS, kinds=MATRIX_KINDS)
+    if out is not None:
+        d = Path(out)
+        d.mkdir(parents=True, exist_ok=True)
+        (d / REPORT_NAME).write_text(json.dumps(report, indent=1) + "\n")
+        from rich.console import Console
+
+        with (d / TABLE_NAME).open("w") as fh:
+            print_matrix_report(report, Console(file=fh, width=200, no_color=True))
+    if progress and con is not None:
+        print_matrix_report(report, con)
+        if out is not None:
+            con.print(f"wrote {Path(out) / REPORT_NAME} and {Path(out) / TABLE_NAME}")
+    return report
+
+
+def _parent_meta(spec: Any) -> dict[str, Any]:
+    """The scene's truth summary, simulated here (its worker was lost before it said)."""
+    from boxloc.simulate import simulate
+
+    try:
+        return _meta(simulate(spec))
+    except Exception:  # noqa: BLE001 - the simulator's error is already the scan's error
+        return {"n_faces": 0, "n_exposed": 0, "pixels": int(spec.width * spec.height),
+                "spec": _spec_dict(spec), "spec_text": _spec_text(spec), "edge_min": None,
+                "edge_max": None, "nothing": None}
+
+
+def _report(outs: list[_Outcome], specs: Sequence[Any], cfg: Config, site: dict[str, Any], *,
+            n: int, seed: int, jobs: int, held_out: str, scan_timeout: float | None,
+            warmup: bool, trial_seeds: list[int], info: dict[str, Any], run_s: float,
+            sensors: Sequence[str], kinds: Sequence[str]) -> dict[str, Any]:
+    present_s = [s for s in sensors if any(o.sensor == s for o in outs)]
+    present_k = [k for k in kinds if any(o.kind == k for o in outs)]
+    groups = _groups(outs, present_s, present_k, held_out)
+    rows, timeouts, errors = [], [], []
+    for o in outs:
+        m = o.meta
+        base = {"scene": o.index, "trial_seed": o.trial_seed, "sensor": o.sensor,
+                "kind": o.kind}
+        if o.status == "timeout":
+            timeouts.append({**base, "spec_text": m.get("spec_text"), "phase": o.phase,
+                             "limit_s": scan_timeout})
+        elif o.status == "error":
+            errors.append({**base, "phase": o.phase, "error": o.error})
+        rows.append({"index": o.index, "trial_seed": o.trial_seed, "sensor": o.sensor,
+                     "kind": o.kind, "held_out": o.sensor == held_out, "spec": m.get("spec"),
+                     "spec_text": m.get("spec_text"), "n_faces": m.get("n_faces"),
+                     "n_exposed": m.get("n_exposed"), "pixels": m.get("pixels"),
+                     "status": o.status, "error": o.error,
+                     "match": o.match.to_dict() if o.match is not None else None,
+                     "edges": o.edges})
+    if info.get("warmup_timeouts"):
+        timeouts.append({"scene": None, "trial_seed": None, "sensor": None, "kind": None,
+                         "spec_text": None, "phase": "warmup", "limit_s": scan_timeout,
+                         "count": info["warmup_timeouts"]})
+    lo = [float(o.meta["edge_min"]) for o in outs if o.meta.get("edge_min") is not None]
+    hi = [float(o.meta["edge_max"]) for o in outs if o.meta.get("edge_max") is not None]
+    site = {**site, "observed": {"min_edge": min(lo) if lo else None,
+                                 "max_edge": max(hi) if hi else None}}
+    runs = [o.run if o.run is not None else _MethodRun(wall_ms=o.wall_ms) for o in outs]
+    timing = _timing(runs)
+    peaks = np.asarray([o.run.peak_mb for o in outs if o.run and o.run.peak_mb], np.float64)
+    report: dict[str, Any] = {
+        "schema": SCHEMA, "version": __version__, "mode": "matrix", "n": n, "seed": seed,
+        "jobs": jobs, "scan_timeout_s": scan_timeout, "warmup": warmup,
+        "threads": info.get("threads"),
+        "default_configuration": True, "config": cfg.to_dict(), "config_hash": cfg.hash,
+        "site": site,
+        "held_out": {"sensor": held_out,
+                     "cells": [k for k, c in groups["cells"].items() if c["held_out"]]},
+        "sensors": present_s, "kinds": present_k, "no_box_kinds": list(NO_BOX_KINDS),
+        "seeds": draw_figures({"boxloc": outs}, ["boxloc"], trial_seeds, present_s),
+        "groups": groups,
+        "targets": evaluate_matrix_targets(groups, cfg, held_out),
+        "timeouts": timeouts,
+        "errors": {"total": len(errors), "list": errors},
+        "timing": {"stages_ms": timing["stages_ms"], "total_ms": timing["total_ms"],
+                   "per_scan_ms": [None if o.wall_ms is None else round(o.wall_ms, 3)
+                                   for o in outs],
+                   "run_s": round(run_s, 3)},
+        "memory": {"worker_peak_rss_mb_median": _pct(peaks, 50),
+                   "worker_peak_rss_mb_max": float(peaks.max()) if peaks.size else None,
+                   "process_max_rss_mb": process_max_rss_mb()},
+        "scenes": rows,
+    }
+    return _jsonable(report)
+
+
+# --- printing ----------------------------------------------------------------------------
+
+
+def _pr(fig: dict[str, Any]) -> tuple[str, str]:
+    """Precision and recall; a group with nothing to find or nothing found says so."""
+    p, r, _ = prf(fig["tp"], fig["n_pred"], fig["n_exposed"])
+    return (_fmt(p) if fig["n_pred"] else "-", _fmt(r) if fig["n_exposed"] else "-")
+
+
+def _row(name: str, fig: dict[str, Any]) -> list[str]:
+    p, r = _pr(fig)
+    t, nb = fig["time"], fig["no_box"]
+    ratio = t["max_over_median"]
+    cells = [name, str(fig["n_scenes"]), str(fig["n_exposed"]),
+             f"{fig['tp']} / {fig['fp']} / {fig['fn']}", p, r,
+             f"{_fmt(fig['grasp_err_median_mm'], 'mm')} / {_fmt(fig['grasp_err_p95_mm'], 'mm')}",
+             " / ".join("-" if t[k] is None else f"{t[k] / 1e3:.2f}"
+                        for k in ("median_ms", "p99_ms", "max_ms")),
+             "-" if ratio is None else f"{ratio:.1f}",
+             f"{fig['timeouts']} / {fig['errors']}"]
+    if nb is None:
+        cells += ["", "", ""]
+    else:
+        epp = [nb["edge_points_per_pixel"], nb["false_edge_points_per_pixel"]]
+        cells += [f"{nb['false_surfaces_per_scan']:.2f}", f"{nb['zero_surface_share']:.2f}",
+                  " / ".join("-" if v is None else f"{v:.4f}" for v in epp)]
+    return cells
+
+
+_COLUMNS = ("", "scenes", "tops", "TP / FP / FN", "P", "R", "grasp med / p95 [mm]",
+            "time med / p99 / max [s]", "max/med", "t-out / err", "no-box FS/scan",
+            "no-box zero", "no-box edge/px all / false")
+
+
+def _table(title: str) -> Any:
+    from rich.markup import escape
+    from rich.table import Table
+
+    t = Table(title=escape(title))
+    for i, c in enumerate(_COLUMNS):
+        t.add_column(escape(c), justify="left" if i == 0 else "right")
+    return t
+
+
+def print_matrix_report(report: dict[str, Any], console: Any) -> None:
+    """Print the report: targets (PASS/FAIL), per sensor, per kind, the cells, timeouts."""
+    from rich.markup import escape
+    from rich.table import Table
+
+    g, ho = report["groups"], report["held_out"]["sensor"]
+    cfg = report["config"]
+    t = Table(title=escape(
+        f"boxloc bench --matrix: {report['n']} scenes x {len(report['seeds']['trial_seeds'])} "
+        f"draw(s), seed {report['seed']}, default configuration (min_edge "
+        f"{cfg['min_edge']:g} m, max_edge {cfg['max_edge']:g} m, the site input; nothing "
+        f"else set), held out: {ho}"))
+    t.add_column("target")
+    t.add_column("bound", justify="right")
+    for scope in SCOPES:
+        label = f"without {ho}" if scope == "development" else f"with {ho}"
+        t.add_column(escape(f"{label}: value (where)"), justify="right")
+        t.add_column("", justify="center")
+    mark = {True: "[green]PASS[/]", False: "[red]FAIL[/]", None: "[dim]n/a[/]"}
+    for row in report["targets"]:
+        cells = [escape(row["name"]), escape(row["target"])]
+        for scope in SCOPES:
+            s = row[scope]
+            v = s["value"]
+            txt = "-" if v is None else (f"{v:.4g}" if isinstance(v, float) else str(v))
+            if s["where"] is not None and row["over"] != "overall":
+                txt += f" ({s['where']})"
+            cells += [escape(txt), mark[s["pass"]]]
+        t.add_row(*cells)
+    console.print(t)
+
+    st = _table(f"per sensor ({ho}: held out)")
+    for s, fig in g["sensors"].items():
+        st.add_row(*_row(s + (" (held out)" if fig["held_out"] else ""), fig))
+    st.add_row(*_row(f"all but {ho}", g["overall"]["development"]))
+    st.add_row(*_row(f"all, {ho} included", g["overall"]["all"]))
+    console.print(st)
+
+    kt = _table(f"per scene kind, without {ho} (the held-out sensor)")
+    for k, fig in g["kinds"].items():
+        kt.add_row(*_row(k, fig["development"]))
+    console.print(kt)
+
+    for held, title in ((False, "cells (sensor/kind), development sensors"),
+                        (True, f"held out: the {ho} cells")):
+        ct = _table(title)
+        for key, fig in g["cells"].items():
+            if fig["held_out"] == held:
+                ct.add_row(*_row(key, fig))
+        console.print(ct)
+
+    print_draws(console, report["seeds"], ["boxloc"])
+    tm = report["timing"]
+    tot = tm["total_ms"]
+    console.print(escape(f"time per scan [ms], all scans: median {_fmt(tot['median'], 'ms')}, "
+                         f"p95 {_fmt(tot['p95'], 'ms')}; the run took "
+                         f"{tm['run_s']:.0f} s on {report['jobs']} job(s)"))
+    mem = report["memory"]
+    console.print(escape(f"peak RSS of a worker [MB]: median "
+                         f"{_fmt(mem['worker_peak_rss_mb_median'], 'MB')}, max "
+                         f"{_fmt(mem['worker_peak_rss_mb_max'], 'MB')}"))
+    for to in report["timeouts"]:
+        if to["phase"] == "warmup":
+            console.print(escape(f"[timeout] {to['count']} worker warm-up(s) over the limit"))
+        else:
+            console.print(escape(f"[timeout] scene {to['scene']} (trial_seed "
+                                 f"{to['trial_seed']}, {to['sensor']}, {to['kind']}) over "
+                                 f"{to['limit_s']:g} s in {to['phase']}: {to['spec_text']}"))
+    for e in report["errors"]["list"]:
+        console.print(escape(f"[error] scene {e['scene']} ({e['sensor']}, {e['kind']}) "
+                             f"{e['phase']}: {e['error']}"))

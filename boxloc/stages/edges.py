@@ -1,0 +1,806 @@
+"""Stage 2: edges of the range image by scan-line approximation.
+
+Every row and every column of the organized cloud is approximated by 3D line segments
+(split-and-merge, Jiang & Bunke 1999). A scan line crossing a planar face is straight in
+3D, so a breakpoint between two segments is where the surface changes:
+
+* **jump** — the two fitted lines are separated along the rays at the break (a depth
+  discontinuity); the edge point lies on the nearer line, half a sample past its last point;
+* **crease** — the lines meet at an angle of at least ``min_crease_angle``; the edge point
+  is their intersection (closest approach), convex or concave as seen from the sensor;
+* **groove** — the lines are continuous and collinear but the samples between them lie
+  significantly behind both (the seam between two touching boxes of equal height); or,
+  inside one segment, a short run of samples lies behind its line with the samples around
+  it back on the line, and the deepest of them passes the single-sample test;
+* **no-return border** — the scan line's first or last return is followed by no return
+  out to the image border, over at least :data:`NO_RETURN_PX` pixels: nothing was measured
+  beyond the surface (out of range, a background removed, the sky), so it ends there, a
+  jump with no far side to test against (PCL's ``NAN_BOUNDARY``). Labelled a jump, and
+  recorded as a decision on the run's length (``TestKind.NO_RETURN``). No return with a
+  return beyond it is left to the jump test across the gap.
+
+Each edge point carries a covariance: the sensor noise at the point plus the localization
+uncertainty along the scan line. Where a row scan and a column scan find an edge at the
+same pixel, the two estimates are fused (information-weighted).
+
+Thresholds are statistical at the one significance level alpha: a segment is a line if its
+largest normalized residual passes a Bonferroni-corrected two-sided z test; a break is a
+jump if the gap between the lines fails a chi2(1) continuity test.
+"""
+
+from __future__ import annotations
+
+import math
+
+import cv2
+import numba as nb
+import numpy as np
+from scipy import stats as st
+
+from boxloc.config import Config
+from boxloc.products import EdgeKind, EdgeMap
+from boxloc.scan import Scan
+from boxloc.stats import TestKind, TestTable, chi2_critical
+
+#: A groove is a run of this many to GROOVE_MAX_RUN samples behind the line, with
+#: GROOVE_CONTEXT samples on the line on each side (a seam, not a trend such as bulge).
+GROOVE_MIN_RUN = 2
+GROOVE_MAX_RUN = 8
+GROOVE_CONTEXT = 4
+
+#: Segments with fewer samples are not fitted (their samples are "dropped": mixed pixels,
+#: a sliver of a steep side face). Three is the fewest that can show a line's residual.
+MIN_SEGMENT_POINTS = 4
+
+#: No return over at least this many pixels, out to the image border, ends a surface (a
+#: no-return-border jump); shorter runs are dropouts inside a face (as
+#: :data:`boxloc.stages.verify.EXTENT_GAP_PX`, 4, the longest a face's extent bridges).
+NO_RETURN_PX = 5
+
+
+# --- kernels -------------------------------------------------------------------------------
+
+
+@nb.njit(cache=True)
+def _fit(P: np.ndarray, s: int, e: int) -> tuple[np.ndarray, np.ndarray]:
+    """Total-least-squares line through P[s:e+1]: centroid, unit direction (s -> e)."""
+    n = e - s + 1
+    cx = cy = cz = 0.0
+    for i in range(s, e + 1):
+        cx += P[i, 0]
+        cy += P[i, 1]
+        cz += P[i, 2]
+    cx /= n
+    cy /= n
+    cz /= n
+    sxx = sxy = sxz = syy = syz = szz = 0.0
+    for i in range(s, e + 1):
+        dx = P[i, 0] - cx
+        dy = P[i, 1] - cy
+        dz = P[i, 2] - cz
+        sxx += dx * dx
+        sxy += dx * dy
+        sxz += dx * dz
+        syy += dy * dy
+        syz += dy * dz
+        szz += dz * dz
+    M = np.empty((3, 3))
+    M[0, 0] = sxx
+    M[0, 1] = M[1, 0] = sxy
+    M[0, 2] = M[2, 0] = sxz
+    M[1, 1] = syy
+    M[1, 2] = M[2, 1] = syz
+    M[2, 2] = szz
+    w, V = np.linalg.eigh(M)
+    d = V[:, 2].copy()
+    if (P[e, 0] - P[s, 0]) * d[0] + (P[e, 1] - P[s, 1]) * d[1] + (P[e, 2] - P[s, 2]) * d[2] < 0:
+        d = -d
+    c = np.empty(3)
+    c[0] = cx
+    c[1] = cy
+    c[2] = cz
+    return c, d
+
+
+@nb.njit(cache=True)
+def _max_resid(P: np.ndarray, S: np.ndarray, s: int, e: int, c: np.ndarray, d: np.ndarray):
+    best = 0.0
+    arg = s
+    for i in range(s, e + 1):
+        vx = P[i, 0] - c[0]
+        vy = P[i, 1] - c[1]
+        vz = P[i, 2] - c[2]
+        t = vx * d[0] + vy * d[1] + vz * d[2]
+        rx = vx - t * d[0]
+        ry = vy - t * d[1]
+        rz = vz - t * d[2]
+        z = math.sqrt(rx * rx + ry * ry + rz * rz) / S[i]
+        if z > best:
+            best = z
+            arg = i
+    return best, arg
+
+
+@nb.njit(cache=True)
+def _split_merge(P: np.ndarray, S: np.ndarray, thr: np.ndarray) -> np.ndarray:
+    """Split-and-merge of one scan line into segments; returns (m, 2) inclusive bounds.
+
+    ``thr[n]`` is the largest normalized residual allowed in a segment of n points.
+    """
+    n = P.shape[0]
+    bounds = np.empty((n, 2), np.int64)
+    nb_ = 0
+    stack = np.empty((n + 1, 2), np.int64)
+    sp = 0
+    stack[0, 0] = 0
+    stack[0, 1] = n - 1
+    sp = 1
+    # split: depth-first on the chord, emitting segments left to right
+    out = np.empty((n, 2), np.int64)
+    no = 0
+    while sp > 0:
+        sp -= 1
+        s = stack[sp, 0]
+        e = stack[sp, 1]
+        if e - s < 2:
+            out[no, 0] = s
+            out[no, 1] = e
+            no += 1
+            continue
+        ax, ay, az = P[s, 0], P[s, 1], P[s, 2]
+        ux, uy, uz = P[e, 0] - ax, P[e, 1] - ay, P[e, 2] - az
+        L = math.sqrt(ux * ux + uy * uy + uz * uz)
+        best = 0.0
+        arg = -1
+        if L > 0:
+            ux /= L
+            uy /= L
+            uz /= L
+            for i in range(s + 1, e):
+                vx, vy, vz = P[i, 0] - ax, P[i, 1] - ay, P[i, 2] - az
+                t = vx * ux + vy * uy + vz * uz
+                rx, ry, rz = vx - t * ux, vy - t * uy, vz - t * uz
+                z = math.sqrt(rx * rx + ry * ry + rz * rz) / S[i]
+                if z > best:
+                    best = z
+                    arg = i
+        if arg >= 0 and best > thr[e - s + 1]:
+            # push right first so the left half is processed first
+            stack[sp, 0] = arg
+            stack[sp, 1] = e
+            sp += 1
+            stack[sp, 0] = s
+            stack[sp, 1] = arg
+            sp += 1
+        else:
+            out[no, 0] = s
+            out[no, 1] = e
+            no += 1
+    # make segments disjoint: a shared vertex goes to the side whose chord fits it better
+    for k in range(no - 1):
+        v = out[k, 1]
+        if out[k + 1, 0] == v:
+            out[k + 1, 0] = v + 1
+    # merge neighbours whose union is still a line (TLS fit, max normalized residual)
+    k = 0
+    while k < no:
+        s = out[k, 0]
+        e = out[k, 1]
+        if e < s:
+            k += 1
+            continue
+        if nb_ > 0:
+            ps = bounds[nb_ - 1, 0]
+            if e - ps + 1 >= 3:
+                c, d = _fit(P, ps, e)
+                z, _ = _max_resid(P, S, ps, e, c, d)
+                if z <= thr[e - ps + 1]:
+                    bounds[nb_ - 1, 1] = e
+                    k += 1
+                    continue
+        bounds[nb_, 0] = s
+        bounds[nb_, 1] = e
+        nb_ += 1
+        k += 1
+    return bounds[:nb_]
+
+
+@nb.njit(cache=True)
+def _range_on_line(u: np.ndarray, c: np.ndarray, d: np.ndarray) -> float:
+    """Range along unit ray u of the point of line (c, d) closest to the ray."""
+    # minimize |s u - c - t d|^2 over s, t
+    ud = np.dot(u, d)
+    uc = np.dot(u, c)
+    dc = np.dot(d, c)
+    den = 1.0 - ud * ud
+    if den < 1e-12:
+        return np.nan
+    return (uc - ud * dc) / den
+
+
+@nb.njit(cache=True)
+def _closest_between(c1, d1, c2, d2):
+    """Midpoint of the common perpendicular of two lines."""
+    w = c1 - c2
+    a = np.dot(d1, d2)
+    b1 = np.dot(d1, w)
+    b2 = np.dot(d2, w)
+    den = 1.0 - a * a
+    if den < 1e-12:
+        return 0.5 * (c1 + c2)
+    t1 = (a * b2 - b1) / den
+    t2 = (b2 - a * b1) / den
+    return 0.5 * (c1 + t1 * d1 + c2 + t2 * d2)
+
+
+@nb.njit(cache=True)
+def _scan_line_edges(
+    P: np.ndarray,
+    S: np.ndarray,
+    pix: np.ndarray,
+    thr: np.ndarray,
+    run_thr: np.ndarray,
+    jump_crit: float,
+    min_crease: float,
+    z_crease: float,
+    min_pts: int,
+    rho: np.ndarray,
+    out_pix: np.ndarray,
+    out_pt: np.ndarray,
+    out_along: np.ndarray,
+    out_sig: np.ndarray,
+    out_kind: np.ndarray,
+    out_strength: np.ndarray,
+    out_stat: np.ndarray,
+    out_crit: np.ndarray,
+    out_test: np.ndarray,
+    n_out: int,
+) -> int:
+    """Edge points of one scan line (valid samples only, in order).
+
+    P (n, 3) points, S (n,) their noise sigma, pix (n,) their position in the image line,
+    rho (K + 1,) the noise's correlation at 0..K pixels along the line (rho[0] = 1; one
+    value: white noise). Appends to the out_* arrays from index n_out; returns the new
+    count.
+    """
+    n = P.shape[0]
+    if n < 2 * min_pts:
+        return n_out
+    B = _split_merge(P, S, thr)
+    m = B.shape[0]
+    # keep segments with enough points
+    keep = np.empty(m, np.int64)
+    nk = 0
+    for k in range(m):
+        if B[k, 1] - B[k, 0] + 1 >= min_pts:
+            keep[nk] = k
+            nk += 1
+    cs = np.empty((nk, 3))
+    ds = np.empty((nk, 3))
+    vd = np.empty(nk)
+    for j in range(nk):
+        k = keep[j]
+        c, d = _fit(P, B[k, 0], B[k, 1])
+        cs[j] = c
+        ds[j] = d
+        # direction variance of a line fit: mean sigma^2 / sum (t - t_mean)^2 for white
+        # noise; for correlated noise sum_ij t_i t_j s_i s_j rho(|i - j|) / (sum t^2)^2
+        # (a fold of a few pixels' wobble is no crease where the wobble spans them)
+        st2 = 0.0
+        ss = 0.0
+        for i in range(B[k, 0], B[k, 1] + 1):
+            t = (P[i, 0] - c[0]) * d[0] + (P[i, 1] - c[1]) * d[1] + (P[i, 2] - c[2]) * d[2]
+            st2 += t * t
+            ss += S[i] * S[i]
+        vd[j] = ss / (B[k, 1] - B[k, 0] + 1) / max(st2, 1e-30)
+        if rho.shape[0] > 1:
+            K = rho.shape[0] - 1
+            num = 0.0
+            for i in range(B[k, 0], B[k, 1] + 1):
+                ti = (P[i, 0] - c[0]) * d[0] + (P[i, 1] - c[1]) * d[1] + (P[i, 2] - c[2]) * d[2]
+                for q in range(i, B[k, 1] + 1):
+                    lag = abs(pix[q] - pix[i])
+                    if lag > K:
+                        break
+                    tq = ((P[q, 0] - c[0]) * d[0] + (P[q, 1] - c[1]) * d[1]
+                          + (P[q, 2] - c[2]) * d[2])
+                    w = ti * tq * S[i] * S[q] * rho[lag]
+                    num += w if q == i else 2.0 * w
+            vd[j] = max(vd[j], num / max(st2 * st2, 1e-60))
+    # grooves inside a segment: a short run of samples significantly behind its line, with
+    # the samples around it back on the line (a seam narrower than the split test can see)
+    for j in range(nk):
+        k = keep[j]
+        s0 = B[k, 0]
+        s1 = B[k, 1]
+        n_seg = s1 - s0 + 1
+        if n_seg < 2 * GROOVE_CONTEXT + 2:
+            continue
+        t_run = run_thr[n_seg]
+        z = np.empty(n_seg)
+        cx, cy, cz = cs[j, 0], cs[j, 1], cs[j, 2]
+        dx, dy, dz = ds[j, 0], ds[j, 1], ds[j, 2]
+        dc = dx * cx + dy * cy + dz * cz
+        for i in range(s0, s1 + 1):
+            # the line's range along this sample's ray (as _range_on_line, in scalars)
+            r = math.sqrt(P[i, 0] ** 2 + P[i, 1] ** 2 + P[i, 2] ** 2)
+            ud = (P[i, 0] * dx + P[i, 1] * dy + P[i, 2] * dz) / r
+            uc = (P[i, 0] * cx + P[i, 1] * cy + P[i, 2] * cz) / r
+            den = 1.0 - ud * ud
+            z[i - s0] = (r - (uc - ud * dc) / den) / S[i] if den > 1e-12 else 0.0
+        i = GROOVE_CONTEXT
+        while i < n_seg - GROOVE_CONTEXT:
+            if z[i] <= t_run:
+                i += 1
+                continue
+            e = i
+            while e + 1 < n_seg and z[e + 1] > t_run:
+                e += 1
+            run = e - i + 1
+            if run >= GROOVE_MIN_RUN and run <= GROOVE_MAX_RUN and e + GROOVE_CONTEXT < n_seg:
+                ctx = 0.0
+                for q in range(1, GROOVE_CONTEXT + 1):
+                    ctx = max(ctx, z[i - q], z[e + q])
+                kd = i
+                for q in range(i, e + 1):
+                    if z[q] > z[kd]:
+                        kd = q
+                # the deepest sample must pass the single-sample test too: runs alone are
+                # evidence only for white noise, and real sensors' noise is correlated
+                if ctx < t_run and z[kd] > thr[n_seg]:
+                    ip = s0 + kd
+                    u = P[ip] / math.sqrt(np.dot(P[ip], P[ip]))
+                    rl = _range_on_line(u, cs[j], ds[j])
+                    out_pt[n_out] = rl * u
+                    out_along[n_out] = ds[j]
+                    out_sig[n_out] = run * math.sqrt(np.dot(P[s0 + e] - P[s0 + i],
+                                                            P[s0 + e] - P[s0 + i])) / max(
+                        run - 1, 1) / math.sqrt(12.0)
+                    out_pix[n_out] = pix[ip]
+                    out_kind[n_out] = 4
+                    out_strength[n_out] = z[kd] * S[ip]
+                    out_stat[n_out] = z[kd]
+                    out_crit[n_out] = t_run
+                    out_test[n_out] = 1
+                    n_out += 1
+            i = e + 1
+    for j in range(nk - 1):
+        ka = keep[j]
+        kb = keep[j + 1]
+        ia = B[ka, 1]
+        ib = B[kb, 0]
+        ca = cs[j]
+        da = ds[j]
+        cb = cs[j + 1]
+        db = ds[j + 1]
+        ua = P[ia] / math.sqrt(np.dot(P[ia], P[ia]))
+        ub = P[ib] / math.sqrt(np.dot(P[ib], P[ib]))
+        # ranges of both lines on the two rays bounding the break
+        ra_a = _range_on_line(ua, ca, da)
+        rb_a = _range_on_line(ua, cb, db)
+        ra_b = _range_on_line(ub, ca, da)
+        rb_b = _range_on_line(ub, cb, db)
+        dA = ra_a - rb_a
+        dB = ra_b - rb_b
+        sig2 = S[ia] * S[ia] + S[ib] * S[ib]
+        J = 0.0
+        if np.isfinite(dA) and np.isfinite(dB) and dA * dB > 0:
+            J = min(abs(dA), abs(dB))
+        elif not (np.isfinite(dA) and np.isfinite(dB)):
+            J = float(abs(np.linalg.norm(P[ib] - P[ia])))
+        tstat = J * J / sig2
+        # a jump must also show in the measurements at the break, not only between the
+        # extrapolated lines (a steep side seen at grazing incidence extrapolates badly)
+        dm = math.sqrt(np.dot(P[ib], P[ib])) - math.sqrt(np.dot(P[ia], P[ia]))
+        if dm * dm / sig2 <= jump_crit:
+            tstat = min(tstat, dm * dm / sig2)
+        cosang = abs(np.dot(da, db))
+        if cosang > 1.0:
+            cosang = 1.0
+        ang = math.acos(cosang)
+        if tstat > jump_crit:
+            # jump: the edge belongs to the nearer surface
+            near_a = (ra_a + ra_b) < (rb_a + rb_b) if np.isfinite(dA + dB) else (
+                np.dot(P[ia], P[ia]) < np.dot(P[ib], P[ib])
+            )
+            if near_a:
+                i_end = ia
+                i_next = ia + 1
+                c = ca
+                d = da
+            else:
+                i_end = ib
+                i_next = ib - 1
+                c = cb
+                d = db
+            u1 = P[i_end] / math.sqrt(np.dot(P[i_end], P[i_end]))
+            u2 = P[i_next] / math.sqrt(np.dot(P[i_next], P[i_next]))
+            r1 = _range_on_line(u1, c, d)
+            r2 = _range_on_line(u2, c, d)
+            m1 = math.sqrt(np.dot(P[i_end], P[i_end]))
+            # a line seen almost along the ray extrapolates wildly: stay with the measurement
+            if not (np.isfinite(r1) and np.isfinite(r2)) or abs(r1 - m1) > 5.0 * S[i_end]:
+                r1 = m1
+                r2 = m1
+            q1 = r1 * u1
+            q2 = r2 * u2
+            step = math.sqrt(np.dot(q2 - q1, q2 - q1))
+            # samples between ia and ib in the image may be missing: one pixel step
+            npx = abs(pix[i_next] - pix[i_end])
+            if npx > 1:
+                step = step / npx
+            h = q2 - q1
+            hn = math.sqrt(np.dot(h, h))
+            dirv = h / hn if hn > 0 else d
+            out_pt[n_out] = q1 + 0.5 * step * dirv
+            out_along[n_out] = dirv
+            out_sig[n_out] = step / math.sqrt(12.0)
+            out_pix[n_out] = pix[i_end]
+            out_kind[n_out] = 1
+            out_strength[n_out] = J
+            out_stat[n_out] = tstat
+            out_crit[n_out] = jump_crit
+            out_test[n_out] = 1
+            n_out += 1
+        elif (ang - min_crease) / math.sqrt(vd[j] + vd[j + 1]) > z_crease:
+            q = _closest_between(ca, da, cb, db)
+            rq = math.sqrt(np.dot(q, q))
+            uq = q / rq
+            # convex if the fold point is nearer than the chord through both segments' middles
+            mid = 0.5 * (ca + cb)
+            convex = np.dot(q, uq) < np.dot(mid, uq)
+            # pixel: the sample (ia or ib) nearer to the fold
+            ea = P[ia] - q
+            eb = P[ib] - q
+            ipx = pix[ia] if np.dot(ea, ea) <= np.dot(eb, eb) else pix[ib]
+            out_pt[n_out] = q
+            out_along[n_out] = da
+            out_sig[n_out] = math.sqrt(sig2) / max(math.sin(ang), 0.05)
+            out_pix[n_out] = ipx
+            out_kind[n_out] = 2 if convex else 3
+            out_strength[n_out] = ang
+            out_stat[n_out] = (ang - min_crease) / math.sqrt(vd[j] + vd[j + 1])
+            out_crit[n_out] = z_crease
+            out_test[n_out] = 2
+            n_out += 1
+        elif ib - ia > 1:
+            # collinear and continuous: a groove if the dropped samples lie behind both lines
+            best = 0.0
+            kbest = -1
+            for i in range(ia + 1, ib):
+                u = P[i] / math.sqrt(np.dot(P[i], P[i]))
+                r = 0.5 * (_range_on_line(u, ca, da) + _range_on_line(u, cb, db))
+                z = (math.sqrt(np.dot(P[i], P[i])) - r) / S[i]
+                if np.isfinite(z) and z > best:
+                    best = z
+                    kbest = i
+            if kbest >= 0 and best > thr[ib - ia]:
+                u = P[kbest] / math.sqrt(np.dot(P[kbest], P[kbest]))
+                r = 0.5 * (_range_on_line(u, ca, da) + _range_on_line(u, cb, db))
+                mk = math.sqrt(np.dot(P[kbest], P[kbest]))
+                if not np.isfinite(r) or abs(r - mk) > 0.5 * abs(mk):
+                    continue
+                q = r * u
+                w = P[ib] - P[ia]
+                out_pt[n_out] = q
+                wn = math.sqrt(np.dot(w, w))
+                out_along[n_out] = w / wn if wn > 0 else da
+                out_sig[n_out] = wn / math.sqrt(12.0)
+                out_pix[n_out] = pix[kbest]
+                out_kind[n_out] = 4
+                out_strength[n_out] = best * S[kbest]
+                out_stat[n_out] = best * best
+                out_crit[n_out] = thr[ib - ia] ** 2
+                out_test[n_out] = 1
+                n_out += 1
+    return n_out
+
+
+@nb.njit(cache=True)
+def _all_lines(
+    P: np.ndarray,
+    S: np.ndarray,
+    thr: np.ndarray,
+    run_thr: np.ndarray,
+    jump_crit: float,
+    min_crease: float,
+    z_crease: float,
+    min_pts: int,
+    axis: int,
+    rho: np.ndarray,
+):
+    """Run the scan-line detector over every row (axis=0) or column (axis=1); ``rho`` is
+    the noise's correlation along them at 0..K pixels."""
+    H, W = S.shape
+    nlines = H if axis == 0 else W
+    L = W if axis == 0 else H
+    cap = H * W // 2 + 16
+    out_pix = np.empty(cap, np.int64)
+    out_line = np.empty(cap, np.int64)
+    out_pt = np.empty((cap, 3))
+    out_along = np.empty((cap, 3))
+    out_sig = np.empty(cap)
+    out_kind = np.empty(cap, np.uint8)
+    out_strength = np.empty(cap)
+    out_stat = np.empty(cap)
+    out_crit = np.empty(cap)
+    out_test = np.empty(cap, np.uint8)
+    n_out = 0
+    buf = np.empty((L, 3))
+    sbuf = np.empty(L)
+    pbuf = np.empty(L, np.int64)
+    for li in range(nlines):
+        nv = 0
+        for k in range(L):
+            if axis == 0:
+                p = P[li, k]
+                s = S[li, k]
+            else:
+                p = P[k, li]
+                s = S[k, li]
+            if np.isfinite(s):
+                buf[nv] = p
+                sbuf[nv] = s
+                pbuf[nv] = k
+                nv += 1
+        if nv < 2 * min_pts:
+            continue
+        if n_out + L > cap:
+            break
+        n0 = n_out
+        n_out = _scan_line_edges(
+            buf[:nv], sbuf[:nv], pbuf[:nv], thr, run_thr, jump_crit, min_crease, z_crease,
+            min_pts, rho,
+            out_pix, out_pt, out_along, out_sig, out_kind, out_strength, out_stat,
+            out_crit, out_test, n_out,
+        )
+        # a surface that runs into no return out to the image border ends there
+        for end in range(2):
+            if end == 0:
+                a, b, run = 0, 1, pbuf[0]
+            else:
+                a, b, run = nv - 1, nv - 2, L - 1 - pbuf[nv - 1]
+            if run < NO_RETURN_PX or n_out >= cap:
+                continue
+            h = buf[a] - buf[b]
+            hn = math.sqrt(np.dot(h, h))
+            if hn <= 0.0:
+                continue
+            step = hn / max(abs(pbuf[a] - pbuf[b]), 1)  # one pixel step, outward
+            dirv = h / hn
+            out_pt[n_out] = buf[a] + 0.5 * step * dirv
+            out_along[n_out] = dirv
+            out_sig[n_out] = step / math.sqrt(12.0)
+            out_pix[n_out] = pbuf[a]
+            out_kind[n_out] = 1
+            out_strength[n_out] = np.inf
+            out_stat[n_out] = run
+            out_crit[n_out] = NO_RETURN_PX
+            out_test[n_out] = 3
+            n_out += 1
+        for k in range(n0, n_out):
+            out_line[k] = li
+    return (
+        out_pix[:n_out], out_line[:n_out], out_pt[:n_out], out_along[:n_out],
+        out_sig[:n_out], out_kind[:n_out], out_strength[:n_out], out_stat[:n_out],
+        out_crit[:n_out], out_test[:n_out],
+    )
+
+
+# --- public --------------------------------------------------------------------------------
+
+
+def residual_thresholds(n_max: int, alpha: float) -> np.ndarray:
+    """Largest normalized residual a line of n points may show: z_{1 - alpha / (2n)}.
+
+    Bonferroni over the n residuals, so a true line is split with probability <= alpha.
+    """
+    n = np.arange(n_max + 2, dtype=np.float64)
+    n[0] = 1
+    return st.norm.isf(alpha / (2.0 * n)).astype(np.float64)
+
+
+def run_thresholds(n_max: int, alpha: float) -> np.ndarray:
+    """Level t that GROOVE_MIN_RUN consecutive samples of an n-sample line all exceed on one
+    side with probability alpha: n * Phi(-t)^k = alpha (Bonferroni over the positions)."""
+    n = np.arange(n_max + 2, dtype=np.float64)
+    n[0] = 1
+    return st.norm.isf((alpha / n) ** (1.0 / GROOVE_MIN_RUN)).astype(np.float64)
+
+
+def correlation_lags(length_px: float) -> np.ndarray:
+    """The noise's correlation at 0..K pixels, exp(-k / length) (``NoiseModel.corr_px_*``),
+    out to where it falls below 0.01; ``[1.0]`` (white noise) for length 0."""
+    if not length_px > 0:
+        return np.ones(1)
+    K = max(1, int(math.ceil(length_px * math.log(100.0))))
+    return np.exp(-np.arange(K + 1) / length_px)
+
+
+def point_sigma(scan: Scan, config: Config) -> np.ndarray:
+    """Per-pixel noise sigma (metres) used for line fitting, (H, W), NaN where no return."""
+    r = scan.range.astype(np.float64)
+    sr = config.noise.sigma_range(r)
+    sl = config.noise.sigma_lateral(r, scan.sensor.pixel_angle)
+    return np.sqrt(sr * sr + sl * sl)
+
+
+#: A scan line finds an edge reliably when it crosses it within this angle of the edge's
+#: normal; beyond it (a row running along a near-horizontal edge) the breakpoint position is
+#: ill-defined, and the other scan direction, which crosses the edge better, is used.
+MAX_CROSSING_ANGLE = math.radians(60.0)
+
+
+def _crossing_ok(r: np.ndarray, c: np.ndarray, scan_dir: np.ndarray,
+                 shape: tuple[int, int]) -> np.ndarray:
+    """Detections whose scan line crosses the local edge within MAX_CROSSING_ANGLE, (n,) bool.
+
+    The edge's local orientation is that of the structure tensor of the edge-pixel map.
+    """
+    if len(r) == 0:
+        return np.zeros(0, bool)
+    E: np.ndarray = np.zeros(shape, np.float32)
+    E[r, c] = 1.0
+    E = cv2.GaussianBlur(E, (0, 0), 1.0)
+    gx = cv2.Sobel(E, cv2.CV_32F, 1, 0, ksize=3)
+    gy = cv2.Sobel(E, cv2.CV_32F, 0, 1, ksize=3)
+    jxx = cv2.GaussianBlur(gx * gx, (0, 0), 2.0)[r, c]
+    jyy = cv2.GaussianBlur(gy * gy, (0, 0), 2.0)[r, c]
+    jxy = cv2.GaussianBlur(gx * gy, (0, 0), 2.0)[r, c]
+    # dominant gradient direction of the edge map = across the edge
+    theta = 0.5 * np.arctan2(2 * jxy, jxx - jyy)
+    across_x = np.abs(np.cos(theta))  # |cos| of the angle between x and the edge normal
+    across_y = np.abs(np.sin(theta))
+    lim = math.cos(MAX_CROSSING_ANGLE)
+    row = scan_dir == 1
+    flat = (jxx + jyy) < 1e-12  # isolated points: no orientation, keep
+    return flat | np.where(row, across_x >= lim, across_y >= lim)
+
+
+def detect_edges(scan: Scan, *, config: Config) -> EdgeMap:
+    """Jump, crease and groove edges of a range image by scan-line approximation.
+
+    Parameters
+    ----------
+    scan : Scan
+        Range image and sensor model.
+    config : Config
+        Uses ``alpha``, ``noise`` and ``min_crease_angle``.
+
+    Returns
+    -------
+    EdgeMap
+        Edge labels per pixel and the sub-pixel edge points with covariances.
+
+    References
+    ----------
+    X. Jiang, H. Bunke, "Edge detection in range images based on scan line approximation",
+    CVIU 73(2), 1999. Katsoulas et al., ICRA 2002 ("edge map creation via scan line
+    approximation").
+    """
+    H, W = scan.shape
+    P = scan.points.astype(np.float64)
+    S = point_sigma(scan, config)
+    thr = residual_thresholds(max(H, W), config.alpha)
+    run_thr = run_thresholds(max(H, W), config.alpha)
+    jump_crit = chi2_critical(1.0, config.alpha)
+    # a crease is a fold significantly larger than min_crease_angle (one-sided z at alpha)
+    z_crease = float(st.norm.isf(config.alpha))
+    parts = []
+    for axis in (0, 1):
+        parts.append(
+            _all_lines(P, S, thr, run_thr, jump_crit, config.min_crease_angle, z_crease,
+                       MIN_SEGMENT_POINTS, axis,
+                       correlation_lags(config.noise.corr_px_rows if axis == 0
+                                        else config.noise.corr_px_cols))
+        )
+    rows, cols = [], []
+    pts, along, sig, kinds, strength, stat, crit, test, sdir = [], [], [], [], [], [], [], [], []
+    for axis, (pix, line, pt, al, sg, kd, stg, sta, cr, te) in enumerate(parts):
+        if axis == 0:
+            rows.append(line)
+            cols.append(pix)
+        else:
+            rows.append(pix)
+            cols.append(line)
+        pts.append(pt)
+        along.append(al)
+        sig.append(sg)
+        kinds.append(kd)
+        strength.append(stg)
+        stat.append(sta)
+        crit.append(cr)
+        test.append(te)
+        sdir.append(np.full(pix.shape[0], 1 << axis, np.uint8))
+    r = np.concatenate(rows).astype(np.int64)
+    c = np.concatenate(cols).astype(np.int64)
+    pt = np.concatenate(pts)
+    al = np.concatenate(along)
+    sg = np.concatenate(sig)
+    kd = np.concatenate(kinds)
+    stg = np.concatenate(strength)
+    sta = np.concatenate(stat)
+    cr = np.concatenate(crit)
+    te = np.concatenate(test)
+    sd = np.concatenate(sdir)
+
+    cov = config.noise.covariance(pt, scan.sensor.pixel_angle)
+    if config.noise.edge_px > 0:
+        # the sensor's own edge blur, in pixel footprints along the scan line on the surface
+        step = config.noise.pixel_footprint(pt, al, scan.sensor.pixel_angle)
+        sg = np.sqrt(sg**2 + (config.noise.edge_px * step) ** 2)
+    cov += (sg**2)[:, None, None] * (al[:, :, None] * al[:, None, :])
+
+    # the tests at every breakpoint, in detection order
+    is_jump_test = te == 1
+    # test codes of the scan-line kernel: 1 jump (and groove), 2 crease, 3 no return
+    kind_col = np.select([is_jump_test, te == 3], [int(TestKind.JUMP), int(TestKind.NO_RETURN)],
+                         int(TestKind.CREASE)).astype(np.uint8)
+    pval = np.where(is_jump_test, st.chi2.sf(sta, 1.0), np.nan)
+    tests = TestTable(
+        kind=kind_col, a=np.arange(len(r), dtype=np.int32), b=(r * W + c).astype(np.int32),
+        statistic=sta, dof=np.where(is_jump_test, 1.0, 0.0).astype(np.float32), critical=cr,
+        p_value=pval, accepted=np.ones(len(r), bool), alpha=config.alpha,
+    )
+
+    # keep each detection only from a scan line that crosses its edge at a fair angle
+    keep = _crossing_ok(r, c, sd, (H, W))
+    r, c, pt, al, sg, kd, stg, sta, cr, te, sd = (
+        a[keep] for a in (r, c, pt, al, sg, kd, stg, sta, cr, te, sd)
+    )
+    cov = cov[keep]
+
+    # fuse detections at the same pixel (row and column scans) by information weighting
+    flat = r * W + c
+    order = np.lexsort((kd, flat))
+    flat_s = flat[order]
+    uniq, start = np.unique(flat_s, return_index=True)
+    groups = np.split(order, start[1:]) if len(order) else []
+    n = len(uniq)
+    out_pt = np.empty((n, 3))
+    out_cov = np.empty((n, 3, 3))
+    out_kind = np.empty(n, np.uint8)
+    out_str = np.empty(n)
+    out_dir = np.empty(n, np.uint8)
+    single = np.array([len(g) == 1 for g in groups], bool)
+    if n:
+        idx1 = np.array([g[0] for g in groups])
+        out_pt[:] = pt[idx1]
+        out_cov[:] = cov[idx1]
+        out_kind[:] = kd[idx1]
+        out_str[:] = stg[idx1]
+        out_dir[:] = sd[idx1]
+        chi3 = chi2_critical(3.0, config.alpha)
+        for gi in np.flatnonzero(~single):
+            g = groups[gi]
+            # fuse only estimates that agree (chi2(3)); else keep the first by kind order
+            d = pt[g] - pt[g[0]]
+            Ssum = cov[g] + cov[g[0]]
+            T = np.array([d[k] @ np.linalg.solve(Ssum[k], d[k]) for k in range(1, len(g))])
+            g = np.concatenate([[g[0]], g[1:][T <= chi3]])
+            if len(g) == 1:
+                continue
+            info = np.linalg.inv(cov[g])
+            Sinv = info.sum(0)
+            Cf = np.linalg.inv(Sinv)
+            out_cov[gi] = 0.5 * (Cf + Cf.T)
+            out_pt[gi] = Cf @ np.einsum("kij,kj->i", info, pt[g])
+            out_kind[gi] = kd[g].min()  # JUMP < CREASE_CONVEX < CREASE_CONCAVE < GROOVE
+            out_str[gi] = stg[g].max()
+            out_dir[gi] = np.bitwise_or.reduce(sd[g])
+    labels = np.zeros((H, W), np.uint8)
+    pix = np.stack(np.divmod(uniq, W), -1).astype(np.int32) if n else np.zeros((0, 2), np.int32)
+    labels.reshape(-1)[uniq] = out_kind
+    return EdgeMap(
+        labels=labels,
+        pixels=pix,
+        points=out_pt,
+        covariances=out_cov,
+        kinds=out_kind,
+        strength=out_str,
+        scan_dir=out_dir,
+        tests=tests,
+    )
+
+
+__all__ = ["detect_edges", "residual_thresholds", "point_sigma", "EdgeKind"]

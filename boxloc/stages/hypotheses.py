@@ -1,0 +1,928 @@
+"""Stage 5: one rectangle hypothesis per vertex, with its dimensions (the paper's Fig. 2).
+
+``generate_hypotheses`` is lines 2-8 of the paper's ``findgraspablesurfaces``: for every
+vertex V_i a rectangle R is aligned with it (origin at the vertex, x along d1, y along d2);
+its dimensions come first from a diagonal vertex (``dimensions_from_vertices``, lines
+11-17), else from the edge points (``dimensions_from_edges``, lines 18-30). Each candidate
+pair of dimensions is an *attempt*, verified by :func:`boxloc.stages.verify.verify`; the
+hypothesis keeps the first verified attempt. Attempts are tried smallest area first, the
+tightest rectangle the evidence supports, so a row of touching boxes is not merged.
+
+The paper returns after verifying the first candidate; here a candidate that fails
+verification is followed by the next one (at most ``MAX_ATTEMPTS``), and every attempt is
+recorded, so a post-mortem sees what else was tried.
+
+Where the edge stage saw the seam between two touching boxes of equal height only in part,
+the edge accumulators have no peak there; seams found in the range points of the region
+(:mod:`boxloc.stages.seams`) are added as far-side candidates (``DimensionSource.SEAMS``), and
+verification tests the seam itself instead of counting edge points along it.
+
+A far side with too few edge points for a peak (a sensor that rounds the corners of a
+face, or a side seen at grazing incidence) leaves the accumulators without the right
+candidate; the face's extent along each arm, how far its plane runs in a strip beside the
+arm (:func:`boxloc.stages.verify.face_extent`), gives one (``DimensionSource.EXTENT``). These
+candidates are tried after those from the edges, with a budget of their own
+(``MAX_EXTENT_ATTEMPTS``), so the paper's candidates always come first.
+
+Per-vertex work is independent (the paper's parallel implementation); with
+``config.workers > 1`` it runs in processes and the result is identical to serial.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from concurrent.futures import ProcessPoolExecutor
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy import special
+from scipy import stats as st
+from scipy.spatial import cKDTree
+
+from boxloc.config import Config
+from boxloc.products import (
+    DimensionSource,
+    EdgeMap,
+    HypothesisSet,
+    Verification,
+    VerifyReason,
+    VertexSet,
+)
+from boxloc.scan import Scan
+from boxloc.stages.seams import face_points, find_seams
+from boxloc.stages.verify import (
+    BOUNDARY_BAND,
+    SIDE_CORNERS,
+    VerifyContext,
+    VerifyOutcome,
+    face_extent,
+    face_sigma,
+    plane_var,
+    rectangle_corners,
+    verify,
+)
+from boxloc.stages.vertices import _skew, append_vertices, normal_covariance
+from boxloc.stats import BUDGET_HYPOTHESES, TestKind, TestTable, chi2_critical
+
+#: Most dimension candidates verified per vertex (bounds the work on cluttered scenes).
+MAX_ATTEMPTS = 6
+#: Most candidates from the face's extent verified per vertex, after the others.
+MAX_EXTENT_ATTEMPTS = 3
+#: Most rounds of neighbours' corners (a row of touching boxes grows by one box a round).
+MAX_NEIGHBOUR_ROUNDS = 8
+
+
+@dataclass
+class Rectangle:
+    """A rectangle aligned with its generating vertex (the paper's R)."""
+
+    vertex: int
+    origin: np.ndarray
+    x_axis: np.ndarray
+    y_axis: np.ndarray
+    normal: np.ndarray
+    plane_cov: np.ndarray  # (6, 6): origin, normal
+    width: float = np.nan
+    length: float = np.nan
+
+
+@dataclass
+class _Attempt:
+    source: DimensionSource
+    diagonal: int
+    width: float
+    length: float
+    support: float
+    threshold: float
+    outcome: VerifyOutcome | None = None
+
+
+@dataclass
+class _VertexWork:
+    """Everything found for one vertex."""
+
+    vertex: int
+    attempts: list[_Attempt] = field(default_factory=list)
+    tests: list[TestTable] = field(default_factory=list)
+    acc_bin: float = np.nan
+    acc_x: np.ndarray = field(default_factory=lambda: np.zeros(0, np.float32))
+    acc_y: np.ndarray = field(default_factory=lambda: np.zeros(0, np.float32))
+    peaks_x: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    peaks_y: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    n_candidates: int = 0
+
+
+@dataclass
+class _Context:
+    scan: Scan
+    config: Config
+    vertices: VertexSet
+    normal_cov: np.ndarray
+    edge_points: np.ndarray
+    edge_cov: np.ndarray
+    edge_tree: cKDTree | None
+    verify_ctx: VerifyContext
+
+    @classmethod
+    def build(cls, scan: Scan, edges: EdgeMap, vertices: VertexSet, config: Config,
+              up: np.ndarray) -> _Context:
+        return cls(
+            scan=scan, config=config, vertices=vertices,
+            normal_cov=normal_covariance(vertices) if len(vertices) else np.zeros((0, 3, 3)),
+            edge_points=edges.points, edge_cov=edges.covariances,
+            edge_tree=cKDTree(edges.points) if len(edges) else None,
+            verify_ctx=VerifyContext.build(scan, edges, config, up, len(vertices)),
+        )
+
+
+def align(vertices: VertexSet, i: int, normal_cov: np.ndarray) -> Rectangle:
+    """Rectangle R aligned with vertex i (paper Fig. 2, line 3)."""
+    cov = np.zeros((6, 6))
+    cov[:3, :3] = vertices.covariances[i][:3, :3]
+    cov[3:, 3:] = normal_cov[i]
+    return Rectangle(i, vertices.points[i], vertices.d1[i], vertices.d2[i],
+                     vertices.normals[i], cov)
+
+
+def dimensions_from_vertices(R: Rectangle, ctx: _Context, work: _VertexWork) -> list[_Attempt]:
+    """Candidate dimensions from diagonal vertices (paper Fig. 2, lines 11-15).
+
+    A vertex V_j is diagonal to R if it is coplanar with R (its point on R's plane and
+    its normal parallel to R's: chi2(3)), its directions are parallel to R's (chi2(2)),
+    it lies in R's first quadrant (one-sided z tests on both coordinates) and its arms
+    point back toward R's origin.
+    """
+    V = ctx.vertices
+    cfg = ctx.config
+    alpha = cfg.alpha
+    others = np.array([j for j in range(len(V)) if j != R.vertex], np.int64)
+    if len(others) == 0:
+        return []
+    D = V.points[others] - R.origin
+    u, v = D @ R.x_axis, D @ R.y_axis
+    near = (np.abs(u) <= cfg.max_edge * 1.05) & (np.abs(v) <= cfg.max_edge * 1.05)
+    # arms pointing back: d1_j, d2_j == -x, -y in either order
+    a1x, a1y = V.d1[others] @ R.x_axis, V.d1[others] @ R.y_axis
+    a2x, a2y = V.d2[others] @ R.x_axis, V.d2[others] @ R.y_axis
+    straight = (a1x < -0.5) & (a2y < -0.5)
+    swapped = (a1y < -0.5) & (a2x < -0.5)
+    cand = near & (straight | swapped) & (u > 0) & (v > 0)
+    idx = others[cand]
+    if len(idx) == 0:
+        return []
+    Dc = D[cand]
+    n = R.normal
+    Sx, Sn = R.plane_cov[:3, :3], R.plane_cov[3:, 3:]
+    # coplanar: point on plane (1) + normals parallel (2) = chi2(3)
+    w = Dc @ n
+    Sj = V.covariances[idx][:, :3, :3]
+    var_w = (plane_var(R.plane_cov, n, Dc) + np.einsum("i,nij,j->n", n, Sj, n)
+             + 2 * cfg.flatness**2)
+    nj = V.normals[idx]
+    e = np.cross(n, nj)
+    Snj = ctx.normal_cov[idx]
+    Kn = _skew(n)
+    Knj = _skew(nj)
+    Sn_t = Sn + cfg.angle_tolerance**2 * (np.eye(3) - np.outer(n, n))
+    See = Kn @ Snj @ Kn.T + np.einsum("nij,jk,nlk->nil", Knj, Sn_t, Knj)
+    T_par_n = np.array([_pinv_quad(e[k], See[k], 2) for k in range(len(idx))])
+    T_cop = w**2 / np.maximum(var_w, 1e-30) + T_par_n
+    cop = TestTable.chi2(TestKind.COPLANAR, R.vertex, idx, T_cop, 3.0, alpha)
+    # parallel: R's x axis against the matching direction of V_j, chi2(2)
+    sw = swapped[cand]
+    dj = np.where(sw[:, None], V.d2[idx], V.d1[idx])
+    Sdj = np.where(sw[:, None, None], V.covariances[idx][:, 6:, 6:],
+                   V.covariances[idx][:, 3:6, 3:6])
+    Sdx = V.covariances[R.vertex][3:6, 3:6] + cfg.angle_tolerance**2 * (
+        np.eye(3) - np.outer(R.x_axis, R.x_axis))
+    e2 = np.cross(R.x_axis, dj)
+    Kx = _skew(R.x_axis)
+    Kd = _skew(dj)
+    See2 = Kx @ Sdj @ Kx.T + np.einsum("nij,jk,nlk->nil", Kd, Sdx, Kd)
+    T_par = np.array([_pinv_quad(e2[k], See2[k], 2) for k in range(len(idx))])
+    par = TestTable.chi2(TestKind.PARALLEL, R.vertex, idx, T_par, 2.0, alpha)
+    # first quadrant: u and v significantly positive (one-sided z at alpha each)
+    uc, vc = u[cand], v[cand]
+    var_u = np.einsum("i,nij,j->n", R.x_axis, Sj, R.x_axis) + R.x_axis @ Sx @ R.x_axis
+    var_v = np.einsum("i,nij,j->n", R.y_axis, Sj, R.y_axis) + R.y_axis @ Sx @ R.y_axis
+    zq = np.minimum(uc / np.sqrt(var_u), vc / np.sqrt(var_v))
+    zc = float(_norm_isf(alpha))
+    quad = TestTable.decision(TestKind.FIRST_QUADRANT, R.vertex, idx, zq, zc, zq > zc, alpha)
+    work.tests += [cop, par, quad]
+    ok = cop.accepted & par.accepted & quad.accepted
+    ok &= (uc >= cfg.min_edge * 0.9) & (vc >= cfg.min_edge * 0.9)
+    ok &= (uc <= cfg.max_edge) & (vc <= cfg.max_edge)
+    out = [
+        _Attempt(DimensionSource.VERTICES, int(idx[k]), float(uc[k]), float(vc[k]),
+                 float(T_cop[k] + T_par[k]), float(cop.critical[0] + par.critical[0]))
+        for k in np.flatnonzero(ok)
+    ]
+    out.sort(key=lambda a: (a.width * a.length, a.diagonal))
+    return out
+
+
+def dimensions_from_edges(R: Rectangle, ctx: _Context, work: _VertexWork) -> list[_Attempt]:
+    """Candidate dimensions from edge points and two 1-D accumulators (Fig. 2, lines 18-28).
+
+    ``preprocess`` keeps the edge points on R's plane (point-on-plane, chi2(1)) in its
+    first quadrant (P_c); their coordinates along x and y vote into A_x and A_y, each vote
+    spread over the bins by the point's own localization error (a sensor that blurs its
+    edges, ``noise.edge_px``, gives wide votes). For each pair of peaks (M_x, M_y), P_f are
+    the points of both peaks inside the rectangle (on a peak: within the bin window or the
+    point's own error at alpha); the pair is supported if |P_f| > p, with p =
+    support_fraction of the far sides' expected edge points, one per pixel each side
+    covers in the image (a side seen at grazing incidence is foreshortened).
+    """
+    cfg = ctx.config
+    alpha = cfg.alpha
+    if ctx.edge_tree is None:
+        return []
+    nb = np.asarray(ctx.edge_tree.query_ball_point(R.origin, cfg.max_edge * math.sqrt(2)),
+                    np.int64)
+    if len(nb) == 0:
+        return []
+    D = ctx.edge_points[nb] - R.origin
+    u, v, w = D @ R.x_axis, D @ R.y_axis, D @ R.normal
+    Ce = ctx.edge_cov[nb]
+    var_w = (np.einsum("i,nij,j->n", R.normal, Ce, R.normal)
+             + plane_var(R.plane_cov, R.normal, D))
+    T = w**2 / np.maximum(var_w, 1e-30)
+    crit = chi2_critical(1.0, alpha)
+    on_plane = T <= crit
+    su = np.sqrt(np.einsum("i,nij,j->n", R.x_axis, Ce, R.x_axis))
+    sv = np.sqrt(np.einsum("i,nij,j->n", R.y_axis, Ce, R.y_axis))
+    kq = math.sqrt(crit)
+    quad = (u > -kq * su) & (v > -kq * sv) & (u <= cfg.max_edge) & (v <= cfg.max_edge)
+    Pc = on_plane & quad
+    work.tests.append(TestTable.decision(
+        TestKind.POINT_ON_PLANE, R.vertex, int(quad.sum()), int((Pc).sum()), crit, True, alpha,
+        dof=1.0,
+    ))
+    work.n_candidates = int(Pc.sum())
+    if Pc.sum() == 0:
+        return []
+    u, v, su, sv = u[Pc], v[Pc], su[Pc], sv[Pc]
+    spacing = ctx.verify_ctx.spacing_at(R.origin)
+    h = max(spacing, 2.0 * float(np.median(np.concatenate([su, sv]))))
+    nbins = int(math.ceil(cfg.max_edge / h)) + 2
+    # the generating vertex's own sides (v ~ 0 for A_x, u ~ 0 for A_y) say nothing of the
+    # far sides and would spread votes evenly over the accumulator: leave them out
+    band = BOUNDARY_BAND * cfg.min_edge
+    ax = _soft_votes(u[v > band], su[v > band], h, nbins)
+    ay = _soft_votes(v[u > band], sv[u > band], h, nbins)
+    work.acc_bin, work.acc_x, work.acc_y = h, ax.astype(np.float32), ay.astype(np.float32)
+    min_peak = cfg.support_fraction * cfg.min_edge / spacing
+    px = _peaks(ax, h, cfg.min_edge * 0.9, min_peak, alpha)
+    py = _peaks(ay, h, cfg.min_edge * 0.9, min_peak, alpha)
+    work.peaks_x, work.peaks_y = px, py
+    sx, sy = _seam_peaks(R, ctx, work, px, py, spacing, band)
+    out: list[_Attempt] = []
+    sup_tests: list[tuple[float, float, bool]] = []
+    # a seam for a far side: no edge support to count, verification tests the seam
+    seam_pairs = [(a, b) for a in sx for b in np.r_[py, sy]] + [(a, b) for a in px for b in sy]
+    out += [_Attempt(DimensionSource.SEAMS, -1, float(a), float(b), np.nan, np.nan)
+            for a, b in seam_pairs]
+    for Mx in px:
+        for My in py:
+            # on a side: within the bin window, or the point's own localization at alpha
+            on_x = np.abs(u - Mx) <= np.maximum(1.5 * h, kq * su)
+            on_y = np.abs(v - My) <= np.maximum(1.5 * h, kq * sv)
+            Pi = on_x | on_y
+            Pf = Pi & (u <= Mx + 1.5 * h) & (v <= My + 1.5 * h)
+            _, c1, c2, c3 = rectangle_corners(R.origin, R.x_axis, R.y_axis, Mx, My)
+            p = cfg.support_fraction * (ctx.verify_ctx.samples_along(c1, c2)
+                                        + ctx.verify_ctx.samples_along(c3, c2))
+            n_f = int(Pf.sum())
+            sup_tests.append((n_f, p, n_f > p))
+            if n_f > p:
+                out.append(_Attempt(DimensionSource.EDGES, -1, float(Mx), float(My),
+                                    float(n_f), float(p)))
+    if sup_tests:
+        s = np.array(sup_tests)
+        work.tests.append(TestTable.decision(TestKind.EDGE_SUPPORT, R.vertex, -1, s[:, 0],
+                                             s[:, 1], s[:, 2].astype(bool), alpha))
+    out.sort(key=lambda a: a.width * a.length)
+    return out
+
+
+def dimensions_from_extent(R: Rectangle, ctx: _Context, work: _VertexWork) -> list[_Attempt]:
+    """Candidate dimensions from how far R's plane runs along each arm.
+
+    The extent along x is measured in a strip beside the x arm, from ``BOUNDARY_BAND``
+    to 0.9 ``min_edge`` across it (inside any box the vertex can belong to, clear of the
+    arm's own edge), and likewise along y. The two extents together are the first
+    candidate; then each with the other axis's accumulator peaks, smallest area first.
+    """
+    cfg = ctx.config
+    k = math.sqrt(chi2_critical(1.0, cfg.alpha))
+    lo = 0.9 * cfg.min_edge
+    strip = (BOUNDARY_BAND * cfg.min_edge, lo)
+    ext, gaps = [], []
+    for along, across in ((R.x_axis, R.y_axis), (R.y_axis, R.x_axis)):
+        e, g = face_extent(ctx.verify_ctx, R.origin, along, across, R.normal, R.plane_cov,
+                           strip, cfg.max_edge, k, cfg.flatness)
+        ext.append(e)
+        gaps.append(g)
+    ext_a = np.array(ext)
+    usable = np.isfinite(ext_a) & (ext_a >= lo) & (ext_a <= cfg.max_edge)
+    work.tests.append(TestTable.decision(TestKind.FACE_EXTENT, R.vertex, [0, 1], ext_a,
+                                         np.array(gaps), usable, cfg.alpha))
+    ex = ext_a[:1][usable[:1]]
+    ey = ext_a[1:][usable[1:]]
+    both = [(float(a), float(b)) for a in ex for b in ey]
+    pairs = {(float(a), float(b)) for a in ex for b in work.peaks_y}
+    pairs |= {(float(a), float(b)) for a in work.peaks_x for b in ey}
+    pairs -= set(both)
+    # the extent on both arms first; then one arm's extent with the other's peaks
+    out = [_Attempt(DimensionSource.EXTENT, -1, a, b, np.nan, np.nan)
+           for a, b in both + sorted(pairs, key=lambda ab: (ab[0] * ab[1], ab[0]))]
+    return out
+
+
+def _seam_peaks(R: Rectangle, ctx: _Context, work: _VertexWork, px: np.ndarray,
+                py: np.ndarray, spacing: float, band: float) -> tuple[np.ndarray, np.ndarray]:
+    """Seams inside the region the edge peaks span: extra candidates for the far sides.
+
+    Where the edge stage saw a seam between touching boxes only in part, its accumulator
+    has no peak there; the range points of the region, binned across each axis, still show
+    the groove (:func:`boxloc.stages.seams.find_seams`, at the scan's seam level over the
+    positions, :func:`boxloc.stages.verify.seam_alpha`). The region
+    runs to the farthest edge peak on each axis (``max_edge`` where there is none).
+    """
+    cfg = ctx.config
+    U = float(px.max()) if len(px) else cfg.max_edge
+    V = float(py.max()) if len(py) else cfg.max_edge
+    vc = ctx.verify_ctx
+    fp = face_points(vc.points, vc.valid, vc.sigma, vc.project, R.origin, R.x_axis, R.y_axis,
+                     R.normal, (0.0, U), (0.0, V), spacing, cfg.alpha, cfg.noise.row_corr)
+    lo = 0.9 * cfg.min_edge
+    found = []
+    for b, (coord, other, ext) in enumerate(((fp.u, fp.v, U), (fp.v, fp.u, V))):
+        sel = other > band
+        pos, z, crit, _ = find_seams(coord[sel], fp.w[sel], fp.scale, lo, ext - lo, spacing,
+                                     vc.seam_alpha, fp.row[sel], fp.row_corr)
+        found.append(pos)
+        if len(pos):
+            work.tests.append(TestTable.decision(TestKind.SEAM_PEAK, R.vertex, b, z, crit,
+                                                 True, cfg.alpha))
+    return found[0], found[1]
+
+
+def _soft_votes(x: np.ndarray, sx: np.ndarray, h: float, nbins: int) -> np.ndarray:
+    """1-D accumulator of bin width h: each point's vote spread over the bins by its own
+    localization error (a normal of std ``sx`` at ``x``), so a blurred edge votes where it
+    may lie; a point much sharper than a bin votes into its bin alone (a histogram)."""
+    if len(x) == 0:
+        return np.zeros(nbins)
+    x = np.clip(x, 0.0, nbins * h - 1e-9)
+    s = np.maximum(sx, 1e-3 * h)
+    # only the bins within 6 sigma of a point get a share (beyond: < 1e-9 of a vote)
+    lo = np.clip(np.floor((x - 6.0 * s) / h), 0, nbins - 1).astype(np.int64)
+    hi = np.clip(np.floor((x + 6.0 * s) / h), 0, nbins - 1).astype(np.int64)
+    j = lo[:, None] + np.arange(int((hi - lo).max()) + 1)[None, :]
+    below = special.ndtr((j * h - x[:, None]) / s[:, None])
+    above = special.ndtr(((j + 1) * h - x[:, None]) / s[:, None])
+    # mass beyond the ends stays in the end bins (as the clipped histogram did)
+    below[j == 0] = 0.0
+    above[j == nbins - 1] = 1.0
+    mass = np.where(j <= hi[:, None], above - below, 0.0)
+    return np.bincount(np.minimum(j, nbins - 1).ravel(), weights=mass.ravel(), minlength=nbins)
+
+
+def _peaks(acc: np.ndarray, h: float, lo: float, min_height: float, alpha: float) -> np.ndarray:
+    """Positions (metres) of the significant peaks of a 1-D accumulator.
+
+    A peak is a local maximum of the 3-bin window sum that is at least ``min_height`` (the
+    support of the shortest side) and significantly above the accumulator's uniform vote
+    level (Poisson, maximum over the windows, at level alpha). Its position is the
+    centroid of the three bins.
+    """
+    if acc.size < 3:
+        return np.zeros(0)
+    s3 = np.convolve(acc, [1, 1, 1], mode="same").astype(np.float64)
+    lam = 3.0 * float(acc.sum()) / acc.size
+    # the smallest window sum that uniform votes exceed with probability alpha over all bins
+    k_sig = float(st.poisson.isf(alpha / acc.size, lam)) + 1.0 if lam > 0 else 1.0
+    left = np.r_[-1, s3[:-1]]
+    right = np.r_[s3[1:], -1]
+    pk = np.flatnonzero((s3 >= left) & (s3 > right) & (s3 >= max(min_height, k_sig)))
+    out = []
+    for i in pk:
+        a, b = max(int(i) - 1, 0), min(int(i) + 2, acc.size)
+        wts = acc[a:b].astype(np.float64)
+        pos = (np.arange(a, b) + 0.5) * h
+        x = float((wts * pos).sum() / max(wts.sum(), 1e-12))
+        if x >= lo:
+            out.append(x)
+    return np.array(out)
+
+
+def _norm_isf(alpha: float) -> float:
+    return float(st.norm.isf(alpha))
+
+
+def _pinv_quad(e: np.ndarray, S: np.ndarray, rank: int) -> float:
+    """e^T S^+ e with S's pseudo-inverse of the given rank."""
+    w, V = np.linalg.eigh(S)
+    w, V = w[-rank:], V[:, -rank:]
+    y = V.T @ e
+    return float((y**2 / np.maximum(w, 1e-30)).sum())
+
+
+def _work_on_vertex(i: int, ctx: _Context) -> _VertexWork:
+    """Lines 3-8 of findgraspablesurfaces for one vertex."""
+    work = _VertexWork(vertex=i)
+    R = align(ctx.vertices, i, ctx.normal_cov)
+    ok, tried = _try_in_turn(R, ctx, work, dimensions_from_vertices(R, ctx, work), MAX_ATTEMPTS)
+    if not ok:
+        ok, _ = _try_in_turn(R, ctx, work, dimensions_from_edges(R, ctx, work),
+                             MAX_ATTEMPTS - tried)
+    if not ok:
+        # the same rectangle again (within a bin) is no new evidence
+        tol = work.acc_bin if np.isfinite(work.acc_bin) else 0.0
+        _try_in_turn(R, ctx, work, dimensions_from_extent(R, ctx, work), MAX_EXTENT_ATTEMPTS,
+                     tol)
+    return work
+
+
+def _try_in_turn(R: Rectangle, ctx: _Context, work: _VertexWork, cands: list[_Attempt],
+                 budget: int, same: float = -1.0) -> tuple[bool, int]:
+    """Verify candidates in order until one is accepted or ``budget`` were verified; a
+    candidate within ``same`` metres of one already tried in both dimensions is skipped.
+    Returns whether one was accepted, and how many were verified."""
+    tried = 0
+    for att in cands:
+        if tried >= budget:
+            break
+        if any(abs(att.width - a.width) <= same and abs(att.length - a.length) <= same
+               for a in work.attempts):
+            continue
+        tried += 1
+        _verify(R, att, ctx)
+        work.attempts.append(att)
+        if att.outcome is not None and att.outcome.accepted:
+            return True, tried
+    return False, tried
+
+
+def _verify(R: Rectangle, att: _Attempt, ctx: _Context) -> None:
+    att.outcome = verify(ctx.scan, ctx.verify_ctx, R.origin, R.x_axis, R.y_axis, R.normal,
+                         att.width, att.length, R.plane_cov, ctx.config, attempt_id=-1)
+
+
+_WORKER_CTX: list[_Context] = []
+
+
+def _init_worker(ctx: _Context) -> None:
+    _WORKER_CTX[:] = [ctx]
+
+
+def _work_chunk(ids: list[int]) -> list[_VertexWork]:
+    ctx = _WORKER_CTX[0]
+    return [_work_on_vertex(i, ctx) for i in ids]
+
+
+def generate_hypotheses(
+    scan: Scan, edges: EdgeMap, vertices: VertexSet, *, config: Config,
+    up: np.ndarray | None = None,
+) -> tuple[VertexSet, HypothesisSet, Verification]:
+    """One hypothesis per vertex with its dimensions, and the verification of every attempt.
+
+    The vertices of two lines come first. Then, round by round, the corners of each
+    verified rectangle's seam sides become vertices of the touching neighbour beyond
+    (:func:`neighbour_vertices`), and get hypotheses of their own, until a round adds
+    none or ``MAX_NEIGHBOUR_ROUNDS`` have run.
+
+    Parameters
+    ----------
+    scan : Scan
+    edges : EdgeMap
+    vertices : VertexSet
+        From the vertex stage.
+    config : Config
+    up : ndarray (3,), optional
+        Up in the sensor frame (default ``scan.up``), for the tilt prior.
+
+    Returns
+    -------
+    VertexSet
+        ``vertices`` and the neighbours' corners after them (``parent`` >= 0); hypothesis
+        i belongs to vertex i.
+    HypothesisSet, Verification
+    """
+    up = scan.up if up is None else np.asarray(up, dtype=np.float64)
+    ctx = _Context.build(scan, edges, vertices, config, up)
+    budget = _VertexBudget(config.max_vertices)
+    ids = range(len(vertices))
+    works = _work_on(ids, budget.take(ids, ctx.vertices, up), ctx)
+    new_from = 0
+    for _ in range(MAX_NEIGHBOUR_ROUNDS):
+        V = neighbour_vertices(ctx.vertices, works, new_from, config)
+        new_from = len(ctx.vertices)
+        if len(V) == len(ctx.vertices):
+            ctx = dataclasses.replace(ctx, vertices=V)
+            break
+        ctx = dataclasses.replace(ctx, vertices=V, normal_cov=normal_covariance(V))
+        ids = range(new_from, len(V))
+        works += _work_on(ids, budget.take(ids, V, up), ctx)
+    hyps, ver = _assemble(works, ctx.vertices, config, up)
+    row = TestTable.budget(BUDGET_HYPOTHESES, budget.needed, budget.budget, budget.exhausted,
+                           config.alpha)
+    hyps = dataclasses.replace(hyps, tests=TestTable.concat([hyps.tests, row], config.alpha))
+    return ctx.vertices, hyps, ver
+
+
+@dataclass
+class _VertexBudget:
+    """``Config.max_vertices``: how many vertices get their rectangles searched (0: all)."""
+
+    budget: int
+    done: int = 0
+    needed: int = 0
+    exhausted: bool = False
+
+    def take(self, ids: range, vertices: VertexSet, up: np.ndarray) -> list[int]:
+        """The ``ids`` to work on, in order: over the budget, the highest vertices (along
+        ``up``), as graspable tops are on top of the pile."""
+        ids_l = list(ids)
+        self.needed += len(ids_l)
+        room = len(ids_l) if not self.budget else max(0, self.budget - self.done)
+        if room >= len(ids_l):
+            self.done += len(ids_l)
+            return ids_l
+        self.exhausted = True
+        height = vertices.points[ids_l] @ up
+        self.done += room
+        return sorted(ids_l[j] for j in np.argsort(-height, kind="stable")[:room])
+
+
+def _work_on(ids: range, todo: list[int], ctx: _Context) -> list[_VertexWork]:
+    """The work on each vertex of ``ids``, in order; those not in ``todo`` (over the
+    budget) get none."""
+    done = {w.vertex: w for w in _work_on_ids(todo, ctx)}
+    return [done.get(i) or _VertexWork(vertex=i) for i in ids]
+
+
+def _work_on_ids(ids: list[int], ctx: _Context) -> list[_VertexWork]:
+    config = ctx.config
+    if config.workers > 1 and len(ids) > 1:
+        chunks = [ids[k :: config.workers] for k in range(config.workers)]
+        with ProcessPoolExecutor(config.workers, initializer=_init_worker, initargs=(ctx,)) as ex:
+            parts = list(ex.map(_work_chunk, chunks))
+        by_id = {w.vertex: w for part in parts for w in part}
+        return [by_id[i] for i in ids]
+    return [_work_on_vertex(i, ctx) for i in ids]
+
+
+def _accepted(w: _VertexWork) -> _Attempt | None:
+    return next((a for a in w.attempts if a.outcome is not None and a.outcome.accepted), None)
+
+
+def _corner(C: np.ndarray, u: float, v: float, tol: float) -> np.ndarray:
+    """Position covariance (3, 3) of the corner u d1 + v d2 of a verified rectangle whose
+    vertex has joint covariance C (9, 9): the vertex's point, and the arms' direction
+    error, which verification bounded to the angle tolerance, times the lengths."""
+    return C[:3, :3] + (u * u + v * v) * tol * tol * np.eye(3)
+
+
+def neighbour_vertices(vertices: VertexSet, works: list[_VertexWork], new_from: int,
+                       config: Config) -> VertexSet:
+    """``vertices`` and, after them, the corners of touching neighbours across seams.
+
+    A side of a verified rectangle that is a seam (``VERIFY_SEAM_SIDE``) as strong as the
+    search for one inside the rectangle had to find, beyond which the face's plane runs on
+    (``VERIFY_CONTINUATION`` at least ``min_inlier_fraction``: a neighbour of equal
+    height), is a side of that neighbour too, and its two ends are two of the neighbour's
+    corners: one vertex each, with its arms across the seam and along it. Those are the
+    corners the line stage misses when both sides are seams (an interior box of a neat
+    layer).
+
+    A corner is not added where the neighbour has been found already (a verified
+    rectangle, that no strong seam crosses, covers its quadrant just beyond it) or has a
+    vertex already (one of the same quadrant coincides with it: chi2 of the positions,
+    3 dof, at alpha). Every corner offered is a ``NEIGHBOUR_CORNER`` test row.
+
+    Parameters
+    ----------
+    vertices : VertexSet
+        All vertices so far; ``works[i]`` is vertex i's.
+    works : list
+        The work of every vertex so far.
+    new_from : int
+        Corners are offered from ``works[new_from:]`` (the last round's).
+    config : Config
+
+    Notes
+    -----
+    The new vertex's position covariance is the parent's point's, and the angle tolerance
+    times the distance along the arms (:func:`_corner`); its directions keep the parent's
+    covariances.
+    """
+    alpha = config.alpha
+    crit = chi2_critical(3.0, alpha)
+    k = math.sqrt(chi2_critical(1.0, alpha))
+    tol = config.angle_tolerance
+    pts, D1, D2, N, COV = (list(vertices.points), list(vertices.d1), list(vertices.d2),
+                           list(vertices.normals), list(vertices.covariances))
+    parent: list[int] = []  # of each new corner, and its seam side
+    side_of: list[int] = []
+    # the verified rectangles that no strong seam crosses (one that is crossed will be
+    # rejected, and must not hide its neighbours)
+    acc = [(w.vertex, a) for w in works if (a := _accepted(w)) is not None]
+    cross = _crossings([(vertices.points[i], vertices.d1[i], vertices.d2[i], a)
+                        for i, a in acc], config)
+    found = [(i, a) for (i, a), (_, _, crosses) in zip(acc, cross) if not crosses]
+    mi, probe = BOUNDARY_BAND * config.min_edge, 0.75 * config.min_edge
+    fi = np.array([i for i, _ in found], np.int64)
+    f_wl = np.array([(a.width, a.length) for _, a in found], np.float64).reshape(-1, 2)
+    f_c = np.array([a.outcome.plane_center for _, a in found]).reshape(-1, 3)  # type: ignore
+    f_n = np.array([a.outcome.plane_normal for _, a in found]).reshape(-1, 3)  # type: ignore
+    f_sig = np.array([face_sigma(config, c) for c in f_c])
+
+    def covered(p: np.ndarray, d1: np.ndarray, d2: np.ndarray) -> int:
+        """The vertex whose verified rectangle covers the quadrant at p, or -1."""
+        if not len(fi):
+            return -1
+        q = p + probe * (d1 + d2)  # inside any box there, beyond the band of its sides
+        dq = q - vertices.points[fi]
+        u = np.einsum("ij,ij->i", dq, vertices.d1[fi])
+        v = np.einsum("ij,ij->i", dq, vertices.d2[fi])
+        on = np.abs(np.einsum("ij,ij->i", q - f_c, f_n)) <= k * f_sig
+        hit = np.flatnonzero((u > mi) & (u < f_wl[:, 0] - mi) & (v > mi)
+                             & (v < f_wl[:, 1] - mi) & on)
+        return int(fi[hit[0]]) if len(hit) else -1
+
+    n0 = len(pts)
+    base = (np.asarray(pts).reshape(-1, 3), np.asarray(D1).reshape(-1, 3),
+            np.asarray(D2).reshape(-1, 3), np.asarray(COV).reshape(-1, 9, 9)[:, :3, :3])
+
+    def nearest(p: np.ndarray, d1: np.ndarray, d2: np.ndarray, S: np.ndarray
+                ) -> tuple[float, int]:
+        """chi2 (3 dof) and id of the nearest vertex of the same quadrant, else (inf, -1)."""
+        P, A1, A2, C3 = base
+        if len(pts) > n0:  # the corners added in this call
+            P, A1, A2 = (np.r_[P, pts[n0:]], np.r_[A1, D1[n0:]], np.r_[A2, D2[n0:]])
+            C3 = np.r_[C3, np.asarray(COV[n0:])[:, :3, :3]]
+        same = np.flatnonzero((A1 @ d1 >= 0.5) & (A2 @ d2 >= 0.5))
+        if not len(same):
+            return np.inf, -1
+        dp = p - P[same]
+        # a micrometre of slack keeps a degenerate covariance solvable
+        x = np.linalg.solve(C3[same] + S + 1e-12 * np.eye(3), dp[..., None])[..., 0]
+        c2 = np.einsum("ij,ij->i", dp, x)
+        b = int(np.argmin(c2))
+        return float(c2[b]), int(same[b])
+
+    rows: list[tuple[int, int, float]] = []
+    for w in works[new_from:]:
+        att = _accepted(w)
+        if att is None:
+            continue
+        i = w.vertex
+        t = att.outcome.tests  # type: ignore[union-attr]
+        seam = t.of_kind(TestKind.VERIFY_SEAM_SIDE)
+        crit_in = t.of_kind(TestKind.VERIFY_SEAM_INTERIOR).critical
+        strong = seam.accepted & (seam.statistic >= (crit_in.max() if len(crit_in) else np.inf))
+        cont = t.of_kind(TestKind.VERIFY_CONTINUATION)
+        runs_on = {int(b) for b, f in zip(cont.b, cont.statistic)
+                   if f >= config.min_inlier_fraction}
+        o, x, y, n = vertices.points[i], vertices.d1[i], vertices.d2[i], vertices.normals[i]
+        C = vertices.covariances[i]
+        W, L = att.width, att.length
+        uv = ((0.0, 0.0), (W, 0.0), (W, L), (0.0, L))  # the corners in the rectangle's frame
+        for si in sorted({int(b) for b in seam.b[strong]} & runs_on):
+            ends = tuple(uv[k] for k in SIDE_CORNERS[si])
+            out, along_x = (-y, y, -x, x)[si], si < 2
+            for e, (u, v) in enumerate(ends):
+                p = o + u * x + v * y
+                u2, v2 = ends[1 - e]
+                d2 = (u2 - u) * x + (v2 - v) * y
+                d2 = d2 / np.linalg.norm(d2)
+                d1 = out.copy()
+                # the outward arm is +-y (side along x) or +-x, the other along the side
+                s_out, s_along = ((C[6:, 6:], C[3:6, 3:6]) if along_x
+                                  else (C[3:6, 3:6], C[6:, 6:]))
+                if np.cross(d1, d2) @ n < 0:  # keep the normal toward the sensor
+                    d1, d2, s_out, s_along = d2, d1, s_along, s_out
+                cov = np.zeros((9, 9))
+                cov[:3, :3] = _corner(C, u, v, tol)
+                cov[3:6, 3:6], cov[6:, 6:] = s_out, s_along
+                best_j = covered(p, d1, d2)
+                if best_j >= 0:  # the neighbour is found already
+                    best = 0.0
+                else:
+                    best, best_j = nearest(p, d1, d2, cov[:3, :3])
+                rows.append((i, best_j, best))
+                if best <= crit:
+                    continue
+                pts.append(p)
+                D1.append(d1)
+                D2.append(d2)
+                N.append(n)
+                COV.append(cov)
+                parent.append(i)
+                side_of.append(si)
+    n_new = len(pts) - len(vertices)
+    tests = vertices.tests
+    if rows:
+        r = np.array(rows)
+        tests = TestTable.concat([tests, TestTable.chi2(
+            TestKind.NEIGHBOUR_CORNER, r[:, 0].astype(np.int32), r[:, 1].astype(np.int32),
+            r[:, 2], 3.0, alpha)], alpha)
+    new = list(zip(pts[n0:], D1[n0:], D2[n0:], N[n0:], COV[n0:]))
+    return append_vertices(vertices, new, [-1] * n_new, [-1] * n_new, parent, side_of,
+                           tests)
+
+
+_Rect = tuple[np.ndarray, np.ndarray, np.ndarray, _Attempt]  # origin, x, y, attempt
+
+
+def _crossings(rects: list[_Rect], config: Config) -> list[tuple[float, int, bool]]:
+    """For each verified rectangle: the largest fraction of another one's strong seam
+    side that lies in its core, that other's index (-1 if none) and whether it crosses.
+
+    A seam side is strong for this if it is as strong as the rectangle's own search for
+    a seam anywhere inside had to find, and significant among all the seam sides offered
+    (Bonferroni): one weak false seam must not remove a face. It crosses if at least half
+    of it lies in the core (beyond ``BOUNDARY_BAND`` ``min_edge`` of the sides) and on
+    the rectangle's plane (point on plane, z at alpha).
+    """
+    own, zs, p0, p1 = [], [], [], []
+    for j, (o, x, y, a) in enumerate(rects):
+        c = rectangle_corners(o, x, y, a.width, a.length)
+        t = a.outcome.tests.of_kind(TestKind.VERIFY_SEAM_SIDE)  # type: ignore[union-attr]
+        for si, z in zip(t.b[t.accepted], t.statistic[t.accepted]):
+            e0, e1 = SIDE_CORNERS[int(si)]
+            own.append(j)
+            zs.append(float(z))
+            p0.append(c[e0])
+            p1.append(c[e1])
+    if not own:
+        return [(0.0, -1, False)] * len(rects)
+    owner, z_seg = np.array(own), np.array(zs)
+    A, B = np.array(p0), np.array(p1)
+    k = math.sqrt(chi2_critical(1.0, config.alpha))
+    crit_all = float(st.norm.isf(config.alpha / len(owner)))
+    mi = BOUNDARY_BAND * config.min_edge
+    s = np.linspace(0.0, 1.0, 21)
+    P = A[:, None, :] + s[None, :, None] * (B - A)[:, None, :]  # (segments, 21, 3)
+    mid, half = 0.5 * (A + B), 0.5 * np.linalg.norm(B - A, axis=1)
+    out: list[tuple[float, int, bool]] = []
+    for j, (o, x, y, a) in enumerate(rects):
+        res = a.outcome
+        assert res is not None
+        nf, cf = res.plane_normal, res.plane_center
+        sig = face_sigma(config, cf)
+        crit_in = res.tests.of_kind(TestKind.VERIFY_SEAM_INTERIOR).critical
+        crit = max(float(crit_in.max()) if len(crit_in) else np.inf, crit_all)
+        # only segments that can reach the rectangle (its circumscribed circle)
+        centre = o + 0.5 * a.width * x + 0.5 * a.length * y
+        near = np.linalg.norm(mid - centre, axis=1) <= half + 0.5 * math.hypot(a.width,
+                                                                                a.length)
+        cand = np.flatnonzero((owner != j) & (z_seg >= crit) & near)
+        if not len(cand):
+            out.append((0.0, -1, False))
+            continue
+        Q = P[cand]
+        u, v = (Q - o) @ x, (Q - o) @ y
+        inside = ((u > mi) & (u < a.width - mi) & (v > mi) & (v < a.length - mi)
+                  & (np.abs((Q - cf) @ nf) <= k * sig))
+        f = inside.mean(1)
+        b = int(np.argmax(f))
+        worst = float(f[b])
+        out.append((worst, int(owner[cand[b]]) if worst > 0 else -1, worst >= 0.5))
+    return out
+
+
+def _seams_across(att_rows: list[tuple[int, _Attempt]], vertices: VertexSet,
+                  config: Config) -> None:
+    """Reject a verified rectangle across whose core runs a seam side of another one
+    (``VERIFY_SEAM_CROSSING``, reason ``INTERIOR_SEAM``; see :func:`_crossings`).
+
+    Two touching boxes of equal height seen from afar may show their seam only to the
+    test at the side's known position, not to the search for the strongest groove
+    anywhere inside; the rectangle over both then verifies too, and would win the
+    selection for explaining more points with one model.
+    """
+    acc = [j for j, (_, a) in enumerate(att_rows) if a.outcome and a.outcome.accepted]
+    rects = [(vertices.points[h], vertices.d1[h], vertices.d2[h], a)
+             for h, a in (att_rows[j] for j in acc)]
+    for j, (frac, by, crosses) in zip(acc, _crossings(rects, config)):
+        a = att_rows[j][1]
+        out = a.outcome
+        assert out is not None
+        row = TestTable.decision(TestKind.VERIFY_SEAM_CROSSING, -1, acc[by] if by >= 0 else -1,
+                                 frac, 0.5, not crosses, config.alpha)
+        a.outcome = dataclasses.replace(
+            out, tests=TestTable.concat([out.tests, row], config.alpha),
+            accepted=False if crosses else out.accepted,
+            reason=VerifyReason.INTERIOR_SEAM if crosses else out.reason)
+
+
+def _ragged(arrs: list[np.ndarray], dtype: type) -> tuple[np.ndarray, np.ndarray]:
+    offs = np.zeros(len(arrs) + 1, np.int64)
+    if arrs:
+        offs[1:] = np.cumsum([len(a) for a in arrs])
+    vals: np.ndarray = (np.concatenate(arrs).astype(dtype) if arrs and offs[-1]
+                        else np.zeros(0, dtype))
+    return offs, vals
+
+
+def _assemble(
+    works: list[_VertexWork], vertices: VertexSet, config: Config, up: np.ndarray
+) -> tuple[HypothesisSet, Verification]:
+    alpha = config.alpha
+    n = len(works)
+    att_rows: list[tuple[int, _Attempt]] = [(hi, a) for hi, w in enumerate(works)
+                                            for a in w.attempts]
+    _seams_across(att_rows, vertices, config)
+    kept = np.full(n, -1, np.int32)
+    for j, (hi, a) in enumerate(att_rows):
+        if a.outcome is not None and a.outcome.accepted and kept[hi] < 0:
+            kept[hi] = j
+    source = np.zeros(n, np.uint8)
+    diag = np.full(n, -1, np.int32)
+    width = np.full(n, np.nan)
+    length = np.full(n, np.nan)
+    corners = np.full((n, 4, 3), np.nan)
+    for hi in range(n):
+        if kept[hi] >= 0:
+            a = att_rows[kept[hi]][1]
+            source[hi], diag[hi] = int(a.source), a.diagonal
+            width[hi], length[hi] = a.width, a.length
+            corners[hi] = rectangle_corners(vertices.points[hi], vertices.d1[hi],
+                                            vertices.d2[hi], a.width, a.length)
+    ax_off, ax = _ragged([w.acc_x for w in works], np.float32)
+    ay_off, ay = _ragged([w.acc_y for w in works], np.float32)
+    px_off, px = _ragged([w.peaks_x for w in works], np.float64)
+    py_off, py = _ragged([w.peaks_y for w in works], np.float64)
+    tests = []
+    for w in works:
+        tests += w.tests
+    k = len(att_rows)
+    hyps = HypothesisSet(
+        vertex=np.arange(n, dtype=np.int32),
+        source=source,
+        attempt=kept,
+        origins=vertices.points.copy(),
+        x_axis=vertices.d1.copy(),
+        y_axis=vertices.d2.copy(),
+        normals=vertices.normals.copy(),
+        width=width,
+        length=length,
+        corners=corners,
+        acc_bin=np.array([w.acc_bin for w in works], np.float64),
+        acc_x_offsets=ax_off, acc_x=ax, acc_y_offsets=ay_off, acc_y=ay,
+        peaks_x_offsets=px_off, peaks_x=px, peaks_y_offsets=py_off, peaks_y=py,
+        n_candidates=np.array([w.n_candidates for w in works], np.int32),
+        att_hypothesis=np.array([h for h, _ in att_rows], np.int32),
+        att_source=np.array([int(a.source) for _, a in att_rows], np.uint8),
+        att_diagonal=np.array([a.diagonal for _, a in att_rows], np.int32),
+        att_width=np.array([a.width for _, a in att_rows], np.float64),
+        att_length=np.array([a.length for _, a in att_rows], np.float64),
+        att_support=np.array([a.support for _, a in att_rows], np.float64),
+        att_threshold=np.array([a.threshold for _, a in att_rows], np.float64),
+        att_verified=np.array([bool(a.outcome and a.outcome.accepted) for _, a in att_rows],
+                              bool),
+        up=np.asarray(up, dtype=np.float64).copy(),
+        tests=TestTable.concat(tests, alpha),
+    )
+    outs = [a.outcome for _, a in att_rows]
+    vtests = []
+    for j, o in enumerate(outs):
+        assert o is not None
+        t = o.tests
+        vtests.append(TestTable(kind=t.kind, a=np.full(len(t), j, np.int32), b=t.b,
+                                statistic=t.statistic, dof=t.dof, critical=t.critical,
+                                p_value=t.p_value, accepted=t.accepted, alpha=t.alpha))
+    in_off, in_pix = _ragged([o.inlier_pixels for o in outs], np.int32)  # type: ignore[union-attr]
+
+    def col(name: str, dtype: type) -> np.ndarray:
+        return np.array([getattr(o, name) for o in outs], dtype).reshape(k, *(
+            () if not outs else np.shape(getattr(outs[0], name))))
+
+    ver = Verification(
+        attempt=np.arange(k, dtype=np.int32),
+        hypothesis=hyps.att_hypothesis.copy(),
+        n_inside=col("n_inside", np.int32),
+        n_valid=col("n_valid", np.int32),
+        n_inliers=col("n_inliers", np.int32),
+        n_front=col("n_front", np.int32),
+        n_behind=col("n_behind", np.int32),
+        inlier_fraction=col("inlier_fraction", np.float64),
+        mean_distance=col("mean_distance", np.float64),
+        sigma_mean=col("sigma_mean", np.float64),
+        n_interior_edges=col("n_interior_edges", np.int32),
+        plane_centers=col("plane_center", np.float64).reshape(k, 3),
+        plane_normals=col("plane_normal", np.float64).reshape(k, 3),
+        plane_covariances=col("plane_cov", np.float64).reshape(k, 6, 6),
+        rms=col("rms", np.float64),
+        accepted=col("accepted", bool),
+        reason=col("reason", np.uint8),
+        inlier_offsets=in_off,
+        inlier_pixels=in_pix,
+        error=col("error", np.float64),
+        tests=TestTable.concat(vtests, alpha),
+    )
+    return hyps, ver

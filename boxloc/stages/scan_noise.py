@@ -1,0 +1,304 @@
+"""The scan's own noise model: estimated from its flat regions before the edge stage.
+
+Every test of the pipeline scales its statistic by the range-noise model. A model
+configured for one sensor and used on another makes every test fire at the wrong rate
+(with the true noise at 2x the model a chi-square(1) test at alpha = 0.01 fires at 0.20), so
+by default (``Config.noise_auto``) each scan gets the model fitted to its own flat tiles
+(:func:`boxloc.calibrate.noise.tile_residuals`,
+:func:`boxloc.calibrate.noise.fit_residuals`): the range terms
+``sigma0``, ``k1``, ``k2``, the incidence law (``incidence_exponent``) and the row-shared
+share ``row_corr``. The terms a single scan
+cannot measure (``sigma_angle``, ``min_cos``, ``edge_px``) come from the config's model.
+
+Whatever the source, the scan's residuals are tested against the model in use
+(``NOISE_FIT``), so a log says when a pinned model is wrong for the scan. How heavy the
+tails are is recorded (``tails``) but not tested: flat tiles that hold a few pixels of a
+neighbouring surface put outliers beyond 4 sigma even under Gaussian noise (the simulator's
+give 3x a normal's rate), so a tail test would not keep its level.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import numpy as np
+from scipy import stats as _st
+
+from boxloc.calibrate.noise import (
+    CORRELATION_LAGS,
+    NOISE_TERMS,
+    TAIL_SIGMAS,
+    TileResiduals,
+    fit_bins,
+    fit_residuals,
+    tile_residuals,
+)
+from boxloc.config import Config
+from boxloc.errors import InputError
+from boxloc.products import NOISE_FIELDS, NoiseEstimate, NoiseSource
+from boxloc.scan import NoiseModel, Scan
+from boxloc.stats import TestKind, TestTable
+
+__all__ = ["estimate_scan_noise", "fit_warning", "scale_margin", "MIN_FLAT_TILES", "PATCH_PX"]
+
+#: Side of the flat tiles, pixels: small enough that box tops and floors are flat over a
+#: tile at the resolutions seen (320x240 to 1280x960), large enough for a robust std.
+PATCH_PX = 16
+#: Flat tiles a scan needs for its own model (24 tiles of 16x16: ~6000 residuals); fewer
+#: and the config's model is used.
+MIN_FLAT_TILES = 24
+#: Tiles examined at most (every k-th tile along rows and columns beyond it): the estimate
+#: needs hundreds, not the 1200 of a 640x480 scan.
+MAX_TILES = 400
+#: Flat tiles a range bin needs to enter the fit and the NOISE_FIT test.
+MIN_BIN_TILES = 4
+#: Flat tiles a range bin needs to enter the NOISE_FIT test (its standard error comes from
+#: their spread).
+MIN_TEST_TILES = 10
+#: Width of the range bins, metres.
+BIN_WIDTH = 0.1
+
+
+def estimate_scan_noise(scan: Scan, config: Config) -> NoiseEstimate:
+    """The noise model for this scan and the tests of its residuals against it.
+
+    Parameters
+    ----------
+    scan : Scan
+    config : Config
+        ``noise_auto`` chooses estimation; ``noise`` is the fallback (and the pinned model),
+        and supplies ``sigma_angle``, ``min_cos`` and ``edge_px``.
+
+    Returns
+    -------
+    NoiseEstimate
+        Deterministic: a function of the scan's ranges and the config only.
+    """
+    nominal = config.noise
+    H, W = scan.shape
+    step = max(1, math.ceil(math.sqrt((H // PATCH_PX) * (W // PATCH_PX) / MAX_TILES)))
+    tiles = tile_residuals(scan, None, patch=PATCH_PX, labels=None, min_valid=0.9,
+                           max_outliers=0.05, max_curvature_ratio=1.5, min_cos=0.3,
+                           step=step)
+    corr = _correlation(tiles)
+    model, source, reason = nominal, NoiseSource.CONFIG, "the config pins the noise model"
+    if config.noise_auto:
+        model, source, reason = _auto(scan, tiles, corr, nominal, config.alpha)
+    bins, tests = _fit_tests(tiles, model, config.alpha)
+    tails = _tail_rates(tiles, model)
+    return NoiseEstimate(
+        source=int(source), reason=reason,
+        model=_as_array(model), nominal=_as_array(nominal),
+        n_tiles=int(tiles.n_tiles), n_tiles_used=int(tiles.n_accepted),
+        n_points=int(tiles.inlier.sum()),
+        bin_range=bins[0], bin_tiles=bins[1], bin_std=bins[2], bin_model_std=bins[3],
+        bin_z=bins[4], correlation=corr, tails=tails, tests=tests,
+    )
+
+
+def fit_warning(noise: NoiseEstimate) -> str | None:
+    """A one-line warning when the scan's residuals reject the model in use, else None."""
+    fit = noise.tests.of_kind(TestKind.NOISE_FIT)
+    if len(fit) == 0 or bool(fit.accepted.all()):
+        return None
+    i = int(np.argmax(noise.bin_z))
+    ratio = noise.bin_std[i] / noise.bin_model_std[i]
+    advice = ("set noise_auto = true, or calibrate the sensor (boxloc calibrate-noise)"
+              if noise.source == NoiseSource.CONFIG else "the scan's own model does not fit "
+              "its flat regions either: its noise is not a function of range alone")
+    return (f"the noise model does not fit this scan (NOISE_FIT z = {fit.statistic[0]:.1f} > "
+            f"{fit.critical[0]:.1f}): at {noise.bin_range[i]:.2f} m its flat surfaces scatter "
+            f"{ratio:.2f}x the model's sigma, so every test fires at the wrong rate; {advice}")
+
+
+def _as_array(model: NoiseModel) -> np.ndarray:
+    return np.array([getattr(model, k) for k in NOISE_FIELDS], dtype=np.float64)
+
+
+def _auto(scan: Scan, tiles: TileResiduals, corr: np.ndarray, nominal: NoiseModel,
+          alpha: float) -> tuple[NoiseModel, NoiseSource, str]:
+    if tiles.n_accepted < MIN_FLAT_TILES:
+        few = (f"{tiles.n_accepted} flat tiles of {PATCH_PX}x{PATCH_PX} px, fewer than "
+               f"{MIN_FLAT_TILES}")
+        model = _from_differences(scan, nominal)
+        if model is None:
+            return nominal, NoiseSource.FALLBACK, (
+                f"{few}, and too few smooth scan lines: the config's model")
+        return model, NoiseSource.DIFFERENCES, f"{few}: fitted to second differences"
+    try:
+        fitted, report = fit_residuals([tiles], bin_width=BIN_WIDTH,
+                                       min_points=MIN_BIN_TILES * PATCH_PX**2 // 2,
+                                       min_tiles=MIN_BIN_TILES, base=nominal,
+                                       incidence="fit")
+    except InputError as e:
+        return nominal, NoiseSource.FALLBACK, f"no fit ({e}): the config's model"
+    # a row-shared share the tiles cannot tell from 0 (one-sided z at alpha) is 0: the
+    # seam tests' row term costs time and an estimate of 0.01 is the ANOVA's noise
+    rc = report["row_corr"]
+    se = rc["std_error"]
+    row_corr = fitted.row_corr if se and fitted.row_corr > _st.norm.isf(alpha) * se else 0.0
+    along_rows, along_cols = corr
+    model = NoiseModel(sigma0=fitted.sigma0, k1=fitted.k1, k2=fitted.k2,
+                       sigma_angle=nominal.sigma_angle, min_cos=nominal.min_cos,
+                       edge_px=nominal.edge_px, row_corr=row_corr,
+                       incidence_exponent=fitted.incidence_exponent,
+                       corr_px_rows=correlation_length(along_rows),
+                       corr_px_cols=correlation_length(along_cols))
+    used = sum(1 for row in report["rows"] if row["used"])
+    return model, NoiseSource.SCAN, (
+        f"fitted to {tiles.n_accepted} flat tiles ({report['n_points']} points, "
+        f"{used} range bins)")
+
+
+def _from_differences(scan: Scan, nominal: NoiseModel) -> NoiseModel | None:
+    """The range terms fitted to the second differences of the ranges along rows and
+    columns, per range bin: ``1.4826 MAD / sqrt(6)`` is the std of white noise (the MAD
+    ignores the few triplets that straddle an edge). Correlated noise partly cancels in a
+    difference, so this reads low on a sensor whose noise is correlated; it serves scans
+    whose tiles cannot pass as flat, where the noise dwarfs that error."""
+    r = scan.range.astype(np.float64)
+    d2 = [r[:, :-2] - 2.0 * r[:, 1:-1] + r[:, 2:], r[:-2] - 2.0 * r[1:-1] + r[2:]]
+    mid = [r[:, 1:-1], r[1:-1]]
+    dd = np.concatenate([d.ravel() for d in d2])
+    rr = np.concatenate([m.ravel() for m in mid])
+    ok = np.isfinite(dd) & np.isfinite(rr)
+    dd, rr = dd[ok], rr[ok]
+    if dd.size < MIN_FLAT_TILES * PATCH_PX**2:
+        return None
+    b = np.floor(rr / BIN_WIDTH).astype(np.int64)
+    rows = []
+    for k in np.unique(b):
+        q = b == k
+        if q.sum() < PATCH_PX**2:
+            continue
+        med = np.median(dd[q])
+        std = 1.4826 * float(np.median(np.abs(dd[q] - med))) / math.sqrt(6.0)
+        if std > 0:
+            rows.append({"range": float(np.median(rr[q])), "std": std, "count": int(q.sum())})
+    if not rows:
+        return None
+    try:
+        fitted, _ = fit_bins(rows, NOISE_TERMS, nominal)
+    except InputError:
+        return None
+    return dataclasses.replace(nominal, sigma0=fitted.sigma0, k1=fitted.k1, k2=fitted.k2,
+                               row_corr=0.0, incidence_exponent=1.0)
+
+
+def _tile_stats(tiles: TileResiduals, model: NoiseModel
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per flat tile: median range (m), robust residual std at normal incidence (m), and
+    the number of inliers."""
+    inl = tiles.inlier
+    tid = tiles.tile[inl]
+    if tid.size == 0:
+        z = np.zeros(0)
+        return z, z, z
+    # along the ray, back to normal incidence as the model's 1/max(cos, min_cos) factor
+    e = np.abs(tiles.residual[inl]) * np.maximum(
+        tiles.cos_incidence[inl], model.min_cos) ** model.incidence_exponent
+    r = tiles.range[inl]
+    _, inv, counts = np.unique(tid, return_inverse=True, return_counts=True)
+    starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
+    order = np.lexsort((e, inv))
+    mid = starts + (counts - 1) // 2
+    mad = e[order][mid]  # lower median of |e| per tile
+    order_r = np.lexsort((r, inv))
+    r_med = r[order_r][mid]
+    return r_med, 1.4826 * mad, counts.astype(np.float64)
+
+
+def scale_margin(alpha: float) -> float:
+    """How far (in ln) the model's scale may be off before a 1-dof test at ``alpha`` fires
+    at twice its rate: ln sqrt(chi2_{1,1-alpha} / chi2_{1,1-2 alpha}) (0.102 at 0.01)."""
+    return 0.5 * math.log(_st.chi2.isf(alpha, 1) / _st.chi2.isf(2.0 * alpha, 1))
+
+
+def _fit_tests(tiles: TileResiduals, model: NoiseModel, alpha: float
+               ) -> tuple[tuple[np.ndarray, ...], TestTable]:
+    """Range bins and the NOISE_FIT test of the residuals against ``model``.
+
+    Per range bin with :data:`MIN_TEST_TILES` flat tiles, ``d`` is the median over its
+    tiles of ln(tile std / model std) (a few tiles of ribbed or mixed surface that passed
+    the flatness checks do not move it), with its standard error from the tiles' own
+    spread (so correlated noise and heterogeneous surfaces are in it). A scale can never
+    be known exactly (a tile's std carries biases of a percent or so), and only a relevant
+    error matters: the test asks whether some
+    bin's scale is off by more than :func:`scale_margin`, ``z_b = (|d_b| - margin) / se_b``
+    against the one-sided normal critical value with Bonferroni over the bins.
+    """
+    r, s, n = _tile_stats(tiles, model)
+    ok = s > 0
+    r, s, n = r[ok], s[ok], n[ok]
+    empty = tuple(np.zeros(0) for _ in range(5))
+    if r.size == 0:
+        return empty, TestTable.empty(alpha)
+    # ln of a MAD-based std of n normal samples is biased low by about 1.36 / (2 n)
+    d = np.log(s / model.sigma_range(r)) + 1.36 / (2.0 * n)
+    b = np.floor(r / BIN_WIDTH).astype(np.int64)
+    margin = scale_margin(alpha)
+    rows = []
+    for k in np.unique(b):
+        q = b == k
+        if q.sum() < MIN_TEST_TILES:
+            continue
+        dk = d[q]
+        med = float(np.median(dk))
+        # the median's standard error: 1.2533 x a robust std / sqrt(n)
+        se = max(1.2533 * 1.4826 * float(np.median(np.abs(dk - med))) / math.sqrt(dk.size),
+                 1e-12)
+        rk = float(np.median(r[q]))
+        rows.append((rk, float(q.sum()), float(np.exp(np.median(np.log(s[q])))),
+                     float(model.sigma_range(rk)), (abs(med) - margin) / se))
+    if not rows:
+        return empty, TestTable.empty(alpha)
+    bins = tuple(np.array(c, dtype=np.float64) for c in zip(*rows))
+    nb = len(rows)
+    z = float(bins[4].max())
+    p = min(1.0, nb * float(_st.norm.sf(z)))
+    return bins, TestTable.decision(TestKind.NOISE_FIT, -1, nb, z,
+                                    float(_st.norm.isf(alpha / nb)), z <= _st.norm.isf(alpha / nb),
+                                    alpha, p_value=p)
+
+
+def _z(tiles: TileResiduals, model: NoiseModel) -> np.ndarray:
+    """|residual| / model sigma of every point of the flat tiles (their outliers too)."""
+    e = tiles.residual
+    fin = np.isfinite(e)
+    return np.abs(e[fin]) / model.sigma_range(tiles.range[fin], tiles.cos_incidence[fin])
+
+
+def _tail_rates(tiles: TileResiduals, model: NoiseModel) -> np.ndarray:
+    z = _z(tiles, model)
+    if z.size == 0:
+        return np.full(len(TAIL_SIGMAS), np.nan)
+    return np.array([np.mean(z > k) for k in TAIL_SIGMAS])
+
+
+#: Lag-1 correlation below which the noise counts as white (a plane fit's own residuals
+#: correlate a little).
+WHITE_CORRELATION = 0.1
+
+
+def correlation_length(corr: np.ndarray) -> float:
+    """Correlation length (pixels) of exp(-k / L) fitted through the origin to ln of the
+    measured correlation at :data:`boxloc.calibrate.noise.CORRELATION_LAGS`, over the lags where
+    it is above 0.05 (further it is the plane fit's and the estimate's noise); 0 where the lag-1
+    correlation is below :data:`WHITE_CORRELATION`."""
+    lags = np.asarray(CORRELATION_LAGS, dtype=np.float64)
+    c = np.asarray(corr, dtype=np.float64)
+    if not (np.isfinite(c[0]) and c[0] >= WHITE_CORRELATION):
+        return 0.0
+    ok = np.isfinite(c) & (c > 0.05)
+    x, y = lags[ok], np.log(c[ok])
+    slope = float(x @ y / (x @ x))
+    return round(-1.0 / slope, 3) if slope < 0 else float(lags[-1])
+
+
+def _correlation(tiles: TileResiduals) -> np.ndarray:
+    L = tiles.lag_sums
+    with np.errstate(invalid="ignore", divide="ignore"):
+        c = L[..., 0] / np.sqrt(L[..., 1] * L[..., 2])
+    assert c.shape == (2, len(CORRELATION_LAGS))
+    return np.where(np.isfinite(c), c, np.nan)

@@ -1,0 +1,381 @@
+"""Seams: straight lines of range points lying behind a face's plane.
+
+Two boxes of equal height that touch leave a seam between their tops: their bevelled or
+rounded edges and the gap form a groove a few millimetres deep and wide. Seen from 2-3 m
+that groove is shallower than the noise of one sample, so the edge stage, which tests each
+scan line on its own, finds it only in part. Along a *known* direction the evidence adds
+up: the points of a whole side, binned by their distance across it, give a profile whose
+groove bin is significantly behind its flanks. This module supplies that profile test to
+
+* :func:`boxloc.stages.hypotheses.dimensions_from_edges` — seams inside the region a vertex's
+  edge accumulators span are extra dimension candidates (the paper's 1-D accumulators,
+  with range points as voters where edge points are missing);
+* :func:`boxloc.stages.verify.verify` — a side with no line of boundary edges is still a boundary
+  if it is a seam, and a rectangle with a seam inside is two faces, not one.
+
+The statistic compares the mean residual of the points within ``SEAM_INNER`` spacings of a
+position with the mean of the two flanks ``SEAM_FLANK`` spacings away (their average, so a
+tilt of the reference plane cancels): z = (flanks - groove) / sd, positive when the groove
+lies behind; and the groove must lie behind each flank on its own (a step or a ridge beside
+the window lifts only one flank). A ridge standing well above the noise can still lift one
+flank enough to pass both conditions a flank's distance beside it; verification's
+interior test then errs toward rejecting, never toward merging two faces.
+
+The variance comes from the points' own scatter (a robust scale of their residuals, at
+least the noise model's), so a sensor noisier than its model does not make seams out of
+noise; where the noise is correlated (structured-light depth), the statistic's own spread
+over the positions is divided out as well. A sensor whose rows share part of their noise
+(``NoiseModel.row_corr``; the Kinect: about a quarter of the variance) puts a whole row a
+little behind or in front of the plane: along a row that is one groove window's worth of
+evidence, not hundreds of independent points. With the points' image rows given, the
+statistic's variance counts each row's shared offset once (and across the rows, where the
+offsets cancel between the groove and its flanks, only the rest).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import NamedTuple
+
+import numpy as np
+from scipy import stats as st
+
+from boxloc.stages.raster import rectangle_pixels
+
+#: Half-width of the groove window, in point spacings (the groove plus the uncertainty of
+#: where a side is).
+SEAM_INNER = 1.0
+#: Inner and outer distance of each flank window from the groove, in point spacings
+#: (beyond the bevels of both boxes).
+SEAM_FLANK = (2.5, 5.0)
+
+
+@dataclass(frozen=True)
+class FacePoints:
+    """Range points of one face's region, in the face's frame.
+
+    Attributes
+    ----------
+    u, v : (n,) float64
+        Coordinates along the rectangle's x and y axes, metres.
+    w : (n,) float64
+        Signed distance to the plane refitted to the region's points (positive toward
+        the sensor), metres.
+    scale : float
+        Standard deviation of one residual: the robust scatter of ``w`` (1.4826 MAD), at
+        least the noise model's median sigma there, metres.
+    spacing : float
+        Point spacing at the region's centre, metres.
+    row : (n,) int64
+        Image row of each point (for ``row_corr``).
+    row_corr : float
+        Correlation of two points' noise in the same image row
+        (:attr:`boxloc.scan.NoiseModel.row_corr`).
+    """
+
+    u: np.ndarray
+    v: np.ndarray
+    w: np.ndarray
+    scale: float
+    spacing: float
+    row: np.ndarray
+    row_corr: float = 0.0
+
+    def __len__(self) -> int:
+        return int(self.u.shape[0])
+
+
+def face_points(
+    points: np.ndarray,
+    valid: np.ndarray,
+    sigma: np.ndarray,
+    project: Callable[[np.ndarray], np.ndarray],
+    origin: np.ndarray,
+    x_axis: np.ndarray,
+    y_axis: np.ndarray,
+    normal: np.ndarray,
+    u_range: tuple[float, float],
+    v_range: tuple[float, float],
+    spacing: float,
+    alpha: float,
+    row_corr: float = 0.0,
+) -> FacePoints:
+    """The range points of a rectangular region of a face's plane, with their residuals.
+
+    Parameters
+    ----------
+    points : (H, W, 3) float64
+        Organized cloud, metres.
+    valid : (H, W) bool
+    sigma : (H, W) float64
+        Per-point noise along the ray, metres (the first inlier test's scale).
+    project : callable
+        The sensor's projection, (n, 3) -> (n, 2) pixels.
+    origin, x_axis, y_axis, normal : (3,) float64
+        The face's frame.
+    u_range, v_range : (float, float)
+        The region, metres along x_axis and y_axis (clipped to the image).
+    spacing : float
+        Point spacing there, metres.
+    alpha : float
+        Significance level; a point is on the face if its distance to the plane passes a
+        z test Bonferroni-corrected over the region's points (a groove a few sigma deep
+        stays in, another surface does not).
+
+    Returns
+    -------
+    FacePoints
+    """
+    empty = FacePoints(np.zeros(0), np.zeros(0), np.zeros(0), np.nan, spacing,
+                       np.zeros(0, np.int64), row_corr)
+    pix = rectangle_pixels(project, valid, origin, x_axis, y_axis, u_range, v_range)
+    if pix is None:
+        return empty
+    rr, cc, _ = pix
+    flat = rr * valid.shape[1] + cc
+    if len(flat) < 3:
+        return empty
+    P = points.reshape(-1, 3)[flat]
+    s = sigma.reshape(-1)[flat]
+    D = P - origin
+    w = D @ normal
+    zc = float(st.norm.isf(alpha / (2.0 * len(flat))))
+    # the face's own points first (relative to the given plane, tilt allowed for by the
+    # median), then the plane refitted to them
+    dw = np.abs(w - np.median(w))
+    on = dw <= zc * s + 3.0 * 1.4826 * np.median(dw)
+    if on.sum() < 3:
+        return empty
+    Q = P[on]
+    c = Q.mean(0)
+    _, V = np.linalg.eigh((Q - c).T @ (Q - c))
+    nf = V[:, 0] if V[:, 0] @ normal > 0 else -V[:, 0]
+    wf = (P - c) @ nf
+    on = np.abs(wf) <= zc * s
+    if on.sum() < 3:
+        return empty
+    wf = wf[on]
+    # the points' own scatter, but never below the noise model (a noise-free or quantized
+    # surface would otherwise make seams of rounding)
+    scale = max(float(1.4826 * np.median(np.abs(wf - np.median(wf)))),
+                float(np.median(s[on])), 1e-9)
+    return FacePoints(D[on] @ x_axis, D[on] @ y_axis, wf, scale, spacing, rr[on], row_corr)
+
+
+def _window_offsets(h: float) -> tuple[tuple[float, float], ...]:
+    """The groove window and the two flanks, as (from, to) offsets from a centre, metres."""
+    a, b = SEAM_FLANK[0] * h, SEAM_FLANK[1] * h
+    return (-SEAM_INNER * h, SEAM_INNER * h), (-b, -a), (a, b)
+
+
+def _in_reach(coord: np.ndarray, centres: np.ndarray, h: float) -> np.ndarray:
+    """Which points some window around the centres reaches: a search near one side of a
+    face then sorts and sums a strip, not the whole face."""
+    if len(centres) == 0:
+        return np.zeros(len(coord), bool)
+    r = SEAM_FLANK[1] * h  # the flanks reach farthest
+    return (coord >= centres.min() - r) & (coord <= centres.max() + r)
+
+
+def _windows(coord: np.ndarray, w: np.ndarray, centres: np.ndarray, h: float
+             ) -> tuple[np.ndarray, ...]:
+    """Count and sum of w in the groove window and in each flank, per centre."""
+    order = np.argsort(coord)
+    cs = coord[order]
+    cum = np.r_[0.0, np.cumsum(w[order])]
+    out: list[np.ndarray] = []
+    for lo, hi in _window_offsets(h):
+        i0 = np.searchsorted(cs, centres + lo, "left")
+        i1 = np.searchsorted(cs, centres + hi, "right")
+        out += [(i1 - i0).astype(np.float64), cum[i1] - cum[i0]]
+    return tuple(out)
+
+
+def _row_term(coord: np.ndarray, row: np.ndarray, centres: np.ndarray, h: float,
+              ni: np.ndarray, nl: np.ndarray, nr: np.ndarray) -> np.ndarray:
+    """sum over image rows of (the statistic's weights of that row's points)^2, per centre.
+
+    The statistic is sum_i c_i w_i with c = -1/ni in the groove window and 1/(2 nl), 1/(2 nr)
+    in the flanks; a noise offset shared by one row's points adds row_corr * scale^2 *
+    (sum of that row's c_i)^2 to its variance. Each point lies in the windows of a few
+    centres only: the sums run over those (point, centre) pairs. ``centres`` ascend.
+    """
+    r = row - row.min()  # image rows: small integers, no need to sort them
+    R = int(r.max()) + 1
+    m = len(centres)
+    keys, wts = [], []
+    with np.errstate(divide="ignore"):
+        coefs = (-1.0 / ni, 0.5 / nl, 0.5 / nr)
+    for (lo, hi), coef in zip(_window_offsets(h), coefs):
+        # x lies in the window [c + lo, c + hi] of the centres c in [x - hi, x - lo]
+        j0 = np.searchsorted(centres, coord - hi, "left")
+        cnt = np.searchsorted(centres, coord - lo, "right") - j0
+        first = np.repeat(np.cumsum(cnt) - cnt, cnt)
+        jc = np.repeat(j0, cnt) + np.arange(int(cnt.sum())) - first
+        keys.append(jc * R + np.repeat(r, cnt))
+        wts.append(coef[jc])
+    S = np.bincount(np.concatenate(keys), weights=np.concatenate(wts), minlength=m * R)
+    return (S * S).reshape(m, R).sum(1)
+
+
+def _seam_stats(coord: np.ndarray, w: np.ndarray, scale: float, centres: np.ndarray,
+                h: float, row: np.ndarray | None = None, row_corr: float = 0.0
+                ) -> tuple[np.ndarray, np.ndarray]:
+    """Flanks minus groove over its standard deviation (NaN where a window is empty), and
+    whether the groove lies behind each flank on its own."""
+    near = _in_reach(coord, centres, h)
+    coord, w = coord[near], w[near]
+    row = None if row is None else row[near]
+    ni, si, nl, sl, nr, sr = _windows(coord, w, centres, h)
+    ok = (ni > 0) & (nl > 0) & (nr > 0)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        mi = si / ni
+        d = 0.5 * (sl / nl + sr / nr) - mi
+        var = 1.0 / ni + 0.25 / nl + 0.25 / nr
+        if row_corr > 0 and row is not None and len(coord):
+            # a groove along an image row averages one row's shared offset, not noise
+            var = (1.0 - row_corr) * var + row_corr * _row_term(coord, row, centres, h,
+                                                                 ni, nl, nr)
+        sd = scale * np.sqrt(var)
+        both = ok & (sl / nl > mi) & (sr / nr > mi)
+        z = np.where(ok, d / sd, np.nan)
+    return z, both
+
+
+def seam_z(coord: np.ndarray, w: np.ndarray, scale: float, centres: np.ndarray, h: float,
+           row: np.ndarray | None = None, row_corr: float = 0.0) -> np.ndarray:
+    """Seam statistic at each centre: flanks minus groove over its standard deviation.
+
+    Parameters
+    ----------
+    coord : (n,) float64
+        The points' coordinate across the candidate seam, metres.
+    w : (n,) float64
+        Their residuals to the face's plane, metres (positive toward the sensor).
+    scale : float
+        Standard deviation of one residual, metres.
+    centres : (m,) float64
+        Candidate seam positions, metres.
+    h : float
+        Point spacing, metres.
+
+    Returns
+    -------
+    z : (m,) float64
+        Standard normal under "no seam" where the groove window lies behind both flanks;
+        -inf where it does not, or a window is empty (a ridge or a step beside the window
+        lifts only one flank).
+    """
+    z, both = _seam_stats(coord, w, scale, centres, h, row, row_corr)
+    return np.where(both, z, -np.inf)
+
+
+class Seams(NamedTuple):
+    """Result of :func:`find_seams`."""
+
+    #: (k,) float64, metres along the binned coordinate.
+    positions: np.ndarray
+    #: (k,) float64, their statistics.
+    z: np.ndarray
+    #: Bonferroni-corrected critical value.
+    critical: float
+    #: The largest statistic over all positions, significant or not (-inf if none was
+    #: computable): what a post-mortem reads when no seam was found.
+    z_max: float
+
+
+def find_seams(coord: np.ndarray, w: np.ndarray, scale: float, lo: float, hi: float,
+               h: float, alpha: float, row: np.ndarray | None = None,
+               row_corr: float = 0.0) -> Seams:
+    """Significant seams between ``lo`` and ``hi`` (local maxima of :func:`seam_z`).
+
+    The critical value is Bonferroni-corrected over the independent positions (one per
+    groove window) in [lo, hi].
+
+    Returns
+    -------
+    Seams
+        positions, z, critical, z_max.
+    """
+    if hi <= lo or len(coord) == 0:
+        return Seams(np.zeros(0), np.zeros(0), np.inf, -np.inf)
+    step = 0.5 * h
+    centres = np.arange(lo, hi + 0.5 * step, step)
+    n_indep = max((hi - lo) / (2.0 * SEAM_INNER * h), 1.0)
+    crit = float(st.norm.isf(alpha / n_indep))
+    zr, both = _seam_stats(coord, w, scale, centres, h, row, row_corr)
+    # correlated noise (e.g. structured-light depth) spreads the statistic beyond N(0, 1):
+    # measure its spread over the positions (robustly: seams are few) and divide it out
+    fin = zr[np.isfinite(zr)]
+    if len(fin) >= 8:
+        zr = zr / max(1.0, float(1.4826 * np.median(np.abs(fin - np.median(fin)))))
+    z = np.where(both, zr, -np.inf)
+    left = np.r_[-np.inf, z[:-1]]
+    right = np.r_[z[1:], -np.inf]
+    pk = np.flatnonzero((z > crit) & (z >= left) & (z > right))
+    # one seam per groove window: the strongest of maxima closer than the window
+    keep: list[int] = []
+    for i in pk[np.argsort(-z[pk], kind="stable")]:
+        if all(abs(centres[i] - centres[j]) > 2.0 * SEAM_INNER * h for j in keep):
+            keep.append(int(i))
+    pk = np.array(sorted(keep), np.int64)
+    fin_z = z[np.isfinite(z)]
+    return Seams(centres[pk], z[pk], crit, float(fin_z.max()) if len(fin_z) else -np.inf)
+
+
+def gap_z(coord: np.ndarray, centres: np.ndarray, h: float) -> np.ndarray:
+    """Gap statistic at each centre: too few face points in the groove window.
+
+    Boxes that stand a few millimetres apart leave a gap, not a groove: its samples fall
+    far behind the plane (or return nothing), so the face's points thin out there while
+    both flanks keep theirs. The window's count is tested against the flanks' density
+    (Poisson, lower tail) and returned as a standard normal z, comparable to
+    :func:`seam_z`.
+
+    Returns
+    -------
+    z : (m,) float64
+        -inf where a flank is empty (the face does not continue on both sides).
+    """
+    coord = coord[_in_reach(coord, centres, h)]
+    ni, _, nl, _, nr, _ = _windows(coord, np.zeros_like(coord), centres, h)
+    lam = (nl + nr) * SEAM_INNER / (SEAM_FLANK[1] - SEAM_FLANK[0])
+    p = st.poisson.cdf(ni, np.maximum(lam, 1e-12))
+    return np.where((nl > 0) & (nr > 0), st.norm.isf(p), -np.inf)
+
+
+def seam_at(coord: np.ndarray, w: np.ndarray, scale: float, position: float, h: float,
+            alpha: float, reach: float | None = None, gaps: bool = False,
+            row: np.ndarray | None = None, row_corr: float = 0.0) -> tuple[float, float]:
+    """The strongest seam (or gap) statistic near ``position``.
+
+    Parameters
+    ----------
+    reach : float, optional
+        Search from ``position - reach`` to ``position + reach`` (metres) in groove-window
+        steps; default one groove window (``SEAM_INNER * h``).
+    gaps : bool
+        Count a gap (:func:`gap_z`) as a seam. Only where the face is known to continue
+        beyond ``position``: elsewhere a shadow or a dropout also thins the points out.
+
+    Returns
+    -------
+    z : float
+        The largest :func:`seam_z` (or :func:`gap_z`) over the positions tried; -inf
+        where the windows hold no points.
+    critical : float
+        Bonferroni-corrected over the positions tried (independent ones: one per groove
+        window, at least three).
+    """
+    r = SEAM_INNER * h if reach is None else max(float(reach), SEAM_INNER * h)
+    centres = position + np.arange(-r, r + 0.25 * SEAM_INNER * h, SEAM_INNER * h)
+    n_indep = max(3.0, 2.0 * r / (SEAM_INNER * h) + 1.0)
+    z = seam_z(coord, w, scale, centres, h, row, row_corr)
+    if gaps:
+        z = np.maximum(z, gap_z(coord, centres, h))
+    return float(z.max()), float(st.norm.isf(alpha / n_indep))
+
+
+__all__ = ["FacePoints", "Seams", "face_points", "find_seams", "gap_z", "seam_at", "seam_z",
+           "SEAM_FLANK", "SEAM_INNER"]

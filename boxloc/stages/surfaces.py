@@ -1,0 +1,163 @@
+"""The result: graspable surfaces with pose, size, grasp point, covariance and pick order.
+
+Each surface comes from one hypothesis chosen by MDL. Its rectangle (from the generating
+vertex and the verified dimensions) is moved onto the plane refitted to the range points
+inside it; width <= length; the normal points toward the sensor; the grasp point is the
+centre (the paper grasps "from the center of gravity of the fully exposed surfaces"). The
+pick order takes the top-most surface first (height along ``scan.up``), so the pile is
+unloaded from the top.
+
+A cardboard lid bulges: its rim rests on the walls and its middle rises, so the plane
+fitted to its points lies above the box's top by a part of the bulge (4/9 of it for the
+shape below). :func:`fit_bulge` fits the inliers with a rim-supported bulge term, and
+``SURFACE_BULGE`` tests that term against zero; when it is significant the centre is put
+on the rim's plane (the box's top), and ``SurfaceSet.bulge`` says how far the lid's middle
+stands above it. A deviation from the paper, whose surfaces are planes.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from boxloc.config import Config
+from boxloc.products import HypothesisSet, Selection, SurfaceSet, Verification, VertexSet
+from boxloc.scan import Scan
+from boxloc.stages.vertices import _skew
+from boxloc.stats import TestKind, TestTable
+
+#: the fewest inliers :func:`fit_bulge` fits (four parameters, and a few to spare)
+MIN_BULGE_POINTS = 16
+
+
+def fit_bulge(
+    points: np.ndarray, center: np.ndarray, x_axis: np.ndarray, y_axis: np.ndarray,
+    normal: np.ndarray, width: float, length: float, sigma: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray] | None:
+    """Fit a face's points with a plane and a rim-supported bulge.
+
+    The height of a point over the plane through ``center`` is modelled as
+    ``h = a + b u + c v + k (1 - u^2) (1 - v^2)``, with ``u``, ``v`` its coordinates
+    along the axes scaled to [-1, 1] over the rectangle: ``a + b u + c v`` is the rim's
+    plane (the bulge term vanishes on the rectangle's sides) and ``k`` the bulge at the
+    centre. Weighted least squares.
+
+    Parameters
+    ----------
+    points : (n, 3) float64
+        The face's inlier points, metres.
+    center, x_axis, y_axis, normal : (3,) float64
+        The rectangle's centre and unit axes (x along ``width``); normal toward the sensor.
+    width, length : float
+        Metres.
+    sigma : (n,) float64
+        Standard deviation of each point along the normal, metres.
+
+    Returns
+    -------
+    coef : (4,) float64
+        ``a, b, c, k``, metres.
+    cov : (4, 4) float64
+        Their covariance, m^2.
+
+    None where the points cannot determine the four (all on one line, say).
+    """
+    D = np.asarray(points, np.float64) - center
+    u = D @ x_axis / (0.5 * width)
+    v = D @ y_axis / (0.5 * length)
+    A = np.stack([np.ones_like(u), u, v, (1.0 - u * u) * (1.0 - v * v)], axis=1)
+    w = 1.0 / np.asarray(sigma, np.float64)
+    if np.linalg.matrix_rank(A * w[:, None]) < 4:
+        return None
+    cov = np.linalg.inv((A * (w * w)[:, None]).T @ A)
+    coef = cov @ (A.T @ ((D @ normal) * w * w))
+    return coef, cov
+
+
+def make_surfaces(
+    scan: Scan,
+    vertices: VertexSet,
+    hypotheses: HypothesisSet,
+    verification: Verification,
+    selection: Selection,
+    config: Config,
+) -> SurfaceSet:
+    """Turn the selected hypotheses into graspable surfaces, ordered by pick order.
+
+    Returns
+    -------
+    SurfaceSet
+        ``covariances`` are of (centre, rotation vector), (s, 6, 6), metres and radians.
+    """
+    flat = scan.points.reshape(-1, 3)
+    rows = []
+    tests = []
+    for k in np.flatnonzero(selection.chosen):
+        j = int(selection.candidates[k])
+        h = int(verification.hypothesis[j])
+        w = float(hypotheses.att_width[j])
+        ln = float(hypotheses.att_length[j])
+        o, x, y = hypotheses.origins[h], hypotheses.x_axis[h], hypotheses.y_axis[h]
+        nf = verification.plane_normals[j]
+        pc = verification.plane_centers[j]
+        c = o + 0.5 * w * x + 0.5 * ln * y
+        c = c - ((c - pc) @ nf) * nf
+        # in-plane axes re-orthogonalized to the refitted normal
+        x = x - (x @ nf) * nf
+        x /= np.linalg.norm(x)
+        y = np.cross(nf, x)
+        if w > ln:
+            w, ln = ln, w
+            x, y = y, -x  # keeps x cross y = normal
+        pts = flat[verification.inliers_of(j)].astype(np.float64)
+        bulge = 0.0
+        fit = None
+        if len(pts) >= MIN_BULGE_POINTS:
+            sig = config.noise.sigma_range(np.linalg.norm(pts, axis=1))
+            fit = fit_bulge(pts, c, x, y, nf, w, ln, sig)
+        if fit is not None:  # else untestable: the centre stays on the points' plane
+            coef, C = fit
+            t = TestTable.chi2(TestKind.SURFACE_BULGE, j, 0, coef[3] ** 2 / C[3, 3], 1,
+                               config.alpha)
+            tests.append(t)
+            bulge = float(coef[3])
+            if not t.accepted[0]:
+                c = c + coef[0] * nf
+        corners = np.array([c - 0.5 * w * x - 0.5 * ln * y, c + 0.5 * w * x - 0.5 * ln * y,
+                            c + 0.5 * w * x + 0.5 * ln * y, c - 0.5 * w * x + 0.5 * ln * y])
+        Vc = vertices.covariances[h]
+        Sd1, Sd2 = Vc[3:6, 3:6], Vc[6:, 6:]
+        cov = np.zeros((6, 6))
+        cov[:3, :3] = Vc[:3, :3] + 0.25 * (w * w * Sd1 + ln * ln * Sd2)
+        # rotation: tilt of the normal (plane refit) and turn about it (the vertex lines)
+        Sn = verification.plane_covariances[j][3:, 3:]
+        K = _skew(nf)
+        cov[3:, 3:] = K.T @ Sn @ K + float(y @ Sd1 @ y + x @ Sd2 @ x) * np.outer(nf, nf)
+        q = selection.Q[k, k]
+        score = float(q / max(config.mdl_k1 * selection.n_points[k], 1e-12))
+        rows.append((h, j, c, nf, x, y, w, ln, corners, score, cov, bulge))
+    up = hypotheses.up
+    heights = np.array([r[2] @ up for r in rows])
+    order = np.lexsort((np.array([r[0] for r in rows]), -heights)) if rows else np.zeros(0, int)
+    rows = [rows[i] for i in order]
+    s = len(rows)
+
+    def col(i: int, shape: tuple[int, ...], dtype: type = np.float64) -> np.ndarray:
+        return np.array([r[i] for r in rows], dtype).reshape((s, *shape))
+
+    return SurfaceSet(
+        hypothesis=col(0, (), np.int32),
+        attempt=col(1, (), np.int32),
+        centers=col(2, (3,)),
+        normals=col(3, (3,)),
+        x_axis=col(4, (3,)),
+        y_axis=col(5, (3,)),
+        width=col(6, ()),
+        length=col(7, ()),
+        corners=col(8, (4, 3)),
+        grasp_points=col(2, (3,)),
+        scores=col(9, ()),
+        covariances=col(10, (6, 6)),
+        pick_order=np.arange(s, dtype=np.int32),
+        bulge=col(11, ()),
+        tests=TestTable.concat(tests, config.alpha),
+    )

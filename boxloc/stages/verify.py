@@ -1,0 +1,954 @@
+"""Stage 6: verification of a rectangle hypothesis by the range points inside it (paper §2.2).
+
+The rectangle, shrunk by the border margin, is projected into the range image and
+rasterized (the paper's ref [10]; here ``cv2.fillPoly``). Its points are tested against the
+rectangle's plane with their propagated uncertainty (point-on-plane, chi2(1) at alpha):
+
+* ``VERIFY_TILT`` — the face's normal is within ``max_tilt`` of up (a prior: graspable
+  faces are tops);
+* ``VERIFY_INTERIOR`` — no edge crosses the interior: the interior's edge points (beyond
+  the band where the sides' own edges lie) make no significant straight line parallel to a
+  side, against the same number of points scattered uniformly over the interior (Poisson,
+  maximum over the positions, at alpha). How many there are is not itself tested: a sensor
+  that sees a face at grazing incidence scatters noise edges over it, and their number
+  grows with the face's area and the noise, not with the presence of an edge;
+* ``VERIFY_BOUNDARY`` — each of the four sides is a real boundary of a top face: edge
+  points where the face drops away (jump, convex crease) or meets an equal neighbour
+  (groove) form a significant line along it (Poisson against the interior's scattered
+  edges, at alpha), and all four together cover the fraction p of the perimeter. This
+  extends the paper's |P_f| > p from the two far sides to all four, and rejects a
+  sub-rectangle of a larger face, and the floor or pallet between boxes (bounded by
+  concave creases where the boxes rise: a side needs more convex than concave edge
+  points). A side with no such line is still a boundary if
+  it is a seam (``VERIFY_SEAM_SIDE``: the range points along it, binned across it, show a
+  groove behind the plane; :mod:`boxloc.stages.seams`), which is how two touching boxes of equal
+  height part where the edge stage saw their seam only in part;
+* ``VERIFY_SEAM_INTERIOR`` — no seam crosses the interior, at alpha Bonferroni-corrected
+  over the positions (a rectangle over two touching boxes is two faces);
+* ``VERIFY_CONTINUATION`` — the face ends at each side: fewer than
+  ``min_inlier_fraction`` of the pixels in a strip just beyond the side lie on the face's
+  refitted plane (:func:`continuation`), or the side is a seam or a gap between equal
+  neighbours (``VERIFY_SEAM_SIDE``, searched across the band where the side's edges are
+  counted). Edge evidence alone does not make a side where the plane runs on: sensor
+  artefacts (structured-light depth) put short lines of jump edges inside faces, and a
+  rectangle cut short there would be accepted first and hide the whole face;
+* ``VERIFY_EXPOSED`` — points significantly *in front* of the face's refitted plane
+  (something resting on it or hanging over it), counted in the core beyond twice the
+  border margin, are not more frequent than points significantly behind it (noise is symmetric,
+  occluders are not: a sign test at alpha, which does not depend on the noise model being
+  exact; row 0), and not more frequent than the noise model puts there (alpha/2 of the
+  points) over the core (row 1) or in its busiest cell (row 2, Bonferroni over the cells).
+  The face is covered if row 0 rejects and row 1 or row 2 does;
+* ``VERIFY_INLIERS`` — at least ``min_inlier_fraction`` of the pixels inside are on the
+  plane (the rest are dropouts and noise);
+* ``VERIFY_MEAN`` — the inliers' mean signed distance is zero within the propagated
+  uncertainty of the plane and of the mean (chi2(1)).
+
+Each test has its function (``_test_tilt`` ... ``_test_mean``), in this order, the README's.
+:func:`verify` runs them cheapest first, and the continuation last: it needs the plane
+refitted to the points inside.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy import stats as st
+
+from boxloc.config import Config
+from boxloc.products import EdgeKind, EdgeMap, VerifyReason
+from boxloc.scan import Scan
+from boxloc.stages.lines import MIN_LINE_POINTS
+from boxloc.stages.raster import fill_polygon, polygon_area, rectangle_pixels
+from boxloc.stages.seams import SEAM_FLANK, FacePoints, face_points, find_seams, seam_at
+from boxloc.stats import TestKind, TestTable, chi2_critical
+
+#: A run of this many pixels without a point on a face's plane ends the face (a sensor's
+#: dropouts inside a face are shorter; the gap beyond a box's side is longer).
+EXTENT_GAP_PX = 4
+
+#: Edges within this fraction of the shortest box edge from a side belong to that side: a
+#: seam that splits a rectangle into two boxes lies at least min_edge from a side, while
+#: the side's own second edges (bevel, rounded cardboard) and the error of the estimated
+#: dimensions put boundary edges up to a centimetre or two inside.
+BOUNDARY_BAND = 0.5
+
+
+@dataclass
+class VerifyContext:
+    """Per-scan arrays the verification of every hypothesis reads (built once)."""
+
+    points: np.ndarray  # (H, W, 3) float64
+    sigma: np.ndarray  # (H, W) float64: range sigma, NaN where no return
+    lateral2: np.ndarray  # (H, W) float64: lateral variance
+    valid: np.ndarray  # (H, W) bool
+    edge_points: np.ndarray  # (N, 3)
+    edge_kinds: np.ndarray  # (N,) EdgeKind
+    pixel_angle: float  # radians per pixel: the edge-point spacing is range * pixel_angle
+    up: np.ndarray  # (3,) the up direction of the tilt prior
+    project: Callable[[np.ndarray], np.ndarray]  # the sensor's projection to pixels
+    #: level of a seam as a face's boundary (SEAM_PEAK, VERIFY_SEAM_SIDE): alpha over the
+    #: scan's seam searches (:func:`seam_alpha`)
+    seam_alpha: float
+
+    @classmethod
+    def build(cls, scan: Scan, edges: EdgeMap, config: Config, up: np.ndarray,
+              n_vertices: int = 1) -> VerifyContext:
+        P = scan.points.astype(np.float64)
+        r = scan.range.astype(np.float64)
+        sr = config.noise.sigma_range(r)
+        sl = config.noise.sigma_lateral(r, scan.sensor.pixel_angle)
+        valid = np.isfinite(r)
+        return cls(P, sr, sl**2, valid, edges.points, edges.kinds,
+                   scan.sensor.pixel_angle, np.asarray(up, dtype=np.float64),
+                   scan.sensor.project, seam_alpha(config.alpha, n_vertices))
+
+    def spacing_at(self, point: np.ndarray) -> float:
+        """Expected spacing of edge points along an edge at ``point``, metres."""
+        return float(np.linalg.norm(point)) * self.pixel_angle
+
+    def var_along(self, rr: np.ndarray, cc: np.ndarray, direction: np.ndarray) -> np.ndarray:
+        """Variance of the points at pixels (rr, cc) along a unit direction, m^2: range
+        noise along the ray, lateral noise across it."""
+        P = self.points[rr, cc]
+        cn2 = (P @ direction) ** 2 / np.einsum("ij,ij->i", P, P)
+        return self.sigma[rr, cc] ** 2 * cn2 + self.lateral2[rr, cc] * (1 - cn2)
+
+    def samples_along(self, a: np.ndarray, b: np.ndarray) -> float:
+        """Edge points expected along the 3D segment a-b: its length in the image, pixels.
+
+        A side seen at grazing incidence is foreshortened in the image and gets fewer edge
+        points than its length over :meth:`spacing_at` (one per pixel it crosses).
+        """
+        a, b = np.asarray(a, np.float64), np.asarray(b, np.float64)
+        q = self.project(np.stack([a, b]))
+        n = float(np.hypot(*(q[1] - q[0])))
+        # off the image (a ray table has no ray there): its length over the spacing
+        return n if np.isfinite(n) else float(np.linalg.norm(b - a)) / self.spacing_at(
+            0.5 * (a + b))
+
+
+@dataclass
+class VerifyOutcome:
+    """Everything :func:`verify` found about one rectangle (one row of Verification)."""
+
+    n_inside: int
+    n_valid: int
+    n_inliers: int
+    n_front: int
+    n_behind: int
+    inlier_fraction: float
+    mean_distance: float
+    sigma_mean: float
+    n_interior_edges: int
+    plane_center: np.ndarray
+    plane_normal: np.ndarray
+    plane_cov: np.ndarray
+    rms: float
+    error: float  # sum of squared normalized residuals of the inliers (MDL xi)
+    accepted: bool
+    reason: VerifyReason
+    inlier_pixels: np.ndarray
+    tests: TestTable
+
+
+def _interior_line(
+    u: np.ndarray, v: np.ndarray, width: float, length: float, spacing: float,
+    margin: float = 0.0,
+) -> tuple[float, float]:
+    """Most significant straight edge inside a rectangle, parallel to a side, and its p-value.
+
+    Interior edge points, those at least ``margin`` from every side, vote into 1-D
+    accumulators along x and along y (bins of three point spacings over the interior,
+    ``margin`` to ``width - margin``); the highest bin is tested against the points
+    scattered uniformly over the interior (Poisson, maximum over the bins). A seam the
+    edge stage saw only in part still makes a significant peak, scattered noise does not.
+    The uniform level is that of the interior the points can lie in: spread over the whole
+    extent, it would make the scatter on a narrow face look like a line.
+
+    Parameters
+    ----------
+    u, v : ndarray (n,)
+        The points' coordinates along x and y, metres, each in [margin, extent - margin].
+    width, length : float
+        The rectangle's extent along x and y, metres.
+    spacing : float
+        Point spacing on the face, metres.
+    margin : float
+        Width of the band along the sides that is not interior, metres.
+
+    Returns
+    -------
+    count : float
+        Points in the highest bin of the accumulator with the smaller p-value (the two
+        have different numbers of bins, so their counts do not compare).
+    p_value : float
+        Probability of so high a bin by uniform scatter (1 if no points).
+    """
+    n = len(u)
+    if n == 0:
+        return 0.0, 1.0
+    h = 3.0 * spacing
+    best, best_p = 0.0, 1.0
+    for coord, extent in ((u, width), (v, length)):
+        nb = max(int(np.ceil((extent - 2.0 * margin) / h)), 1)
+        acc = np.bincount(np.clip(((coord - margin) / h).astype(np.int64), 0, nb - 1),
+                          minlength=nb)
+        k = float(acc.max())
+        lam = n / nb
+        p = float(min(1.0, nb * st.poisson.sf(k - 1, lam)))
+        if p < best_p or (p == best_p and k > best):
+            best, best_p = k, p
+    return best, best_p
+
+
+def _side_seam(fp: FacePoints, side: int, width: float, length: float, spacing: float,
+               alpha: float, reach: float | None = None, gaps: bool = False
+               ) -> tuple[float, float]:
+    """Seam statistic along one side of a rectangle, and its critical value.
+
+    ``side`` is 0-3: v=0, v=length, u=0, u=width; ``reach`` and ``gaps`` as in
+    :func:`boxloc.stages.seams.seam_at`. A seam
+    runs the whole side: both halves must show a groove or gap (a local dent does not), so
+    the weaker half caps the statistic.
+    """
+    if side < 2:
+        sel = (fp.u >= 0) & (fp.u <= width)
+        coord, along, at, L = fp.v, fp.u, (0.0, length)[side], width
+    else:
+        sel = (fp.v >= 0) & (fp.v <= length)
+        coord, along, at, L = fp.u, fp.v, (0.0, width)[side - 2], length
+    zs, zc = seam_at(coord[sel], fp.w[sel], fp.scale, at, spacing, alpha, reach,
+                     gaps, fp.row[sel], fp.row_corr)
+    for half in (sel & (along < 0.5 * L), sel & (along >= 0.5 * L)):
+        zh, _ = seam_at(coord[half], fp.w[half], fp.scale, at, spacing, alpha, reach,
+                        gaps, fp.row[half], fp.row_corr)
+        if zh <= 0:
+            zs = min(zs, zh)
+    return zs, zc
+
+
+def continuation(
+    ctx: VerifyContext,
+    origin: np.ndarray,
+    x_axis: np.ndarray,
+    y_axis: np.ndarray,
+    width: float,
+    length: float,
+    plane_point: np.ndarray,
+    plane_normal: np.ndarray,
+    margin: float,
+    depth: float,
+    k: float,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """How far a face's plane continues beyond each side of a rectangle.
+
+    For each side, the pixels of a strip outside it (from ``margin`` to ``margin + depth``
+    beyond the side, the corners' margins left out) are tested against the plane with
+    their own noise (point-on-plane, z at ``k``; no flatness prior: the strip is a few
+    spacings from the face's own edge, so a bulge has not yet departed from it). Beyond a
+    true side lie another surface, the face's own side wall or nothing; beyond a side cut
+    through a face, the same plane.
+
+    Parameters
+    ----------
+    origin, x_axis, y_axis : (3,) float64
+        The rectangle's frame.
+    width, length : float
+        Metres.
+    plane_point, plane_normal : (3,) float64
+        The face's refitted plane.
+    margin, depth : float
+        Metres.
+    k : float
+        Critical |z| of one point.
+
+    Returns
+    -------
+    fraction : (4,) float64
+        Fraction of the strip's valid pixels on the plane, sides 0-3 (v=0, v=length, u=0,
+        u=width); NaN where the strip has fewer than ``MIN_LINE_POINTS`` valid pixels or
+        leaves the image.
+    n_valid : (4,) int64
+    in_image : (4,) bool
+        At least half of the strip's area lies inside the image: only then can it show
+        that the face ends (a face that runs out of the image may continue beyond it).
+    """
+    m, d = margin, depth
+    strips = (((m, width - m), (-m - d, -m)), ((m, width - m), (length + m, length + m + d)),
+              ((-m - d, -m), (m, length - m)), ((width + m, width + m + d), (m, length - m)))
+    frac = np.full(4, np.nan)
+    n_valid = np.zeros(4, np.int64)
+    in_image = np.zeros(4, bool)
+    for si, (u_range, v_range) in enumerate(strips):
+        pix = rectangle_pixels(ctx.project, ctx.valid, origin, x_axis, y_axis, u_range,
+                               v_range)
+        if pix is None:
+            continue
+        rr, cc, inside = pix
+        # most of the strip must be in the image to show anything of the side
+        in_image[si] = inside >= 0.5
+        n_valid[si] = len(rr)
+        if len(rr) < MIN_LINE_POINTS:
+            continue
+        P = ctx.points[rr, cc]
+        var = ctx.var_along(rr, cc, plane_normal)
+        z = ((P - plane_point) @ plane_normal) / np.sqrt(var)
+        frac[si] = float((np.abs(z) <= k).mean())
+    return frac, n_valid, in_image
+
+
+def face_sigma(config: Config, point: np.ndarray) -> float:
+    """Standard deviation of a face's points off its plane at ``point``, metres: the
+    range noise there and the flatness prior (bulge)."""
+    return math.hypot(config.noise.sigma_range(float(np.linalg.norm(point))), config.flatness)
+
+
+def plane_var(plane_cov: np.ndarray, normal: np.ndarray, D: np.ndarray) -> np.ndarray:
+    """Variance of the distance to a plane, from the plane's own uncertainty, of points at
+    offsets D (n, 3) from the plane's point, m^2 (n,): the point's error along the normal
+    plus the normal's error times the offset.
+
+    Parameters
+    ----------
+    plane_cov : (6, 6) float64
+        Covariance of the plane's (point, normal).
+    normal : (3,) float64
+    D : (n, 3) float64
+    """
+    So, Sn = plane_cov[:3, :3], plane_cov[3:, 3:]
+    return normal @ So @ normal + np.einsum("ni,ij,nj->n", D, Sn, D)
+
+
+def face_extent(
+    ctx: VerifyContext, origin: np.ndarray, along: np.ndarray, across: np.ndarray,
+    normal: np.ndarray, plane_cov: np.ndarray, strip: tuple[float, float], reach: float,
+    k: float, flatness: float,
+) -> tuple[float, float]:
+    """How far a face's plane runs from ``origin`` along ``along``, in a strip beside it.
+
+    The valid pixels of the strip (``strip`` metres across, out to ``reach`` along) are
+    tested against the plane (point-on-plane at ``k``, with the points' noise, the
+    flatness prior and the plane's own uncertainty); the face ends where the points on it
+    first leave a gap of ``EXTENT_GAP_PX`` pixels (dropouts are shorter). The end is
+    placed half a pixel beyond its last point, where the edge stage puts a jump.
+
+    Parameters
+    ----------
+    origin, along, across, normal : (3,) float64
+        The face's vertex, the axis to measure along, the axis across the strip, and the
+        plane's normal.
+    plane_cov : (6, 6) float64
+        Covariance of (origin, normal).
+    strip : (float, float)
+        The strip's extent across, metres from the arm (inside the face).
+    reach : float
+        How far to look along the axis, metres.
+    k : float
+        Critical |z| of one point.
+    flatness : float
+        The flatness prior, metres.
+
+    Returns
+    -------
+    extent : float
+        Metres along the axis (NaN: fewer than two points on the plane, or the strip
+        leaves the image).
+    gap : float
+        The gap that ends the face there, metres.
+    """
+    pix = rectangle_pixels(ctx.project, ctx.valid, origin, along, across, (0.0, reach), strip)
+    # metres per pixel along the axis near the vertex, foreshortening included
+    near = strip[1]
+    step = near / max(ctx.samples_along(origin, origin + near * along), 1.0)
+    gap = EXTENT_GAP_PX * step
+    if pix is None:
+        return np.nan, gap
+    rr, cc, _ = pix
+    P = ctx.points[rr, cc]
+    D = P - origin
+    var = ctx.var_along(rr, cc, normal) + flatness**2 + plane_var(plane_cov, normal, D)
+    on = np.abs(D @ normal) <= k * np.sqrt(var)
+    t = np.sort(D[on] @ along)
+    t = t[t >= 0.0]
+    # the face starts at the vertex, give or take the arm's own edge artefacts (as far
+    # out as the strip is from the arm)
+    if len(t) < 2 or t[0] > strip[0]:
+        return np.nan, gap
+    jumps = np.flatnonzero(np.diff(t) > gap)
+    last = t[jumps[0]] if len(jumps) else t[-1]
+    return float(last + 0.5 * step), gap
+
+
+#: The two corners (rows of :func:`rectangle_corners`) of each side 0-3 of a rectangle:
+#: v=0, v=length, u=0, u=width, the numbering of every per-side test.
+SIDE_CORNERS = ((0, 1), (3, 2), (0, 3), (1, 2))
+
+
+def rectangle_corners(
+    origin: np.ndarray, x_axis: np.ndarray, y_axis: np.ndarray, width: float, length: float
+) -> np.ndarray:
+    """Corners (4, 3): origin, +x, +x+y, +y."""
+    return np.array(
+        [origin, origin + width * x_axis, origin + width * x_axis + length * y_axis,
+         origin + length * y_axis]
+    )
+
+
+def rasterize(scan: Scan, corners: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
+    """Pixels (rows, cols) inside the projected polygon, clipped to the image; None if a
+    corner has no projection or less than half the polygon lies in the image."""
+    uv = scan.sensor.project(corners)
+    if not np.isfinite(uv).all():
+        return None
+    rr, cc = fill_polygon(uv, scan.shape)
+    if len(rr) < 0.5 * polygon_area(uv):
+        return None
+    return rr, cc
+
+
+@dataclass(frozen=True)
+class _Hypothesis:
+    """One rectangle to verify, in its own frame, with the scales its tests derive from it."""
+
+    origin: np.ndarray  # (3,) the generating vertex, metres
+    x_axis: np.ndarray  # (3,) unit
+    y_axis: np.ndarray  # (3,) unit
+    normal: np.ndarray  # (3,) unit, toward the sensor
+    width: float  # extent along x_axis, metres
+    length: float  # extent along y_axis, metres
+    plane_cov: np.ndarray  # (6, 6) covariance of (origin, normal)
+    centre: np.ndarray  # (3,) metres
+    attempt_id: int  # entity ``a`` of every test
+    alpha: float
+    seam_alpha: float  # a seam as a boundary (VerifyContext.seam_alpha)
+    k: float  # critical |z| of one point: sqrt(chi2(1)) at alpha
+    spacing: float  # edge-point spacing at the centre, metres
+    margin: float  # the border margin: the bevel and mixed pixels of the edge itself, metres
+    interior_margin: float  # edges beyond it from every side are interior, metres
+    band: float  # a side's edges lie within it of the side, metres
+
+    @property
+    def flank(self) -> float:
+        """How far beyond the rectangle the seam tests read range points, metres."""
+        return (SEAM_FLANK[1] + 1.0) * self.spacing
+
+
+def seam_alpha(alpha: float, n_vertices: int) -> float:
+    """The level at which a seam counts as a face's boundary: alpha over the scan's seam
+    searches, two per vertex (one per axis).
+
+    A seam side is the weakest evidence a face ends (no edge line, the same plane beyond):
+    tested at alpha per search, a bare pallet top of a few vertices showed a false seam,
+    and so two false faces, in 3 of 100 scans. Over the scan's searches the scan errs at
+    most at alpha. A seam *inside* a rectangle keeps alpha (it rejects, erring toward no
+    face).
+    """
+    return alpha / max(1, 2 * int(n_vertices))
+
+
+def _hypothesis(ctx: VerifyContext, origin: np.ndarray, x_axis: np.ndarray, y_axis: np.ndarray,
+                normal: np.ndarray, width: float, length: float, plane_cov: np.ndarray,
+                config: Config, attempt_id: int) -> _Hypothesis:
+    centre = origin + 0.5 * width * x_axis + 0.5 * length * y_axis
+    spacing = ctx.spacing_at(centre)
+    m = 2.0 * spacing
+    # the interior lies beyond the band where the boundary's own edges lie (rounded or
+    # bevelled cardboard gives a second, parallel edge a few mm inside)
+    return _Hypothesis(
+        origin=origin, x_axis=x_axis, y_axis=y_axis, normal=normal, width=width, length=length,
+        plane_cov=plane_cov, centre=centre, attempt_id=attempt_id, alpha=config.alpha,
+        seam_alpha=ctx.seam_alpha,
+        k=float(np.sqrt(chi2_critical(1.0, config.alpha))), spacing=spacing, margin=m,
+        interior_margin=max(m, BOUNDARY_BAND * config.min_edge), band=1.5 * m,
+    )
+
+
+@dataclass(frozen=True)
+class _FaceEdges:
+    """The edge points the tests of one rectangle read: those within a side's band of it."""
+
+    u: np.ndarray  # (n,) along x_axis from the origin, metres
+    v: np.ndarray  # (n,) along y_axis from the origin, metres
+    kinds: np.ndarray  # (n,) EdgeKind
+    near_plane: np.ndarray  # (n,) bool: on the rectangle's plane
+    interior: np.ndarray  # (n,) bool: on the plane and beyond the interior margin
+
+
+def _face_edges(ctx: VerifyContext, hyp: _Hypothesis, config: Config) -> _FaceEdges:
+    E = ctx.edge_points - hyp.origin
+    eu, ev = E @ hyp.x_axis, E @ hyp.y_axis
+    # every edge test looks at most a side's band beyond the rectangle: the rest of the
+    # scan's edge points need no plane test
+    band, width, length = hyp.band, hyp.width, hyp.length
+    reach = (eu >= -band) & (eu <= width + band) & (ev >= -band) & (ev <= length + band)
+    E, eu, ev = E[reach], eu[reach], ev[reach]
+    ew = E @ hyp.normal
+    sig_e = face_sigma(config, hyp.centre)
+    # a face's boundary, seam and crossing edges lie on its plane (a jump point is placed
+    # half a sample beyond the face's last point, hence the spacing)
+    # ... and the rectangle's own plane is uncertain: a small error of its normal moves
+    # the far sides' edges off it by the error times their distance from the vertex
+    near_plane = (np.abs(ew) <= hyp.k * np.sqrt(sig_e**2 + plane_var(hyp.plane_cov, hyp.normal, E))
+                  + hyp.spacing)
+    mi = hyp.interior_margin
+    interior = near_plane & (eu > mi) & (eu < width - mi) & (ev > mi) & (ev < length - mi)
+    return _FaceEdges(eu, ev, ctx.edge_kinds[reach], near_plane, interior)
+
+
+@dataclass
+class _Sides:
+    """What the boundary tests found of each side 0-3 (v=0, v=length, u=0, u=width)."""
+
+    covered: list[int]  # distinct positions along the side with boundary edges
+    ok: list[bool]  # the side is a boundary
+    expected: list[float]  # edge points expected along the side (its length in the image)
+    seams: set[int] = field(default_factory=set)  # sides shown to be seams (or gaps)
+
+    def fraction(self) -> float:
+        """The fraction of the perimeter covered."""
+        return float(sum(self.covered) / sum(self.expected))
+
+    def bound(self, support_fraction: float) -> bool:
+        """Every side a boundary, together covering ``support_fraction`` of the perimeter."""
+        return all(self.ok) and self.fraction() >= support_fraction
+
+
+@dataclass(frozen=True)
+class _FaceFit:
+    """The valid pixels inside the rectangle (shrunk by the border margin), fitted by a plane."""
+
+    rows: np.ndarray  # (n,) pixel rows
+    cols: np.ndarray  # (n,) pixel columns
+    points: np.ndarray  # (n, 3) metres
+    offset: np.ndarray  # (n,) signed distance to the rectangle's plane, metres
+    var: np.ndarray  # (n,) each point's variance along the normal, flatness included, m^2
+    centre: np.ndarray  # (3,) the refitted plane's point, metres
+    normal: np.ndarray  # (3,) the refitted plane's normal, toward the sensor
+    cov: np.ndarray  # (6, 6) of (centre, normal)
+    z: np.ndarray  # (n,) normalized distance to the refitted plane
+    inliers: np.ndarray  # (n,) bool: |z| <= k
+    core: np.ndarray  # (n,) bool: beyond twice the border margin from every side
+    front: np.ndarray  # (n,) bool: in the core, significantly in front of the plane
+    behind: np.ndarray  # (n,) bool: in the core, significantly behind it
+    du: np.ndarray  # (n,) along x_axis from the origin, metres
+    dv: np.ndarray  # (n,) along y_axis from the origin, metres
+    rms: float  # of the inliers' distances to the refitted plane, metres (NaN: none)
+    error: float  # sum of the inliers' squared z (the MDL xi)
+
+
+# --- the tests, in the order of the README's table ------------------------------------------
+
+
+def _test_tilt(hyp: _Hypothesis, up: np.ndarray, max_tilt: float) -> tuple[bool, TestTable]:
+    """VERIFY_TILT: the face's normal within ``max_tilt`` of up. Returns (tilted, row)."""
+    tilt = float(np.arccos(np.clip(hyp.normal @ up, -1, 1)))
+    return tilt > max_tilt, TestTable.decision(
+        TestKind.VERIFY_TILT, hyp.attempt_id, -1, tilt, max_tilt, tilt <= max_tilt, hyp.alpha)
+
+
+def _test_interior(edges: _FaceEdges, hyp: _Hypothesis) -> tuple[bool, TestTable]:
+    """VERIFY_INTERIOR: no straight line of edge points crosses the interior."""
+    inside = edges.interior
+    line_count, line_p = _interior_line(edges.u[inside], edges.v[inside], hyp.width,
+                                        hyp.length, hyp.spacing, hyp.interior_margin)
+    min_line = float(MIN_LINE_POINTS)
+    line_ok = not (line_count >= min_line and line_p < hyp.alpha)
+    return line_ok, TestTable.decision(TestKind.VERIFY_INTERIOR, hyp.attempt_id, -1, line_count,
+                                       min_line, line_ok, hyp.alpha, p_value=line_p)
+
+
+def _test_boundary(edges: _FaceEdges, hyp: _Hypothesis, ctx: VerifyContext,
+                   support_fraction: float) -> tuple[_Sides, TestTable]:
+    """VERIFY_BOUNDARY: each side a significant line of convex edges (jump, convex crease,
+    groove), outnumbering the concave creases along it; all four covering the fraction p
+    of the perimeter (the paper's |P_f| > p, over all four sides)."""
+    u, v, band = edges.u, edges.v, hyp.band
+    width, length, spacing, mi = hyp.width, hyp.length, hyp.spacing, hyp.interior_margin
+    convex = edges.near_plane & np.isin(edges.kinds, (EdgeKind.JUMP, EdgeKind.CREASE_CONVEX,
+                                                      EdgeKind.GROOVE))
+    sides = (
+        (np.abs(v) <= band, u, width),
+        (np.abs(v - length) <= band, u, width),
+        (np.abs(u) <= band, v, length),
+        (np.abs(u - width) <= band, v, length),
+    )
+    # background: convex edge points scattered over the interior, per unit area
+    area_in = max((width - 2 * mi) * (length - 2 * mi), spacing * spacing)
+    density = float((convex & edges.interior).sum()) / area_in
+
+    def side_lines(kind_mask: np.ndarray) -> tuple[list[int], list[float]]:
+        counts, p_values = [], []
+        for near, along, L in sides:
+            sel = kind_mask & near & (along >= 0) & (along <= L)
+            # distinct positions along the side (one per spacing): coverage, not density
+            k_s = len(np.unique(np.floor(along[sel] / spacing).astype(np.int64)))
+            counts.append(k_s)
+            p_values.append(float(st.poisson.sf(k_s - 1, density * L * 2 * band))
+                            if k_s else 1.0)
+        return counts, p_values
+
+    covered, side_p = side_lines(convex)
+    # concave creases along a side: the face meets a wall rising from it (the pallet or a
+    # lower box beside a taller one), which a top face's side never does
+    concave, _ = side_lines(edges.near_plane & (edges.kinds == EdgeKind.CREASE_CONCAVE))
+    side_min = [max(MIN_LINE_POINTS, kc) for kc in concave]
+    corners = rectangle_corners(hyp.origin, hyp.x_axis, hyp.y_axis, width, length)
+    expected = [ctx.samples_along(corners[a], corners[b]) for a, b in SIDE_CORNERS]
+    ok = [(k >= kmin and pv < hyp.alpha) for k, kmin, pv in zip(covered, side_min, side_p)]
+    result = _Sides(covered, ok, expected)
+    frac = result.fraction()
+    return result, TestTable.decision(
+        TestKind.VERIFY_BOUNDARY, hyp.attempt_id, -1, np.r_[covered, frac],
+        np.r_[side_min, support_fraction], np.r_[ok, frac >= support_fraction], hyp.alpha,
+        p_value=np.r_[side_p, np.nan])
+
+
+def _test_seam_sides(fp: FacePoints, hyp: _Hypothesis, sides: _Sides,
+                     support_fraction: float) -> list[TestTable]:
+    """VERIFY_SEAM_SIDE: a side without its line of edges, or whose line covers too little,
+    is a boundary if it is a seam between touching faces along its whole length.
+
+    Completes ``sides`` (``ok``, ``covered``, ``seams``) with the seams found.
+    """
+    tests: list[TestTable] = []
+
+    def seams_along(tried: list[int]) -> None:
+        zz = np.array([_side_seam(fp, si, hyp.width, hyp.length, hyp.spacing,
+                                  hyp.seam_alpha) for si in tried])
+        for si, (zs, zc) in zip(tried, zz):
+            if zs > zc:
+                sides.seams.add(si)
+                sides.ok[si] = True
+                sides.covered[si] = int(sides.expected[si])
+        tests.append(TestTable.decision(TestKind.VERIFY_SEAM_SIDE, hyp.attempt_id, tried,
+                                        zz[:, 0], zz[:, 1], zz[:, 0] > zz[:, 1], hyp.alpha))
+
+    if not all(sides.ok) and len(fp):
+        seams_along([si for si in range(4) if not sides.ok[si]])
+    if (all(sides.ok) and len(fp)
+            and sum(sides.covered) < support_fraction * sum(sides.expected)):
+        # every side has its line, but together they cover too little of the perimeter:
+        # a side whose line is a few points of a seam between equal neighbours is covered
+        # by the seam along its whole length
+        seams_along([si for si in range(4) if si not in sides.seams])
+    return tests
+
+
+def _test_seam_interior(fp: FacePoints, hyp: _Hypothesis) -> tuple[bool, list[TestTable]]:
+    """VERIFY_SEAM_INTERIOR: no seam crosses the face (the points of the interior, binned
+    along x and along y). Returns (crossed, its row, if any points)."""
+    if not len(fp):
+        return False, []
+    mi, width, length = hyp.interior_margin, hyp.width, hyp.length
+    int_z, int_crit = [], []
+    for coord, other, lo_hi, ext in ((fp.u, fp.v, (mi, width - mi), length),
+                                     (fp.v, fp.u, (mi, length - mi), width)):
+        sel = (other >= mi) & (other <= ext - mi)
+        found = find_seams(coord[sel], fp.w[sel], fp.scale, lo_hi[0], lo_hi[1],
+                           hyp.spacing, hyp.alpha, fp.row[sel], fp.row_corr)
+        # the strongest groove anywhere inside, significant or not (NaN: none measurable)
+        int_z.append(found.z_max if np.isfinite(found.z_max) else np.nan)
+        int_crit.append(found.critical)
+    row = TestTable.decision(TestKind.VERIFY_SEAM_INTERIOR, hyp.attempt_id, [0, 1], int_z,
+                             int_crit, [not z > c for z, c in zip(int_z, int_crit)], hyp.alpha)
+    return any(z > c for z, c in zip(int_z, int_crit)), [row]
+
+
+def _test_continuation(ctx: VerifyContext, fp: FacePoints, hyp: _Hypothesis, fit: _FaceFit,
+                       sides: _Sides, min_inlier_fraction: float
+                       ) -> tuple[np.ndarray, np.ndarray, list[TestTable]]:
+    """VERIFY_CONTINUATION: the face ends at each side, its plane does not run on beyond,
+    unless the side is a seam or a gap between equal neighbours (a rectangle cut short
+    inside a face is not a face).
+
+    Returns
+    -------
+    ends : (4,) bool
+        The face ends at the side.
+    cut : (4,) bool
+        The side's strip leaves the image with too few points to test, and the side is no
+        seam: the face may run on out of sight.
+    rows : list of TestTable
+        VERIFY_SEAM_SIDE for the sides whose plane runs on, if any, then
+        VERIFY_CONTINUATION.
+    """
+    m = hyp.margin
+    cont, _, in_image = continuation(ctx, hyp.origin, hyp.x_axis, hyp.y_axis, hyp.width,
+                                     hyp.length, fit.centre, fit.normal, m, hyp.flank - m,
+                                     hyp.k)
+    continues = cont >= min_inlier_fraction
+    ends = ~continues
+    extra_seam: list[tuple[int, float, float]] = []
+    for si in np.flatnonzero(continues):
+        if si in sides.seams:
+            ends[si] = True
+            continue
+        # anywhere in the band where the side's boundary edges are counted
+        zs, zc = (_side_seam(fp, int(si), hyp.width, hyp.length, hyp.spacing,
+                             hyp.seam_alpha, hyp.band, True) if len(fp) else (-np.inf, np.inf))
+        extra_seam.append((int(si), zs, zc))
+        ends[si] = zs > zc
+        if ends[si]:
+            sides.seams.add(int(si))
+    rows = []
+    if extra_seam:
+        es = np.array(extra_seam)
+        rows.append(TestTable.decision(TestKind.VERIFY_SEAM_SIDE, hyp.attempt_id,
+                                       es[:, 0].astype(int), es[:, 1], es[:, 2],
+                                       es[:, 1] > es[:, 2], hyp.alpha))
+    # a side whose strip leaves the image cannot show that the face ends there, unless
+    # the strip's part in the image has points enough to test or the side is a seam: the
+    # face may run on out of sight
+    cut = np.array([not in_image[si] and not np.isfinite(cont[si]) and si not in sides.seams
+                    for si in range(4)])
+    ends &= ~cut
+    rows.append(TestTable.decision(TestKind.VERIFY_CONTINUATION, hyp.attempt_id, [0, 1, 2, 3],
+                                   cont, min_inlier_fraction, ends, hyp.alpha))
+    return ends, cut, rows
+
+
+def _test_exposed(fit: _FaceFit, hyp: _Hypothesis) -> tuple[bool, TestTable]:
+    """VERIFY_EXPOSED: nothing rests on the face. Covered only if the points in front of
+    its plane outnumber those behind (sign test) and are more frequent than the noise
+    model puts there, over the core or in its busiest cell."""
+    alpha = hyp.alpha
+    n_front, n_behind = int(fit.front.sum()), int(fit.behind.sum())
+    m_out = n_front + n_behind
+    p_front = float(st.binom.sf(n_front - 1, m_out, 0.5)) if n_front else 1.0
+    # ... and more frequent than the noise model puts in front (alpha/2 of the points:
+    # z > k), so that a handful of stray points, with none behind, is no occluder
+    core = fit.core
+    n_core = int(core.sum())
+    p_rate = float(st.binom.sf(n_front - 1, n_core, alpha / 2)) if n_front else 1.0
+    # ... or, in one place (the corner of a box above, a few square centimetres), more
+    # frequent than that: the busiest cell of the core (cells of four border margins),
+    # Bonferroni over the cells
+    cell = 4.0 * hyp.margin
+    cid = (np.floor(fit.du[core] / cell) * 1e6 + np.floor(fit.dv[core] / cell)).astype(np.int64)
+    ids, inv = np.unique(cid, return_inverse=True)
+    n_cell = np.bincount(inv, minlength=len(ids))
+    f_cell = np.bincount(inv, weights=fit.front[core].astype(np.float64), minlength=len(ids))
+    n_cells = max(len(ids), 1)
+    if n_front:
+        p_cells = np.asarray(st.binom.sf(f_cell - 1, n_cell, alpha / 2))
+        c_best = int(np.argmin(np.where(f_cell > 0, p_cells, np.inf)))
+        p_local = float(min(p_cells[c_best] * n_cells, 1.0))
+        f_local, n_local = int(f_cell[c_best]), int(n_cell[c_best])
+    else:
+        p_local, f_local, n_local = 1.0, 0, int(n_cell.max()) if len(n_cell) else 0
+    exposed = p_front >= alpha or (p_rate >= alpha and p_local >= alpha)
+    return exposed, TestTable.decision(
+        TestKind.VERIFY_EXPOSED, hyp.attempt_id, [m_out, n_core, n_local],
+        [n_front, n_front, f_local],
+        [float(st.binom.isf(alpha, m_out, 0.5)) if m_out else 0.0,
+         float(st.binom.isf(alpha, n_core, alpha / 2)),
+         float(st.binom.isf(alpha / n_cells, n_local, alpha / 2))],
+        [p_front >= alpha, p_rate >= alpha, p_local >= alpha], alpha,
+        p_value=[p_front, p_rate, p_local])
+
+
+def _test_inliers(fit: _FaceFit, n_inside: int, hyp: _Hypothesis,
+                  min_inlier_fraction: float) -> tuple[float, TestTable]:
+    """VERIFY_INLIERS: the fraction of the pixels inside on the plane. Returns (it, row)."""
+    frac = int(fit.inliers.sum()) / max(n_inside, 1)
+    return frac, TestTable.decision(TestKind.VERIFY_INLIERS, hyp.attempt_id, n_inside, frac,
+                                    min_inlier_fraction, frac >= min_inlier_fraction, hyp.alpha)
+
+
+def _test_mean(fit: _FaceFit, hyp: _Hypothesis, flatness: float
+               ) -> tuple[float, float, TestTable]:
+    """VERIFY_MEAN: the inliers' mean distance to the rectangle's plane is zero within the
+    propagated uncertainty. Returns (the mean, its variance, m^2, row)."""
+    inl = fit.inliers
+    n_in = int(inl.sum())
+    if n_in >= 3:
+        mean = float(fit.offset[inl].mean())
+        dc = fit.points[inl].mean(0) - hyp.origin
+        # the face may depart from R's plane by the flatness prior as a whole (bulge)
+        s2_mean = float(fit.var[inl].mean() / n_in
+                        + plane_var(hyp.plane_cov, hyp.normal, dc[None])[0] + flatness**2)
+        T_mean = mean**2 / s2_mean
+    else:
+        mean, s2_mean, T_mean = np.nan, np.nan, np.inf
+    return mean, s2_mean, TestTable.chi2(TestKind.VERIFY_MEAN, hyp.attempt_id, n_in, T_mean,
+                                         1.0, hyp.alpha)
+
+
+# --- the face's points ---------------------------------------------------------------------
+
+
+def _fit_face(ctx: VerifyContext, hyp: _Hypothesis, rows: np.ndarray, cols: np.ndarray,
+              flatness: float) -> _FaceFit | None:
+    """The points at valid pixels (rows, cols) inside the rectangle, against its plane and
+    against the plane refitted to them; None if fewer than 3 lie on the rectangle's."""
+    k, m, normal = hyp.k, hyp.margin, hyp.normal
+    P = ctx.points[rows, cols]
+    D = P - hyp.origin
+    w0 = D @ normal
+    # each point's noise along the normal; the flatness prior covers cardboard bulge
+    var_pt = ctx.var_along(rows, cols, normal) + flatness**2
+    # 1) points on the plane of R, with R's own uncertainty
+    var_pl = plane_var(hyp.plane_cov, normal, D)
+    on0 = np.abs(w0) <= k * np.sqrt(var_pt + var_pl)
+    if on0.sum() < 3:
+        return None
+    # 2) the face's plane refitted to them, with covariance
+    Q = P[on0]
+    c = Q.mean(0)
+    lam, V = np.linalg.eigh((Q - c).T @ (Q - c))
+    nf = V[:, 0] if V[:, 0] @ normal > 0 else -V[:, 0]
+    # 3) inliers, front and behind against the refitted plane (point noise only)
+    z = ((P - c) @ nf) / np.sqrt(var_pt)
+    inl = np.abs(z) <= k
+    # front and behind count in the core only, beyond twice the border margin: next to
+    # a jump edge structured-light sensors pull the points toward the sensor by up to a
+    # centimetre, a few pixels further in than the margin; an occluder resting on the
+    # face reaches into the core (a strip of a face hidden by a taller neighbour is
+    # wider than those pixels)
+    du, dv = D @ hyp.x_axis, D @ hyp.y_axis
+    mc = 2.0 * m
+    core = (du > mc) & (du < hyp.width - mc) & (dv > mc) & (dv < hyp.length - mc)
+    if not core.any():
+        core[:] = True
+    n_in = int(inl.sum())
+    s2 = float(max(lam[0] / max(int(on0.sum()) - 3, 1), np.median(var_pt[on0])))
+    cov = np.zeros((6, 6))
+    cov[:3, :3] = s2 / max(n_in, 1) * np.eye(3)
+    cov[3:, 3:] = s2 * (np.outer(V[:, 1], V[:, 1]) / max(lam[1], 1e-12)
+                        + np.outer(V[:, 2], V[:, 2]) / max(lam[2], 1e-12))
+    rms = float(np.sqrt(np.mean(((P[inl] - c) @ nf) ** 2))) if n_in else np.nan
+    return _FaceFit(rows=rows, cols=cols, points=P, offset=w0, var=var_pt, centre=c, normal=nf,
+                    cov=cov, z=z, inliers=inl, core=core, front=(z > k) & core,
+                    behind=(z < -k) & core, du=du, dv=dv, rms=rms,
+                    error=float((z[inl] ** 2).sum()))
+
+
+def _failed(reason: VerifyReason, tests: list[TestTable], alpha: float, *, n_inside: int = 0,
+            n_valid: int = 0, n_interior_edges: int = 0) -> VerifyOutcome:
+    """The outcome of a rectangle rejected before its plane was refitted."""
+    return VerifyOutcome(
+        n_inside=n_inside, n_valid=n_valid, n_inliers=0, n_front=0, n_behind=0,
+        inlier_fraction=0.0, mean_distance=np.nan, sigma_mean=np.nan,
+        n_interior_edges=n_interior_edges, plane_center=np.full(3, np.nan),
+        plane_normal=np.full(3, np.nan), plane_cov=np.full((6, 6), np.nan), rms=np.nan,
+        error=np.nan, accepted=False, reason=reason, inlier_pixels=np.zeros(0, np.int32),
+        tests=TestTable.concat(tests, alpha),
+    )
+
+
+def verify(
+    scan: Scan,
+    ctx: VerifyContext,
+    origin: np.ndarray,
+    x_axis: np.ndarray,
+    y_axis: np.ndarray,
+    normal: np.ndarray,
+    width: float,
+    length: float,
+    plane_cov: np.ndarray,
+    config: Config,
+    attempt_id: int,
+) -> VerifyOutcome:
+    """Verify one rectangle hypothesis by the range points inside it.
+
+    The tests run cheapest first, each stopping the verification when it fails: the tilt;
+    on the edge points, the interior and the boundary (completed by seams); on the range
+    points around the rectangle, the seams inside; then, on the points inside, exposure,
+    inliers, their mean, and whether the face's plane runs on beyond its sides (which
+    needs the plane refitted to those points). Every test made is recorded.
+
+    Parameters
+    ----------
+    origin, x_axis, y_axis, normal : ndarray (3,)
+        The rectangle's frame (generating vertex; unit axes; normal toward the sensor).
+    width, length : float
+        Extent along x_axis and y_axis, metres.
+    plane_cov : ndarray (6, 6)
+        Covariance of (origin, normal) of the rectangle's plane.
+    attempt_id : int
+        Recorded as entity ``a`` of every test.
+
+    Returns
+    -------
+    VerifyOutcome
+    """
+    hyp = _hypothesis(ctx, origin, x_axis, y_axis, normal, width, length, plane_cov, config,
+                      attempt_id)
+    alpha, m = hyp.alpha, hyp.margin
+    tests: list[TestTable] = []
+
+    tilted, row = _test_tilt(hyp, ctx.up, config.max_tilt)
+    tests.append(row)
+    if tilted:
+        return _failed(VerifyReason.TILTED, tests, alpha)
+    if width <= 2 * m or length <= 2 * m:
+        return _failed(VerifyReason.TOO_FEW_POINTS, tests, alpha)
+    # cheap tests first, on the edge points (no rasterization)
+    edges = _face_edges(ctx, hyp, config)
+    n_int = int(edges.interior.sum())
+    line_ok, row = _test_interior(edges, hyp)
+    tests.append(row)
+    sides, row = _test_boundary(edges, hyp, ctx, config.support_fraction)
+    tests.append(row)
+    if not line_ok:
+        return _failed(VerifyReason.INTERIOR_EDGES, tests, alpha, n_interior_edges=n_int)
+
+    # seams, from the range points of the rectangle and a margin around it (the flanks)
+    B = hyp.flank
+    fp = face_points(ctx.points, ctx.valid, ctx.sigma, ctx.project, origin, x_axis, y_axis,
+                     normal, (-B, width + B), (-B, length + B), hyp.spacing, alpha,
+                     config.noise.row_corr)
+    tests += _test_seam_sides(fp, hyp, sides, config.support_fraction)
+    crossed, rows = _test_seam_interior(fp, hyp)
+    tests += rows
+    if crossed:
+        return _failed(VerifyReason.INTERIOR_SEAM, tests, alpha, n_interior_edges=n_int)
+    if not sides.bound(config.support_fraction):
+        return _failed(VerifyReason.BOUNDARY, tests, alpha, n_interior_edges=n_int)
+
+    # the points inside the rectangle shrunk by the border margin
+    ras = rasterize(scan, rectangle_corners(origin + m * x_axis + m * y_axis, x_axis, y_axis,
+                                            width - 2 * m, length - 2 * m))
+    if ras is None:
+        return _failed(VerifyReason.OUTSIDE_IMAGE, tests, alpha)
+    n_inside = len(ras[0])
+    valid = ctx.valid[ras]
+    rv, cv = ras[0][valid], ras[1][valid]
+    n_valid = len(rv)
+    if n_valid < 3:
+        return _failed(VerifyReason.TOO_FEW_POINTS, tests, alpha, n_inside=n_inside,
+                       n_valid=n_valid)
+    fit = _fit_face(ctx, hyp, rv, cv, config.flatness)
+    if fit is None:
+        return _failed(VerifyReason.INLIERS, tests, alpha, n_inside=n_inside, n_valid=n_valid)
+
+    exposed, row = _test_exposed(fit, hyp)
+    tests.append(row)
+    frac, row = _test_inliers(fit, n_inside, hyp, config.min_inlier_fraction)
+    tests.append(row)
+    mean, s2_mean, mean_t = _test_mean(fit, hyp, config.flatness)
+    tests.append(mean_t)
+    ends, cut, rows = _test_continuation(ctx, fp, hyp, fit, sides, config.min_inlier_fraction)
+    tests += rows
+
+    reason = (VerifyReason.NOT_EXPOSED if not exposed
+              else VerifyReason.INLIERS if frac < config.min_inlier_fraction
+              else VerifyReason.MEAN_OFFSET if not bool(mean_t.accepted[0])
+              else VerifyReason.CONTINUES if not (ends | cut).all()
+              else VerifyReason.OUTSIDE_IMAGE if cut.any()
+              else VerifyReason.ACCEPTED)  # the first test failed, in that order
+    inl = fit.inliers
+    W = scan.shape[1]
+    return VerifyOutcome(
+        n_inside=n_inside, n_valid=n_valid, n_inliers=int(inl.sum()),
+        n_front=int(fit.front.sum()), n_behind=int(fit.behind.sum()), inlier_fraction=frac,
+        mean_distance=mean, sigma_mean=float(np.sqrt(s2_mean)) if np.isfinite(s2_mean) else np.nan,
+        n_interior_edges=n_int, plane_center=fit.centre, plane_normal=fit.normal,
+        plane_cov=fit.cov, rms=fit.rms, error=fit.error, accepted=reason == VerifyReason.ACCEPTED,
+        reason=reason, inlier_pixels=(rv[inl] * W + cv[inl]).astype(np.int32),
+        tests=TestTable.concat(tests, alpha),
+    )

@@ -1,0 +1,1 @@
+"""The MCAP log, the record of truth: schemas, encoding, writing, reading, recovery."""

@@ -1,0 +1,1 @@
+"""The Rerun view: one ``log_*`` per product, the blueprint, the viewer."""
