@@ -177,20 +177,33 @@ def scan_options(f: Any) -> Any:
               help="Write the JSON here instead of stdout.")
 @click.option("--table", is_flag=True, help="Also print a table of the surfaces to stderr.")
 @click.option("--workers", type=int, default=None, help="Processes for per-vertex work.")
+@click.option("--box-sizes", "box_sizes", type=click.Path(dir_okay=False), default=None,
+              metavar="FILE",
+              help="The carton sizes the cell handles: a CSV with the header "
+                   "width,length,height (metres; height may be empty). Flat regions that are "
+                   "a multiple of a size are split; a box matching none is flagged.")
 @scan_options
 @config_options
 def locate(
     scan_path: str, output: str | None, table: bool, workers: int | None,
-    intrinsics: str | None, depth_scale: float | None,
+    box_sizes: str | None, intrinsics: str | None, depth_scale: float | None,
     config_path: str | None, overrides: tuple[str, ...],
 ) -> None:
     """Locate the graspable surfaces in one SCAN (.npz, .png, .tif, .pcd, .ply).
 
-    Prints JSON: {"surfaces": [...], "timing_ms": {...}, "version": ...}; metres, sensor frame.
+    Prints JSON: {"surfaces": [...], "ambiguous": [...], "timing_ms": {...}, "version": ...};
+    metres, sensor frame. "ambiguous" lists the flat regions the evidence cannot split into
+    boxes (not graspable as they are).
     """
     from boxloc.io import read_scan
 
     cfg = load_config(config_path, overrides, workers=workers)
+    if box_sizes is not None:
+        import dataclasses
+
+        from boxloc.io.box_sizes import read_box_sizes
+
+        cfg = dataclasses.replace(cfg, box_sizes=read_box_sizes(box_sizes))
     # Read (and refuse bad input) before importing the pipeline: fast, clear failures.
     scan = read_scan(scan_path, intrinsics=intrinsics, depth_scale=depth_scale,
                      max_pixels=cfg.max_pixels)

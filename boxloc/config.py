@@ -36,6 +36,9 @@ UNRECORDED_KEYS: dict[str, Any] = {
     "noise.corr_px_cols": 0.0,
     "max_line_work": 0,
     "max_vertices": 0,
+    # logs before issue #21 knew no carton list; their tolerance was never used
+    "box_sizes": (),
+    "size_tolerance": 0.01,
 }
 
 #: The noise terms ``noise_auto`` estimates from each scan; giving any of them pins the model.
@@ -44,6 +47,35 @@ ESTIMATED_NOISE_TERMS = frozenset({"sigma0", "k1", "k2", "row_corr", "incidence_
 
 #: Config fields that change how a result is computed, never what it is.
 EXECUTION_FIELDS = frozenset({"workers"})
+
+
+def _normalise_box_sizes(rows: Any) -> tuple[tuple[float, float, float], ...]:
+    """``Config.box_sizes`` as a tuple of (width, length, height) floats, width <= length,
+    an unknown height as :data:`math.nan` (one object, so equal configs compare equal).
+
+    Accepts rows of two (no height) or three numbers; a height of None or NaN is unknown.
+    """
+    if not isinstance(rows, list | tuple):
+        raise InputError(f"config box_sizes must be a list of [width, length(, height)] "
+                         f"rows, got {rows!r:.80}")
+    out = []
+    for i, row in enumerate(rows):
+        if not isinstance(row, list | tuple) or len(row) not in (2, 3):
+            raise InputError(f"config box_sizes row {i} must be [width, length] or [width, "
+                             f"length, height], got {row!r:.80}")
+        vals = []
+        for j, v in enumerate(row):
+            if j == 2 and (v is None or (isinstance(v, float) and math.isnan(v))):
+                vals.append(math.nan)
+                continue
+            if isinstance(v, bool) or not isinstance(v, int | float) or not (
+                    math.isfinite(v) and v > 0):
+                raise InputError(f"config box_sizes row {i} must hold positive finite "
+                                 f"metres, got {row!r:.80}")
+            vals.append(float(v))
+        w, ln = sorted(vals[:2])
+        out.append((w, ln, vals[2] if len(vals) == 3 else math.nan))
+    return tuple(out)
 
 
 @dataclass(frozen=True)
@@ -124,6 +156,19 @@ class Config:
         from the scan's content alone (:attr:`boxloc.scan.Scan.seed`); k > 0 from the scan
         and k (:meth:`seed_for`). Running k = 0, 1, 2, ... measures how much a result owes
         to the draw (``boxloc bench --seeds N``, also with ``--real``).
+    box_sizes : tuple of (width, length, height)
+        Prior: the carton sizes the cell handles (its SKU list), metres, ``width <=
+        length`` (normalised), ``height`` NaN where unknown; ``()``, the default, is no list
+        (``boxloc locate --box-sizes FILE``, :func:`boxloc.io.box_sizes.read_box_sizes`).
+        With a list, a rectangle's dimensions are tested against it (SKU_SIZE), a flat
+        region that is a multiple of a listed size is split at the implied seams, and a
+        reported box that matches none is flagged. In a file it is a list of ``[width,
+        length]`` or ``[width, length, height]`` rows.
+    size_tolerance : float
+        Prior: the 1-sigma tolerance of a listed size, metres. A carton's nominal
+        dimensions and its rectangle as measured differ by the cardboard's manufacturing
+        tolerance (a few mm), its bulged walls, and the edge and seam localization (one
+        pixel is 2-6 mm at 1-3 m for a 525 px focal length); 10 mm covers them together.
     """
 
     alpha: float = 0.01
@@ -150,6 +195,8 @@ class Config:
     max_line_work: int = 1_000_000
     max_vertices: int = 500
     trial_seed: int = 0
+    box_sizes: tuple[tuple[float, float, float], ...] = ()
+    size_tolerance: float = 0.01
 
     def __post_init__(self) -> None:
         def check(name: str, ok: bool, what: str) -> None:
@@ -179,6 +226,10 @@ class Config:
         check("trial_seed", isinstance(self.trial_seed, int) and not isinstance(
             self.trial_seed, bool) and 0 <= self.trial_seed < 2**63, "an integer >= 0")
         check("noise_auto", isinstance(self.noise_auto, bool), "true or false")
+        check("size_tolerance", isinstance(self.size_tolerance, int | float)
+              and not isinstance(self.size_tolerance, bool)
+              and 0 < self.size_tolerance < 0.1, "in (0, 0.1) m")
+        object.__setattr__(self, "box_sizes", _normalise_box_sizes(self.box_sizes))
         if not isinstance(self.noise, NoiseModel):
             raise TypeError(f"config noise must be a NoiseModel, got {type(self.noise)}")
 
@@ -188,6 +239,9 @@ class Config:
         """Every value, defaults included (what a log records: its provenance is complete)."""
         d = dataclasses.asdict(self)
         d["noise"] = self.noise.to_dict()
+        # TOML and JSON have no NaN-safe null: an unknown height is a row of two
+        d["box_sizes"] = [[w, ln] if math.isnan(h) else [w, ln, h]
+                          for w, ln, h in self.box_sizes]
         return d
 
     def seed_for(self, scan_seed: int) -> int:
@@ -238,6 +292,8 @@ class Config:
                     v = int(v)
                 if not isinstance(v, int):
                     raise InputError(f"config {k} must be an integer, got {v!r}")
+            elif k == "box_sizes":
+                pass  # checked by _normalise_box_sizes
             elif isinstance(default, float):
                 if not isinstance(v, int | float) or isinstance(v, bool):
                     raise InputError(f"config {k} must be a number, got {v!r}")
@@ -292,7 +348,9 @@ class Config:
         for key, value in UNRECORDED_KEYS.items():
             head, _, tail = key.partition(".")
             table, name = (d[head], tail) if tail else (d, head)
-            if table.get(name, value) == value:
+            v = table.get(name, value)
+            if v == value or (isinstance(v, list | tuple) and isinstance(value, list | tuple)
+                              and list(v) == list(value)):
                 table.pop(name, None)
         text = json.dumps(d, sort_keys=True, separators=(",", ":"))
         return hashlib.sha256(text.encode()).hexdigest()[:16]

@@ -48,6 +48,11 @@ class DimensionSource(IntEnum):
     #: from how far the face's plane runs along each arm (:func:`boxloc.stages.verify.face_extent`)
     #: for a far side the edge accumulators did not show
     EXTENT = 4
+    #: the whole flat region the face's plane covers (its extent along both arms, beyond
+    #: ``max_edge``): verified as a region, reported as ambiguous or split, never a surface
+    REGION = 5
+    #: one part of a flat region split at the seams a listed carton size implies
+    SKU_SPLIT = 6
 
 
 class VerifyReason(IntEnum):
@@ -70,6 +75,9 @@ class VerifyReason(IntEnum):
     #: the face's plane continues beyond a side that is not a seam: the rectangle is cut
     #: short inside a larger face
     CONTINUES = 10
+    #: every test passed, but the flat region is larger than a box (``max_edge``) or a
+    #: multiple of a listed size that no evidence splits: ambiguous, not a surface
+    AMBIGUOUS = 11
 
 
 class SelectReason(IntEnum):
@@ -80,6 +88,35 @@ class SelectReason(IntEnum):
     OVERLAPS_CHOSEN = 1
     #: its own MDL gain is not positive
     NO_GAIN = 2
+
+
+class HeightSource(IntEnum):
+    """Where a box's height (:attr:`SurfaceSet.height`) came from."""
+
+    #: not measured: no side face or step seen, no listed height
+    NONE = 0
+    #: the visible side face below the top's edge, down to where it meets what it stands on
+    SIDE = 1
+    #: the step down from the top to the neighbouring surface or the layer below it
+    STEP = 2
+    #: the height of the matched listed carton size (``Config.box_sizes``)
+    SKU = 3
+
+
+class AmbiguityReason(IntEnum):
+    """Why a flat region is not reported as a surface (:class:`AmbiguousSet`)."""
+
+    #: a side without evidence of a box's end (no jump, crease, groove, seam or size)
+    NO_END_EVIDENCE = 1
+    #: longer than the longest box edge (``max_edge``) along an arm: several boxes whose
+    #: seams the range points do not show
+    LARGER_THAN_MAX_BOX = 2
+    #: with a carton list: the region is no multiple (1x1, 2x1, 3x1, 2x2, ...) of a listed
+    #: size
+    NOT_A_MULTIPLE_OF_A_SIZE = 3
+    #: with a carton list: the region is a multiple of more than one listed size (or of
+    #: one in two ways), and no seam shows which
+    SEVERAL_SPLITS = 4
 
 
 class NoiseSource(IntEnum):
@@ -541,9 +578,21 @@ class SurfaceSet:
     tests : TestTable
         SURFACE_BULGE per surface (``a`` = attempt) whose inliers determine the fit (at
         least ``boxloc.stages.surfaces.MIN_BULGE_POINTS``, not all on one line); a surface
-        without one has ``bulge`` 0 and its centre on the points' plane.
+        without one has ``bulge`` 0 and its centre on the points' plane. SKU_SIZE per
+        surface when ``Config.box_sizes`` lists sizes; BOX_HEIGHT per measured height.
+    height, height_sigma : (s,) float64
+        The box's height (its top above what it stands on) and its standard deviation,
+        metres; NaN where none was measured or listed.
+    height_source : (s,) int8
+        :class:`HeightSource`.
+    sku : (s,) int32
+        The row of ``Config.box_sizes`` the surface's dimensions match (SKU_SIZE), -1 for
+        none or no list.
+    sku_flagged : (s,) bool
+        Sizes were listed and the surface matches none of them.
 
-    Logs written before ``bulge`` and ``tests`` existed read back with zeros and no tests.
+    Logs written before ``bulge`` and ``tests`` existed read back with zeros and no tests;
+    before the heights and SKUs, with NaN heights (source NONE), ``sku`` -1, not flagged.
     """
 
     hypothesis: np.ndarray
@@ -561,12 +610,23 @@ class SurfaceSet:
     pick_order: np.ndarray
     bulge: np.ndarray = None  # type: ignore[assignment]
     tests: TestTable = None  # type: ignore[assignment]
+    height: np.ndarray = None  # type: ignore[assignment]
+    height_sigma: np.ndarray = None  # type: ignore[assignment]
+    height_source: np.ndarray = None  # type: ignore[assignment]
+    sku: np.ndarray = None  # type: ignore[assignment]
+    sku_flagged: np.ndarray = None  # type: ignore[assignment]
 
     def __post_init__(self) -> None:
+        n = len(self)
         if self.bulge is None:
-            object.__setattr__(self, "bulge", np.zeros(len(self)))
+            object.__setattr__(self, "bulge", np.zeros(n))
         if self.tests is None:
             object.__setattr__(self, "tests", TestTable.empty(np.nan))
+        for name, value in (("height", np.full(n, np.nan)), ("height_sigma", np.full(n, np.nan)),
+                            ("height_source", np.full(n, HeightSource.NONE, np.int8)),
+                            ("sku", np.full(n, -1, np.int32)), ("sku_flagged", np.zeros(n, bool))):
+            if getattr(self, name) is None:
+                object.__setattr__(self, name, value)
 
     def __len__(self) -> int:
         return int(self.centers.shape[0])
@@ -589,8 +649,95 @@ class SurfaceSet:
                     "covariance": self.covariances[i].tolist(),
                     "pick_order": int(self.pick_order[i]),
                     "bulge": float(self.bulge[i]),
+                    "height": _finite_or_none(self.height[i]),
+                    "height_sigma": _finite_or_none(self.height_sigma[i]),
+                    "height_source": HeightSource(int(self.height_source[i])).name.lower(),
+                    "sku": int(self.sku[i]) if self.sku[i] >= 0 else None,
+                    "size_flagged": bool(self.sku_flagged[i]),
                 }
             )
+        return out
+
+
+def _finite_or_none(x: float) -> float | None:
+    """A JSON number, or null for NaN (JSON has no NaN)."""
+    return float(x) if np.isfinite(x) else None
+
+
+@dataclass(frozen=True, eq=False)
+class AmbiguousSet:
+    """Flat regions that may hold graspable tops but whose extent the evidence cannot split
+    into boxes (issue #21): not surfaces, so that the cell can fall back (push, re-scan, ask
+    an operator). One row per region.
+
+    Attributes
+    ----------
+    hypothesis : (K,) int64
+        The hypothesis whose region it is, or -1.
+    attempt : (K,) int64
+        The attempt that verified the region (its tests are the rows with ``a`` = this id
+        in ``Verification.tests`` and in ``tests`` below), or -1.
+    corners : (K, 4, 3) float64
+        The region's outline, metres, sensor frame (origin, +x, +x+y, +y).
+    area : (K,) float64
+        Its area, m^2.
+    width, length : (K,) float64
+        Its extent along its two axes, metres, width <= length.
+    reason : (K,) int8
+        :class:`AmbiguityReason`.
+    tests : TestTable
+        The tests that made it ambiguous (END_EVIDENCE, SKU_SIZE, SKU_SPLIT_SEAM, ...), ``a``
+        = ``attempt``.
+
+    Logs written before it existed read back as an empty set.
+    """
+
+    hypothesis: np.ndarray = None  # type: ignore[assignment]
+    attempt: np.ndarray = None  # type: ignore[assignment]
+    corners: np.ndarray = None  # type: ignore[assignment]
+    area: np.ndarray = None  # type: ignore[assignment]
+    width: np.ndarray = None  # type: ignore[assignment]
+    length: np.ndarray = None  # type: ignore[assignment]
+    reason: np.ndarray = None  # type: ignore[assignment]
+    tests: TestTable = None  # type: ignore[assignment]
+
+    def __post_init__(self) -> None:
+        n = 0 if self.hypothesis is None else int(np.asarray(self.hypothesis).shape[0])
+        for name, value in (("hypothesis", np.zeros(n, np.int64)),
+                            ("attempt", np.full(n, -1, np.int64)),
+                            ("corners", np.zeros((n, 4, 3))), ("area", np.zeros(n)),
+                            ("width", np.full(n, np.nan)), ("length", np.full(n, np.nan)),
+                            ("reason", np.zeros(n, np.int8)),
+                            ("tests", TestTable.empty(np.nan))):
+            if getattr(self, name) is None:
+                object.__setattr__(self, name, value)
+
+    def __len__(self) -> int:
+        return int(self.hypothesis.shape[0])
+
+    def tests_of(self, k: int) -> TestTable:
+        """The rows of ``tests`` behind region k."""
+        return self.tests.select(self.tests.a == int(self.attempt[k]))
+
+    def to_json_list(self) -> list[dict[str, Any]]:
+        """The ``"ambiguous"`` records of the ``locate`` JSON."""
+        out = []
+        for k in range(len(self)):
+            out.append({
+                "id": k,
+                "corners": self.corners[k].tolist(),
+                "area": float(self.area[k]),
+                "width": _finite_or_none(self.width[k]),
+                "length": _finite_or_none(self.length[k]),
+                "reason": AmbiguityReason(int(self.reason[k])).name.lower(),
+                "tests": [
+                    {"kind": r["kind"], "b": r["b"],
+                     "statistic": _finite_or_none(float(r["statistic"])),  # type: ignore[arg-type]
+                     "dof": r["dof"], "critical": _finite_or_none(float(r["critical"])),  # type: ignore[arg-type]
+                     "decision": "accepted" if r["accepted"] else "rejected"}
+                    for r in self.tests_of(k).rows()
+                ],
+            })
         return out
 
 
@@ -616,11 +763,18 @@ class Result:
     timing_ms: dict[str, float] = field(default_factory=dict)
     #: None only in results read from logs written before the noise stage
     noise: NoiseEstimate | None = None
+    #: flat regions not split into boxes (empty in results from before issue #21)
+    ambiguous: AmbiguousSet = None  # type: ignore[assignment]
+
+    def __post_init__(self) -> None:
+        if self.ambiguous is None:
+            object.__setattr__(self, "ambiguous", AmbiguousSet())
 
     def to_json(self) -> dict[str, Any]:
         """The public ``boxloc locate`` output."""
         return {
             "surfaces": self.surfaces.to_json_list(),
+            "ambiguous": self.ambiguous.to_json_list(),
             "timing_ms": {k: round(float(v), 3) for k, v in self.timing_ms.items()},
             "version": self.version,
         }

@@ -117,6 +117,25 @@ class TestKind(IntEnum):
     #: (the highest first). Counted in work, not seconds, so a replay stops where the run
     #: did.
     BUDGET = 29
+    #: result stage: the dimensions of attempt a's rectangle match listed carton size b
+    #: (``Config.box_sizes`` row; -1: no list, the nearest otherwise): statistic =
+    #: ((w - W)^2 + (l - L)^2) / size_tolerance^2 for the nearer of the two orientations,
+    #: 2 dof, chi2(2) at alpha; rejected for every listed size flags the box
+    SKU_SIZE = 30
+    #: hypothesis stage: the seam a carton size implies inside flat region a (attempt id)
+    #: at its b-th cut (b = 0, 1, ... over the cuts along x then y): statistic = the groove
+    #: z at the cut, however weak; critical = the seam level's z; accepted where the seam
+    #: is seen. The region is split on the sizes' evidence whatever the row says; the row
+    #: records how much the range points back it
+    SKU_SPLIT_SEAM = 31
+    #: hypothesis stage: side b (0-3: v=0, v=length, u=0, u=width) of attempt a has evidence
+    #: of the box's end: statistic = the evidence (0 none, 1 a line of jump or convex-crease
+    #: edges, 2 a groove or seam, 3 a listed size's implied seam); critical 1; accepted if any
+    END_EVIDENCE = 32
+    #: result stage: the height of chosen attempt a's box (b = :class:`boxloc.products.
+    #: HeightSource`): statistic = the height, metres; critical = its standard deviation,
+    #: metres; accepted where the height is significant (> z at alpha sigmas)
+    BOX_HEIGHT = 33
 
 
 #: ``TestKind.BUDGET`` rows' ``a``: the stage whose budget it is.
