@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -10,13 +11,19 @@ import pytest
 from boxloc.evaluate.baseline import empty_surface_set, surface_set_from_rects
 from boxloc.evaluate.metrics import (
     PredStatus,
+    WrongReason,
     aggregate_edges,
     aggregate_matches,
     edge_report,
     edge_scores,
+    height_errors,
     match_surfaces,
     prf,
     rect_iou_in_plane,
+    rect_overlap_in_plane,
+    region_cover,
+    true_box_heights,
+    wrong_rectangles,
 )
 from boxloc.products import EdgeKind
 
@@ -383,3 +390,104 @@ def test_edge_scores_groove_counts_as_any_edge_only() -> None:
     assert edge_scores(pred, gt, kind="any") == (1.0, 1.0)
     assert edge_scores(pred, gt, kind="jump") == (1.0, 0.0)
     assert edge_scores(pred, gt, kind="crease") == (1.0, 1.0)  # neither side has a crease
+
+
+# --- packed layers: wrong rectangles, ambiguous regions, heights --------------------------
+
+#: Four touching 0.3 x 0.4 m tops in a 2 x 2 block at 2 m (a packed layer, no gaps).
+BLOCK = [((-0.15, -0.2, 2.0), 0.3, 0.4, True), ((0.15, -0.2, 2.0), 0.3, 0.4, True),
+         ((-0.15, 0.2, 2.0), 0.3, 0.4, True), ((0.15, 0.2, 2.0), 0.3, 0.4, True)]
+
+
+def test_overlap_areas() -> None:
+    P = _corners(C0, EX, EY, 0.3, 0.5)
+    inter, a_pred, a_gt = rect_overlap_in_plane(P, C0 + 0.1 * EX, EX, EY, 0.3, 0.5)
+    assert (inter, a_pred, a_gt) == pytest.approx((0.2 * 0.5, 0.15, 0.15), abs=1e-12)
+    assert rect_overlap_in_plane(P[:2], C0, EX, EY, 0.3, 0.5) == (0.0, 0.0, 0.0)
+
+
+def test_wrong_rectangles_on_a_packed_block() -> None:
+    truth = _truth(BLOCK)
+    pred = _preds([
+        ((-0.15, -0.2, 2.0), 0.3, 0.4),   # right: exactly top 0
+        ((0.15, -0.2, 2.0), 0.3, 0.3),    # 3/4 of top 1: IoU 0.75, a match
+        ((-0.06, 0.2, 2.0), 0.48, 0.4),   # top 2 and 60 % of top 3: IoU 0.625, spans
+        ((0.0, 0.0, 2.0), 0.6, 0.8),      # the whole block: IoU 0.25 with each
+        ((0.075, -0.2, 2.0), 0.15, 0.1),  # a sliver across the seam of 0 and 1
+        ((3.0, 3.0, 2.0), 0.3, 0.4),      # off every top: the pallet, say
+        ((-0.15, -0.2, 2.2), 0.3, 0.4),   # 20 cm below top 0: the plane gate keeps it off
+    ])
+    w = wrong_rectangles(pred, truth)
+    by_c = {tuple(np.round(c, 3)): i for i, c in enumerate(pred.centers)}
+
+    def of(c: tuple[float, float, float]) -> int:
+        return int(w.reason[by_c[tuple(np.round(c, 3))]])
+
+    assert of((-0.15, -0.2, 2.0)) == WrongReason.RIGHT
+    assert of((0.15, -0.2, 2.0)) == WrongReason.RIGHT
+    assert of((-0.06, 0.2, 2.0)) == WrongReason.SPANS
+    assert of((0.0, 0.0, 2.0)) == WrongReason.NO_MATCH
+    assert of((0.075, -0.2, 2.0)) == WrongReason.NO_MATCH
+    assert of((3.0, 3.0, 2.0)) == WrongReason.OFF_TOP
+    assert of((-0.15, -0.2, 2.2)) == WrongReason.OFF_TOP
+    i_whole = by_c[(0.0, 0.0, 2.0)]
+    assert w.max_iou[i_whole] == pytest.approx(0.25, abs=1e-9)
+    assert w.n_covered[i_whole] == 4
+    assert w.max_iou[by_c[(-0.06, 0.2, 2.0)]] == pytest.approx(0.625, abs=1e-9)
+    # two equal tops as one: IoU exactly 0.5 with each, called wrong either way
+    two = wrong_rectangles(_preds([((0.0, 0.2, 2.0), 0.6, 0.4)]), truth)
+    assert two.n_wrong == 1 and two.n_covered[0] == 2
+    assert w.best_face[by_c[(3.0, 3.0, 2.0)]] == -1
+    assert (w.n_pred, w.n_wrong) == (7, 3)
+    assert w.rate == pytest.approx(3 / 7)
+    d = w.to_dict()
+    assert (d["spans"], d["no_match"], d["off_top"], d["right"]) == (1, 2, 2, 2)
+    # every surface is judged alone: a duplicate of a top is a right rectangle here
+    dup = wrong_rectangles(_preds([BLOCK[0][0:3], BLOCK[0][0:3]]), truth)
+    assert dup.n_wrong == 0 and dup.rate == 0.0
+    assert wrong_rectangles(empty_surface_set(), truth).rate == 0.0
+    with pytest.raises(ValueError, match="span_cover"):
+        wrong_rectangles(pred, truth, span_cover=0.0)
+
+
+def test_region_cover_of_an_ambiguous_outline() -> None:
+    truth = _truth(BLOCK + [((1.0, 0.0, 2.0), 0.3, 0.4, True)])
+    X, Y = np.array([1.0, 0.0, 0.0]), np.array([0.0, -1.0, 0.0])
+    # the left half of the block (tops 0 and 2), and a quarter of the far top
+    regions = np.stack([_corners(np.array([-0.15, 0.0, 2.0]), X, Y, 0.3, 0.8),
+                        _corners(np.array([0.925, -0.1, 2.0]), X, Y, 0.15, 0.2)])
+    cov = region_cover(regions, truth)
+    assert cov.shape == (2, 5)
+    np.testing.assert_allclose(cov[0], [1.0, 0.0, 1.0, 0.0, 0.0], atol=1e-9)
+    np.testing.assert_allclose(cov[1], [0.0, 0.0, 0.0, 0.0, 0.25], atol=1e-9)
+    assert region_cover(np.zeros((0, 4, 3)), truth).shape == (0, 5)
+
+
+def test_height_errors_of_true_positives_with_a_measured_height() -> None:
+    truth = _truth(BLOCK[:3])
+    truth_h = SimpleNamespace(centers=truth.centers, box_index=np.array([2, 0, 1]),
+                              boxes=np.array([[0, 0, 0, 0.3, 0.4, 0.25, 0],
+                                              [0, 0, 0, 0.3, 0.4, 0.30, 0],
+                                              [0, 0, 0, 0.3, 0.4, 0.20, 0]]))
+    th = true_box_heights(truth_h)
+    np.testing.assert_allclose(th, [0.20, 0.25, 0.30])
+    assert np.isnan(true_box_heights(SimpleNamespace(centers=np.zeros((2, 3))))).all()
+    pred = _preds([BLOCK[0][0:3], BLOCK[1][0:3], BLOCK[2][0:3],
+                   ((3.0, 3.0, 2.0), 0.3, 0.4)])
+    m = match_surfaces(pred, truth)
+    face_of = {int(p): int(f) for p, f in m.tp_pairs}
+    # surface -> height and source: side (1), step (2), sku (3); the false one has a side
+    est = {0: (0.205, 1), 1: (0.24, 2), 2: (0.30, 3)}
+    h, src = np.full(4, np.nan), np.zeros(4, np.int8)
+    for p, f in face_of.items():
+        h[p], src[p] = est[f]
+    fp = next(i for i in range(4) if i not in face_of)
+    h[fp], src[fp] = 0.5, 1
+    e = height_errors(h, src, m, th, sigma=np.full(4, 0.002))
+    assert len(e) == 2  # the sku height and the false surface are not scored
+    got = {int(f): float(err) for f, err in zip(e.face, e.error)}
+    assert got == pytest.approx({0: 0.005, 1: 0.01}, abs=1e-12)
+    assert set(e.source.tolist()) == {1, 2} and np.all(e.sigma == 0.002)
+    assert len(height_errors(h, src, m, th, sources=(3,))) == 1
+    with pytest.raises(ValueError, match="shape"):
+        height_errors(h[:3], src, m, th)

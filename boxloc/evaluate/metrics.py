@@ -118,6 +118,74 @@ def _convex_hull(pts: np.ndarray) -> np.ndarray:
     return np.array(lower[:-1] + upper[:-1], dtype=np.float64).reshape(-1, 2)
 
 
+def rect_overlap_in_plane(
+    pred_corners: npt.ArrayLike,
+    gt_center: npt.ArrayLike,
+    gt_x: npt.ArrayLike,
+    gt_y: npt.ArrayLike,
+    gt_w: float,
+    gt_l: float,
+) -> tuple[float, float, float]:
+    """Areas of a predicted polygon and a ground-truth face, and of their overlap, in the
+    face's plane.
+
+    Parameters
+    ----------
+    pred_corners : array_like, shape (k, 3), metres, sensor frame
+        Predicted polygon corners (a rectangle: k = 4), in order around it.
+    gt_center : array_like, shape (3,), metres
+    gt_x, gt_y : array_like, shape (3,)
+        Unit axes of the face: ``gt_x`` along its width, ``gt_y`` along its length.
+    gt_w, gt_l : float
+        Face width and length, metres.
+
+    Returns
+    -------
+    (intersection, pred_area, face_area) : tuple of float, m^2
+        All 0.0 for degenerate or non-finite input (never NaN); ``pred_area`` is the area of
+        the prediction's projection into the face plane.
+
+    Notes
+    -----
+    The predicted corners are projected orthogonally into the face plane and expressed in
+    the face's 2-D frame, where the face is the axis-aligned box ``[-w/2, w/2] x [-l/2, l/2]``.
+    The convex hull of the projected corners (a parallelogram for a planar rectangle) is
+    clipped against that box (Sutherland-Hodgman), so the result is exact for convex input.
+    """
+    try:
+        P = np.asarray(pred_corners, dtype=np.float64).reshape(-1, 3)
+        c = np.asarray(gt_center, dtype=np.float64).reshape(3)
+        ex = np.asarray(gt_x, dtype=np.float64).reshape(3)
+        ey = np.asarray(gt_y, dtype=np.float64).reshape(3)
+        w, length = float(gt_w), float(gt_l)
+    except (ValueError, TypeError):
+        return 0.0, 0.0, 0.0
+    vals = (P, c, ex, ey, np.array([w, length]))
+    if P.shape[0] < 3 or not all(np.isfinite(v).all() for v in vals):
+        return 0.0, 0.0, 0.0
+    if w <= 0 or length <= 0:
+        return 0.0, 0.0, 0.0
+    # Re-orthonormalize the face axes so slightly sloppy truth does not bias the areas.
+    ex = ex / max(float(np.linalg.norm(ex)), 1e-300)
+    ey = ey - ex * float(ey @ ex)
+    ny = np.linalg.norm(ey)
+    if ny < 1e-9:
+        return 0.0, 0.0, 0.0
+    ey = ey / ny
+    q = np.stack([(P - c) @ ex, (P - c) @ ey], axis=1)
+    hull = _convex_hull(q)
+    a_pred = _area(hull)
+    a_gt = w * length
+    if a_pred <= 1e-9 * a_gt:  # collinear or coincident corners (up to rounding)
+        return 0.0, 0.0, a_gt
+    clip = hull
+    clip = _clip_halfplane(clip, 0, 0.5 * w, keep_below=True)
+    clip = _clip_halfplane(clip, 0, -0.5 * w, keep_below=False)
+    clip = _clip_halfplane(clip, 1, 0.5 * length, keep_below=True)
+    clip = _clip_halfplane(clip, 1, -0.5 * length, keep_below=False)
+    return min(_area(clip), a_pred, a_gt), a_pred, a_gt
+
+
 def rect_iou_in_plane(
     pred_corners: npt.ArrayLike,
     pred_normal: npt.ArrayLike,
@@ -150,46 +218,20 @@ def rect_iou_in_plane(
 
     Notes
     -----
-    The predicted corners are projected orthogonally into the face plane and expressed in
-    the face's 2-D frame, where the face is the axis-aligned box ``[-w/2, w/2] x [-l/2, l/2]``.
-    The convex hull of the projected corners (a parallelogram for a planar rectangle) is
-    clipped against that box (Sutherland-Hodgman), so the result is exact for convex input.
-    How far the prediction lies off the plane is not part of the IoU; see
-    :func:`match_surfaces` (``max_plane_offset``).
+    The areas are those of :func:`rect_overlap_in_plane` (the prediction projected into
+    the face plane, clipped against the face). How far the prediction lies off the plane is
+    not part of the IoU; see :func:`match_surfaces` (``max_plane_offset``).
     """
     try:
-        P = np.asarray(pred_corners, dtype=np.float64).reshape(-1, 3)
         n = np.asarray(pred_normal, dtype=np.float64).reshape(3)
-        c = np.asarray(gt_center, dtype=np.float64).reshape(3)
-        ex = np.asarray(gt_x, dtype=np.float64).reshape(3)
-        ey = np.asarray(gt_y, dtype=np.float64).reshape(3)
-        w, length = float(gt_w), float(gt_l)
     except (ValueError, TypeError):
         return 0.0
-    vals = (P, n, c, ex, ey, np.array([w, length]))
-    if P.shape[0] < 3 or not all(np.isfinite(v).all() for v in vals):
+    if not np.isfinite(n).all():
         return 0.0
-    if w <= 0 or length <= 0:
+    inter, a_pred, a_gt = rect_overlap_in_plane(pred_corners, gt_center, gt_x, gt_y, gt_w,
+                                                gt_l)
+    if a_pred <= 0.0:
         return 0.0
-    # Re-orthonormalize the face axes so slightly sloppy truth does not bias the areas.
-    ex = ex / max(float(np.linalg.norm(ex)), 1e-300)
-    ey = ey - ex * float(ey @ ex)
-    ny = np.linalg.norm(ey)
-    if ny < 1e-9:
-        return 0.0
-    ey = ey / ny
-    q = np.stack([(P - c) @ ex, (P - c) @ ey], axis=1)
-    hull = _convex_hull(q)
-    a_pred = _area(hull)
-    a_gt = w * length
-    if a_pred <= 1e-9 * a_gt:  # collinear or coincident corners (up to rounding)
-        return 0.0
-    clip = hull
-    clip = _clip_halfplane(clip, 0, 0.5 * w, keep_below=True)
-    clip = _clip_halfplane(clip, 0, -0.5 * w, keep_below=False)
-    clip = _clip_halfplane(clip, 1, 0.5 * length, keep_below=True)
-    clip = _clip_halfplane(clip, 1, -0.5 * length, keep_below=False)
-    inter = min(_area(clip), a_pred, a_gt)
     union = a_pred + a_gt - inter
     if union <= 0.0:
         return 0.0
@@ -428,6 +470,315 @@ def match_surfaces(
         tp_pairs=tp_pairs, tp_iou=tp_iou, grasp_err=grasp_err, center_err=center_err,
         width_err=width_err, length_err=length_err, normal_err_deg=normal_err,
     )
+
+
+# --- packed layers: wrong rectangles, ambiguous regions, heights --------------------------
+
+
+def overlap_matrix(
+    corners: npt.ArrayLike,
+    truth: FaceTruth,
+    *,
+    centers: npt.ArrayLike | None = None,
+    max_plane_offset: float | None = 0.03,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Overlap areas of every polygon with every face, in the face's plane.
+
+    Parameters
+    ----------
+    corners : array_like, shape (P, k, 3), metres, sensor frame
+        Polygons (rectangles: k = 4), corners in order around each.
+    truth : GroundTruth-like
+        ``centers``, ``normals``, ``x_axis``, ``y_axis`` (F, 3), ``width``, ``length`` (F,).
+    centers : array_like, shape (P, 3), optional
+        The polygons' centres for the plane gate; default the mean of their corners.
+    max_plane_offset : float or None
+        As in :func:`match_surfaces`: a polygon whose centre lies farther than this from a
+        face's plane (metres) does not overlap it; None disables the gate.
+
+    Returns
+    -------
+    (inter, pred_area, face_area) : ndarrays, shape (P, F), m^2
+        :func:`rect_overlap_in_plane` of each pair; zeros where the pair cannot overlap.
+    """
+    C = np.asarray(corners, dtype=np.float64)
+    P = int(C.shape[0]) if C.ndim == 3 else 0
+    F = int(np.asarray(truth.centers).shape[0])
+    inter, a_pred, a_gt = (np.zeros((P, F)) for _ in range(3))
+    if P == 0 or F == 0:
+        return inter, a_pred, a_gt
+    C = C.reshape(P, -1, 3)
+    gc = np.asarray(truth.centers, dtype=np.float64).reshape(F, 3)
+    gn = np.asarray(truth.normals, dtype=np.float64).reshape(F, 3)
+    gx = np.asarray(truth.x_axis, dtype=np.float64).reshape(F, 3)
+    gy = np.asarray(truth.y_axis, dtype=np.float64).reshape(F, 3)
+    gw = np.asarray(truth.width, dtype=np.float64).reshape(F)
+    gl = np.asarray(truth.length, dtype=np.float64).reshape(F)
+    pc = C.mean(axis=1) if centers is None else np.asarray(centers, np.float64).reshape(P, 3)
+    # The bounding-sphere test of iou_matrix: pairs that cannot overlap are not clipped.
+    pr = np.max(np.linalg.norm(C - pc[:, None, :], axis=2), axis=1)  # NaN -> never near
+    gr = 0.5 * np.hypot(gw, gl)
+    near = np.linalg.norm(pc[:, None, :] - gc[None, :, :], axis=-1) <= (pr[:, None]
+                                                                       + gr[None, :]) * 1.001
+    if max_plane_offset is not None:
+        off = np.abs(np.einsum("pfk,fk->pf", pc[:, None, :] - gc[None, :, :], gn))
+        near &= off <= max_plane_offset
+    for i, j in zip(*np.nonzero(near)):
+        inter[i, j], a_pred[i, j], a_gt[i, j] = rect_overlap_in_plane(
+            C[i], gc[j], gx[j], gy[j], gw[j], gl[j])
+    return inter, a_pred, a_gt
+
+
+class WrongReason(IntEnum):
+    """How a reported surface stands to the box tops (:func:`wrong_rectangles`)."""
+
+    #: matches a top with IoU >= iou_min and covers no second top by half
+    RIGHT = 0
+    #: overlaps no box top (a plane of the pallet, the floor, a phantom): a false
+    #: surface, but not a wrong rectangle on a box
+    OFF_TOP = 1
+    #: overlaps a top but matches none with IoU >= iou_min: a sliver of one top, or a
+    #: rectangle spanning several
+    NO_MATCH = 2
+    #: matches a top with IoU >= iou_min, but covers at least ``span_cover`` of two or
+    #: more tops: it spans a seam (one that covers exactly two equal tops has IoU 0.5
+    #: with each, so the IoU alone cannot be trusted to call it)
+    SPANS = 3
+
+
+@dataclass(frozen=True, eq=False)
+class WrongRectangles:
+    """Result of :func:`wrong_rectangles` for one scan.
+
+    Attributes
+    ----------
+    max_iou : (n_pred,) float64
+        The best in-plane IoU of each surface with any top (exposed or not).
+    best_face : (n_pred,) int64
+        The top of that IoU, -1 if the surface overlaps none.
+    n_covered : (n_pred,) int64
+        Tops of which the surface covers at least ``span_cover`` of the area.
+    reason : (n_pred,) uint8
+        :class:`WrongReason` of each surface.
+    """
+
+    max_iou: np.ndarray
+    best_face: np.ndarray
+    n_covered: np.ndarray
+    reason: np.ndarray
+
+    @property
+    def n_pred(self) -> int:
+        return int(self.reason.shape[0])
+
+    @property
+    def wrong(self) -> np.ndarray:
+        """(n_pred,) bool: the wrong rectangles (NO_MATCH or SPANS)."""
+        return (self.reason == WrongReason.NO_MATCH) | (self.reason == WrongReason.SPANS)
+
+    @property
+    def n_wrong(self) -> int:
+        return int(self.wrong.sum())
+
+    def count(self, reason: WrongReason) -> int:
+        return int((self.reason == reason).sum())
+
+    @property
+    def rate(self) -> float:
+        """Wrong rectangles per reported surface (0 with no surface)."""
+        return self.n_wrong / self.n_pred if self.n_pred else 0.0
+
+    def to_dict(self, *, digits: int = 4) -> dict[str, Any]:
+        """JSON-ready: counts per reason and each surface's reason, best IoU and top."""
+        return {"n_pred": self.n_pred, "n_wrong": self.n_wrong,
+                **{r.name.lower(): self.count(r) for r in WrongReason},
+                "reason": [WrongReason(int(r)).name for r in self.reason],
+                "max_iou": [round(float(v), digits) for v in self.max_iou],
+                "best_face": [int(v) for v in self.best_face]}
+
+
+def wrong_rectangles(
+    pred: SurfaceSet,
+    truth: FaceTruth,
+    *,
+    iou_min: float = 0.5,
+    span_cover: float = 0.5,
+    max_plane_offset: float | None = 0.03,
+) -> WrongRectangles:
+    """Find the reported surfaces that would make a robot grip the wrong thing.
+
+    A surface is a *wrong rectangle* when it overlaps a box top (any top, exposed or
+    not, in its plane) and either matches none with IoU >= ``iou_min`` (issue 21's
+    definition: a sliver of a top, or a union of tops), or covers at least ``span_cover``
+    of the area of two or more tops (it spans a seam). A surface that overlaps no top is
+    a false surface of another kind (``OFF_TOP``) and is not counted here.
+
+    Parameters
+    ----------
+    pred : SurfaceSet
+        Reported surfaces (``corners`` (s, 4, 3), ``centers`` (s, 3), sensor frame, metres).
+    truth : GroundTruth-like
+        The faces (see :func:`match_surfaces`).
+    iou_min : float
+        The IoU of a match, as in :func:`match_surfaces`.
+    span_cover : float
+        Fraction of a top's area a surface must cover to count as lying on it, in (0, 1].
+        At 0.5, a surface that takes in half of a neighbour is called: its grasp point is
+        a quarter of a box off and a suction cup can straddle the seam.
+    max_plane_offset : float or None
+        The plane gate of :func:`match_surfaces` (metres).
+
+    Returns
+    -------
+    WrongRectangles
+
+    Notes
+    -----
+    Unlike the one-to-one assignment of :func:`match_surfaces`, every surface is judged on
+    its own: two surfaces on the same top are both right rectangles here (the second one is
+    a duplicate, a false positive of the match).
+    """
+    if not 0.0 < span_cover <= 1.0:
+        raise ValueError(f"span_cover must be in (0, 1], got {span_cover}")
+    P = len(pred)
+    inter, a_pred, a_gt = overlap_matrix(pred.corners, truth, centers=pred.centers,
+                                         max_plane_offset=max_plane_offset)
+    # a surface without a finite normal overlaps nothing (rect_iou_in_plane scores it 0)
+    normals_ok = np.asarray(
+        np.isfinite(np.asarray(pred.normals, np.float64).reshape(P, 3)).all(axis=1), bool)
+    inter = np.where(normals_ok[:, None], inter, 0.0)
+    union = a_pred + a_gt - inter
+    with np.errstate(invalid="ignore", divide="ignore"):
+        iou = np.where((union > 0) & (a_pred > 0), inter / np.where(union > 0, union, 1.0), 0.0)
+        cover = np.where(a_gt > 0, inter / np.where(a_gt > 0, a_gt, 1.0), 0.0)
+    F = iou.shape[1]
+    max_iou = iou.max(axis=1) if F else np.zeros(P)
+    best = np.where(inter.max(axis=1) > 0, iou.argmax(axis=1), -1) if F else np.full(P, -1)
+    n_cov = (cover >= span_cover).sum(axis=1) if F else np.zeros(P, np.int64)
+    reason = np.full(P, WrongReason.RIGHT, dtype=np.uint8)
+    reason[best < 0] = WrongReason.OFF_TOP
+    reason[(best >= 0) & (max_iou < iou_min)] = WrongReason.NO_MATCH
+    reason[(best >= 0) & (max_iou >= iou_min) & (n_cov >= 2)] = WrongReason.SPANS
+    return WrongRectangles(max_iou=max_iou.astype(np.float64),
+                           best_face=best.astype(np.int64), n_covered=n_cov.astype(np.int64),
+                           reason=reason)
+
+
+def region_cover(corners: npt.ArrayLike, truth: FaceTruth, *,
+                 max_plane_offset: float | None = 0.03) -> np.ndarray:
+    """Fraction of each face's area that each region covers, shape (K, F), in [0, 1].
+
+    Parameters
+    ----------
+    corners : array_like, shape (K, 4, 3), metres, sensor frame
+        Region outlines (e.g. ``Result.ambiguous.corners``).
+    truth : GroundTruth-like
+    max_plane_offset : float or None
+        The plane gate of :func:`match_surfaces` (metres), on the outline's centre.
+    """
+    inter, _, a_gt = overlap_matrix(corners, truth, max_plane_offset=max_plane_offset)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.where(a_gt > 0, inter / np.where(a_gt > 0, a_gt, 1.0), 0.0)
+
+
+def true_box_heights(truth: Any) -> np.ndarray:
+    """The height of each face's box, shape (F,), metres; NaN where the truth has no boxes.
+
+    Reads the simulator's ``boxes`` (B, 7: size z at column 5) through ``box_index`` (F,).
+    """
+    F = int(np.asarray(truth.centers).shape[0])
+    boxes, idx = getattr(truth, "boxes", None), getattr(truth, "box_index", None)
+    if boxes is None or idx is None:
+        return np.full(F, np.nan)
+    b = np.asarray(boxes, dtype=np.float64).reshape(-1, 7)
+    i = np.asarray(idx, dtype=np.int64).reshape(F)
+    out = np.full(F, np.nan)
+    ok = (i >= 0) & (i < b.shape[0])
+    out[ok] = b[i[ok], 5]
+    return out
+
+
+#: ``boxloc.products.HeightSource`` values of a measured height: a side face, a step.
+MEASURED_HEIGHT_SOURCES: tuple[int, ...] = (1, 2)
+
+
+@dataclass(frozen=True, eq=False)
+class HeightErrors:
+    """Result of :func:`height_errors`: one row per true positive with a measured height.
+
+    Attributes
+    ----------
+    pred, face : (k,) int64
+        The surface and the face it matched.
+    source : (k,) int8
+        The surface's height source (``boxloc.products.HeightSource``).
+    estimate, sigma, truth : (k,) float64, metres
+        The reported height, its reported standard deviation, the box's true height.
+    error : (k,) float64, metres
+        ``|estimate - truth|``.
+    """
+
+    pred: np.ndarray
+    face: np.ndarray
+    source: np.ndarray
+    estimate: np.ndarray
+    sigma: np.ndarray
+    truth: np.ndarray
+    error: np.ndarray
+
+    def __len__(self) -> int:
+        return int(self.error.shape[0])
+
+
+def height_errors(
+    height: npt.ArrayLike,
+    source: npt.ArrayLike,
+    match: Match,
+    true_height: npt.ArrayLike,
+    *,
+    sigma: npt.ArrayLike | None = None,
+    sources: Sequence[int] = MEASURED_HEIGHT_SOURCES,
+) -> HeightErrors:
+    """The height error of each true positive whose height was measured.
+
+    Parameters
+    ----------
+    height : array_like, shape (n_pred,), metres
+        Reported box heights (``SurfaceSet.height``; NaN: none).
+    source : array_like, shape (n_pred,), int
+        Their sources (``SurfaceSet.height_source``).
+    match : Match
+        :func:`match_surfaces` of the same surfaces: only its true positives are scored
+        (a wrong rectangle has no true height).
+    true_height : array_like, shape (F,), metres
+        The true height of each face's box (:func:`true_box_heights`).
+    sigma : array_like, shape (n_pred,), optional
+        Reported standard deviations (``SurfaceSet.height_sigma``), carried along.
+    sources : sequence of int
+        The sources scored; default side and step (a height copied from a listed size
+        measures the list, not the scan).
+
+    Returns
+    -------
+    HeightErrors
+        Rows in the order of ``match.tp_pairs``; a finite estimate and truth only.
+    """
+    h = np.asarray(height, dtype=np.float64).reshape(-1)
+    src = np.asarray(source).astype(np.int64).reshape(-1)
+    n = match.n_pred
+    if h.shape[0] != n or src.shape[0] != n:
+        raise ValueError(f"height and source must have shape ({n},), got {h.shape} and "
+                         f"{src.shape}")
+    sg = np.full(n, np.nan) if sigma is None else np.asarray(sigma, np.float64).reshape(n)
+    th = np.asarray(true_height, dtype=np.float64).reshape(-1)
+    pi = match.tp_pairs[:, 0].astype(np.int64)
+    fi = match.tp_pairs[:, 1].astype(np.int64)
+    est, tru = h[pi], th[fi]
+    keep = np.asarray(np.isin(src[pi], np.asarray(list(sources), np.int64))
+                      & np.isfinite(est) & np.isfinite(tru), dtype=bool)
+    pi, fi, est, tru = pi[keep], fi[keep], est[keep], tru[keep]
+    return HeightErrors(pred=pi, face=fi, source=src[pi].astype(np.int8), estimate=est,
+                        sigma=sg[pi], truth=tru, error=np.abs(est - tru))
 
 
 # --- edges -------------------------------------------------------------------------------
