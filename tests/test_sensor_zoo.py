@@ -24,7 +24,6 @@ from boxloc.simulate import (
     SENSORS,
     GroundTruth,
     SceneSpec,
-    _footprint_sep,
     format_spec,
     matrix_suite,
     parse_spec,
@@ -32,6 +31,7 @@ from boxloc.simulate import (
     simulate,
     zoo,
 )
+from boxloc.simulate.boxes import _footprint_sep
 
 LAGS = (1, 2, 4, 8)
 

@@ -25,9 +25,6 @@ from boxloc.simulate import (
     GroundTruth,
     SceneSpec,
     SimulatedScan,
-    _build_world,
-    _cast,
-    _shadowed,
     format_spec,
     load_truth,
     look_down_pose,
@@ -38,6 +35,8 @@ from boxloc.simulate import (
     simulate,
     simulate_boxes,
 )
+from boxloc.simulate.raycast import _build_world, _cast, _RayIndex
+from boxloc.simulate.sensors import _shadowed
 
 #: Near-noiseless sensor without artefacts, for exact geometry checks.
 QUIET = ("noise.sigma0=0.00001,noise.k2=0,noise.sigma_angle=0,dropout=0,mixed_pixels=false,"
@@ -254,7 +253,7 @@ def test_truth_is_consistent(kind: str) -> None:
     else:
         assert F >= 1 and t.fully_exposed.any()
         # Boxes never interpenetrate.
-        from boxloc.simulate import _collides
+        from boxloc.simulate.boxes import _collides
 
         for i, b in enumerate(t.boxes):
             others = [o for j, o in enumerate(t.boxes) if j != i]
@@ -435,8 +434,6 @@ def test_shadows_fall_beside_jumps_and_match_a_full_cast() -> None:
     T = dark.truth.sensor_to_base
     world = _build_world(dark.truth.boxes, T, spec.bevel, spec.bulge)
     rays = dark.scan.sensor.rays().reshape(-1, 3)
-    from boxloc.simulate import _RayIndex
-
     r0, surf, _ = _cast(world, np.zeros(3), rays, _RayIndex(rays, (480, 640)))
     X = np.where(np.isfinite(r0), r0, np.nan)[:, None] * rays
     fast = _shadowed(world, X, surf, spec.baseline, spec.f, (480, 640))
