@@ -28,7 +28,7 @@ import numpy as np
 import numpy.typing as npt
 from scipy.optimize import linear_sum_assignment
 
-from boxloc.products import EdgeKind, SurfaceSet
+from boxloc.products import EdgeKind, HeightSource, SurfaceSet
 
 
 class FaceTruth(Protocol):
@@ -698,8 +698,8 @@ def true_box_heights(truth: Any) -> np.ndarray:
     return out
 
 
-#: ``boxloc.products.HeightSource`` values of a measured height: a side face, a step.
-MEASURED_HEIGHT_SOURCES: tuple[int, ...] = (1, 2)
+#: The height sources of a measured height: a side face, a step (not a listed size's).
+MEASURED_HEIGHT_SOURCES: tuple[int, ...] = (int(HeightSource.SIDE), int(HeightSource.STEP))
 
 
 @dataclass(frozen=True, eq=False)

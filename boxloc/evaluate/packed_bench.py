@@ -1,0 +1,1097 @@
+"""The packed-layer benchmark (issue 21, point 4): tightly packed layers, with and without
+the cell's carton list.
+
+``python -m boxloc.evaluate.packed_bench`` (and ``boxloc bench --packed``) runs
+:func:`run_packed_bench` on the scenes of :func:`packed_suite`: zero-gap, sharp-edged
+layered pallets (``layered``: one carton size per pallet, neighbours touching along whole
+faces, ``bevel`` 0), scene ``i`` seen by sensor ``SENSORS[i % 4]`` of the zoo. They are
+the ``layered`` cells of :func:`boxloc.simulate.matrix_suite` (the same draws of camera
+height, tilt, resolution, lid bulge, tape and labels), in order, so the matrix bench's
+layered scans are the first ones here.
+
+Each scan (scene and draw of the random trials) is localized in two *variants*:
+``without_sizes``, the default configuration (``Config()`` with the one site input, the
+smallest and largest box, as the matrix bench), and ``with_sizes``, the same plus the
+scene's carton list as a user gives it (``--box-sizes FILE``): the distinct carton sizes of
+the scene's ground truth, ``width,length,height`` rounded to the millimetre, written as a
+CSV file and read back with :func:`boxloc.io.box_sizes.read_box_sizes`. Every variant of
+every scan runs in a worker process under the per-scan time limit, as in
+:mod:`boxloc.evaluate.matrix_bench` (a timed-out or crashed scan scores as nothing found).
+The held-out sensor (``tof``) is reported apart: every overall figure is given for
+``development`` (without it) and ``all``.
+
+Scoring (:mod:`boxloc.evaluate.metrics`): precision and recall by
+:func:`~boxloc.evaluate.metrics.match_surfaces`, as the matrix bench. A *wrong rectangle*
+(:func:`~boxloc.evaluate.metrics.wrong_rectangles`) is a reported surface that overlaps a box
+top and matches none with IoU >= 0.5, or that covers at least half of two tops (a rectangle
+over exactly two equal tops has IoU 0.5 with each, so the IoU alone cannot call it); the
+*wrong-rectangle rate* is their share of the reported surfaces. Ambiguous regions
+(``Result.ambiguous``) are counted per scan, and each is scored by the exposed tops it
+covers at least half of (:func:`~boxloc.evaluate.metrics.region_cover`): a top that is
+missed but lies in an ambiguous region is one the cell knows to fall back on; one missed
+outside every region is missed silently. The height error is ``|height - true height|`` of
+the true positives whose height source is a side face or a step
+(:func:`~boxloc.evaluate.metrics.height_errors`; a height copied from the list is counted
+by source but not scored).
+
+Layout of ``bench_packed.json`` (schema ``boxloc.bench_packed/1``; lengths in figures are
+millimetres where named ``*_mm``, areas square metres where named ``*_m2``, times
+milliseconds where named ``*_ms``):
+
+- ``schema``, ``version``, ``mode`` (``"packed"``), ``n`` scenes, ``seed`` of the suite,
+  ``jobs``, ``scan_timeout_s``, ``warmup``, ``threads`` (a worker's thread pinning)
+- ``default_configuration``: true; ``config`` (every value of the ``without_sizes`` run),
+  ``config_hash``, ``site``: ``min_edge``, ``max_edge`` (metres, the only values set),
+  ``source`` and ``observed`` (the smallest and largest top edge in the scenes' truth)
+- ``sizes``: how the ``with_sizes`` carton list is made: ``source``, ``rounding_m``,
+  ``size_tolerance_m`` (the configuration's), ``tolerance_source``
+- ``suite``: ``source`` (the scenes' definition), ``kind``, ``bevel_m``, ``max_gap_m``
+- ``held_out``: ``sensor``
+- ``sensors``, ``variants``, ``lids`` (``flat``, ``bulged``): the axes, in order
+- ``seeds``: the draws of the random trials
+  (:func:`boxloc.evaluate.scene_bench.draw_figures`, the variants as its methods, per sensor)
+- ``groups``: per variant, figures (see below) for ``overall`` (``development`` and
+  ``all``), ``sensors`` (per sensor; each also has ``held_out``) and ``lids`` (per lid:
+  ``development`` and ``all``)
+- ``targets``: one row per entry of :data:`PACKED_TARGETS`: ``name``, ``variant``,
+  ``key``, ``over`` (``sensor`` or ``overall``), ``op``, ``bound``, ``target`` (text),
+  ``unit``, and per scope (``development``, ``all``) ``value`` (the worst sensor's figure
+  for ``sensor``), ``where`` and ``pass`` (true, false, or null: no data)
+- ``timeouts``: one entry per timed-out run: ``scene``, ``trial_seed``, ``sensor``,
+  ``variant``, ``spec_text``, ``phase`` (``simulate``, ``localize`` or ``warmup``),
+  ``limit_s``
+- ``errors``: ``total`` and ``list`` (``scene``, ``trial_seed``, ``sensor``, ``variant``,
+  ``phase``, ``error``) of runs that crashed
+- ``timing``: per variant ``stages_ms`` (median, p95 per stage) and ``total_ms`` (median,
+  p95); ``per_scan_ms`` (per variant, in the order of ``scenes``; a timed-out run's is the
+  limit), ``run_s``
+- ``memory``: the workers' peak RSS per run (median and max, MB) and this process's
+- ``scenes``: one deterministic row per scan (scene and draw, in suite order): ``index``,
+  ``trial_seed``, ``sensor``, ``held_out``, ``lid``, ``spec``, ``spec_text``,
+  ``n_faces``, ``n_exposed``, ``n_boxes``, ``layers``, ``pixels``, ``sizes_csv`` (the file
+  given to ``with_sizes``), and ``runs``: per variant ``status`` (``ok``, ``error``,
+  ``timeout``), ``error``, ``match`` (:meth:`boxloc.evaluate.metrics.Match.to_dict`),
+  ``wrong`` (:meth:`boxloc.evaluate.metrics.WrongRectangles.to_dict`), ``ambiguous``
+  (``n``, ``area_m2``, ``reason``, ``tops`` covered by each), ``missed_in_ambiguous``,
+  ``heights`` (``sources`` counted over the surfaces; ``face``, ``source``, ``err_mm``,
+  ``sigma_mm`` of the scored ones) and ``sku`` (``matched``, ``flagged``,
+  ``flagged_tp``); no durations, so two runs' rows compare equal
+
+Figures of a group (:func:`group_figures`): ``n_scenes``, ``n_scans``, every key of
+:func:`boxloc.evaluate.metrics.aggregate_matches` (``n_exposed`` exposed tops, ``tp``,
+``fp``, ``fn``, ``n_pred``, ``precision``, ``recall``, ``grasp_err_median_mm``, ...),
+``errors``, ``timeouts``, ``time`` (``median_ms``, ``max_ms``), and:
+
+- wrong rectangles: ``wrong_rectangles``, ``wrong_no_match``, ``wrong_spans``,
+  ``off_top`` (false surfaces on no top: not wrong rectangles), ``wrong_rate``
+  (``wrong_rectangles / n_pred``; 0 with no surface)
+- ambiguous regions: ``ambiguous_regions``, ``ambiguous_per_scan``,
+  ``ambiguous_area_median_m2``, ``ambiguous_reasons`` (count per
+  :class:`boxloc.products.AmbiguityReason` name), ``ambiguous_without_top`` (regions
+  covering no exposed top by half), ``tops_in_ambiguous`` (exposed tops covered at least
+  half by a region), ``missed_in_ambiguous`` (of them, the tops not found),
+  ``missed_silently`` (tops not found and in no region)
+- heights: ``height_sources`` (reported surfaces per :class:`boxloc.products.HeightSource`
+  name), ``height_n`` (true positives scored: side or step), ``height_err_median_mm``,
+  ``height_err_p95_mm``, ``height_by_source`` (per scored source: ``n``, ``median_mm``,
+  ``p95_mm``)
+- carton list: ``sku_matched`` (surfaces matching a listed size), ``sku_flagged``
+  (surfaces matching none), ``sku_flagged_tp`` (true tops flagged: false flags)
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import dataclasses
+import json
+import math
+import sys
+import tempfile
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from multiprocessing.connection import Connection
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from boxloc import __version__
+from boxloc.config import Config
+from boxloc.errors import BoxlocError, InputError
+from boxloc.evaluate.matrix_bench import (
+    HELD_OUT,
+    SCOPES,
+    _pct,
+    _Slot,
+    _warmup_spec,
+    _Workers,
+    matrix_config,
+)
+from boxloc.evaluate.metrics import (
+    HeightErrors,
+    Match,
+    WrongReason,
+    WrongRectangles,
+    aggregate_matches,
+    height_errors,
+    match_surfaces,
+    prf,
+    region_cover,
+    true_box_heights,
+    wrong_rectangles,
+)
+from boxloc.evaluate.scene_bench import (
+    PeakRSS,
+    _default_localizer,
+    _err,
+    _fmt,
+    _jsonable,
+    _limit_threads,
+    _MethodRun,
+    _spec_dict,
+    _spec_text,
+    _timing,
+    draw_figures,
+    print_draws,
+    process_max_rss_mb,
+    progress_bar,
+    trial_configs,
+)
+from boxloc.products import AmbiguityReason, HeightSource
+
+SCHEMA = "boxloc.bench_packed/1"
+#: The two ways every scan is localized: the default configuration, and with the carton list.
+VARIANTS: tuple[str, ...] = ("without_sizes", "with_sizes")
+#: Lid shapes the figures are split by: a bulged lid shows its box's outline by itself.
+LIDS: tuple[str, ...] = ("flat", "bulged")
+#: Scenes of the default run: 24 per sensor.
+DEFAULT_N = 96
+#: Seconds a run may take (from the end of its simulation) before its worker is killed.
+DEFAULT_SCAN_TIMEOUT = 120.0
+#: The carton list a user writes: catalogue sizes in whole millimetres.
+SIZE_ROUNDING = 0.001
+#: Exposed tops an ambiguous region must cover by at least this share to hold them.
+REGION_COVER = 0.5
+REPORT_NAME = "bench_packed.json"
+TABLE_NAME = "bench_packed.txt"
+
+Localizer = Callable[[Any, Config], Any]
+
+
+@dataclass(frozen=True)
+class PackedTarget:
+    """One target of issue 21, point 4: ``key`` of :func:`group_figures` in ``variant``,
+    over every sensor (the worst one's value) or overall."""
+
+    name: str
+    variant: str
+    over: str
+    key: str
+    op: str
+    value: float
+    unit: str = ""
+
+    def text(self) -> str:
+        return f"{self.op} {self.value:g}{(' ' + self.unit) if self.unit else ''}"
+
+
+#: The targets of issue 21, point 4, in one place.
+PACKED_TARGETS: tuple[PackedTarget, ...] = (
+    PackedTarget("wrong-rectangle rate without sizes, every sensor", "without_sizes",
+                 "sensor", "wrong_rate", "<=", 0.01),
+    PackedTarget("recall with sizes", "with_sizes", "overall", "recall", ">=", 0.95),
+    PackedTarget("precision with sizes", "with_sizes", "overall", "precision", ">=", 0.99),
+    PackedTarget("median height error (side or step), without sizes", "without_sizes",
+                 "overall", "height_err_median_mm", "<=", 10.0, "mm"),
+    PackedTarget("median height error (side or step), with sizes", "with_sizes", "overall",
+                 "height_err_median_mm", "<=", 10.0, "mm"),
+)
+
+
+# --- the scenes and the carton list ------------------------------------------------------
+
+
+def packed_suite(n: int, seed: int = 0) -> list[Any]:
+    """The benchmark's scenes: the first ``n`` ``layered`` scenes of ``matrix_suite``.
+
+    Scene ``i`` has sensor ``SENSORS[i % 4]``; ``bevel`` is 0 (sharp edges) and the layout
+    has no gap and no jitter (``layered``). The same (n, seed) gives the same list, and a
+    longer suite starts with the shorter one.
+
+    Raises
+    ------
+    InputError
+        If ``n`` or ``seed`` is not an integer >= 0.
+    """
+    from boxloc.simulate import MATRIX_KINDS, SENSORS, matrix_suite
+
+    if isinstance(n, bool) or not isinstance(n, int | np.integer) or n < 0:
+        raise InputError(f"packed suite size must be an integer >= 0, got {n!r}")
+    per_round = len(SENSORS) * len(MATRIX_KINDS)  # each round of the matrix: one per sensor
+    rounds = math.ceil(int(n) / len(SENSORS))
+    specs = [s for s in matrix_suite(rounds * per_round, seed) if s.kind == "layered"]
+    # the matrix draws no bevel on layered scenes; the replace only makes it this suite's rule
+    return [dataclasses.replace(s, bevel=0.0) for s in specs[: int(n)]]
+
+
+def box_sizes_csv(truth: Any, rounding: float = SIZE_ROUNDING) -> str:
+    """The carton list a user of the cell would write for this scene: its CSV text.
+
+    Parameters
+    ----------
+    truth : GroundTruth
+        ``boxes`` (B, 7): size x, y, z at columns 3-5, metres.
+    rounding : float
+        Sizes are rounded to this, metres (catalogue sizes in whole millimetres).
+
+    Returns
+    -------
+    str
+        ``width,length,height`` then one row per distinct (width <= length, height), sorted.
+    """
+    b = np.asarray(truth.boxes, dtype=np.float64).reshape(-1, 7)
+    digits = max(0, round(-math.log10(rounding)))
+    rows = set()
+    for sx, sy, sz in b[:, 3:6]:
+        w, ln = sorted((float(sx), float(sy)))
+        rows.add(tuple(round(round(v / rounding) * rounding, digits) for v in (w, ln, sz)))
+    lines = ["width,length,height"] + [f"{w:.{digits}f},{ln:.{digits}f},{h:.{digits}f}"
+                                       for w, ln, h in sorted(rows)]
+    return "\n".join(lines) + "\n"
+
+
+def read_sizes_as_a_user(csv_text: str) -> tuple[tuple[float, float, float], ...]:
+    """Write ``csv_text`` to a file and read it with the ``--box-sizes`` reader."""
+    from boxloc.io.box_sizes import read_box_sizes
+
+    with tempfile.TemporaryDirectory(prefix="boxloc-packed-") as d:
+        path = Path(d) / "box_sizes.csv"
+        path.write_text(csv_text)
+        return read_box_sizes(path)
+
+
+# --- scoring one run -----------------------------------------------------------------------
+
+
+@dataclass
+class PackedScore:
+    """The scores of one run (a variant on a scan), as :func:`score_packed` makes them."""
+
+    match: Match
+    wrong: WrongRectangles
+    amb_area: np.ndarray
+    amb_reason: np.ndarray
+    amb_tops: np.ndarray
+    tops_in_ambiguous: int
+    missed_in_ambiguous: int
+    heights: HeightErrors
+    height_sources: dict[str, int]
+    sku_matched: int
+    sku_flagged: int
+    sku_flagged_tp: int
+
+    def to_dict(self) -> dict[str, Any]:
+        h = self.heights
+        return {
+            "match": self.match.to_dict(), "wrong": self.wrong.to_dict(),
+            "ambiguous": {"n": int(self.amb_area.shape[0]),
+                          "area_m2": [round(float(a), 5) for a in self.amb_area],
+                          "reason": [_reason_name(r) for r in self.amb_reason],
+                          "tops": [int(t) for t in self.amb_tops]},
+            "missed_in_ambiguous": self.missed_in_ambiguous,
+            "heights": {"sources": self.height_sources, "face": [int(f) for f in h.face],
+                        "source": [HeightSource(int(s)).name.lower() for s in h.source],
+                        "err_mm": [round(float(e) * 1e3, 3) for e in h.error],
+                        "sigma_mm": [None if not math.isfinite(s) else round(float(s) * 1e3, 3)
+                                     for s in h.sigma]},
+            "sku": {"matched": self.sku_matched, "flagged": self.sku_flagged,
+                    "flagged_tp": self.sku_flagged_tp},
+        }
+
+
+def _reason_name(r: Any) -> str:
+    try:
+        return AmbiguityReason(int(r)).name
+    except ValueError:
+        return f"REASON_{int(r)}"
+
+
+def _field(obj: Any, name: str, n: int, fill: Any, dtype: Any) -> np.ndarray:
+    """``obj.name`` as an (n,) array, or ``fill`` where the localizer does not give it."""
+    v = getattr(obj, name, None)
+    if v is None:
+        return np.full(n, fill, dtype=dtype)
+    return np.asarray(v, dtype=dtype).reshape(n)
+
+
+def score_packed(result: Any, truth: Any) -> PackedScore:
+    """Score one localizer result on a packed scene.
+
+    Parameters
+    ----------
+    result : Result-like
+        ``surfaces`` (a :class:`boxloc.products.SurfaceSet`) and optionally ``ambiguous``
+        (a :class:`boxloc.products.AmbiguousSet`: ``corners`` (K, 4, 3), ``area`` (K,),
+        ``reason`` (K,)).
+    truth : GroundTruth
+
+    Returns
+    -------
+    PackedScore
+    """
+    s = result.surfaces
+    n = len(s)
+    match = match_surfaces(s, truth)
+    wrong = wrong_rectangles(s, truth)
+    exposed = np.asarray(truth.fully_exposed, dtype=bool).reshape(-1)
+    amb = getattr(result, "ambiguous", None)
+    k = 0 if amb is None else len(amb)
+    corners, area, reason = np.zeros((0, 4, 3)), np.zeros(0), np.zeros(0, np.int64)
+    if amb is not None and k:
+        corners = np.asarray(amb.corners, np.float64).reshape(k, -1, 3)
+        area = np.asarray(amb.area, np.float64).reshape(k)
+        reason = np.asarray(amb.reason, np.int64).reshape(k)
+    cover = region_cover(corners, truth)  # (K, F)
+    held = cover >= REGION_COVER
+    in_region = held.any(axis=0) & exposed
+    found = np.zeros(exposed.shape[0], dtype=bool)
+    found[match.tp_pairs[:, 1]] = True
+    source = _field(s, "height_source", n, int(HeightSource.NONE), np.int64)
+    hs = height_errors(_field(s, "height", n, np.nan, np.float64), source, match,
+                       true_box_heights(truth),
+                       sigma=_field(s, "height_sigma", n, np.nan, np.float64))
+    sku = _field(s, "sku", n, -1, np.int64)
+    flagged = _field(s, "sku_flagged", n, False, bool)
+    tp_pred = match.tp_pairs[:, 0]
+    return PackedScore(
+        match=match, wrong=wrong,
+        amb_area=area, amb_reason=reason,
+        amb_tops=held[:, exposed].sum(axis=1).astype(np.int64),
+        tops_in_ambiguous=int(in_region.sum()),
+        missed_in_ambiguous=int((in_region & ~found).sum()),
+        heights=hs,
+        height_sources={h.name.lower(): int((source == h).sum()) for h in HeightSource},
+        sku_matched=int((sku >= 0).sum()), sku_flagged=int(flagged.sum()),
+        sku_flagged_tp=int(flagged[tp_pred].sum()))
+
+
+# --- one run, in a worker process ----------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class _Job:
+    """What a worker runs on a scene: a variant under a configuration (sizes not yet set)."""
+
+    variant: str
+    config: Config
+
+
+@dataclass
+class _Run(_MethodRun):
+    """One variant on one scan, as the worker measured it."""
+
+    score: PackedScore | None = None
+
+
+@dataclass
+class _Outcome:
+    """One run (scene, draw, variant) as the parent sees it."""
+
+    index: int
+    trial_seed: int
+    sensor: str
+    variant: str
+    status: str = "ok"
+    phase: str | None = None
+    error: str | None = None
+    run: _Run | None = None
+    score: PackedScore | None = None
+    meta: dict[str, Any] = field(default_factory=dict)
+    wall_ms: float | None = None
+
+    @property
+    def group(self) -> str:  # for draw_figures: the draws per sensor
+        return self.sensor
+
+    @property
+    def match(self) -> Match | None:
+        return self.score.match if self.score is not None else None
+
+
+def _empty_result() -> Any:
+    from types import SimpleNamespace
+
+    from boxloc.evaluate.baseline import empty_surface_set
+
+    return SimpleNamespace(surfaces=empty_surface_set(), ambiguous=None)
+
+
+def _meta(sim: Any) -> dict[str, Any]:
+    truth, spec = sim.truth, sim.spec
+    h, w = sim.scan.range.shape[:2]
+    boxes = np.asarray(truth.boxes, np.float64).reshape(-1, 7)
+    base = np.round(boxes[:, 2] - boxes[:, 5] / 2, 3)
+    return {"n_faces": int(len(truth)), "n_exposed": int(np.asarray(truth.fully_exposed).sum()),
+            "n_boxes": int(boxes.shape[0]), "layers": int(np.unique(base).shape[0]),
+            "pixels": int(h * w), "spec": _spec_dict(spec), "spec_text": _spec_text(spec),
+            "lid": "bulged" if float(spec.bulge) > 0 else "flat",
+            "sizes_csv": box_sizes_csv(truth) if boxes.shape[0] else None,
+            "edge_min": float(np.min(truth.width)) if len(truth) else None,
+            "edge_max": float(np.max(truth.length)) if len(truth) else None,
+            "nothing": score_packed(_empty_result(), truth)}
+
+
+def _run_variant(localizer: Localizer, sim: Any, config: Config) -> _Run:
+    run = _Run()
+    try:
+        with PeakRSS() as pk:
+            t0 = time.perf_counter()
+            result = localizer(sim.scan, config)
+            run.wall_ms = (time.perf_counter() - t0) * 1e3
+        run.peak_mb = pk.peak_mb
+        run.stage_ms = {k: float(v) for k, v in getattr(result, "timing_ms", {}).items()}
+        run.score = score_packed(result, sim.truth)
+    except Exception as e:  # noqa: BLE001 - a crash on one scan is a result, not the end
+        run.error = _err(e)
+    return run
+
+
+def _packed_task(conn: Connection | None, task: int, spec: Any, job: _Job,
+                 localizer: Localizer, cache: dict[str, Any]) -> dict[str, Any]:
+    """Simulate the scene (or take it from the worker's cache), make the variant's
+    configuration, say when the localizer starts, run and score it."""
+    from boxloc.simulate import simulate
+
+    try:
+        if cache.get("spec") != spec:
+            cache.clear()
+            sim = simulate(spec)
+            cache.update(spec=spec, sim=sim, meta=_meta(sim))
+        sim, meta = cache["sim"], cache["meta"]
+        config = job.config
+        if job.variant == "with_sizes":
+            if meta["sizes_csv"] is None:
+                raise InputError("the scene has no box: no carton list to give")
+            config = dataclasses.replace(config,
+                                         box_sizes=read_sizes_as_a_user(meta["sizes_csv"]))
+    except Exception as e:  # noqa: BLE001 - a scene that cannot be made is a reported error
+        return {"status": "error", "phase": "simulate", "error": _err(e)}
+    if conn is not None:
+        conn.send(("started", task, meta))
+    run = _run_variant(localizer, sim, config)
+    if run.error is not None:
+        run.score = meta["nothing"]
+        return {"status": "error", "phase": "localize", "error": run.error, "run": run,
+                "meta": meta}
+    return {"status": "ok", "run": run, "meta": meta}
+
+
+def _packed_worker_main(conn: Connection, localizer: Localizer,
+                        warm: tuple[Any, Config] | None) -> None:
+    """A worker: pin threads, warm up, then run the jobs it is sent until ``None``."""
+    with contextlib.suppress(KeyboardInterrupt, BrokenPipeError, EOFError):
+        threads = _limit_threads()
+        if warm is not None:
+            from boxloc.simulate import simulate
+
+            with contextlib.suppress(Exception):
+                localizer(simulate(warm[0]).scan, warm[1])
+        conn.send(("ready", threads))
+        cache: dict[str, Any] = {}
+        while True:
+            msg = conn.recv()
+            if msg is None:
+                return
+            task, spec, job = msg
+            conn.send(("done", task, _packed_task(conn, task, spec, job, localizer, cache)))
+
+
+class _PackedWorkers(_Workers):
+    """The matrix bench's workers, running :func:`_packed_task` instead of its scan task."""
+
+    def start(self, warm: bool = True) -> _Slot:
+        parent, child = self.ctx.Pipe()
+        w = self.warm if warm else None
+        proc = self.ctx.Process(target=_packed_worker_main, args=(child, self.localizer, w),
+                                daemon=True)
+        proc.start()
+        child.close()
+        slot = _Slot(proc, parent, deadline=self._deadline())
+        self.slots.append(slot)
+        return slot
+
+    def send_job(self, slot: _Slot, task: int, spec: Any, job: _Job) -> None:
+        slot.task, slot.started, slot.meta = task, None, None
+        slot.deadline = self._deadline()  # the simulation has the same limit
+        slot.conn.send((task, spec, job))
+
+
+def _run_tasks(tasks: Sequence[tuple[int, Any, _Job]], localizer: Localizer, jobs: int,
+               limit: float | None, warm: tuple[Any, Config] | None,
+               on_done: Callable[[int, dict[str, Any]], None],
+               on_start: Callable[[int], None] | None = None) -> dict[str, Any]:
+    """Run every task on worker processes; ``on_done(task, result)`` as each ends.
+
+    The loop of :func:`boxloc.evaluate.matrix_bench._run_tasks`, on :class:`_PackedWorkers`:
+    a worker killed at its deadline gives a ``timeout`` result, one that died an ``error``.
+    """
+    queue = list(range(len(tasks)))[::-1]
+    pool = _PackedWorkers(localizer, min(jobs, len(tasks)), warm, limit)
+    done = 0
+    try:
+        while done < len(tasks):
+            for s in pool.slots:
+                if s.ready and s.task is None and queue:
+                    i = queue.pop()
+                    pool.send_job(s, i, tasks[i][1], tasks[i][2])
+                    if on_start is not None:
+                        on_start(i)
+            for s in pool.wait():
+                try:
+                    msg = s.conn.recv() if s.conn.poll() else None
+                except (EOFError, OSError):
+                    msg = None
+                if msg is not None:
+                    if msg[0] == "ready":
+                        s.ready, s.deadline = True, float("inf")
+                        pool.threads = pool.threads or msg[1]
+                    elif msg[0] == "started":
+                        s.started, s.meta, s.deadline = time.monotonic(), msg[2], pool._deadline()
+                    else:
+                        assert s.task is not None
+                        on_done(s.task, msg[2])
+                        done += 1
+                        s.task, s.deadline = None, float("inf")
+                    continue
+                alive = s.proc.is_alive()
+                if alive and s.deadline > time.monotonic():
+                    continue  # woken by its sentinel's neighbour: nothing for this one
+                pool.kill(s)
+                if s.task is None:  # lost while warming up (or idle): a new one, cold
+                    pool.warmup_timeouts += alive
+                    pool.start(warm=False)
+                    continue
+                phase = "localize" if s.started is not None else "simulate"
+                if alive:
+                    res = {"status": "timeout", "phase": phase, "meta": s.meta,
+                           "error": f"no result within the scan limit of {limit:g} s",
+                           "wall_ms": None if limit is None else limit * 1e3}
+                else:
+                    res = {"status": "error", "phase": phase, "meta": s.meta,
+                           "error": f"the worker process died (exit code {s.proc.exitcode})"}
+                on_done(s.task, res)
+                done += 1
+                if queue:
+                    pool.start()
+    finally:
+        pool.close()
+    return {"threads": pool.threads, "warmup_timeouts": pool.warmup_timeouts}
+
+
+# --- figures -----------------------------------------------------------------------------
+
+
+def _mm(a: np.ndarray, q: float) -> float | None:
+    v = _pct(a, q)
+    return None if v is None else v * 1e3
+
+
+def _height_figures(scores: Sequence[PackedScore]) -> dict[str, Any]:
+    err = np.concatenate([s.heights.error for s in scores]) if scores else np.zeros(0)
+    src = np.concatenate([s.heights.source for s in scores]) if scores else np.zeros(0)
+    by = {}
+    for h in (HeightSource.SIDE, HeightSource.STEP):
+        e = err[src == h]
+        by[h.name.lower()] = {"n": int(e.size), "median_mm": _mm(e, 50), "p95_mm": _mm(e, 95)}
+    return {"height_sources": {h.name.lower(): sum(s.height_sources.get(h.name.lower(), 0)
+                                                   for s in scores) for h in HeightSource},
+            "height_n": int(err.size), "height_err_median_mm": _mm(err, 50),
+            "height_err_p95_mm": _mm(err, 95), "height_by_source": by}
+
+
+def _ambiguous_figures(scores: Sequence[PackedScore], n_scans: int) -> dict[str, Any]:
+    area = np.concatenate([s.amb_area for s in scores]) if scores else np.zeros(0)
+    reasons = np.concatenate([s.amb_reason for s in scores]) if scores else np.zeros(0)
+    tops = np.concatenate([s.amb_tops for s in scores]) if scores else np.zeros(0)
+    names = [_reason_name(r) for r in reasons]
+    n_found = sum(s.match.tp for s in scores)
+    n_exposed = sum(s.match.n_exposed for s in scores)
+    in_amb = sum(s.tops_in_ambiguous for s in scores)
+    missed_amb = sum(s.missed_in_ambiguous for s in scores)
+    return {"ambiguous_regions": int(area.size),
+            "ambiguous_per_scan": area.size / n_scans if n_scans else None,
+            "ambiguous_area_median_m2": _pct(area, 50),
+            "ambiguous_reasons": {r: names.count(r) for r in sorted(set(names))},
+            "ambiguous_without_top": int((tops == 0).sum()),
+            "tops_in_ambiguous": in_amb, "missed_in_ambiguous": missed_amb,
+            "missed_silently": n_exposed - n_found - missed_amb}
+
+
+def group_figures(outs: Sequence[_Outcome]) -> dict[str, Any]:
+    """The figures of a group of runs of one variant (see the module docstring)."""
+    scores = [o.score for o in outs if o.score is not None]
+    agg = aggregate_matches(s.match for s in scores)
+    n_pred = agg["n_pred"]
+    wrong = {r: sum(s.wrong.count(r) for s in scores) for r in WrongReason}
+    n_wrong = wrong[WrongReason.NO_MATCH] + wrong[WrongReason.SPANS]
+    walls = np.asarray([o.wall_ms for o in outs if o.wall_ms is not None], np.float64)
+    return {"n_scenes": len({o.index for o in outs}), **agg,
+            "errors": sum(o.status == "error" for o in outs),
+            "timeouts": sum(o.status == "timeout" for o in outs),
+            "time": {"median_ms": _pct(walls, 50),
+                     "max_ms": float(walls.max()) if walls.size else None},
+            "wrong_rectangles": n_wrong, "wrong_no_match": wrong[WrongReason.NO_MATCH],
+            "wrong_spans": wrong[WrongReason.SPANS], "off_top": wrong[WrongReason.OFF_TOP],
+            "wrong_rate": n_wrong / n_pred if n_pred else 0.0,
+            **_ambiguous_figures(scores, agg["n_scans"]),
+            **_height_figures(scores),
+            "sku_matched": sum(s.sku_matched for s in scores),
+            "sku_flagged": sum(s.sku_flagged for s in scores),
+            "sku_flagged_tp": sum(s.sku_flagged_tp for s in scores)}
+
+
+def _groups(outs: Sequence[_Outcome], sensors: Sequence[str], variants: Sequence[str],
+            held_out: str) -> dict[str, Any]:
+    out: dict[str, Any] = {}
+    for v in variants:
+        mine = [o for o in outs if o.variant == v]
+        dev = [o for o in mine if o.sensor != held_out]
+        lids = {}
+        for lid in LIDS:
+            sel = [o for o in mine if o.meta.get("lid") == lid]
+            if sel:
+                lids[lid] = {"development": group_figures([o for o in sel
+                                                           if o.sensor != held_out]),
+                             "all": group_figures(sel)}
+        out[v] = {
+            "overall": {"development": group_figures(dev), "all": group_figures(mine)},
+            "sensors": {s: {"held_out": s == held_out,
+                            **group_figures([o for o in mine if o.sensor == s])}
+                        for s in sensors if any(o.sensor == s for o in mine)},
+            "lids": lids,
+        }
+    return out
+
+
+def evaluate_packed_targets(groups: dict[str, Any]) -> list[dict[str, Any]]:
+    """Each of :data:`PACKED_TARGETS` in both scopes: the worst group's value, where, pass."""
+    rows = []
+    for t in PACKED_TARGETS:
+        row: dict[str, Any] = {"name": t.name, "variant": t.variant, "key": t.key,
+                               "over": t.over, "op": t.op, "bound": t.value,
+                               "target": t.text(), "unit": t.unit}
+        g = groups.get(t.variant)
+        for scope in SCOPES:
+            if g is None:
+                row[scope] = {"value": None, "where": None, "pass": None}
+                continue
+            if t.over == "overall":
+                cands = [("overall", g["overall"][scope])]
+            else:
+                cands = [(name, x) for name, x in g["sensors"].items()
+                         if scope == "all" or not x["held_out"]]
+            vals = [(name, x.get(t.key)) for name, x in cands]
+            vals = [(name, v) for name, v in vals if v is not None]
+            if not vals:
+                row[scope] = {"value": None, "where": None, "pass": None}
+                continue
+            where, v = (min if t.op == ">=" else max)(vals, key=lambda nv: nv[1])
+            ok = v >= t.value if t.op == ">=" else v <= t.value
+            row[scope] = {"value": v, "where": where, "pass": bool(ok)}
+        rows.append(row)
+    return rows
+
+
+# --- the run -----------------------------------------------------------------------------
+
+
+def run_packed_bench(
+    n: int = DEFAULT_N,
+    seed: int = 0,
+    *,
+    out: Path | str | None = None,
+    jobs: int = 1,
+    seeds: int = 1,
+    held_out: str = HELD_OUT,
+    scan_timeout: float | None = DEFAULT_SCAN_TIMEOUT,
+    variants: Sequence[str] = VARIANTS,
+    specs: Sequence[Any] | None = None,
+    localizer: Localizer | None = None,
+    warmup: bool = True,
+    progress: bool = True,
+    console: Any = None,
+) -> dict[str, Any]:
+    """The packed-layer benchmark, with and without the carton list.
+
+    Parameters
+    ----------
+    n, seed : int
+        The scenes are :func:`packed_suite` ``(n, seed)`` (``n`` scenes in all, sensors in
+        turn: n = 96 is 24 per sensor).
+    out : path, optional
+        Directory for ``bench_packed.json`` and ``bench_packed.txt`` (the printed tables).
+    jobs : int
+        Worker processes (>= 1). The rows and figures do not depend on it (times do).
+    seeds : int
+        Draws of the random trials per scene (``trial_seed`` +0..seeds-1), pooled.
+    held_out : str
+        The sensor model left out of development; reported apart.
+    scan_timeout : float or None
+        Seconds one variant on one scan may run (after its simulation) before its worker
+        is killed and the run counts as a timed-out failure; None: no limit.
+    variants : sequence of str
+        Some of :data:`VARIANTS`, run in that order on every scan.
+    specs : sequence of SceneSpec, optional
+        These scenes instead of the suite (tests use tiny ones).
+    localizer : callable, optional
+        ``(scan, config) -> Result``-like; default the pipeline. Runs in the workers.
+    warmup : bool
+        Each worker runs the localizer once on a 160 x 120 copy of the first scene first.
+    progress : bool
+        Show a progress bar and print the tables (rich, stderr).
+    console : rich.console.Console, optional
+
+    Returns
+    -------
+    dict
+        The report (see the module docstring).
+
+    Raises
+    ------
+    InputError
+        On n < 1, jobs < 1, seeds < 1, a non-positive timeout, an unknown sensor or an
+        unknown variant.
+    """
+    from boxloc.simulate import SENSORS
+
+    if held_out not in SENSORS:
+        raise InputError(f"--held-out must be one of {', '.join(SENSORS)}, got {held_out!r}")
+    if isinstance(jobs, bool) or not isinstance(jobs, int) or jobs < 1:
+        raise InputError(f"--jobs must be an integer >= 1, got {jobs!r}")
+    if scan_timeout is not None and not scan_timeout > 0:
+        raise InputError(f"--scan-timeout must be > 0 seconds, got {scan_timeout!r}")
+    variants = tuple(variants)
+    bad = [v for v in variants if v not in VARIANTS]
+    if bad or not variants or len(set(variants)) != len(variants):
+        raise InputError(f"variants must be some of {', '.join(VARIANTS)}, got "
+                         f"{', '.join(variants) or 'none'}")
+    variants = tuple(v for v in VARIANTS if v in variants)
+    if specs is None:
+        if isinstance(n, bool) or not isinstance(n, int) or n < 1:
+            raise InputError(f"bench needs n >= 1 scenes, got {n!r}")
+        specs = packed_suite(n, seed)
+    specs = list(specs)
+    if not specs:
+        raise InputError("bench needs at least one scene")
+    cfg, site = matrix_config(specs)
+    draws = trial_configs(cfg, seeds)
+    import boxloc.pipeline  # noqa: F401 - imported once here, shared by the forked workers
+
+    tasks = [(i, spec, _Job(v, d)) for i, spec in enumerate(specs) for d in draws
+             for v in variants]
+    outs: list[_Outcome | None] = [None] * len(tasks)
+    con = console
+    if con is None and progress:
+        from rich.console import Console
+
+        con = Console(stderr=True)
+
+    def on_done(t: int, res: dict[str, Any]) -> None:
+        i, spec, job = tasks[t]
+        o = _Outcome(index=i, trial_seed=job.config.trial_seed, sensor=str(spec.sensor),
+                     variant=job.variant, status=res["status"], phase=res.get("phase"),
+                     error=res.get("error"), run=res.get("run"))
+        meta = res.get("meta")
+        if meta is None:  # killed or crashed before the scene existed: make it here
+            meta = _parent_meta(spec)
+        o.meta = meta
+        if o.run is not None:
+            o.score, o.wall_ms = o.run.score, o.run.wall_ms
+        if o.score is None and meta.get("nothing") is not None:
+            o.score = meta["nothing"]
+        if res.get("wall_ms") is not None:
+            o.wall_ms = res["wall_ms"]
+        outs[t] = o
+        if bar is not None:
+            bar.advance(task_id)
+            if not con.is_terminal:  # a log file sees no bar: one line per run instead
+                m = o.match
+                con.print(f"[{sum(x is not None for x in outs)}/{len(tasks)}] scene {i} "
+                          f"({o.sensor}, {o.variant}, {spec.width}x{spec.height}): {o.status}"
+                          + (f", {o.wall_ms / 1e3:.1f} s" if o.wall_ms is not None else "")
+                          + (f", TP {m.tp} FP {m.fp} FN {m.fn}" if m is not None else "")
+                          + (f", ambiguous {o.score.amb_area.size}" if o.score else ""),
+                          markup=False, highlight=False)
+
+    def on_start(t: int) -> None:
+        if bar is not None:
+            i, spec, job = tasks[t]
+            bar.update(task_id, description=f"scene {i} ({spec.sensor}, {job.variant}, "
+                                            f"{spec.width}x{spec.height})")
+
+    t0 = time.monotonic()
+    bar, task_id = (None, None)
+    warm = (_warmup_spec(specs), cfg) if warmup else None
+    if progress and con is not None:
+        # the workers are forked before the bar's thread starts
+        bar, task_id = progress_bar(con, "packed", len(tasks))
+    try:
+        info = _run_tasks(tasks, localizer or _default_localizer, jobs, scan_timeout, warm,
+                          on_done, on_start)
+    finally:
+        if bar is not None:
+            bar.stop()
+    run_s = time.monotonic() - t0
+    done = [o for o in outs if o is not None]
+    assert len(done) == len(tasks)
+    report = _report(done, specs, cfg, site, n=len(specs), seed=seed, jobs=jobs,
+                     held_out=held_out, scan_timeout=scan_timeout, warmup=warmup,
+                     trial_seeds=[d.trial_seed for d in draws], info=info, run_s=run_s,
+                     sensors=SENSORS, variants=variants)
+    if out is not None:
+        d = Path(out)
+        d.mkdir(parents=True, exist_ok=True)
+        (d / REPORT_NAME).write_text(json.dumps(report, indent=1) + "\n")
+        from rich.console import Console
+
+        with (d / TABLE_NAME).open("w") as fh:
+            print_packed_report(report, Console(file=fh, width=240, no_color=True))
+    if progress and con is not None:
+        print_packed_report(report, con)
+        if out is not None:
+            con.print(f"wrote {Path(out) / REPORT_NAME} and {Path(out) / TABLE_NAME}")
+    return report
+
+
+def _parent_meta(spec: Any) -> dict[str, Any]:
+    """The scene's truth summary, simulated here (its worker was lost before it said)."""
+    from boxloc.simulate import simulate
+
+    try:
+        return _meta(simulate(spec))
+    except Exception:  # noqa: BLE001 - the simulator's error is already the run's error
+        return {"n_faces": 0, "n_exposed": 0, "n_boxes": 0, "layers": 0,
+                "pixels": int(spec.width * spec.height), "spec": _spec_dict(spec),
+                "spec_text": _spec_text(spec),
+                "lid": "bulged" if float(spec.bulge) > 0 else "flat", "sizes_csv": None,
+                "edge_min": None, "edge_max": None, "nothing": None}
+
+
+def _report(outs: list[_Outcome], specs: Sequence[Any], cfg: Config, site: dict[str, Any], *,
+            n: int, seed: int, jobs: int, held_out: str, scan_timeout: float | None,
+            warmup: bool, trial_seeds: list[int], info: dict[str, Any], run_s: float,
+            sensors: Sequence[str], variants: Sequence[str]) -> dict[str, Any]:
+    present_s = [s for s in sensors if any(o.sensor == s for o in outs)]
+    groups = _groups(outs, present_s, variants, held_out)
+    rows: list[dict[str, Any]] = []
+    by_scan: dict[tuple[int, int], dict[str, Any]] = {}
+    timeouts, errors = [], []
+    for o in outs:
+        m = o.meta
+        base = {"scene": o.index, "trial_seed": o.trial_seed, "sensor": o.sensor,
+                "variant": o.variant}
+        if o.status == "timeout":
+            timeouts.append({**base, "spec_text": m.get("spec_text"), "phase": o.phase,
+                             "limit_s": scan_timeout})
+        elif o.status == "error":
+            errors.append({**base, "phase": o.phase, "error": o.error})
+        key = (o.index, o.trial_seed)
+        if key not in by_scan:
+            by_scan[key] = {
+                "index": o.index, "trial_seed": o.trial_seed, "sensor": o.sensor,
+                "held_out": o.sensor == held_out, "lid": m.get("lid"), "spec": m.get("spec"),
+                "spec_text": m.get("spec_text"), "n_faces": m.get("n_faces"),
+                "n_exposed": m.get("n_exposed"), "n_boxes": m.get("n_boxes"),
+                "layers": m.get("layers"), "pixels": m.get("pixels"),
+                "sizes_csv": m.get("sizes_csv"), "runs": {}}
+            rows.append(by_scan[key])
+        by_scan[key]["runs"][o.variant] = {
+            "status": o.status, "error": o.error,
+            **(o.score.to_dict() if o.score is not None else {})}
+    if info.get("warmup_timeouts"):
+        timeouts.append({"scene": None, "trial_seed": None, "sensor": None, "variant": None,
+                         "spec_text": None, "phase": "warmup", "limit_s": scan_timeout,
+                         "count": info["warmup_timeouts"]})
+    lo = [float(o.meta["edge_min"]) for o in outs if o.meta.get("edge_min") is not None]
+    hi = [float(o.meta["edge_max"]) for o in outs if o.meta.get("edge_max") is not None]
+    site = {**site, "observed": {"min_edge": min(lo) if lo else None,
+                                 "max_edge": max(hi) if hi else None}}
+    timing: dict[str, Any] = {}
+    for v in variants:
+        mine = [o for o in outs if o.variant == v]
+        tm = _timing([o.run if o.run is not None else _Run(wall_ms=o.wall_ms) for o in mine])
+        timing[v] = {"stages_ms": tm["stages_ms"], "total_ms": tm["total_ms"]}
+    peaks = np.asarray([o.run.peak_mb for o in outs if o.run and o.run.peak_mb], np.float64)
+    report: dict[str, Any] = {
+        "schema": SCHEMA, "version": __version__, "mode": "packed", "n": n, "seed": seed,
+        "jobs": jobs, "scan_timeout_s": scan_timeout, "warmup": warmup,
+        "threads": info.get("threads"),
+        "default_configuration": True, "config": cfg.to_dict(), "config_hash": cfg.hash,
+        "site": site,
+        "sizes": {"source": "the scene's ground truth: its distinct carton sizes (width <= "
+                            "length, height), as a CSV file read with read_box_sizes",
+                  "rounding_m": SIZE_ROUNDING, "size_tolerance_m": cfg.size_tolerance,
+                  "tolerance_source": "Config() default"},
+        "suite": {"source": "the layered scenes of boxloc.simulate.matrix_suite(n, seed), in "
+                            "order (packed_suite)",
+                  "kind": "layered", "bevel_m": 0.0, "max_gap_m": 0.0},
+        "held_out": {"sensor": held_out},
+        "sensors": present_s, "variants": list(variants), "lids": list(LIDS),
+        "seeds": draw_figures({v: [o for o in outs if o.variant == v] for v in variants},
+                              list(variants), trial_seeds, present_s),
+        "groups": groups,
+        "targets": evaluate_packed_targets(groups),
+        "timeouts": timeouts,
+        "errors": {"total": len(errors), "list": errors},
+        "timing": {**timing,
+                   "per_scan_ms": {v: [None if o.wall_ms is None else round(o.wall_ms, 3)
+                                       for o in outs if o.variant == v] for v in variants},
+                   "run_s": round(run_s, 3)},
+        "memory": {"worker_peak_rss_mb_median": _pct(peaks, 50),
+                   "worker_peak_rss_mb_max": float(peaks.max()) if peaks.size else None,
+                   "process_max_rss_mb": process_max_rss_mb()},
+        "scenes": rows,
+    }
+    return _jsonable(report)
+
+
+# --- printing ----------------------------------------------------------------------------
+
+
+_COLUMNS = ("", "scans", "tops", "TP / FP / FN", "P", "R", "wrong: n / rate",
+            "no-match / spans / off-top", "ambig./scan", "missed: in ambig. / silent",
+            "height n", "height err med / p95 [mm]", "source side / step / sku / none",
+            "flagged (TP)", "time med / max [s]", "t-out / err")
+
+
+def _row(name: str, fig: dict[str, Any]) -> list[str]:
+    p, r, _ = prf(fig["tp"], fig["n_pred"], fig["n_exposed"])
+    hs = fig["height_sources"]
+    t = fig["time"]
+    aps = fig["ambiguous_per_scan"]
+    return [name, str(fig["n_scans"]), str(fig["n_exposed"]),
+            f"{fig['tp']} / {fig['fp']} / {fig['fn']}",
+            _fmt(p) if fig["n_pred"] else "-", _fmt(r) if fig["n_exposed"] else "-",
+            f"{fig['wrong_rectangles']} / {fig['wrong_rate']:.3f}",
+            f"{fig['wrong_no_match']} / {fig['wrong_spans']} / {fig['off_top']}",
+            "-" if aps is None else f"{aps:.2f}",
+            f"{fig['missed_in_ambiguous']} / {fig['missed_silently']}",
+            str(fig["height_n"]),
+            f"{_fmt(fig['height_err_median_mm'], 'mm')} / {_fmt(fig['height_err_p95_mm'], 'mm')}",
+            " / ".join(str(hs.get(k, 0)) for k in ("side", "step", "sku", "none")),
+            f"{fig['sku_flagged']} ({fig['sku_flagged_tp']})",
+            " / ".join("-" if t[k] is None else f"{t[k] / 1e3:.2f}"
+                       for k in ("median_ms", "max_ms")),
+            f"{fig['timeouts']} / {fig['errors']}"]
+
+
+def print_packed_report(report: dict[str, Any], console: Any) -> None:
+    """Print the report: the targets (PASS/FAIL), then per variant a table by sensor and lid."""
+    from rich.markup import escape
+    from rich.table import Table
+
+    ho = report["held_out"]["sensor"]
+    cfg = report["config"]
+    t = Table(title=escape(
+        f"boxloc bench --packed: {report['n']} zero-gap sharp-edged layered pallets x "
+        f"{len(report['seeds']['trial_seeds'])} draw(s), seed {report['seed']}, default "
+        f"configuration (min_edge {cfg['min_edge']:g} m, max_edge {cfg['max_edge']:g} m), "
+        f"with_sizes: + the scene's carton list; held out: {ho}"))
+    t.add_column("target")
+    t.add_column("bound", justify="right")
+    for scope in SCOPES:
+        label = f"without {ho}" if scope == "development" else f"with {ho}"
+        t.add_column(escape(f"{label}: value (where)"), justify="right")
+        t.add_column("", justify="center")
+    mark = {True: "[green]PASS[/]", False: "[red]FAIL[/]", None: "[dim]n/a[/]"}
+    for row in report["targets"]:
+        cells = [escape(row["name"]), escape(row["target"])]
+        for scope in SCOPES:
+            s = row[scope]
+            v = s["value"]
+            txt = "-" if v is None else (f"{v:.4g}" if isinstance(v, float) else str(v))
+            if s["where"] is not None and row["over"] != "overall":
+                txt += f" ({s['where']})"
+            cells += [escape(txt), mark[s["pass"]]]
+        t.add_row(*cells)
+    console.print(t)
+
+    for v, g in report["groups"].items():
+        vt = Table(title=escape(f"{v}: per sensor ({ho}: held out) and per lid"))
+        for i, c in enumerate(_COLUMNS):
+            vt.add_column(escape(c), justify="left" if i == 0 else "right", no_wrap=i == 0)
+        for s, fig in g["sensors"].items():
+            vt.add_row(*_row(s + (" (held out)" if fig["held_out"] else ""), fig))
+        vt.add_row(*_row(f"all but {ho}", g["overall"]["development"]))
+        vt.add_row(*_row(f"all, {ho} included", g["overall"]["all"]))
+        for lid, fig in g["lids"].items():
+            vt.add_row(*_row(f"{lid} lids, all", fig["all"]))
+        console.print(vt)
+        reasons = g["overall"]["all"]["ambiguous_reasons"]
+        if reasons:
+            console.print(escape(f"{v}: ambiguous regions by reason: "
+                                 + ", ".join(f"{k} {c}" for k, c in reasons.items())
+                                 + f"; regions over no exposed top: "
+                                 f"{g['overall']['all']['ambiguous_without_top']}"))
+
+    print_draws(console, report["seeds"], list(report["variants"]))
+    tm = report["timing"]
+    for v in report["variants"]:
+        tot = tm[v]["total_ms"]
+        console.print(escape(f"time per scan [ms], {v}: median {_fmt(tot['median'], 'ms')}, "
+                             f"p95 {_fmt(tot['p95'], 'ms')}"))
+    console.print(escape(f"the run took {tm['run_s']:.0f} s on {report['jobs']} job(s)"))
+    for to in report["timeouts"]:
+        if to["phase"] == "warmup":
+            console.print(escape(f"[timeout] {to['count']} worker warm-up(s) over the limit"))
+        else:
+            console.print(escape(f"[timeout] scene {to['scene']} ({to['sensor']}, "
+                                 f"{to['variant']}) over {to['limit_s']:g} s in "
+                                 f"{to['phase']}: {to['spec_text']}"))
+    for e in report["errors"]["list"]:
+        console.print(escape(f"[error] scene {e['scene']} ({e['sensor']}, {e['variant']}) "
+                             f"{e['phase']}: {e['error']}"))
+
+
+# --- the command line ----------------------------------------------------------------------
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """``python -m boxloc.evaluate.packed_bench``: run the bench, print and write the report.
+
+    Returns the exit code: 0 done, 2 bad input (one line on stderr).
+    """
+    ap = argparse.ArgumentParser(
+        prog="python -m boxloc.evaluate.packed_bench",
+        description="Packed-layer benchmark (issue 21): zero-gap, sharp-edged layered "
+                    "pallets for every sensor of the zoo, default configuration, with and "
+                    "without the scene's carton list.")
+    ap.add_argument("--n", type=int, default=DEFAULT_N,
+                    help=f"scenes in all, sensors in turn (default {DEFAULT_N})")
+    ap.add_argument("--seed", type=int, default=0, help="seed of the suite")
+    ap.add_argument("--out", type=Path, default=None, help="directory for the report")
+    ap.add_argument("--jobs", type=int, default=1, help="worker processes")
+    ap.add_argument("--seeds", type=int, default=1, help="draws of the random trials")
+    ap.add_argument("--held-out", default=HELD_OUT, help="the held-out sensor")
+    ap.add_argument("--scan-timeout", type=float, default=DEFAULT_SCAN_TIMEOUT,
+                    help="seconds per run; 0: no limit")
+    ap.add_argument("--variants", default=",".join(VARIANTS),
+                    help="comma-separated: without_sizes, with_sizes (default both)")
+    ap.add_argument("--no-warmup", action="store_true", help="skip the workers' warm-up")
+    a = ap.parse_args(argv)
+    try:
+        run_packed_bench(a.n, a.seed, out=a.out, jobs=a.jobs, seeds=a.seeds,
+                         held_out=a.held_out,
+                         scan_timeout=None if a.scan_timeout == 0 else a.scan_timeout,
+                         variants=[v.strip() for v in a.variants.split(",") if v.strip()],
+                         warmup=not a.no_warmup)
+    except BoxlocError as e:
+        print(f"boxloc bench --packed: {str(e).splitlines()[0]}", file=sys.stderr)
+        return 2
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
