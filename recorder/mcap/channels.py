@@ -44,6 +44,11 @@ RECOVERY_METADATA = "boxloc.recovery"
 CONFIG_ATTACHMENT = "config.toml"
 CALIBRATION_ATTACHMENT = "calibration.json"
 RAYTABLE_ATTACHMENT = "raytable.npy"
+#: The carton list a run or replay was given (``--box-sizes FILE``): the file's bytes as
+#: they were (``text/csv``), once per file. The parsed sizes are in the recorded config
+#: (``box_sizes``), so a replay needs no attachment to reproduce the run.
+BOX_SIZES_ATTACHMENT = "box_sizes.csv"
+BOX_SIZES_MEDIA_TYPE = "text/csv"
 
 #: Log time step per scan index when a scan has no capture time (capture_time_ns == 0):
 #: ``log_time = index * SYNTHETIC_PERIOD_NS`` (10 Hz), distinct and increasing.
@@ -169,6 +174,7 @@ HYPOTHESES = "/boxloc/hypotheses"
 VERIFICATION = "/boxloc/verification"
 SELECTION = "/boxloc/selection"
 SURFACES = "/boxloc/surfaces"
+AMBIGUOUS = "/boxloc/ambiguous"
 LOCATE = "/boxloc/locate"
 RESULT = "/boxloc/result"
 ERROR = "/boxloc/error"
@@ -247,10 +253,17 @@ CHANNELS: tuple[ChannelSpec, ...] = (
                 "Selection: MDL terms (n, xi, N, Q), chosen set, greedy order, objective, "
                 "reasons", E.encode_product, E.decode_product),
     ChannelSpec(SURFACES, _PRODUCT, "protobuf", E.PRODUCT_RECORDS["surfaces"], _S, _R,
-                "SurfaceSet: the chosen surfaces with pose, size, covariance and pick order",
-                E.encode_product, E.decode_product),
+                "SurfaceSet: the chosen surfaces with pose, size, covariance and pick order; "
+                "the box height, its sigma and source, the matched carton size (SKU) or the "
+                "flag of none (schema 1.5)", E.encode_product, E.decode_product),
+    ChannelSpec(AMBIGUOUS, _PRODUCT, "protobuf", E.AMBIGUOUS_RECORD, _S, _R,
+                "AmbiguousSet: flat regions whose extent the evidence cannot split into "
+                "boxes (not surfaces): outline, area, extent, reason; their END_EVIDENCE / "
+                "SKU tests on /boxloc/tests as stage `ambiguous` (schema 1.5; older logs: "
+                "none)", E.encode_ambiguous, E.decode_ambiguous),
     ChannelSpec(LOCATE, f"{PACKAGE}.{E.LOCATE_RECORD}", "json", E.LOCATE_RECORD, _S, _V,
-                "the surfaces as `boxloc locate` JSON rows, in pick order",
+                "the surfaces as `boxloc locate` JSON rows, in pick order, and the "
+                "ambiguous regions",
                 E.encode_locate_json, E.decode_locate_json),
     ChannelSpec(TESTS, f"{PACKAGE}.TestRows", "protobuf", E.TESTS_RECORD, _S, _R,
                 "every statistical test of the scan, one row each: stage, kind, entities, "
@@ -258,7 +271,8 @@ CHANNELS: tuple[ChannelSpec, ...] = (
                 "tests, recorded here once)", E.encode_test_rows, E.decode_test_columns),
     ChannelSpec(SCENE, "foxglove.SceneUpdate", "protobuf", None, _S, _V,
                 "lines, vertices, hypothesis rectangles (green verified, red rejected), "
-                "surfaces labelled with their pick order", E.encode_scene),
+                "surfaces labelled with their pick order and height, ambiguous regions "
+                "outlined in magenta", E.encode_scene),
     ChannelSpec(RESULT, _PRODUCT, "protobuf", E.RESULT_RECORD, _S, _R,
                 "the Result's own fields (seed, config hash, version); closes a scan",
                 E.encode_result_info, E.decode_result_info),

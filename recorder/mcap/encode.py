@@ -48,7 +48,10 @@ from boxloc.errors import LogError
 from boxloc.products import (
     PRODUCT_TYPES,
     STAGES,
+    AmbiguityReason,
+    AmbiguousSet,
     EdgeKind,
+    HeightSource,
     HypothesisSet,
     LineSet,
     SurfaceSet,
@@ -67,8 +70,11 @@ from recorder.mcap.proto import PACKAGE, message_class
 SCHEMA_MAJOR = 1
 #: Minor version: compatible additions (new fields are ignored by older readers). 1.4: the
 #: range image is a ``ScanRange`` record (filter 4) instead of a Foxglove RawImage; 1.4
-#: readers read both, 1.3 readers cannot read 1.4's range.
-SCHEMA_MINOR = 4
+#: readers read both, 1.3 readers cannot read 1.4's range. 1.5 (issue #21): the
+#: ``AmbiguousSet`` record on ``/boxloc/ambiguous`` (its tests on ``/boxloc/tests`` as stage
+#: ``ambiguous``) and the SurfaceSet's ``height``, ``height_sigma``, ``height_source``,
+#: ``sku`` and ``sku_flagged``; older logs read back with an empty set and NaN heights.
+SCHEMA_MINOR = 5
 SCHEMA_VERSION = f"{SCHEMA_MAJOR}.{SCHEMA_MINOR}"
 
 #: Frame of every geometric message (x right, y down, z forward; metres).
@@ -89,6 +95,10 @@ LOCATE_RECORD = "Locate"
 LABELS_RECORD = "ScanLabels"
 SCAN_END_RECORD = "ScanEnd"
 RANGE_RECORD = "ScanRange"
+AMBIGUOUS_RECORD = "AmbiguousSet"
+#: The ``stage`` of the ambiguous regions' tests on ``/boxloc/tests`` (not a pipeline stage:
+#: the regions are part of the result, :attr:`boxloc.products.Result.ambiguous`).
+AMBIGUOUS_STAGE = "ambiguous"
 
 _RECORD_RE = re.compile(r"^boxloc\.([A-Za-z][A-Za-z0-9]{0,63})/(\d{1,4})\.(\d{1,4})$")
 
@@ -409,13 +419,19 @@ def encode_product(stage: str, product: Any, scan_index: int, capture_time_ns: i
             f"{stage} product must be a {PRODUCT_TYPES[stage].__name__}, "
             f"got {type(product).__name__}"
         )
+    return encode_arrays(PRODUCT_RECORDS[stage], _arrays_without_tests(product), scan_index,
+                         capture_time_ns)
+
+
+def _arrays_without_tests(product: Any) -> dict[str, np.ndarray]:
+    """:func:`to_arrays` of a product, less the test columns recorded as rows instead."""
     arrays = to_arrays(product)
     if isinstance(getattr(product, "tests", None), TestTable):
         for col, dt in TEST_COLUMNS.items():
             name = f"tests/{col}"
             if arrays[name].dtype == dt and arrays[name].ndim == 1:
                 del arrays[name]
-    return encode_arrays(PRODUCT_RECORDS[stage], arrays, scan_index, capture_time_ns)
+    return arrays
 
 
 def decode_product(
@@ -457,6 +473,60 @@ def decode_product(
         return from_arrays(PRODUCT_TYPES[stage], known)
     except (TypeError, ValueError, KeyError, RecursionError) as e:
         raise LogError(f"{PRODUCT_RECORDS[stage]} record is malformed: {e}") from None
+
+
+_AMBIGUOUS_FIELDS = _field_names(AmbiguousSet)
+
+
+def encode_ambiguous(ambiguous: AmbiguousSet, scan_index: int, capture_time_ns: int) -> bytes:
+    """The flat regions not split into boxes (:attr:`boxloc.products.Result.ambiguous`) as
+    a ``boxloc.AmbiguousSet`` record (schema 1.5), lossless together with its tests, which
+    go on ``/boxloc/tests`` as stage :data:`AMBIGUOUS_STAGE` like every product's."""
+    if not isinstance(ambiguous, AmbiguousSet):
+        raise TypeError(f"ambiguous regions must be an AmbiguousSet, got "
+                        f"{type(ambiguous).__name__}")
+    return encode_arrays(AMBIGUOUS_RECORD, _arrays_without_tests(ambiguous), scan_index,
+                         capture_time_ns)
+
+
+def decode_ambiguous(data: bytes, tests: dict[str, np.ndarray] | None = None,
+                     limits: DecodeLimits = DEFAULT_LIMITS) -> AmbiguousSet:
+    """Inverse of :func:`encode_ambiguous`: the same set, bit for bit.
+
+    Parameters
+    ----------
+    data : bytes
+        The ``/boxloc/ambiguous`` message.
+    tests : dict, optional
+        The :data:`AMBIGUOUS_STAGE` columns of :func:`decode_test_columns`
+        (:func:`empty_test_columns` when the scan has no rows of that stage).
+
+    Raises
+    ------
+    LogError
+        A missing field, or arrays whose lengths disagree (K regions: ``corners`` (K, 4, 3),
+        the others (K,)).
+    """
+    _, arrays = decode_arrays(data, AMBIGUOUS_RECORD, limits)
+    for col, a in (tests or empty_test_columns()).items():
+        arrays.setdefault(f"tests/{col}", a)  # a column kept in the record wins
+    missing = sorted(_AMBIGUOUS_FIELDS - set(arrays))
+    if missing:
+        raise LogError(f"{AMBIGUOUS_RECORD} record lacks field(s): {', '.join(missing)}")
+    known = {k: v for k, v in arrays.items() if k in _AMBIGUOUS_FIELDS}
+    k = known["hypothesis"].shape
+    if len(k) != 1 or known["corners"].shape != (*k, 4, 3) or any(
+            known[n].shape != k for n in ("attempt", "area", "width", "length", "reason")):
+        shapes = ", ".join(f"{n} {known[n].shape}" for n in sorted(known)
+                           if not n.startswith("tests/"))
+        raise LogError(f"{AMBIGUOUS_RECORD} record is malformed: arrays of inconsistent "
+                       f"shapes ({shapes})")
+    if {known[f"tests/{c}"].shape for c in TEST_COLUMNS} != {known["tests/kind"].shape}:
+        raise LogError(f"{AMBIGUOUS_RECORD}: test columns of different lengths")
+    try:
+        return from_arrays(AmbiguousSet, known)
+    except (TypeError, ValueError, KeyError, RecursionError) as e:
+        raise LogError(f"{AMBIGUOUS_RECORD} record is malformed: {e}") from None
 
 
 # --- scans -----------------------------------------------------------------------------------
@@ -899,6 +969,32 @@ LOCATE_JSON_SCHEMA: dict[str, Any] = {
                     "grasp_point": {"type": "array", "items": {"type": ["number", "null"]}},
                     "score": {"type": ["number", "null"]},
                     "bulge": {"type": ["number", "null"]},
+                    # schema 1.5 (issue #21)
+                    "height": {"type": ["number", "null"]},
+                    "height_sigma": {"type": ["number", "null"]},
+                    "height_source": {"enum": ["none", "side", "step", "sku"]},
+                    "sku": {"type": ["integer", "null"]},
+                    "size_flagged": {"type": "boolean"},
+                },
+            },
+        },
+        "ambiguous": {
+            "description": "Flat regions whose extent the evidence cannot split into boxes: "
+                           "not surfaces, not graspable as they are (schema 1.5).",
+            "type": "array",
+            "items": {
+                "type": "object",
+                "properties": {
+                    "id": {"type": "integer"},
+                    "hypothesis": {"type": "integer"},
+                    "attempt": {"type": "integer"},
+                    "corners": {"type": "array", "items": {
+                        "type": "array", "items": {"type": ["number", "null"]}}},
+                    "area": {"type": ["number", "null"]},
+                    "width": {"type": ["number", "null"]},
+                    "length": {"type": ["number", "null"]},
+                    "reason": {"enum": [r.name.lower() for r in AmbiguityReason]},
+                    "tests": {"type": "array", "items": {"type": "object"}},
                 },
             },
         },
@@ -914,15 +1010,25 @@ def _finite_or_none(v: Any) -> Any:
     return v
 
 
-def encode_locate_json(scan_index: int, surfaces: SurfaceSet) -> bytes:
+def encode_locate_json(scan_index: int, surfaces: SurfaceSet,
+                       ambiguous: AmbiguousSet | None = None) -> bytes:
+    """The ``boxloc locate`` rows of a scan (less the covariances), plus each surface's
+    hypothesis and attempt, and the ambiguous regions (``ambiguous``: none given, an empty
+    list), as JSON."""
     rows = []
     for i, r in enumerate(surfaces.to_json_list()):
         r.pop("covariance", None)  # 36 numbers per surface; the record has them
         r["hypothesis"] = int(surfaces.hypothesis[i])
         r["attempt"] = int(surfaces.attempt[i])
         rows.append({k: _finite_or_none(v) for k, v in r.items()})
+    amb = []
+    if ambiguous is not None:
+        for k, r in enumerate(ambiguous.to_json_list()):
+            r["hypothesis"] = int(ambiguous.hypothesis[k])
+            r["attempt"] = int(ambiguous.attempt[k])
+            amb.append({key: _finite_or_none(v) for key, v in r.items()})
     doc = {"schema": record_schema(LOCATE_RECORD), "scan_index": int(scan_index),
-           "surfaces": rows}
+           "surfaces": rows, "ambiguous": amb}
     return json.dumps(doc, separators=(",", ":")).encode()
 
 
@@ -1137,6 +1243,8 @@ _ACCEPTED = (0.1, 0.9, 0.2, 1.0)
 _REJECTED = (0.9, 0.15, 0.1, 0.8)
 _VERTEX = (1.0, 0.9, 0.0, 1.0)
 _SURFACE = (0.2, 0.4, 1.0, 0.45)
+#: ambiguous regions: magenta, unlike every other entity (not graspable as they are)
+_AMBIGUOUS = (1.0, 0.2, 0.9, 1.0)
 _TEXT = (1.0, 1.0, 1.0, 1.0)
 
 
@@ -1178,8 +1286,10 @@ def encode_scene(products: dict[str, Any], scan_index: int, t_ns: int) -> bytes:
 
     Entities: ``lines`` (segments coloured by edge kind), ``vertices`` (spheres and their
     two directions), ``hypotheses`` (every attempted rectangle, green when verified, red
-    when rejected) and ``surfaces`` (filled, labelled with their pick order). The update
-    first deletes everything, so nothing of the previous scan lingers.
+    when rejected), ``surfaces`` (filled, labelled with their pick order and height) and
+    ``ambiguous`` (``products["ambiguous"]``, an AmbiguousSet: outlines in magenta,
+    labelled with the reason and the area). The update first deletes everything, so
+    nothing of the previous scan lingers.
     """
     upd = SceneUpdate()
     d = upd.deletions.add(type=SceneEntityDeletion.ALL)
@@ -1247,5 +1357,44 @@ def encode_scene(products: dict[str, Any], scan_index: int, t_ns: int) -> bytes:
             _color(t.color, _TEXT)
             t.text = (f"#{i} pick {int(surf.pick_order[i])}: "
                       f"{surf.width[i] * 1e3:.0f}x{surf.length[i] * 1e3:.0f} mm, "
-                      f"score {surf.scores[i]:.2f}")
+                      f"score {surf.scores[i]:.2f}" + _height_text(surf, i))
+
+    amb: AmbiguousSet | None = products.get("ambiguous")
+    if amb is not None and len(amb):
+        c = np.asarray(amb.corners, np.float64)
+        seg = c[:, [0, 1, 1, 2, 2, 3, 3, 0]]
+        good = np.isfinite(seg).all((1, 2))
+        if good.any():
+            e = _entity(upd, "ambiguous", t_ns, {**scan_meta, "regions": str(int(good.sum()))})
+            prim = e.lines.add(type=2, thickness=0.006)  # LINE_LIST
+            _color(prim.color, _AMBIGUOUS)
+            _points(prim.points, seg[good].reshape(-1, 3))
+            for k in np.flatnonzero(good):
+                t = e.texts.add(billboard=True, font_size=14.0, scale_invariant=True)
+                t.pose.position.x, t.pose.position.y, t.pose.position.z = (
+                    float(v) for v in c[k].mean(axis=0))
+                t.pose.orientation.w = 1.0
+                _color(t.color, _AMBIGUOUS)
+                t.text = f"ambiguous #{k}: {ambiguous_label(amb, int(k))}"
     return upd.SerializeToString()
+
+
+def _height_text(surf: SurfaceSet, i: int) -> str:
+    """``, height 250 mm (side)`` when the surface's box height was measured, else ``""``."""
+    h = float(surf.height[i])
+    if not math.isfinite(h):
+        return ""
+    src = HeightSource(int(surf.height_source[i])).name.lower()
+    return f", height {h * 1e3:.0f} mm ({src})"
+
+
+def ambiguous_label(amb: AmbiguousSet, k: int) -> str:
+    """One line on ambiguous region k for viewers: reason, extent and area."""
+    try:
+        reason = AmbiguityReason(int(amb.reason[k])).name.lower().replace("_", " ")
+    except ValueError:
+        reason = f"reason {int(amb.reason[k])}"
+    w, ln = float(amb.width[k]), float(amb.length[k])
+    size = f"{w * 1e3:.0f}x{ln * 1e3:.0f} mm, " if math.isfinite(w) and math.isfinite(ln) \
+        else ""
+    return f"{reason}, {size}{float(amb.area[k]):.3f} m2"

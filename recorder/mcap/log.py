@@ -46,7 +46,7 @@ from mcap.summary import Summary
 
 from boxloc.config import Config
 from boxloc.errors import LogError
-from boxloc.products import OPTIONAL_STAGES, STAGES, Result
+from boxloc.products import OPTIONAL_STAGES, STAGES, AmbiguousSet, Result
 from boxloc.scan import Scan, SensorModel
 from boxloc.stats import TestTable
 from recorder.annotate import latest_outcomes, read_sidecar
@@ -251,7 +251,9 @@ class ScanRecord:
         capture time, index, source.
     log_time_ns : int
     products : dict
-        ``{stage: product}`` for the stages that ran (all of them unless ``error``).
+        ``{stage: product}`` for the stages that ran (all of them unless ``error``), and
+        ``"ambiguous"``: the :class:`~boxloc.products.AmbiguousSet` of the result, where the
+        log records one (schema 1.5 on; see :attr:`ambiguous`).
     result_info : dict or None
         The Result's own fields (seed, config hash, version); None if the scan failed.
     timing_ms : dict
@@ -291,6 +293,13 @@ class ScanRecord:
         return self.products.get("surfaces")
 
     @property
+    def ambiguous(self) -> AmbiguousSet:
+        """The flat regions the run could not split into boxes (an empty set for a log
+        written before they were recorded, or a scan that failed before its result)."""
+        a = self.products.get(E.AMBIGUOUS_STAGE)
+        return a if a is not None else AmbiguousSet()
+
+    @property
     def result(self) -> Result | None:
         """The recorded :class:`Result` (equal to the original with ``products_equal``)."""
         if not self.complete:
@@ -300,7 +309,7 @@ class ScanRecord:
         products: dict[str, Any] = {s: self.products.get(s) for s in STAGES}
         return Result(scan_index=ri["scan_index"], capture_time_ns=ri["capture_time_ns"],
                       seed=ri["seed"], config_hash=ri["config_hash"], version=ri["version"],
-                      timing_ms=dict(self.timing_ms),
+                      timing_ms=dict(self.timing_ms), ambiguous=self.ambiguous,
                       **products)
 
     @property
@@ -316,6 +325,7 @@ class _Builder:
     range_: np.ndarray | None = None
     raw_products: dict[str, bytes] = field(default_factory=dict)
     raw_tests: bytes | None = None
+    raw_ambiguous: bytes | None = None
     result_info: dict[str, Any] | None = None
     timing: dict[str, float] = field(default_factory=dict)
     record_ms: float = 0.0
@@ -346,6 +356,10 @@ class _Builder:
                 stage, data, None if tests is None else tests.get(stage, E.empty_test_columns()),
                 limits)
             for stage, data in self.raw_products.items()}
+        if self.raw_ambiguous is not None:
+            products[E.AMBIGUOUS_STAGE] = E.decode_ambiguous(
+                self.raw_ambiguous, None if tests is None else tests.get(
+                    E.AMBIGUOUS_STAGE, E.empty_test_columns()), limits)
         return ScanRecord(scan=E.build_scan(i, self.range_, sensor), log_time_ns=self.log_time,
                           products=products, result_info=self.result_info,
                           timing_ms=self.timing, record_ms=self.record_ms, error=err,
@@ -559,6 +573,8 @@ class Log:
                 cur.raw_products[C.TOPIC_STAGES[topic]] = m.data
             elif topic == C.TESTS:
                 cur.raw_tests = m.data
+            elif topic == C.AMBIGUOUS:
+                cur.raw_ambiguous = m.data
             elif topic == C.TIMING:
                 cur.timing, cur.record_ms = E.decode_timing(m.data)
             elif topic == C.SCAN_LABELS:

@@ -165,6 +165,20 @@ def _npy_bytes(a: np.ndarray) -> bytes:
     return buf.getvalue()
 
 
+def box_sizes_attachment(path: str | os.PathLike[str]) -> dict[str, tuple[str, bytes]]:
+    """The ``--box-sizes`` file as the recorder's ``attachments`` entry: its bytes as they
+    are (:data:`recorder.mcap.channels.BOX_SIZES_ATTACHMENT`, ``text/csv``).
+
+    Read after :func:`boxloc.io.box_sizes.read_box_sizes` accepted the file (which bounds
+    its size); a file that cannot be read now is an :class:`InputError` naming it.
+    """
+    try:
+        data = Path(path).read_bytes()
+    except OSError as e:
+        raise InputError(f"{path}: cannot read box sizes file ({e.strerror or e})") from None
+    return {C.BOX_SIZES_ATTACHMENT: (C.BOX_SIZES_MEDIA_TYPE, data)}
+
+
 # --- signals ---------------------------------------------------------------------------------
 
 
@@ -340,6 +354,8 @@ class _Pending:
     products: dict[str, Any] = field(default_factory=dict)
     last_stage: str = "scan"
     record_s: float = 0.0
+    #: the Result's ambiguous regions (on_result); None until then
+    ambiguous: Any = None
 
 
 @dataclass
@@ -394,6 +410,10 @@ class McapRecorder(NullObserver):
     extra_metadata : dict, optional
         More metadata records for every file, ``{name: {key: value}}`` (strings), written
         after ``boxloc.run`` (e.g. ``boxloc.replay``: what a replayed log was made from).
+    attachments : dict, optional
+        More attachments for every file, ``{name: (media type, bytes)}``, written once per
+        file after the config and the calibration (e.g. :data:`recorder.mcap.channels.
+        BOX_SIZES_ATTACHMENT`: the ``--box-sizes`` file as it was given).
 
     Notes
     -----
@@ -414,6 +434,7 @@ class McapRecorder(NullObserver):
         fsync: bool = True,
         opener: Opener | None = None,
         extra_metadata: dict[str, dict[str, str]] | None = None,
+        attachments: dict[str, tuple[str, bytes]] | None = None,
     ) -> None:
         t = Path(target)
         self._dir_mode = t.suffix.lower() != ".mcap"
@@ -433,6 +454,13 @@ class McapRecorder(NullObserver):
         self._opener = opener
         self.extra_metadata = {str(k): {str(kk): str(vv) for kk, vv in v.items()}
                                for k, v in (extra_metadata or {}).items()}
+        fixed = {C.CONFIG_ATTACHMENT, C.CALIBRATION_ATTACHMENT, C.RAYTABLE_ATTACHMENT}
+        for name, (_media, data) in (attachments or {}).items():
+            if name in fixed or not isinstance(data, bytes | bytearray):
+                raise ValueError(f"attachment {name!r}: a name of the recorder's own, or not "
+                                 "bytes")
+        self.attachments = {str(k): (str(m), bytes(d)) for k, (m, d) in
+                            (attachments or {}).items()}
         self._lock = threading.RLock()
         self._part: _Part | None = None
         self._n_parts = 0
@@ -501,8 +529,6 @@ class McapRecorder(NullObserver):
         if stage == "edges":
             self._add(p, C.EDGE_MAP, E.encode_edge_map(product, p.log_time))
             self._add(p, C.EDGE_POINTS, E.encode_edge_points(product, p.log_time))
-        elif stage == "surfaces":
-            self._add(p, C.LOCATE, E.encode_locate_json(scan.index, product))
         p.record_s += time.perf_counter() - t0
 
     def on_noise(self, scan: Scan, noise: Any) -> None:
@@ -536,6 +562,11 @@ class McapRecorder(NullObserver):
                    if s not in p.products and getattr(result, s) is not None]
         for s in missing:  # a caller that skipped on_<stage>: the Result has them all
             self._stage(s, scan, getattr(result, s))
+        amb = getattr(result, "ambiguous", None)
+        if amb is not None:  # written even when empty: the set reads back bit for bit
+            p.ambiguous = amb
+            self._add(p, C.AMBIGUOUS, E.encode_ambiguous(amb, scan.index,
+                                                         scan.capture_time_ns))
         p.record_s += time.perf_counter() - t0
         self._close_scan(p, result=result)
 
@@ -713,8 +744,14 @@ class McapRecorder(NullObserver):
         idx, t = p.scan.index, p.log_time
         tables = {s: p.products[s].tests for s in STAGES
                   if s in p.products and hasattr(p.products[s], "tests")}
+        if p.ambiguous is not None:
+            tables[E.AMBIGUOUS_STAGE] = p.ambiguous.tests
+        if "surfaces" in p.products:  # written here: the ambiguous regions come with the result
+            p.messages.append((C.LOCATE, E.encode_locate_json(idx, p.products["surfaces"],
+                                                              p.ambiguous)))
         p.messages.append((C.TESTS, E.encode_test_rows(idx, tables)))
-        p.messages.append((C.SCENE, E.encode_scene(p.products, idx, t)))
+        p.messages.append((C.SCENE, E.encode_scene({**p.products, "ambiguous": p.ambiguous},
+                                                   idx, t)))
         timing = dict(result.timing_ms) if result is not None else {}
         p.record_s += time.perf_counter() - t0
         p.messages.append((C.TIMING, E.encode_timing(idx, timing, p.record_s * 1e3)))
@@ -817,6 +854,8 @@ class McapRecorder(NullObserver):
                 if isinstance(sensor, RayTableModel):
                     f.writer.add_attachment(log_time, log_time, C.RAYTABLE_ATTACHMENT,
                                             "application/x-npy", _npy_bytes(sensor.table))
+            for name, (media, data) in self.attachments.items():
+                f.writer.add_attachment(log_time, log_time, name, media, data)
             f.sync()
         except OSError as e:
             self._fail(part, e)
