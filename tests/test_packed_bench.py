@@ -286,6 +286,20 @@ def test_a_slow_run_is_stopped_and_the_other_variant_kept() -> None:
     assert r["scenes"][0]["runs"]["with_sizes"]["status"] == "ok"
 
 
+def test_draws_pool_per_scan_rows(tmp_path: Path) -> None:
+    specs = _tiny(2)
+    r = pb.run_packed_bench(specs=specs, localizer=_oracle(specs), warmup=False,
+                            progress=False, seeds=2, jobs=2, out=tmp_path)
+    assert [(x["index"], x["trial_seed"]) for x in r["scenes"]] == [(0, 0), (0, 1), (1, 0),
+                                                                    (1, 1)]
+    assert r["seeds"]["trial_seeds"] == [0, 1]
+    laser = r["groups"]["with_sizes"]["sensors"]["laser"]
+    assert laser["n_scans"] == 2 and laser["n_scenes"] == 1
+    per = r["seeds"]["per_seed"][1]["groups"]["laser"]["with_sizes"]
+    assert per["recall"] == 1.0 and per["tp"] == laser["tp"] // 2
+    assert "laser: with_sizes" in (tmp_path / pb.TABLE_NAME).read_text()
+
+
 def test_one_variant_and_jobs() -> None:
     specs = _tiny(2)
     kw: dict[str, Any] = {"specs": specs, "localizer": _oracle(specs), "warmup": False,

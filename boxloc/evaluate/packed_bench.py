@@ -154,7 +154,6 @@ from boxloc.evaluate.scene_bench import (
     _spec_text,
     _timing,
     draw_figures,
-    print_draws,
     process_max_rss_mb,
     progress_bar,
     trial_configs,
@@ -1036,7 +1035,7 @@ def print_packed_report(report: dict[str, Any], console: Any) -> None:
                                  + f"; regions over no exposed top: "
                                  f"{g['overall']['all']['ambiguous_without_top']}"))
 
-    print_draws(console, report["seeds"], list(report["variants"]))
+    _print_draws(console, report["seeds"], list(report["variants"]))
     tm = report["timing"]
     for v in report["variants"]:
         tot = tm[v]["total_ms"]
@@ -1053,6 +1052,29 @@ def print_packed_report(report: dict[str, Any], console: Any) -> None:
     for e in report["errors"]["list"]:
         console.print(escape(f"[error] scene {e['scene']} ({e['sensor']}, {e['variant']}) "
                              f"{e['phase']}: {e['error']}"))
+
+
+def _print_draws(console: Any, draws: dict[str, Any], variants: Sequence[str]) -> None:
+    """The per-draw table, per sensor and variant (only when there is more than one draw)."""
+    from rich.markup import escape
+    from rich.table import Table
+
+    if draws["n"] < 2:
+        return
+    t = Table(title=f"per draw of the random trials ({draws['n']} trial seeds; the figures "
+                    "above pool them): TP / FP / FN, recall / precision")
+    t.add_column("trial_seed", justify="right")
+    cols = [(g, v) for g in draws["per_seed"][0]["groups"] for v in variants]
+    for g, v in cols:
+        t.add_column(escape(f"{g}: {v}"), justify="right")
+    for d in draws["per_seed"]:
+        cells = [str(d["trial_seed"])]
+        for g, v in cols:
+            e = d["groups"][g][v]
+            cells.append(f"{e['tp']} / {e['fp']} / {e['fn']}, "
+                         f"{_fmt(e['recall'])} / {_fmt(e['precision'])}")
+        t.add_row(*cells)
+    console.print(t)
 
 
 # --- the command line ----------------------------------------------------------------------
