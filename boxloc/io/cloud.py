@@ -33,6 +33,7 @@ class _Cloud:
     labels: np.ndarray | None = None  # (H, W) int64
     meta: dict[str, Any] = field(default_factory=dict)
 
+
 def _o3d_read(p: Path) -> Any:
     import open3d as o3d
 
@@ -104,6 +105,7 @@ def _read_cloud(p: Path, max_pixels: int, *, want_labels: bool) -> _Cloud:
     if suffix == ".pcd":
         pts = _undo_viewpoint(pts, h.viewpoint, meta)
     return _Cloud(pts, None if labels is None else labels.reshape(H, W), meta)
+
 
 def _scan_from_cloud(
     p: Path, cloud: _Cloud, intr: tuple[float, float, float, float] | None, index: int

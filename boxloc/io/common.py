@@ -21,8 +21,12 @@ from boxloc.scan import PinholeModel
 
 SUPPORTED_SUFFIXES: tuple[str, ...] = (".npz", ".png", ".tif", ".tiff", ".pcd", ".ply")
 DEFAULT_MAX_PIXELS = 16_777_216  # 4096^2, same as Config.max_pixels
+
+
 PathLike = str | os.PathLike[str]
 IntrinsicsLike = str | Sequence[float] | npt.NDArray[Any] | None
+
+
 @overload
 def parse_intrinsics(value: None) -> None: ...
 
@@ -129,6 +133,8 @@ def _check_path(path: PathLike) -> Path:
 def _one_line(e: BaseException) -> str:
     s = str(e).strip().splitlines()
     return s[0] if s else type(e).__name__
+
+
 def _check_points_fit_intrinsics(
     P: np.ndarray, intr: tuple[float, float, float, float], tol_px: float = 0.5
 ) -> None:

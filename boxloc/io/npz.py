@@ -33,6 +33,8 @@ from boxloc.scan import PinholeModel, RayTableModel, Scan
 
 # The keys of the public .npz layout; anything else in a file is ignored.
 _NPZ_KEYS = ("range", "points", "intrinsics", "sensor_to_base", "capture_time_ns")
+
+
 @dataclass(frozen=True)
 class _NpyHeader:
     shape: tuple[int, ...]

@@ -115,6 +115,7 @@ def _check_pcd_data(p: Path, h: _PcdHeader) -> None:
             raise InputError(f"{p}: truncated PCD (compressed data has "
                              f"{size - h.data_offset - 8} of {comp} bytes)")
 
+
 def _undo_viewpoint(P: np.ndarray, vp: tuple[float, ...], meta: dict[str, Any]) -> np.ndarray:
     """Express PCD points in the sensor frame given by VIEWPOINT (tx ty tz qw qx qy qz)."""
     t = np.asarray(vp[:3])

@@ -15,6 +15,8 @@ from boxloc.scan import PinholeModel, RayTableModel, SensorModel
 #: Distortion models read as they are when every coefficient is zero; plumb_bob also with
 #: non-zero coefficients (a ray table).
 _PINHOLE_MODELS = ("", "none", "plumb_bob")
+
+
 @dataclass(frozen=True)
 class _Camera:
     """The sensor model of a CameraInfo for one image size."""

@@ -25,6 +25,8 @@ TF_TOPICS = ("/tf", "/tf_static")
 
 #: Depth encodings (REP 118) and their default metres per unit.
 DEPTH_ENCODINGS: dict[str, float] = {"16UC1": 0.001, "32FC1": 1.0}
+
+
 _TYPESTORE: Any = None
 
 
@@ -52,6 +54,7 @@ def _stamp_ns(header: Any) -> int:
 
 def _frame(name: str) -> str:
     return str(name).lstrip("/")
+
 
 def depth_raw(msg: Any, where: str, max_pixels: int) -> np.ndarray:
     """The depth values of a ``sensor_msgs/msg/Image`` exactly as recorded, (H, W), in the

@@ -9,7 +9,11 @@ import struct
 from pathlib import Path
 
 _MCAP_MAGIC = b"\x89MCAP0\r\n"
+
+
 PathLike = str | os.PathLike[str]
+
+
 def _mcap_profile(p: Path) -> str | None:
     """The profile of an MCAP file's header record, or None when it is not MCAP."""
     try:

@@ -24,6 +24,8 @@ from boxloc.io.rosbag.detect import _MCAP_MAGIC
 #: A chunk larger than this (uncompressed) is treated as damage, not allocated: rosbag2
 #: writes chunks of about 1 MB; a 640x480 float image is 1.2 MB.
 _MAX_CHUNK = 1 << 30
+
+
 @dataclass(frozen=True)
 class _Topic:
     name: str
@@ -53,6 +55,7 @@ class _Damage:
         if what not in self.seen:  # the same damage met by two passes is one problem
             self.seen.add(what)
             self.first = self.first or what
+
 
 def _storage_files(p: Path) -> list[Path]:
     """The storage files of a bag (a directory's, in its metadata's order when readable)."""

@@ -16,6 +16,8 @@ from boxloc.io.rosbag.decode import _frame, _stamp_ns
 
 #: Longest chain of frames followed in /tf (a robot arm has tens; a cycle is damage).
 _MAX_TF_DEPTH = 64
+
+
 def _transform(tr: Any) -> np.ndarray:
     """4x4 parent_from_child of a geometry_msgs/Transform; ValueError if not a rotation."""
     from scipy.spatial.transform import Rotation
