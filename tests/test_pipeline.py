@@ -152,10 +152,13 @@ def test_observer_receives_every_product_in_order(single):
 def test_result_json_is_the_public_interface(single):
     _, r = single
     j = r.to_json()
-    assert set(j) == {"surfaces", "timing_ms", "version"}
+    # issue #21 added "ambiguous" and the per-surface height and size keys; none renamed
+    assert set(j) == {"surfaces", "ambiguous", "timing_ms", "version"}
     s = j["surfaces"][0]
     assert set(s) == {"id", "center", "normal", "x_axis", "y_axis", "width", "length",
-                      "grasp_point", "score", "covariance", "pick_order", "bulge"}
+                      "grasp_point", "score", "covariance", "pick_order", "bulge",
+                      "height", "height_sigma", "height_source", "sku", "size_flagged"}
+    assert j["ambiguous"] == []
     assert np.array(s["covariance"]).shape == (6, 6)
     assert set(j["timing_ms"]) >= {"edges", "lines", "vertices", "hypotheses", "total"}
 

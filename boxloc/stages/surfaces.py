@@ -17,11 +17,15 @@ stands above it. A deviation from the paper, whose surfaces are planes.
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 
 from boxloc.config import Config
 from boxloc.products import HypothesisSet, Selection, SurfaceSet, Verification, VertexSet
 from boxloc.scan import Scan
+from boxloc.stages.height import box_heights, height_context
+from boxloc.stages.sizes import match_size
 from boxloc.stages.vertices import _skew
 from boxloc.stats import TestKind, TestTable
 
@@ -144,7 +148,7 @@ def make_surfaces(
     def col(i: int, shape: tuple[int, ...], dtype: type = np.float64) -> np.ndarray:
         return np.array([r[i] for r in rows], dtype).reshape((s, *shape))
 
-    return SurfaceSet(
+    surf = SurfaceSet(
         hypothesis=col(0, (), np.int32),
         attempt=col(1, (), np.int32),
         centers=col(2, (3,)),
@@ -161,3 +165,31 @@ def make_surfaces(
         bulge=col(11, ()),
         tests=TestTable.concat(tests, config.alpha),
     )
+    return with_sizes_and_heights(scan, surf, config, up)
+
+
+def with_sizes_and_heights(scan: Scan, surf: SurfaceSet, config: Config,
+                           up: np.ndarray) -> SurfaceSet:
+    """``surf`` with each box's matched carton size (SKU_SIZE against ``config.box_sizes``;
+    flagged where sizes are listed and none matches) and its height
+    (:func:`boxloc.stages.height.box_heights`; the matched size's listed height where
+    nothing is measured)."""
+    n = len(surf)
+    sku = np.full(n, -1, np.int32)
+    flagged = np.zeros(n, bool)
+    sku_h = np.full(n, np.nan)
+    rows = []
+    if config.box_sizes:
+        for i in range(n):
+            j, T, crit, ok = match_size(float(surf.width[i]), float(surf.length[i]),
+                                        config.box_sizes, config.size_tolerance, config.alpha)
+            rows.append(TestTable.chi2(TestKind.SKU_SIZE, int(surf.attempt[i]), j, T, 2.0,
+                                       config.alpha))
+            if ok:
+                sku[i], sku_h[i] = j, config.box_sizes[j][2]
+            flagged[i] = not ok
+    height, sigma, source, h_rows = box_heights(height_context(scan, config, up), surf, config,
+                                                sku_h)
+    return dataclasses.replace(
+        surf, tests=TestTable.concat([surf.tests, *rows, h_rows], config.alpha),
+        height=height, height_sigma=sigma, height_source=source, sku=sku, sku_flagged=flagged)

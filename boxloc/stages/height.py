@@ -1,0 +1,285 @@
+"""A box's height, from its visible side faces or from the step down beyond its top's sides
+(issue #21, point 3; the paper leaves it open).
+
+Two measurements, per side of the top's rectangle (0-3: v=0, v=length, u=0, u=width):
+
+* **side** (:func:`side_height`) — a side face that faces the sensor is seen below the
+  top's edge. Its points lie on the vertical plane through the edge (point on plane, z
+  at alpha, with each point's noise across that plane and the flatness prior), and run
+  down from the edge without a gap of ``EXTENT_GAP_PX`` samples to where the face meets
+  what the box stands on (a concave crease: beyond it the points leave the plane). The
+  height is how far down the run reaches, half a sample beyond its last point, as the
+  face's extent is measured along an arm (:func:`boxloc.stages.verify.face_extent`).
+* **step** (:func:`step_height`) — the points in a strip beyond the side, on the plane
+  parallel to the top (a neighbour's top, the layer below, the pallet, the floor): the
+  median of their depth below the top's plane. Only a strip whose points mostly (the
+  ``min_inlier_fraction`` prior) lie on one such surface, significantly below the top,
+  counts: a wall or a taller neighbour beyond a side is no step.
+
+A side face seen gives the height directly. Without one, the step down: the smallest
+step of the four sides, since the nearest surface below is the most likely to be what the
+box stands on (a box on the floor at the pallet's edge sees the floor through its outer
+side, the pallet top through the inner ones). Without either, the matched carton size's
+listed height (``HeightSource.SKU``), else none.
+
+The standard deviations propagate the noise model: for the side, the sample spacing down
+the face (the run ends within one sample) and the top plane's offset; for the step, the
+two surfaces' offsets (each a mean over its points, with their robust spread) and the
+flatness prior (a bulged lid, a sagging lower top). A BOX_HEIGHT row records each estimate
+(statistic the height, critical its sigma; accepted where the height is above z at alpha
+sigmas).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from scipy import stats as st
+
+from boxloc.config import Config
+from boxloc.products import HeightSource, SurfaceSet
+from boxloc.scan import Scan
+from boxloc.stages.lines import MIN_LINE_POINTS
+from boxloc.stages.raster import fill_polygon, rectangle_pixels
+from boxloc.stages.verify import EXTENT_GAP_PX, SIDE_CORNERS, VerifyContext
+from boxloc.stats import TestKind, TestTable, chi2_critical
+
+#: How far down a side face is searched, as a multiple of ``Config.max_edge`` (cartons are
+#: rarely taller than their longest edge; beyond it lies the rest of a stack).
+SIDE_REACH = 1.5
+
+
+def side_height(ctx: VerifyContext, a: np.ndarray, b: np.ndarray, out: np.ndarray,
+                down: np.ndarray, reach: float, k: float, flatness: float
+                ) -> tuple[float, float, int]:
+    """How far the side face below the top's edge a-b runs down.
+
+    Parameters
+    ----------
+    ctx : VerifyContext
+        The scan's points and noise.
+    a, b : (3,) float64
+        The ends of the top's edge, metres, sensor frame.
+    out : (3,) float64
+        Unit vector in the top's plane, perpendicular to the edge, pointing away from the
+        top: the side face's normal.
+    down : (3,) float64
+        Unit vector down the side face (minus the top's normal).
+    reach : float
+        How far down to look, metres.
+    k : float
+        Critical |z| of one point.
+    flatness : float
+        The flatness prior, metres.
+
+    Returns
+    -------
+    height : float
+        Metres down the face to its end; NaN where the face is not seen (it faces away
+        from the sensor, or fewer than ``MIN_LINE_POINTS`` points lie on it near the edge).
+    sigma : float
+        Its standard deviation, metres: one sample down the face.
+    n : int
+        Points on the face.
+    """
+    mid = 0.5 * (a + b)
+    if out @ mid >= 0:  # the face looks away from the sensor: not seen
+        return np.nan, np.nan, 0
+    edge = b - a
+    L = float(np.linalg.norm(edge))
+    if L <= 0:
+        return np.nan, np.nan, 0
+    along = edge / L
+    # the face's pixels: its quadrilateral down to the reach, projected
+    quad = np.array([a, b, b + reach * down, a + reach * down])
+    uv = ctx.project(quad)
+    if not np.isfinite(uv).all():
+        return np.nan, np.nan, 0
+    H, W = ctx.valid.shape
+    rr, cc = fill_polygon(uv, (H, W))
+    keep = ctx.valid[rr, cc]
+    rr, cc = rr[keep], cc[keep]
+    if len(rr) < MIN_LINE_POINTS:
+        return np.nan, np.nan, 0
+    P = ctx.points[rr, cc]
+    D = P - a
+    # the edge's own mixed pixels and bevel stay out: a sample in from the ends
+    spacing = ctx.spacing_at(mid)
+    s = D @ along
+    t = D @ down
+    var = ctx.var_along(rr, cc, out) + flatness**2
+    on = ((np.abs(D @ out) <= k * np.sqrt(var)) & (s > 2 * spacing) & (s < L - 2 * spacing)
+          & (t > -spacing))
+    if on.sum() < MIN_LINE_POINTS:
+        return np.nan, np.nan, 0
+    ts = np.sort(t[on])
+    # the sample spacing down the face: the points of one image column, foreshortened
+    n_rows = max(ctx.samples_along(a, a + reach * down), 1.0)
+    step = reach / n_rows
+    if ts[0] > max(EXTENT_GAP_PX * step, 2 * spacing):
+        return np.nan, np.nan, 0  # the face does not start at the edge: something else
+    gaps = np.flatnonzero(np.diff(ts) > EXTENT_GAP_PX * step)
+    last = ts[gaps[0]] if len(gaps) else ts[-1]
+    n = int(np.searchsorted(ts, last, side="right"))
+    if n < MIN_LINE_POINTS:
+        return np.nan, np.nan, 0
+    # where the face meets what the box stands on: that surface's points just in front of
+    # the foot (beyond the face's plane, in its lower half) give the depth robustly; the
+    # run's last point alone is the most extreme of many (mixed and noisy pixels at the
+    # crease)
+    dist = D @ out
+    foot = ((dist > k * np.sqrt(var)) & (dist < 4.0 * EXTENT_GAP_PX * step)
+            & (s > 2 * spacing) & (s < L - 2 * spacing) & (t > 0.5 * last)
+            & (t < last + EXTENT_GAP_PX * step))
+    if foot.sum() >= MIN_LINE_POINTS:
+        tf = t[foot]
+        med = float(np.median(tf))
+        mad = 1.4826 * float(np.median(np.abs(tf - med)))
+        if mad <= k * float(np.sqrt(np.median(var[foot]))):  # a surface parallel to the top
+            s2 = (math.pi / 2) * mad**2 / int(foot.sum()) + flatness**2
+            return med, float(math.sqrt(s2)), n
+    # no foot seen: the run's end, within a sample
+    return float(last), float(math.hypot(step / math.sqrt(3.0), flatness)), n
+
+
+def step_height(ctx: VerifyContext, corners: np.ndarray, side: int, centre: np.ndarray,
+                normal: np.ndarray, x_axis: np.ndarray, y_axis: np.ndarray, width: float,
+                length: float, depth: float, k: float, flatness: float,
+                min_fraction: float) -> tuple[float, float, int]:
+    """The step down beyond one side of a top: the depth of the surface there below the
+    top's plane.
+
+    The strip beyond side ``side`` (from two samples out to ``depth`` beyond it, clear of
+    the corners) is read; its points significantly below the top's plane (z at ``k``)
+    must be at least ``min_fraction`` of the strip's points and lie on one surface parallel
+    to the top (their depths within ``k`` of their robust spread of the median, the spread
+    itself no more than the points' noise and the flatness prior at ``k``).
+
+    Returns
+    -------
+    height, sigma : float
+        Metres; NaN where the strip shows no step.
+    n : int
+        Points on the lower surface.
+    """
+    spacing = ctx.spacing_at(centre)
+    m = 2.0 * spacing
+    strips = (((m, width - m), (-m - depth, -m)),
+              ((m, width - m), (length + m, length + m + depth)),
+              ((-m - depth, -m), (m, length - m)),
+              ((width + m, width + m + depth), (m, length - m)))
+    u_range, v_range = strips[side]
+    origin = corners[0]
+    # the strip's rays, where they cross the top's plane
+    pix = rectangle_pixels(ctx.project, ctx.valid, origin, x_axis, y_axis, u_range, v_range)
+    if pix is None:
+        return np.nan, np.nan, 0
+    rr, cc, _ = pix
+    if len(rr) < MIN_LINE_POINTS:
+        return np.nan, np.nan, 0
+    P = ctx.points[rr, cc]
+    d = (centre - P) @ normal  # depth below the top's plane
+    sig = np.sqrt(ctx.var_along(rr, cc, normal) + flatness**2)
+    below = d > k * sig
+    if below.mean() < min_fraction or below.sum() < MIN_LINE_POINTS:
+        return np.nan, np.nan, 0
+    db = d[below]
+    med = float(np.median(db))
+    mad = 1.4826 * float(np.median(np.abs(db - med)))
+    s_pt = float(np.median(sig[below]))
+    # one surface parallel to the top: its depths spread no more than its points' noise
+    if mad > k * s_pt:
+        return np.nan, np.nan, 0
+    on = np.abs(db - med) <= k * max(mad, 1e-9) + 1e-12
+    if on.sum() < min_fraction * len(db):
+        return np.nan, np.nan, 0
+    n = int(on.sum())
+    h = float(np.median(db[on]))
+    # the lower surface's offset (its points' spread over their number, the median's
+    # efficiency pi/2) and both surfaces' flatness
+    s2 = (math.pi / 2) * mad**2 / n + 2.0 * flatness**2
+    return h, float(math.sqrt(s2)), n
+
+
+def height_context(scan: Scan, config: Config, up: np.ndarray) -> VerifyContext:
+    """The scan's points and noise as the height measurements read them (no edges)."""
+    P = scan.points.astype(np.float64)
+    r = scan.range.astype(np.float64)
+    return VerifyContext(P, config.noise.sigma_range(r),
+                         config.noise.sigma_lateral(r, scan.sensor.pixel_angle) ** 2,
+                         np.isfinite(r), np.zeros((0, 3)), np.zeros(0, np.uint8),
+                         scan.sensor.pixel_angle, np.asarray(up, np.float64),
+                         scan.sensor.project, config.alpha)
+
+
+def box_heights(scan_ctx: VerifyContext, surfaces: SurfaceSet, config: Config,
+                sku_height: np.ndarray | None = None
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray, TestTable]:
+    """The height of every surface's box.
+
+    Parameters
+    ----------
+    scan_ctx : VerifyContext
+        The scan's points and noise (:meth:`VerifyContext.build`).
+    surfaces : SurfaceSet
+        Their corners, centres, normals, axes and dimensions (metres, sensor frame).
+    config : Config
+        ``alpha``, ``flatness``, ``min_inlier_fraction``, ``max_edge``, ``min_edge``.
+    sku_height : (s,) float64, optional
+        The listed height of each surface's matched carton size (NaN: none).
+
+    Returns
+    -------
+    height, sigma : (s,) float64
+        Metres, NaN where none.
+    source : (s,) int8
+        :class:`HeightSource`.
+    tests : TestTable
+        BOX_HEIGHT per measured height (a = attempt, b = source).
+    """
+    n = len(surfaces)
+    height = np.full(n, np.nan)
+    sigma = np.full(n, np.nan)
+    source = np.full(n, HeightSource.NONE, np.int8)
+    k = math.sqrt(chi2_critical(1.0, config.alpha))
+    z_a = float(st.norm.isf(config.alpha))
+    rows: list[tuple[int, int, float, float, bool]] = []
+    for i in range(n):
+        C = surfaces.corners[i]
+        c, nrm = surfaces.centers[i], surfaces.normals[i]
+        x, y = surfaces.x_axis[i], surfaces.y_axis[i]
+        w, ln = float(surfaces.width[i]), float(surfaces.length[i])
+        outs = (-y, y, -x, x)
+        sides = []
+        for si, (ia, ib) in enumerate(SIDE_CORNERS):
+            h, s, m = side_height(scan_ctx, C[ia], C[ib], outs[si], -nrm,
+                                  SIDE_REACH * config.max_edge, k, config.flatness)
+            if np.isfinite(h) and h > z_a * s:
+                sides.append((m, h, s))
+        if sides:
+            # the side seen best (most points) gives the height
+            _, h, s = max(sides)
+            height[i], sigma[i], source[i] = h, s, HeightSource.SIDE
+        else:
+            steps = []
+            for si in range(4):
+                h, s, m = step_height(scan_ctx, C, si, c, nrm, x, y, w, ln,
+                                      0.5 * config.min_edge, k, config.flatness,
+                                      config.min_inlier_fraction)
+                if np.isfinite(h) and h > z_a * s:
+                    steps.append((h, s))
+            if steps:
+                h, s = min(steps)
+                height[i], sigma[i], source[i] = h, s, HeightSource.STEP
+            elif sku_height is not None and np.isfinite(sku_height[i]):
+                height[i], source[i] = float(sku_height[i]), HeightSource.SKU
+                sigma[i] = config.size_tolerance
+        if source[i] != HeightSource.NONE:
+            rows.append((int(surfaces.attempt[i]), int(source[i]), float(height[i]),
+                         float(sigma[i]), bool(height[i] > z_a * sigma[i])))
+    if not rows:
+        return height, sigma, source, TestTable.empty(config.alpha)
+    r = list(zip(*rows))
+    tests = TestTable.decision(TestKind.BOX_HEIGHT, r[0], r[1], r[2], r[3], r[4], config.alpha)
+    return height, sigma, source, tests
