@@ -14,14 +14,9 @@ from typing import Any
 import numpy as np
 
 from boxloc.errors import InputError
-from boxloc.io.common import _K, _check_points_fit_intrinsics, _check_size, _one_line
-from boxloc.io.pcd import _check_pcd_data, _parse_pcd_header, _undo_viewpoint
-from boxloc.io.ply import (
-    _parse_ply_header,
-    _ply_check_data,
-    _ply_check_vertex,
-    _ply_organization,
-)
+from boxloc.io.common import _K, _check_points_fit_intrinsics, _one_line
+from boxloc.io.pcd import _pcd_layout, _undo_viewpoint
+from boxloc.io.ply import _ply_layout
 from boxloc.scan import RayTableModel, Scan
 
 
@@ -52,27 +47,12 @@ def _read_cloud(p: Path, max_pixels: int, *, want_labels: bool) -> _Cloud:
     suffix = p.suffix.lower()
     meta: dict[str, Any] = {}
     grid = None
+    h = None
     if suffix == ".pcd":
-        h = _parse_pcd_header(p)
-        if h.height <= 1:
-            raise InputError(f"{p}: PCD is unorganized (HEIGHT={h.height}, WIDTH={h.width}): "
-                             "a range image needs an organized cloud")
-        _check_size(p, h.height, h.width, max_pixels)
-        _check_pcd_data(p, h)
+        h = _pcd_layout(p, max_pixels)
         H, W, n_expected = h.height, h.width, h.points
     else:
-        ph = _parse_ply_header(p)
-        _ply_check_vertex(p, ph)
-        n_expected = next(e.count for e in ph.elements if e.name == "vertex")
-        H, W, grid = _ply_organization(p, ph, n_expected)
-        if H <= 1:
-            raise InputError(f"{p}: PLY is unorganized (num_rows={H}): a range image needs an "
-                             "organized cloud")
-        _check_size(p, H, W, max_pixels)
-        if grid is None and n_expected != H * W:
-            raise InputError(f"{p}: PLY has {n_expected} vertices, organization says "
-                             f"{W}x{H} = {H * W}")
-        _ply_check_data(p, ph)
+        H, W, n_expected, grid = _ply_layout(p, max_pixels)
     pc = _o3d_read(p)
     if "positions" not in pc.point:
         raise InputError(f"{p}: cannot decode point cloud (corrupt or truncated)")
@@ -102,7 +82,7 @@ def _read_cloud(p: Path, max_pixels: int, *, want_labels: bool) -> _Cloud:
             lab_full[ok] = labels[grid[ok]]
             labels = lab_full
     pts = pts.reshape(H, W, 3)
-    if suffix == ".pcd":
+    if h is not None:  # a PCD
         pts = _undo_viewpoint(pts, h.viewpoint, meta)
     return _Cloud(pts, None if labels is None else labels.reshape(H, W), meta)
 

@@ -15,7 +15,7 @@ from typing import Any
 import numpy as np
 
 from boxloc.errors import InputError
-from boxloc.io.common import _one_line
+from boxloc.io.common import _check_size, _one_line
 
 _PCD_TYPES = {("F", 4), ("F", 8), ("U", 1), ("U", 2), ("U", 4), ("U", 8),
               ("I", 1), ("I", 2), ("I", 4), ("I", 8)}
@@ -85,6 +85,18 @@ def _parse_pcd_header(p: Path) -> _PcdHeader:
         raise InputError(f"{p}: malformed PCD header (POINTS {npts} != WIDTH {width} x "
                          f"HEIGHT {height})")
     return _PcdHeader(fields, sizes, types, counts, width, height, npts, vp, data, offset)
+
+
+def _pcd_layout(p: Path, max_pixels: int) -> _PcdHeader:
+    """The header of an organized PCD of at most ``max_pixels`` points whose data are all
+    there, checked before Open3D reads the file."""
+    h = _parse_pcd_header(p)
+    if h.height <= 1:
+        raise InputError(f"{p}: PCD is unorganized (HEIGHT={h.height}, WIDTH={h.width}): "
+                         "a range image needs an organized cloud")
+    _check_size(p, h.height, h.width, max_pixels)
+    _check_pcd_data(p, h)
+    return h
 
 
 def _check_pcd_data(p: Path, h: _PcdHeader) -> None:

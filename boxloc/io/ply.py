@@ -14,7 +14,7 @@ from typing import Any
 import numpy as np
 
 from boxloc.errors import InputError
-from boxloc.io.common import _one_line
+from boxloc.io.common import _check_size, _one_line
 
 
 @dataclass(frozen=True)
@@ -92,6 +92,25 @@ def _parse_ply_header(p: Path) -> _PlyHeader:
 #: Vertex properties Open3D reads into one array: their types must agree (Open3D writes
 #: past its buffer when, say, ``x`` is float and ``z`` double).
 _PLY_GROUPS = (("x", "y", "z"), ("nx", "ny", "nz"), ("red", "green", "blue"))
+
+
+def _ply_layout(p: Path, max_pixels: int) -> tuple[int, int, int, np.ndarray | None]:
+    """``(height, width, n_vertices, grid)`` of an organized PLY of at most ``max_pixels``
+    pixels, checked before Open3D reads the file; ``grid`` maps pixels to vertices (-1 =
+    none) for a PLY with a ``range_grid`` element, else None (one vertex per pixel)."""
+    ph = _parse_ply_header(p)
+    _ply_check_vertex(p, ph)
+    n_expected = next(e.count for e in ph.elements if e.name == "vertex")
+    H, W, grid = _ply_organization(p, ph, n_expected)
+    if H <= 1:
+        raise InputError(f"{p}: PLY is unorganized (num_rows={H}): a range image needs an "
+                         "organized cloud")
+    _check_size(p, H, W, max_pixels)
+    if grid is None and n_expected != H * W:
+        raise InputError(f"{p}: PLY has {n_expected} vertices, organization says "
+                         f"{W}x{H} = {H * W}")
+    _ply_check_data(p, ph)
+    return H, W, n_expected, grid
 
 
 def _ply_check_vertex(p: Path, h: _PlyHeader) -> None:
