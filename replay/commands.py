@@ -63,16 +63,25 @@ def _echo(msg: str) -> None:
                    "that differs).")
 @click.option("--no-diff", is_flag=True, help="Only replay; do not diff against the inputs.")
 @click.option("--quiet", "-q", is_flag=True, help="No progress bar.")
+@click.option("--box-sizes", "box_sizes", type=click.Path(dir_okay=False), default=None,
+              metavar="FILE",
+              help="Replay with this carton list instead of the recorded one: a CSV with the "
+                   "header width,length,height (metres; height may be empty). Recorded in "
+                   "the new logs' config and as their box_sizes.csv attachment.")
 @config_options
 def replay(logs: tuple[str, ...], out: str, rev: str | None, jobs: int | None,
            scheduler: str | None, tolerances: str | None, rerun: str, no_diff: bool,
-           quiet: bool, config_path: str | None, overrides: tuple[str, ...]) -> None:
+           quiet: bool, box_sizes: str | None, config_path: str | None,
+           overrides: tuple[str, ...]) -> None:
     """Re-run the pipeline on the scans stored in LOG_OR_DIR... and diff with the originals.
 
     Reads only the inputs of the original run (range images, sensor models, poses), runs
     the current code (or --rev GITREF) with each log's recorded config (or --config), plus
     --set overrides, and writes OUT/<log>.mcap, carrying its own version metadata. The
     input logs are never modified. Then prints the diff of each new log against its input.
+
+    --box-sizes FILE replaces the carton list (like --set box_sizes=..., applied last); the
+    diff then shows what the sizes changed.
 
     Exit code: 0 same or within tolerances, 1 regression, 2 error.
     """
@@ -91,6 +100,15 @@ def replay(logs: tuple[str, ...], out: str, rev: str | None, jobs: int | None,
     if scheduler is not None and "://" not in scheduler:
         raise InputError(f"--scheduler must be an address like tcp://HOST:PORT, got "
                          f"{scheduler!r}")
+    attachments = None
+    if box_sizes is not None:
+        from boxloc.io.box_sizes import read_box_sizes
+        from recorder.mcap.sink import box_sizes_attachment
+        from replay.replay import box_sizes_override
+
+        # the file's sizes as the last override: they reach every executor and revision
+        overrides = (*overrides, box_sizes_override(read_box_sizes(box_sizes)))
+        attachments = box_sizes_attachment(box_sizes)
     paths = collect_logs(logs)
     out_dir = Path(out)
     if out_dir.exists() and not out_dir.is_dir():
@@ -113,7 +131,8 @@ def replay(logs: tuple[str, ...], out: str, rev: str | None, jobs: int | None,
             _echo(f"replaying with {version.describe()}")
         out_dir.mkdir(parents=True, exist_ok=True)
         job = ReplayJob(out_dir=str(out_dir), config=cfg, overrides=tuple(overrides),
-                        version=version, names={str(p): n for p, n in zip(paths, names)})
+                        version=version, names={str(p): n for p, n in zip(paths, names)},
+                        attachments=attachments)
         # leftovers of killed attempts, if any, even after an interrupt
         stack.callback(remove_partials, out_dir, names)
         t0 = time.perf_counter()

@@ -43,7 +43,10 @@ from boxloc.jsonable import jsonable as _jsonable
 from boxloc.products import (
     OPTIONAL_STAGES,
     STAGES,
+    AmbiguityReason,
+    AmbiguousSet,
     DimensionSource,
+    HeightSource,
     HypothesisSet,
     LineSet,
     SurfaceSet,
@@ -52,6 +55,9 @@ from boxloc.products import (
 )
 from boxloc.stats import TestKind, TestTable
 
+#: The key of the ambiguous regions in a scan record's products (and the stage of their
+#: differences): they are part of the result, not a pipeline stage.
+AMBIGUOUS = "ambiguous"
 #: The stages whose tests are compared decision by decision (the edge stage's tests name
 #: scan lines and breakpoints, which are compared through the edge map instead).
 TEST_STAGES = ("lines", "vertices", "hypotheses", "verification", "surfaces")
@@ -89,6 +95,10 @@ class SurfaceTol:
     dim_mm: float = 3.0
     dim_rtol: float = 0.0
     pick_height_mm: float = 20.0
+    height_mm: float = 5.0
+    ambiguous_gate_mm: float = 100.0
+    ambiguous_center_mm: float = 5.0
+    ambiguous_dim_mm: float = 5.0
 
 
 @dataclass(frozen=True)
@@ -120,6 +130,11 @@ class RegressionRules:
     ok_pick_changed: bool = True
     stage_counts: bool = False
     flipped_tests: bool = False
+    height_changed: bool = True
+    sku_changed: bool = True
+    ambiguous_added: bool = True
+    ambiguous_removed: bool = True
+    ambiguous_changed: bool = True
 
 
 @dataclass(frozen=True)
@@ -252,7 +267,9 @@ class Difference:
         ``changed``, ``flipped``, ``surface_removed``, ``surface_added``, ``surface_moved``,
         ``pick_order``, ``tp_lost``, ``fp_gained``, ``error_grew``, ``score``,
         ``failed_pick``, ``ok_pick``, ``scan_failed``, ``scan_recovered``, ``scan_missing``,
-        ``scan_extra``.
+        ``scan_extra``, ``height_changed``, ``sku_changed`` (stage ``surfaces``),
+        ``ambiguous_added``, ``ambiguous_removed``, ``ambiguous_changed`` (stage
+        ``ambiguous``).
     message : str
         One line for people.
     rule : str or None
@@ -356,6 +373,15 @@ class SurfacePair:
     pick_base: int
     pick_candidate: int
     moved: bool
+    #: the box heights, mm (None: not measured), their sources, and whether they differ
+    #: beyond ``[surfaces] height_mm`` or in source
+    height_mm: tuple[float | None, float | None] = (None, None)
+    height_source: tuple[str, str] = ("NONE", "NONE")
+    height_changed: bool = False
+    #: the matched carton sizes (-1: none) and flags of the two runs, and whether they differ
+    sku: tuple[int, int] = (-1, -1)
+    sku_flagged: tuple[bool, bool] = (False, False)
+    sku_changed: bool = False
 
     @property
     def dangle_deg(self) -> float:
@@ -398,6 +424,43 @@ class SurfaceDiff:
                 "swaps": _jsonable(self.swaps)}
 
 
+@dataclass(frozen=True)
+class AmbiguousPair:
+    """An ambiguous region of the baseline paired with one of the candidate (by the
+    distance of their outlines' centres)."""
+
+    base: int
+    candidate: int
+    dcenter_mm: float
+    dwidth_mm: float
+    dlength_mm: float
+    reason: tuple[str, str]
+    changed: bool
+
+    def to_json(self) -> dict[str, Any]:
+        return _jsonable(dataclasses.asdict(self))
+
+
+@dataclass
+class AmbiguousDiff:
+    """The ambiguous regions (``Result.ambiguous``) of two runs of one scan."""
+
+    n_base: int = 0
+    n_candidate: int = 0
+    pairs: list[AmbiguousPair] = field(default_factory=list)
+    removed: list[int] = field(default_factory=list)
+    added: list[int] = field(default_factory=list)
+
+    @property
+    def changed(self) -> list[AmbiguousPair]:
+        return [p for p in self.pairs if p.changed]
+
+    def to_json(self) -> dict[str, Any]:
+        return {"n_base": self.n_base, "n_candidate": self.n_candidate,
+                "pairs": [p.to_json() for p in self.pairs], "removed": self.removed,
+                "added": self.added, "changed": [p.base for p in self.changed]}
+
+
 @dataclass
 class ScanDiff:
     """The comparison of one scan (matched by sequence) of two logs.
@@ -419,6 +482,7 @@ class ScanDiff:
     items: dict[str, ItemMatch] = field(default_factory=dict)
     flipped: list[FlippedTest] = field(default_factory=list)
     surfaces: SurfaceDiff = field(default_factory=SurfaceDiff)
+    ambiguous: AmbiguousDiff = field(default_factory=AmbiguousDiff)
     scores: dict[str, Any] | None = None
     picks: list[dict[str, Any]] = field(default_factory=list)
     timing: dict[str, dict[str, float]] = field(default_factory=dict)
@@ -440,6 +504,7 @@ class ScanDiff:
             "items": {k: v.to_json() for k, v in self.items.items()},
             "flipped_tests": [f.to_json() for f in self.flipped],
             "surfaces": self.surfaces.to_json(),
+            "ambiguous": self.ambiguous.to_json(),
             "scores": _jsonable(self.scores),
             "picks": _jsonable(self.picks),
             # wall clock, its own channel: never part of "differences"
@@ -707,6 +772,14 @@ def _test_keys(t: TestTable, maps: Mapping[str, Mapping[int, int] | None]) -> di
         elif kind == TestKind.BOX_CORNER:
             x, y = m("vertices", a), m("lines", b)
             key = None if x is None or y is None else (kind, x, y)
+        elif kind in (TestKind.END_EVIDENCE, TestKind.SKU_SPLIT_SEAM, TestKind.SKU_SIZE):
+            # b: a side, a cut, a listed size: the same on both runs of one attempt
+            x = m("attempts", a)
+            key = None if x is None else (kind, x, b)
+        elif kind == TestKind.BOX_HEIGHT:
+            # b is the height's source, which may change: one row per chosen attempt
+            x = m("attempts", a)
+            key = None if x is None else (kind, x)
         elif kind == TestKind.NEIGHBOUR_CORNER:
             # b is a vertex id of its own version: rows follow the parent, in order
             x = m("hypotheses", a)
@@ -793,8 +866,15 @@ def compare_surfaces(a: SurfaceSet, b: SurfaceSet, tol: SurfaceTol,
         moved = (dc > tol.center_mm or max(dn, dy) > tol.angle_deg
                  or differs(a.width[i] * 1e3, b.width[j] * 1e3, tol.dim_mm, tol.dim_rtol)
                  or differs(a.length[i] * 1e3, b.length[j] * 1e3, tol.dim_mm, tol.dim_rtol))
-        out.pairs.append(SurfacePair(i, j, dc, dn, dy, dw, dl, int(a.pick_order[i]),
-                                     int(b.pick_order[j]), moved))
+        ha, hb = float(a.height[i]) * 1e3, float(b.height[j]) * 1e3
+        src = (_height_source(a, i), _height_source(b, j))
+        sku = (int(a.sku[i]), int(b.sku[j]))
+        flag = (bool(a.sku_flagged[i]), bool(b.sku_flagged[j]))
+        out.pairs.append(SurfacePair(
+            i, j, dc, dn, dy, dw, dl, int(a.pick_order[i]), int(b.pick_order[j]), moved,
+            height_mm=(_finite(ha), _finite(hb)), height_source=src,
+            height_changed=differs(ha, hb, tol.height_mm) or src[0] != src[1],
+            sku=sku, sku_flagged=flag, sku_changed=sku[0] != sku[1] or flag[0] != flag[1]))
     paired_a = {p.base for p in out.pairs}
     paired_b = {p.candidate for p in out.pairs}
     out.removed = [i for i in range(na) if i not in paired_a]
@@ -813,6 +893,51 @@ def compare_surfaces(a: SurfaceSet, b: SurfaceSet, tol: SurfaceTol,
                 out.swaps.append((i, j, dh))
                 if dh is None or dh > tol.pick_height_mm:
                     out.pick_order_significant = True
+    return out
+
+
+def _finite(v: float) -> float | None:
+    return float(v) if math.isfinite(v) else None
+
+
+def _height_source(s: SurfaceSet, i: int) -> str:
+    try:
+        return HeightSource(int(s.height_source[i])).name
+    except ValueError:
+        return str(int(s.height_source[i]))
+
+
+def _reason_name(r: int) -> str:
+    try:
+        return AmbiguityReason(int(r)).name
+    except ValueError:
+        return str(int(r))
+
+
+def compare_ambiguous(a: AmbiguousSet, b: AmbiguousSet, tol: SurfaceTol) -> AmbiguousDiff:
+    """Pair ambiguous regions by the distance of their outlines' centres (optimal
+    assignment, gated by ``tol.ambiguous_gate_mm``) and measure what changed: the centre
+    beyond ``ambiguous_center_mm``, the extent beyond ``ambiguous_dim_mm``, or the reason."""
+    na, nb = len(a), len(b)
+    out = AmbiguousDiff(na, nb)
+    ca = np.asarray(a.corners, np.float64).mean(axis=1) if na else np.zeros((0, 3))
+    cb = np.asarray(b.corners, np.float64).mean(axis=1) if nb else np.zeros((0, 3))
+    pairs: list[tuple[int, int]] = []
+    if na and nb:
+        d = np.linalg.norm(ca[:, None] - cb[None], axis=-1)
+        ok = np.isfinite(d) & (d * 1e3 <= tol.ambiguous_gate_mm)
+        pairs = _assign(np.where(ok, d, np.inf))
+    for i, j in sorted(pairs):
+        dc = float(np.linalg.norm(ca[i] - cb[j])) * 1e3
+        wa, wb = float(a.width[i]) * 1e3, float(b.width[j]) * 1e3
+        la, lb = float(a.length[i]) * 1e3, float(b.length[j]) * 1e3
+        reason = (_reason_name(a.reason[i]), _reason_name(b.reason[j]))
+        changed = (dc > tol.ambiguous_center_mm or reason[0] != reason[1]
+                   or differs(wa, wb, tol.ambiguous_dim_mm)
+                   or differs(la, lb, tol.ambiguous_dim_mm))
+        out.pairs.append(AmbiguousPair(i, j, dc, wb - wa, lb - la, reason, changed))
+    out.removed = [i for i in range(na) if i not in {p.base for p in out.pairs}]
+    out.added = [j for j in range(nb) if j not in {p.candidate for p in out.pairs}]
     return out
 
 
@@ -882,6 +1007,8 @@ def _counts(products: Mapping[str, Any]) -> dict[str, int | None]:
         "candidates": n("selection"),
         "chosen": None if s is None else int(np.count_nonzero(s.chosen)),
         "surfaces": n("surfaces"),
+        # None: the log predates the record (or the scan failed before its result)
+        "ambiguous": n(AMBIGUOUS),
     }
 
 
@@ -941,6 +1068,13 @@ class _ScanComparison:
                     changed.append(s)
             elif s in pa:
                 changed += [f"{s}/{n}" for n in products_equal(pa[s], pb[s], ignore=ignore)]
+        if (AMBIGUOUS in pa) != (AMBIGUOUS in pb):
+            # one log predates the record: only regions the other one has are a change
+            if len(pa[AMBIGUOUS] if AMBIGUOUS in pa else pb[AMBIGUOUS]):
+                changed.append(AMBIGUOUS)
+        elif AMBIGUOUS in pa:
+            changed += [f"{AMBIGUOUS}/{n}" for n in products_equal(pa[AMBIGUOUS], pb[AMBIGUOUS],
+                                                                  ignore=ignore)]
         sd.changed_fields = changed
         sd.identical = not changed and fa == fb
         if fb and not fa:
@@ -969,6 +1103,7 @@ class _ScanComparison:
                                            a.scan.up)
             exempt = self._picks()
             self._surfaces(exempt, scores_a, scores_b)
+            self._ambiguous(a.ambiguous, b.ambiguous)
         if not sd.differences:
             sd.status = "equivalent"
         return sd
@@ -979,7 +1114,7 @@ class _ScanComparison:
         a, b, sd, tol = self.a.products, self.b.products, self.sd, self.tol
         pixel_angle = float(self.a.scan.sensor.pixel_angle)
         for k, (x, y) in sd.counts.items():
-            if x != y and k != "surfaces":
+            if x != y and k not in ("surfaces", AMBIGUOUS):  # results: judged by their rules
                 self.add(k if k in STAGES else {"hough_trials": "lines", "attempts":
                          "hypotheses", "verified": "verification", "candidates": "selection",
                          "chosen": "selection"}[k], "count", f"{k}: {x} -> {y}",
@@ -1023,6 +1158,9 @@ class _ScanComparison:
                 sd.test_counts.update(tc)
             if stage in TEST_STAGES and stage in a and stage in b:
                 sd.flipped += flipped_tests(stage, a[stage].tests, b[stage].tests, maps)
+        if AMBIGUOUS in a and AMBIGUOUS in b:
+            sd.test_counts.update(_test_counts(a[AMBIGUOUS].tests, b[AMBIGUOUS].tests))
+            sd.flipped += flipped_tests(AMBIGUOUS, a[AMBIGUOUS].tests, b[AMBIGUOUS].tests, maps)
         by_kind: dict[str, int] = {}
         for f in sd.flipped:
             by_kind[f.kind] = by_kind.get(f.kind, 0) + 1
@@ -1083,6 +1221,20 @@ class _ScanComparison:
                      f"surface #{p.base} -> #{p.candidate} moved: centre {p.dcenter_mm:.1f} mm, "
                      f"angle {p.dangle_deg:.2f} deg, width {p.dwidth_mm:+.1f} mm, length "
                      f"{p.dlength_mm:+.1f} mm", rule, **p.to_json())
+        for p in s.pairs:
+            if p.height_changed:
+                hb, hc = (("n/a" if h is None else f"{h:.0f} mm") for h in p.height_mm)
+                self.add("surfaces", "height_changed",
+                         f"surface #{p.base} -> #{p.candidate}: height {hb} "
+                         f"({p.height_source[0].lower()}) -> {hc} "
+                         f"({p.height_source[1].lower()})", "height_changed", **p.to_json())
+            if p.sku_changed:
+                def sku(k: int, flagged: bool) -> str:
+                    return f"size {k}" if k >= 0 else ("no listed size (flagged)" if flagged
+                                                       else "no size")
+                self.add("surfaces", "sku_changed",
+                         f"surface #{p.base} -> #{p.candidate}: {sku(p.sku[0], p.sku_flagged[0])}"
+                         f" -> {sku(p.sku[1], p.sku_flagged[1])}", "sku_changed", **p.to_json())
         if s.pick_order_changed:
             note = "" if s.pick_order_significant else (
                 f" (only between surfaces within {self.tol.surfaces.pick_height_mm:g} mm of "
@@ -1116,6 +1268,29 @@ class _ScanComparison:
                 self.add("scores", "error_grew", f"face {f} (surface #{face_a[f]}): centre error "
                          f"{err_a[f] * 1e3:.1f} -> {err_b[f] * 1e3:.1f} mm", "error_grew",
                          face=f, base_mm=err_a[f] * 1e3, candidate_mm=err_b[f] * 1e3)
+
+
+    def _ambiguous(self, a: AmbiguousSet, b: AmbiguousSet) -> None:
+        """Ambiguous regions added, removed or changed (extent, place, reason)."""
+        ad = self.sd.ambiguous = compare_ambiguous(a, b, self.tol.surfaces)
+        if ad.added or ad.removed:
+            self.add(AMBIGUOUS, "count", f"ambiguous regions: {ad.n_base} -> {ad.n_candidate}",
+                     None, what=AMBIGUOUS, base=ad.n_base, candidate=ad.n_candidate)
+        for i in ad.removed:
+            self.add(AMBIGUOUS, "ambiguous_removed", f"ambiguous region #{i} of the baseline "
+                     f"({_reason_name(a.reason[i]).lower()}) is gone", "ambiguous_removed",
+                     base=i)
+        for j in ad.added:
+            self.add(AMBIGUOUS, "ambiguous_added", f"ambiguous region #{j} of the candidate "
+                     f"({_reason_name(b.reason[j]).lower()}) is new", "ambiguous_added",
+                     candidate=j)
+        for p in ad.changed:
+            why = "" if p.reason[0] == p.reason[1] else (
+                f", reason {p.reason[0].lower()} -> {p.reason[1].lower()}")
+            self.add(AMBIGUOUS, "ambiguous_changed",
+                     f"ambiguous region #{p.base} -> #{p.candidate} changed: centre "
+                     f"{p.dcenter_mm:.1f} mm, width {p.dwidth_mm:+.1f} mm, length "
+                     f"{p.dlength_mm:+.1f} mm{why}", "ambiguous_changed", **p.to_json())
 
 
 def diff_scans(a: Any, b: Any, tolerances: Tolerances | None = None, *, log: str = "",
@@ -1309,6 +1484,7 @@ def diff_paths(base: str | os.PathLike[str], candidate: str | os.PathLike[str],
 
 
 __all__ = [
+    "AmbiguousDiff", "AmbiguousPair", "compare_ambiguous",
     "Difference", "FlippedTest", "ItemMatch", "LogDiff", "ScanDiff", "SurfaceDiff",
     "SurfacePair", "Tolerances", "compare_surfaces", "diff_logs", "diff_paths", "diff_scans",
     "differs", "flipped_tests", "is_regression", "list_logs", "load_tolerances",

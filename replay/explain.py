@@ -43,8 +43,11 @@ from boxloc.errors import InputError
 from boxloc.jsonable import jsonable as _jsonable
 from boxloc.products import (
     NOISE_FIELDS,
+    AmbiguityReason,
+    AmbiguousSet,
     DimensionSource,
     EdgeKind,
+    HeightSource,
     NoiseSource,
     SelectReason,
     VerifyReason,
@@ -59,6 +62,9 @@ _SENSE: dict[TestKind, str] = {
     TestKind.VERIFY_INLIERS: ">=", TestKind.VERIFY_BOUNDARY: ">=",
     TestKind.VERIFY_SEAM_SIDE: ">", TestKind.SEAM_PEAK: ">",
     TestKind.VERIFY_CONTINUATION: "<", TestKind.VERIFY_SEAM_CROSSING: "<",
+    # issue #21: a side's evidence level against 1; a cut's groove z against the seam
+    # level's; a height against the significance its sigma allows
+    TestKind.END_EVIDENCE: ">=", TestKind.SKU_SPLIT_SEAM: ">", TestKind.BOX_HEIGHT: ">",
 }
 _NEGATE = {"<=": ">", "<": ">=", ">": "<=", ">=": "<"}
 #: what each verify reason's failing test is
@@ -78,6 +84,29 @@ _SIDES = ("side at the vertex along x", "far side along x", "side at the vertex 
           "far side along y")
 #: lists in an explanation are cut to this many items (the JSON says how many there were)
 MAX_ITEMS = 12
+#: the sides of END_EVIDENCE rows (b = 0-3), as boxloc.stats.TestKind.END_EVIDENCE names them
+_END_SIDES = ("side v = 0", "side v = length", "side u = 0", "side u = width")
+#: END_EVIDENCE statistic levels
+_EVIDENCE = {0: "no evidence", 1: "a line of jump or convex-crease edges",
+             2: "a groove or seam", 3: "a listed size's implied seam"}
+#: what each ambiguity reason means, for people
+_AMBIGUITY_TEXT = {
+    AmbiguityReason.NO_END_EVIDENCE: "a side has no evidence of a box's end (no jump, "
+                                     "crease, groove, seam or listed size)",
+    AmbiguityReason.LARGER_THAN_MAX_BOX: "it is longer than the longest box edge (max_edge): "
+                                         "several boxes whose seams the range points do not "
+                                         "show",
+    AmbiguityReason.NOT_A_MULTIPLE_OF_A_SIZE: "it is no multiple (1x1, 2x1, 3x1, 2x2, ...) of "
+                                              "a listed carton size",
+    AmbiguityReason.SEVERAL_SPLITS: "it is a multiple of more than one listed size (or of "
+                                    "one in two ways) and no seam shows which",
+}
+#: the tests behind an ambiguous region or a box's size and height
+_REGION_TESTS = (TestKind.END_EVIDENCE, TestKind.SKU_SPLIT_SEAM, TestKind.SKU_SIZE)
+_HEIGHT_TEXT = {HeightSource.SIDE: "from its visible side face",
+                HeightSource.STEP: "from the step down to its neighbour or the layer below",
+                HeightSource.SKU: "the matched carton size's height",
+                HeightSource.NONE: "not measured"}
 
 
 def _name(enum: type, v: int) -> str:
@@ -127,6 +156,8 @@ class _Ctx:
         self.verification = products.get("verification")
         self.selection = products.get("selection")
         self.surfaces = products.get("surfaces")
+        amb = products.get("ambiguous")
+        self.ambiguous: AmbiguousSet = amb if amb is not None else AmbiguousSet()
         self.scan = self.rec.scan
 
     # -- entities --
@@ -342,9 +373,77 @@ class _Ctx:
             # the lid's middle above the rim's plane, and whether the centre sits on the rim
             "bulge_mm": _mm(S.bulge[k]),
             "tests": _tests(S.tests, [TestKind.SURFACE_BULGE], a=j),
+            "height": self.height(k), "size": self.size(k),
             "hypothesis": self.hypothesis(h, focus=j), "attempt": j,
             "selection": self.candidate(int(kk[0])) if kk.size else None,
         }
+
+
+    def height(self, k: int) -> dict[str, Any]:
+        """Surface k's box height: value, sigma, source and its BOX_HEIGHT test."""
+        S = self.surfaces
+        return {"height_mm": _mm(S.height[k]), "sigma_mm": _mm(S.height_sigma[k]),
+                "source": _name(HeightSource, S.height_source[k]),
+                "tests": _tests(S.tests, [TestKind.BOX_HEIGHT], a=int(S.attempt[k]))}
+
+    def size(self, k: int) -> dict[str, Any]:
+        """Surface k against the carton list: the matched size (row of
+        ``Config.box_sizes``) or the flag, and the SKU_SIZE tests."""
+        S = self.surfaces
+        sku = int(S.sku[k])
+        listed = self.config.box_sizes
+        return {"n_listed": len(listed), "sku": sku if sku >= 0 else None,
+                "listed_mm": ([_mm(v) for v in listed[sku]] if 0 <= sku < len(listed)
+                              else None),
+                "flagged": bool(S.sku_flagged[k]),
+                "tests": _tests(S.tests, [TestKind.SKU_SIZE], a=int(S.attempt[k]))}
+
+    def ambiguous_region(self, k: int) -> dict[str, Any]:
+        """Ambiguous region k: why it is not a surface, its extent and the tests behind it
+        (its own rows, then the hypothesis and verification rows of its attempt)."""
+        A = self.ambiguous
+        j = int(A.attempt[k])
+        rows: list[dict[str, Any]] = A.tests_of(k).rows() if j >= 0 else []
+        seen = {(r["kind"], r["a"], r["b"], r["statistic"]) for r in rows}
+        for prod in (self.hypotheses, self.verification):
+            if prod is None or j < 0:
+                continue
+            for r in _tests(prod.tests, _REGION_TESTS, a=j):
+                if (r["kind"], r["a"], r["b"], r["statistic"]) not in seen:
+                    rows.append(r)
+        for r in rows:
+            if r["kind"] == TestKind.END_EVIDENCE.name and 0 <= int(r["b"]) < 4:
+                r["side"] = _END_SIDES[int(r["b"])]
+                r["evidence"] = _EVIDENCE.get(int(r["statistic"]), str(r["statistic"]))
+        try:
+            reason = AmbiguityReason(int(A.reason[k]))
+            reason_name, text = reason.name, _AMBIGUITY_TEXT[reason]
+        except (ValueError, KeyError):
+            reason_name = text = str(int(A.reason[k]))
+        return {"region": k, "reason": reason_name, "reason_text": text,
+                "hypothesis": int(A.hypothesis[k]), "attempt": j,
+                "width_mm": _mm(A.width[k]), "length_mm": _mm(A.length[k]),
+                "area_m2": float(A.area[k]), "corners": [_vec(c) for c in A.corners[k]],
+                "n_listed_sizes": len(self.config.box_sizes), "tests": rows}
+
+    def ambiguous_at(self, P: np.ndarray) -> int | None:
+        """The ambiguous region whose outline contains P (in its plane, within half the
+        shortest box edge, as for rectangles), or None."""
+        A = self.ambiguous
+        tol_w = 0.5 * self.config.min_edge
+        for k in range(len(A)):
+            c = np.asarray(A.corners[k], np.float64)
+            ex, ey = c[1] - c[0], c[3] - c[0]
+            W_, L_ = float(np.linalg.norm(ex)), float(np.linalg.norm(ey))
+            if not (W_ > 0 and L_ > 0 and math.isfinite(W_ + L_)):
+                continue
+            n = np.cross(ex, ey)
+            n /= np.linalg.norm(n) or 1.0
+            D = P - c[0]
+            u, v, w = float(D @ ex) / W_, float(D @ ey) / L_, float(D @ n)
+            if 0 <= u <= W_ and 0 <= v <= L_ and abs(w) <= tol_w:
+                return k
+        return None
 
 
 # --- a point where a surface was expected ----------------------------------------------------
@@ -503,6 +602,22 @@ def explain_at(ctx: _Ctx, at: Any) -> dict[str, Any]:
     contain = _contains(ctx, P) if ctx.hypotheses is not None else []
     out["containing_attempts"] = contain[:MAX_ITEMS]
     out["n_containing_attempts"] = len(contain)
+    # a flat region reported as ambiguous is not a surface, whatever else contains it
+    k_amb = ctx.ambiguous_at(P)
+    if k_amb is not None:
+        r = ctx.ambiguous_region(k_amb)
+        missing = [t["side"] for t in r["tests"] if t["kind"] == TestKind.END_EVIDENCE.name
+                   and not t["accepted"] and "side" in t]
+        why = (f"ambiguous region #{k_amb} ({_num(r['width_mm'])} x {_num(r['length_mm'])} mm, "
+               f"{r['area_m2']:.3f} m2) contains this point: a flat region whose extent the "
+               f"evidence cannot split into boxes, so it is not a surface: {r['reason_text']}")
+        if missing:
+            why += f"; without evidence of an end: {', '.join(missing)}"
+        if not r["n_listed_sizes"]:
+            why += (" (no carton sizes were given: with --box-sizes, a region that is a "
+                    "multiple of a listed size is split at the implied seams)")
+        out.update(stopped_at="ambiguous", ambiguous=r, why=why)
+        return out
     chosen = [c for c in contain if ctx.surface_of_attempt(c["attempt"]) is not None]
     if chosen:
         k = ctx.surface_of_attempt(chosen[0]["attempt"])
@@ -711,6 +826,7 @@ def explain(log: Any, scan: int, surface: int | None = None, at: Any = None,
     out: dict[str, Any] = {
         "log": str(lg.path), "scan": int(scan), "alpha": ctx.config.alpha,
         "n_surfaces": None if S is None else len(S),
+        "n_ambiguous": len(ctx.ambiguous),
         "pipeline_error": rec.error,
         "noise": _noise(rec.products.get("noise")),
         "budgets": _budgets(rec.products),
@@ -764,6 +880,8 @@ def _test_text(t: dict[str, Any] | None) -> str:
     tail = f" ({', '.join(extra)})" if extra else ""
     verdict = "accepted" if t["accepted"] else "REJECTED"
     side = f" [{t['side']}]" if t.get("side") else ""
+    if t.get("evidence"):
+        side += f" ({t['evidence']})"
     return (f"{t['kind']} {t['a']},{t['b']}{side}: {_num(t['statistic'])} {rel} "
             f"{_num(t['critical'])}{tail}: {verdict}")
 
@@ -878,6 +996,8 @@ def _surface_lines(e: dict[str, Any], ind: str = "") -> list[str]:
     for t in e.get("tests", []):  # SURFACE_BULGE: is the centre on the lid or on its rim?
         where = "on the rim's plane" if not t["accepted"] else "on the points' plane"
         out.append(f"{ind}  lid bulge {e['bulge_mm']} mm, centre {where}: {_test_text(t)}")
+    out += _height_lines(e.get("height"), ind + "  ")
+    out += _size_lines(e.get("size"), ind + "  ")
     if "pick" in e:
         out.append(f"{ind}  pick FAILED" + (f": {e['pick']['reason']}" if e["pick"]["reason"]
                                             else ""))
@@ -890,6 +1010,48 @@ def _surface_lines(e: dict[str, Any], ind: str = "") -> list[str]:
                "tried:")
     for a in h["attempts"]:
         out += _attempt_lines(a, ind + "      ", focus=e["attempt"])
+    return out
+
+
+def _height_lines(h: dict[str, Any] | None, ind: str) -> list[str]:
+    if not h:
+        return []
+    try:
+        how = _HEIGHT_TEXT[HeightSource[h["source"]]]
+    except KeyError:
+        how = f"source {h['source']}"
+    if h["height_mm"] is None:
+        out = [f"{ind}box height {how}"]
+    else:
+        sig = f" +- {_num(h['sigma_mm'])} mm" if h["sigma_mm"] is not None else ""
+        out = [f"{ind}box height {_num(h['height_mm'])} mm{sig}, {how}"]
+    return out + [f"{ind}  {_test_text(t)}" for t in h["tests"]]
+
+
+def _size_lines(z: dict[str, Any] | None, ind: str) -> list[str]:
+    if not z or not (z["n_listed"] or z["tests"] or z["flagged"]):
+        return []  # no carton list: nothing to say
+    if z["sku"] is not None:
+        dims = " x ".join(_num(v) for v in z["listed_mm"] or []) or "?"
+        head = f"{ind}carton size: listed size {z['sku']} ({dims} mm)"
+    elif z["flagged"]:
+        head = f"{ind}carton size: FLAGGED, it matches none of the {z['n_listed']} listed sizes"
+    else:
+        head = f"{ind}carton size: not tested"
+    return [head] + [f"{ind}  {_test_text(t)}" for t in z["tests"][:MAX_ITEMS]]
+
+
+def _ambiguous_lines(r: dict[str, Any], ind: str) -> list[str]:
+    out = [f"{ind}ambiguous region #{r['region']}: {r['reason'].lower()}, "
+           f"{_num(r['width_mm'])} x {_num(r['length_mm'])} mm, {r['area_m2']:.3f} m2 "
+           f"(hypothesis {r['hypothesis']}, attempt {r['attempt']}); corners "
+           + ", ".join(_point_text(c) for c in r["corners"])]
+    out.append(f"{ind}  why not split: {r['reason_text']}")
+    if r["tests"]:
+        out.append(f"{ind}  tests:")
+        out += [f"{ind}    {_test_text(t)}" for t in r["tests"][:4 * MAX_ITEMS]]
+    else:
+        out.append(f"{ind}  no test recorded for it")
     return out
 
 
@@ -954,6 +1116,8 @@ def format_explanation(d: dict[str, Any]) -> str:
             lines += _attempt_lines(at, "    ")
     for at in a.get("attempts", [])[:6]:
         lines += _attempt_lines(at, "  ")
+    if a.get("ambiguous"):
+        lines += _ambiguous_lines(a["ambiguous"], "  ")
     if a.get("explanation"):
         lines.append("")
         lines += _surface_lines(a["explanation"])

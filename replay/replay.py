@@ -29,6 +29,7 @@ import contextlib
 import glob
 import hashlib
 import json
+import math
 import os
 import secrets
 import time
@@ -309,6 +310,19 @@ def _take(m: Any, sensors: dict[str, Any], info: Any, log: Log, lim: Any) -> Sca
     return E.build_scan(info, E.decode_range(m.data, lim), sensor)
 
 
+def box_sizes_override(sizes: Sequence[Sequence[float]]) -> str:
+    """A carton list as the ``key=value`` override ``box_sizes=[[w, l, h], [w, l], ...]``
+    (metres; a row of two where the height is unknown), exact: every float is written with
+    ``repr``, which TOML reads back to the same bits. An override (not a config of its own)
+    reaches every executor and revision the way ``--set`` does.
+    """
+    rows = []
+    for row in sizes:
+        w, ln, h = (float(v) for v in row)
+        rows.append(f"[{w!r}, {ln!r}]" if math.isnan(h) else f"[{w!r}, {ln!r}, {h!r}]")
+    return f"box_sizes=[{', '.join(rows)}]"
+
+
 def resolve_config(log: Log, config: Config | None,
                    overrides: Sequence[str] | dict[str, Any] = ()) -> tuple[Config, str]:
     """The config to replay ``log`` with and where it came from.
@@ -338,6 +352,7 @@ def replay_log(
     overrides: Sequence[str] = (),
     version: Version | None = None,
     out_name: str | None = None,
+    attachments: dict[str, tuple[str, bytes]] | None = None,
 ) -> ReplayOutcome:
     """Re-run the pipeline on every scan stored in one log and record a new log.
 
@@ -357,6 +372,13 @@ def replay_log(
         or a prepared :class:`replay.versions.Worktree` (run in its subprocess).
     out_name : str, optional
         File name of the new log; default ``<input stem>.mcap``.
+    attachments : dict, optional
+        Attachments for the new log, ``{name: (media type, bytes)}``: the ``--box-sizes``
+        file (:func:`recorder.mcap.sink.box_sizes_attachment`), whose sizes come in
+        ``overrides`` (:func:`box_sizes_override`). Without one, the input log's carton
+        file is carried over when the replay runs with the sizes it recorded. Written by
+        this code's recorder only: a replay of another revision (``version``) gets the
+        sizes through ``overrides``, its log has the config but not the file.
 
     Returns
     -------
@@ -380,7 +402,8 @@ def replay_log(
     if not isinstance(v, CurrentVersion):
         return v.replay(Path(path), out_dir=Path(out_dir), config=config,
                         overrides=tuple(overrides), out_name=out_name)
-    return _replay_here(Path(path), Path(out_dir), config, tuple(overrides), out_name)
+    return _replay_here(Path(path), Path(out_dir), config, tuple(overrides), out_name,
+                        attachments)
 
 
 def _one_line(e: BaseException) -> str:
@@ -466,8 +489,31 @@ def _stage_error(e: BaseException) -> str:
     return f"{type(e).__name__}: {_one_line(e)}{where}"
 
 
+def _carried_attachments(
+        log: Any, cfg: Config, given: dict[str, tuple[str, bytes]] | None,
+) -> dict[str, tuple[str, bytes]]:
+    """The attachments of the new log: those given, else the input log's carton file when
+    the replay runs with the carton list the input recorded (the file still describes it)."""
+    from recorder.mcap import channels as C
+
+    if given is not None:
+        return dict(given)
+    names = {a.name for a in log.attachments()} if hasattr(log, "attachments") else set()
+    if C.BOX_SIZES_ATTACHMENT not in names:
+        return {}
+    try:
+        recorded = log.config
+        data = log.attachment(C.BOX_SIZES_ATTACHMENT)
+    except LogError:
+        return {}  # a damaged attachment is not worth failing the replay for
+    if recorded is None or recorded.box_sizes != cfg.box_sizes:
+        return {}
+    return {C.BOX_SIZES_ATTACHMENT: (C.BOX_SIZES_MEDIA_TYPE, data)}
+
+
 def _replay_here(path: Path, out_dir: Path, config: Config | None,
-                 overrides: tuple[str, ...], out_name: str | None) -> ReplayOutcome:
+                 overrides: tuple[str, ...], out_name: str | None,
+                 attachments: dict[str, tuple[str, bytes]] | None = None) -> ReplayOutcome:
     """:func:`replay_log` with the code of this process."""
     from boxloc.pipeline import find_graspable_surfaces
     from recorder.mcap.log import open_log
@@ -521,7 +567,8 @@ def _replay_here(path: Path, out_dir: Path, config: Config | None,
                 rec = McapRecorder(
                     tmp, config=cfg, session=f"replay-{path.stem}", fsync=False,
                     extra_metadata={REPLAY_METADATA: _replay_metadata(
-                        path, log, cfg, source, overrides, version)})
+                        path, log, cfg, source, overrides, version)},
+                    attachments=_carried_attachments(log, cfg, attachments))
             try:
                 result = find_graspable_surfaces(scan, cfg, observer=rec)
             except RecordingError:
@@ -610,6 +657,8 @@ class ReplayJob:
     version : Version or None
     names : dict
         Output file name per input path (as given), from :func:`plan_outputs`.
+    attachments : dict or None
+        Attachments of every new log (``replay --box-sizes``: the file).
     """
 
     out_dir: str
@@ -617,8 +666,9 @@ class ReplayJob:
     overrides: tuple[str, ...] = ()
     version: Any = None
     names: dict[str, str] = field(default_factory=dict)
+    attachments: dict[str, tuple[str, bytes]] | None = None
 
     def __call__(self, path: str | os.PathLike[str]) -> ReplayOutcome:
         return replay_log(path, out_dir=self.out_dir, config=self.config,
                           overrides=self.overrides, version=self.version,
-                          out_name=self.names.get(str(path)))
+                          out_name=self.names.get(str(path)), attachments=self.attachments)

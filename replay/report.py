@@ -79,7 +79,7 @@ def _scan_cells(s: ScanDiff) -> dict[str, str]:
     """The short texts of one scan's row (shared by the terminal and the HTML table)."""
     counts = ", ".join(f"{k} {_arrow(x, y)}" for k, (x, y) in s.counts.items()
                        if x != y and k in ("lines", "vertices", "hypotheses", "verified",
-                                           "chosen"))
+                                           "chosen", "ambiguous"))
     items = ", ".join(f"{k} -{len(m.only_base)}/+{len(m.only_candidate)}"
                       for k, m in s.items.items() if m.only_base or m.only_candidate)
     sf = s.surfaces

@@ -26,7 +26,8 @@ from replay.explain import explain, format_explanation
 
 VERTEX_TESTS = {"LINES_MEET", "LINES_ORTHOGONAL", "AT_SEGMENT_ENDS"}
 DIAGONAL_TESTS = {"COPLANAR", "PARALLEL", "FIRST_QUADRANT"}
-STOPS = {"scan", "edges", "lines", "vertices", "dimensions", "verification", "selection"}
+STOPS = {"scan", "edges", "lines", "vertices", "dimensions", "verification", "selection",
+         "ambiguous"}
 
 
 @pytest.fixture(scope="module")

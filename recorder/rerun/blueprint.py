@@ -14,6 +14,7 @@ from __future__ import annotations
 import rerun.blueprint as rrb
 
 from recorder.rerun.sink import (
+    AMBIGUOUS,
     EDGE_IMAGE,
     LINES,
     RANGE,
@@ -43,6 +44,7 @@ def image_view(prefix: str = "", name: str = "range + edges") -> rrb.Spatial2DVi
             f"+ {entity(prefix, EDGE_IMAGE)}",
             # 3D entities seen through the scan's pinhole: drawn over the image
             f"+ {entity(prefix, SURFACES)}",
+            f"+ {entity(prefix, AMBIGUOUS)}",
             f"+ {entity(prefix, LINES)}",
         ],
         name=name,
@@ -50,7 +52,8 @@ def image_view(prefix: str = "", name: str = "range + edges") -> rrb.Spatial2DVi
 
 
 def world_view(prefix: str = "", name: str = "3D") -> rrb.Spatial3DView:
-    """Points, edges, lines, vertices, hypotheses and surfaces, and the camera frustum."""
+    """Points, edges, lines, vertices, hypotheses, surfaces and ambiguous regions, and the
+    camera frustum."""
     return rrb.Spatial3DView(
         origin=_root(prefix),
         contents=[

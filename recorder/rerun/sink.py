@@ -75,8 +75,11 @@ from boxloc.errors import BoxlocError, InputError
 from boxloc.observer import NullObserver
 from boxloc.products import (
     STAGES,
+    AmbiguityReason,
+    AmbiguousSet,
     EdgeKind,
     EdgeMap,
+    HeightSource,
     HypothesisSet,
     LineSet,
     NoiseEstimate,
@@ -109,6 +112,8 @@ HYP_REJECTED = "world/hypotheses/rejected"
 SURFACES = "world/surfaces"
 SURFACE_GRASP = "world/surfaces/grasp"
 SURFACE_NORMALS = "world/surfaces/normals"
+#: flat regions not split into boxes (the result's ``ambiguous``): beside the surfaces
+AMBIGUOUS = "world/ambiguous"
 STATS_TESTS = "stats/tests"
 STATS_COUNTS = "stats/counts"
 STATS_SELECTION = "stats/selection"
@@ -139,6 +144,8 @@ _FALLBACK = (200, 200, 200)
 _ACCEPTED = (60, 220, 100)
 _REJECTED = (230, 70, 60)
 _VERTEX = (255, 255, 255)
+#: ambiguous regions: magenta, thick and dashed-looking by their own colour (not graspable)
+_AMBIGUOUS = (255, 0, 230)
 _AXIS_D1 = (255, 140, 40)
 _AXIS_D2 = (40, 160, 255)
 #: surfaces, by pick order (cycled): white first, then hues unlike the edge kinds' and the
@@ -474,14 +481,19 @@ def log_surfaces(rec: rr.RecordingStream, surfaces: SurfaceSet, *, prefix: str =
         entity(prefix, SURFACES),
         rr.LineStrips3D(_strips(_closed(corners) if n else np.zeros((0, 5, 3))), colors=colors,
                         radii=rr.Radius.ui_points(5.0),
-                        labels=[f"#{i} pick {int(pick[i])}" for i in range(n)],
+                        labels=[_surface_label(surfaces, i) for i in range(n)],
                         show_labels=True),
         *_any_values(surface_id=np.arange(n, dtype=np.int32), pick_order=pick.astype(np.int32),
                      hypothesis=np.asarray(surfaces.hypothesis, np.int32),
                      score=np.asarray(surfaces.scores, np.float64),
                      width=np.asarray(surfaces.width, np.float64),
                      length=np.asarray(surfaces.length, np.float64),
-                     bulge=np.asarray(surfaces.bulge, np.float64)),
+                     bulge=np.asarray(surfaces.bulge, np.float64),
+                     height=np.asarray(surfaces.height, np.float64),
+                     height_sigma=np.asarray(surfaces.height_sigma, np.float64),
+                     height_source=np.asarray(surfaces.height_source, np.int32),
+                     sku=np.asarray(surfaces.sku, np.int32),
+                     sku_flagged=np.asarray(surfaces.sku_flagged, bool)),
     )
     rec.log(entity(prefix, SURFACE_GRASP),
             rr.Points3D(surfaces.grasp_points, colors=colors, radii=rr.Radius.ui_points(6.0)))
@@ -490,6 +502,61 @@ def log_surfaces(rec: rr.RecordingStream, surfaces: SurfaceSet, *, prefix: str =
                         colors=colors, radii=rr.Radius.ui_points(1.5)))
     _scalar(rec, entity(prefix, f"{STATS_COUNTS}/surfaces"), n)
     log_tests(rec, surfaces.tests, prefix=prefix)
+
+
+def _surface_label(surfaces: SurfaceSet, i: int) -> str:
+    """``#i pick k``, then the box height and its source where measured (``h 250 mm
+    side``), and ``NO SKU`` where sizes were listed and none matches."""
+    label = f"#{i} pick {int(surfaces.pick_order[i])}"
+    h = float(surfaces.height[i])
+    if math.isfinite(h):
+        try:
+            src = HeightSource(int(surfaces.height_source[i])).name.lower()
+        except ValueError:
+            src = str(int(surfaces.height_source[i]))
+        label += f" h {h * 1e3:.0f} mm {src}"
+    if bool(surfaces.sku_flagged[i]):
+        label += " NO SKU"
+    return label
+
+
+def _ambiguous_label(amb: AmbiguousSet, k: int) -> str:
+    """Reason, extent and area of ambiguous region k (as the Foxglove scene labels it)."""
+    try:
+        reason = AmbiguityReason(int(amb.reason[k])).name.lower().replace("_", " ")
+    except ValueError:
+        reason = f"reason {int(amb.reason[k])}"
+    w, ln = float(amb.width[k]), float(amb.length[k])
+    size = (f"{w * 1e3:.0f}x{ln * 1e3:.0f} mm, " if math.isfinite(w) and math.isfinite(ln)
+            else "")
+    return f"{reason}, {size}{float(amb.area[k]):.3f} m2"
+
+
+def log_ambiguous(rec: rr.RecordingStream, ambiguous: AmbiguousSet, *,
+                  prefix: str = "") -> None:
+    """The flat regions the evidence could not split into boxes: outlines in magenta
+    (closed line strips, sensor frame), labelled with the reason, extent and area, with
+    their hypothesis, attempt and numbers as ``AnyValues``; their tests with the others."""
+    rec.log(entity(prefix, AMBIGUOUS), rr.Clear(recursive=True))
+    n = len(ambiguous)
+    corners = np.asarray(ambiguous.corners, np.float64).reshape(n, 4, 3)
+    rec.log(
+        entity(prefix, AMBIGUOUS),
+        rr.LineStrips3D(_strips(_closed(corners) if n else np.zeros((0, 5, 3))),
+                        colors=_AMBIGUOUS, radii=rr.Radius.ui_points(4.0),
+                        labels=[f"ambiguous #{k}: {_ambiguous_label(ambiguous, k)}"
+                                for k in range(n)],
+                        show_labels=True),
+        *_any_values(region_id=np.arange(n, dtype=np.int32),
+                     hypothesis=np.asarray(ambiguous.hypothesis, np.int32),
+                     attempt=np.asarray(ambiguous.attempt, np.int32),
+                     reason=np.asarray(ambiguous.reason, np.int32),
+                     area=np.asarray(ambiguous.area, np.float64),
+                     width=np.asarray(ambiguous.width, np.float64),
+                     length=np.asarray(ambiguous.length, np.float64)),
+    )
+    _scalar(rec, entity(prefix, f"{STATS_COUNTS}/ambiguous"), n)
+    log_tests(rec, ambiguous.tests, prefix=prefix)
 
 
 def log_noise(rec: rr.RecordingStream, noise: NoiseEstimate, *, prefix: str = "") -> None:
@@ -528,6 +595,7 @@ _PRODUCT_LOGGERS: tuple[tuple[str, Callable[..., None]], ...] = (
     ("verification", log_verification),
     ("selection", log_selection),
     ("surfaces", log_surfaces),
+    ("ambiguous", log_ambiguous),
 )
 
 
@@ -541,12 +609,13 @@ def log_products(
     ----------
     products : mapping or Result
         ``{stage: product}`` as read back from a log (stages of
-        :data:`boxloc.products.STAGES`, plus ``"timing"`` or ``"timing_ms"``: a mapping of
-        milliseconds, or a :class:`Result`); missing stages are skipped.
+        :data:`boxloc.products.STAGES`, ``"ambiguous"``, plus ``"timing"`` or
+        ``"timing_ms"``: a mapping of milliseconds, or a :class:`Result`); missing stages
+        are skipped.
     """
     if isinstance(products, Result):
         products = {**{s: getattr(products, s) for s in STAGES},
-                    "timing": products.timing_ms}
+                    "ambiguous": products.ambiguous, "timing": products.timing_ms}
     set_scan_time(rec, scan)
     log_scan(rec, scan, prefix=prefix, max_points=max_points)
     for stage, fn in _PRODUCT_LOGGERS:
@@ -748,6 +817,8 @@ class RerunSink(NullObserver):
         self._submit(self._do, log_surfaces, scan, surfaces)
 
     def on_result(self, scan: Scan, result: Result) -> None:
+        # the ambiguous regions come with the result (no stage of their own)
+        self._submit(self._do, log_ambiguous, scan, result.ambiguous)
         self._submit(self._do, log_timing, scan, result.timing_ms)
 
     # -- lifetime --
