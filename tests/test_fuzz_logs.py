@@ -200,3 +200,20 @@ def test_a_sidecar_of_any_lines(tmp_path: Path, lines: list[str]) -> None:
         assert "\n" not in str(e)
         return
     assert all(isinstance(o.ok, bool) for o in out)
+
+
+def test_range_records_are_fuzzed_in_their_own_format() -> None:
+    """A schema-1.4 ``/scan/range`` (a ScanRange record) is mutated as a record, field by
+    field, not as a Foxglove RawImage; the same seed gives the same bytes."""
+    from recorder.fuzz.log_records import _mutate_image
+
+    data = E.encode_range(make_scan(), 0)
+    assert E.is_range_record(data)
+    kinds = set()
+    for seed in range(40):
+        out, kind = _mutate_image(np.random.default_rng(seed), data)
+        again, _ = _mutate_image(np.random.default_rng(seed), data)
+        assert out == again
+        assert kind.startswith("range-"), kind
+        kinds.add(kind)
+    assert len(kinds) >= 4, kinds   # several fields were mutated, not just the bytes

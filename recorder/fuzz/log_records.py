@@ -152,12 +152,19 @@ def _mutate_product(rng: np.random.Generator, data: bytes) -> tuple[bytes, str]:
             a.dtype, a.filter = raw.dtype.str, 0
             del a.shape[:]
             a.data = raw.tobytes()
-    return msg.SerializeToString(), f"product-{what}"
+    return msg.SerializeToString(deterministic=True), f"product-{what}"
 
 
 def _mutate_image(rng: np.random.Generator, data: bytes) -> tuple[bytes, str]:
+    """Mutate a ``/scan/range`` message in its own format: a ``ScanRange`` record (schema
+    1.4 on) like a product, an older log's Foxglove RawImage field by field."""
     from foxglove_schemas_protobuf.RawImage_pb2 import RawImage
 
+    from recorder.mcap.encode import is_range_record
+
+    if is_range_record(data):
+        out, kind = _mutate_product(rng, data)
+        return out, f"range-{kind}"
     msg = RawImage()
     try:
         msg.ParseFromString(data)
@@ -175,7 +182,7 @@ def _mutate_image(rng: np.random.Generator, data: bytes) -> tuple[bytes, str]:
     else:
         k = int(rng.integers(0, len(msg.data) + 1))
         msg.data = msg.data[:k]
-    return msg.SerializeToString(), f"image-{what}"
+    return msg.SerializeToString(deterministic=True), f"image-{what}"
 
 
 def _mutate_rows(rng: np.random.Generator, data: bytes, topic: str) -> tuple[bytes, str]:
@@ -205,7 +212,7 @@ def _mutate_rows(rng: np.random.Generator, data: bytes, topic: str) -> tuple[byt
     else:
         msg.surface_id = int(_pick(rng, [-1, 2**31 - 1]))
         msg.scan_index = int(_pick(rng, [-1, 2**63 - 1]))
-    return msg.SerializeToString(), f"{name}-fields"
+    return msg.SerializeToString(deterministic=True), f"{name}-fields"
 
 
 _PRODUCT_TOPICS = ("/scan/sensor", "/scan/info", "/boxloc/edges", "/boxloc/lines",
