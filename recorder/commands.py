@@ -12,7 +12,7 @@ import json
 import signal
 import time
 from collections.abc import Iterator
-from contextlib import ExitStack, contextmanager
+from contextlib import ExitStack, closing, contextmanager
 from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
@@ -86,12 +86,28 @@ def normalize_rerun(value: str) -> str:
 
 @dataclasses.dataclass
 class Source:
-    """The scans of a SOURCE, with their count when known and the log's config (for logs)."""
+    """The scans of a SOURCE, with their count when known and the log's config (for logs).
+
+    ``scans`` yields :class:`~boxloc.scan.Scan` objects and, in their place, a
+    :class:`ReadError` for an input of the source that could not be read (a bad file of a
+    directory, the damage that ends a bag or a log); nothing after an error is lost.
+    """
 
     scans: Iterator[Any]
     total: int | None
     log_config: Any = None
     kind: str = "file"
+
+
+@dataclasses.dataclass(frozen=True)
+class ReadError:
+    """An input that could not be read, in its place among the scans.
+
+    ``last``: nothing follows it, so it is the run's final error rather than a warning.
+    """
+
+    message: str
+    last: bool = False
 
 
 def rosbag_options(f: Any) -> Any:
@@ -107,11 +123,34 @@ def rosbag_options(f: Any) -> Any:
     return f
 
 
+def _guarded(scans: Iterator[Any]) -> Iterator[Any]:
+    """The scans, then the error that ended them (a damaged bag or log) as a ReadError."""
+    try:
+        yield from scans
+    except BoxlocError as e:
+        yield ReadError(str(e))
+
+
+def _read_files(files: list[Path], **kw: Any) -> Iterator[Any]:
+    """Each file's scan (``index`` = its place in ``files``), or its ReadError."""
+    from boxloc.io import read_scan
+
+    for i, f in enumerate(files):
+        try:
+            yield read_scan(f, index=i, **kw)
+        except BoxlocError as e:
+            yield ReadError(str(e))
+
+
 def open_source(source: str, *, count: int, seed: int | None, intrinsics: str | None,
                 depth_scale: float | None, max_pixels: int, depth_topic: str | None = None,
                 info_topic: str | None = None, base_frame: str | None = None) -> Source:
     """Turn SOURCE into scans: ``sim:KIND[:k=v,...]``, a scan file or directory, a ROS 2
-    bag (:func:`boxloc.io.rosbag.open_bag`, opened and checked here), or a log."""
+    bag (:func:`boxloc.io.rosbag.open_bag`, opened and checked here), or a log.
+
+    A source that does not exist or cannot be opened raises :class:`InputError` here, before
+    any scan is run; what goes wrong while reading comes as :class:`ReadError` items.
+    """
     if source.startswith("sim:"):
         from boxloc.simulate import parse_spec, simulate
 
@@ -123,8 +162,10 @@ def open_source(source: str, *, count: int, seed: int | None, intrinsics: str | 
                 scan = simulate(spec, seed=first + i).scan
                 yield dataclasses.replace(scan, index=i)
 
-        return Source(sims(), count, kind="sim")
+        return Source(_guarded(sims()), count, kind="sim")
     p = Path(source)
+    if not p.exists():
+        raise InputError(f"SOURCE not found: {p}")
     from boxloc.io.rosbag import is_rosbag
 
     if is_rosbag(p):
@@ -133,7 +174,7 @@ def open_source(source: str, *, count: int, seed: int | None, intrinsics: str | 
         bag = open_bag(p, depth_topic=depth_topic, info_topic=info_topic,
                        base_frame=base_frame, intrinsics=intrinsics, depth_scale=depth_scale,
                        max_pixels=max_pixels)
-        return Source(iter(bag), bag.count, kind="rosbag")
+        return Source(_guarded(iter(bag)), bag.count, kind="rosbag")
     if p.suffix.lower() == ".mcap":
         from recorder.mcap.log import open_log
 
@@ -143,20 +184,60 @@ def open_source(source: str, *, count: int, seed: int | None, intrinsics: str | 
             from recorder.mcap import channels as C
             ids = [cid for cid, ch in log.summary.channels.items() if ch.topic == C.SCAN_INFO]
             total = sum(log.summary.statistics.channel_message_counts.get(i, 0) for i in ids)
-        return Source((r.scan for r in log.scans()), total, log.config, kind="log")
-    from boxloc.io import SUPPORTED_SUFFIXES, read_scans
+        return Source(_guarded(r.scan for r in log.scans()), total, log.config, kind="log")
+    from boxloc.io import SUPPORTED_SUFFIXES
 
-    total = None
-    if p.is_dir():
-        total = sum(1 for f in p.iterdir() if f.is_file() and f.suffix.lower()
-                    in SUPPORTED_SUFFIXES)
-    return Source(read_scans(p, intrinsics=intrinsics, depth_scale=depth_scale,
-                             max_pixels=max_pixels), total, kind="file")
+    files = [p]
+    if p.is_dir():  # file by file, as boxloc.io.read_scans, so that one bad file is skipped
+        files = sorted(f for f in p.iterdir()
+                       if f.is_file() and f.suffix.lower() in SUPPORTED_SUFFIXES)
+        if not files:
+            raise InputError(f"no scan files ({', '.join(SUPPORTED_SUFFIXES)}) in "
+                             f"directory {p}")
+    return Source(_read_files(files, intrinsics=intrinsics, depth_scale=depth_scale,
+                              max_pixels=max_pixels), len(files), kind="file")
+
+
+def _source_config(src: Source, cfg: Any, config_path: str | None,
+                   overrides: tuple[str, ...]) -> Any:
+    """The config a source's scans run with: a log's own (with ``--set``) unless
+    ``--config`` is given, else the command line's."""
+    if src.log_config is not None and config_path is None:
+        return src.log_config.with_overrides(list(overrides)) if overrides else src.log_config
+    return cfg
+
+
+def _stream(sources: list[Source], configs: list[Any], *, renumber: bool) -> Iterator[Any]:
+    """Every source's scans in order, as :class:`recorder.stream.Job`, with ReadErrors in
+    their place; the last item, when it is an error, is marked ``last``.
+
+    With ``renumber`` (several sources) scans are numbered 0, 1, ... across all of them, as
+    ``boxloc import`` numbers them, so that no two scans of the log share an index.
+    """
+    from recorder.stream import Job
+
+    n = 0
+    held: ReadError | None = None  # an error waits to see whether anything follows it
+    for src, cfg in zip(sources, configs):
+        for item in src.scans:
+            if held is not None:
+                yield held
+                held = None
+            if isinstance(item, ReadError):
+                held = item
+                continue
+            scan = item
+            if renumber and scan.index != n:
+                scan = dataclasses.replace(scan, index=n)
+            n += 1
+            yield Job(scan, cfg)
+    if held is not None:
+        yield dataclasses.replace(held, last=True)
 
 
 @contextmanager
 def _stop_requests() -> Iterator[list[int]]:
-    """SIGINT and SIGTERM ask the run to stop after the scan in progress.
+    """SIGINT and SIGTERM ask the run to stop after the scans in progress.
 
     The first signal only sets a flag (the yielded list gets the signal number), so the
     pipeline is never interrupted inside a stage (a KeyboardInterrupt raised inside a numba
@@ -199,7 +280,7 @@ def _progress(enabled: bool, total: int | None) -> Any:
 
 
 @click.command("run")
-@click.argument("source")
+@click.argument("sources", metavar="SOURCE...", nargs=-1, required=True)
 @click.option("--count", type=click.IntRange(min=1), default=1, show_default=True,
               help="Number of simulated scans (sim: sources; seeds SEED, SEED+1, ...).")
 @click.option("--seed", type=int, default=None, help="First simulator seed (default: the spec's).")
@@ -215,7 +296,9 @@ def _progress(enabled: bool, total: int | None) -> Any:
               metavar="SECONDS", help="Start a new MCAP file after SECONDS of log time.")
 @click.option("--force", is_flag=True,
               help="Overwrite an existing --record FILE (and --publish-ros2 file).")
-@click.option("--workers", type=int, default=None, help="Processes for per-vertex work.")
+@click.option("--workers", type=click.IntRange(min=0), default=1, show_default=True,
+              help="Processes that run scans in parallel (0: one per CPU). The log is the "
+                   "same as with 1, bit for bit, in scan order.")
 @click.option("--quiet", "-q", is_flag=True, help="No progress bar or per-scan lines.")
 @click.option("--publish-ros2", "publish_ros2", type=click.Path(dir_okay=False), default=None,
               metavar="OUT.mcap", help="Also write the surfaces as a ROS 2 bag: PoseArray "
@@ -224,41 +307,52 @@ def _progress(enabled: bool, total: int | None) -> Any:
 @rosbag_options
 @scan_options
 @config_options
-def run(source: str, count: int, seed: int | None, record: str | None, rerun: str,
-        rotate_size: float | None, rotate_duration: float | None, force: bool,
-        workers: int | None, quiet: bool, publish_ros2: str | None, depth_topic: str | None,
+def run(sources: tuple[str, ...], count: int, seed: int | None, record: str | None,
+        rerun: str, rotate_size: float | None, rotate_duration: float | None, force: bool,
+        workers: int, quiet: bool, publish_ros2: str | None, depth_topic: str | None,
         info_topic: str | None, base_frame: str | None, intrinsics: str | None,
         depth_scale: float | None, config_path: str | None,
         overrides: tuple[str, ...]) -> None:
-    """Run the localizer on SOURCE, recording every scan and product.
+    """Run the localizer on each SOURCE in turn, recording every scan and product.
 
     SOURCE is a simulator spec (sim:KIND[:key=value,...], with --count), a scan file, a
     directory of scans, a ROS 2 bag (a rosbag2 directory, .mcap or .db3; --depth-topic,
     --info-topic, --base-frame), or an MCAP log (its scans are re-run; with the log's config
-    unless --config is given). Ctrl-C (or SIGTERM) stops after closing the log cleanly.
+    unless --config is given). Several SOURCEs are run in the order given (`boxloc run
+    a.npz b.npz scans/`), their scans numbered 0, 1, ... across them. An input that cannot
+    be read is reported and the run goes on; the exit code is then 2.
+
+    --workers N runs N scans at a time in worker processes; the log keeps scan order and is
+    the same, bit for bit, as with one. Ctrl-C (or SIGTERM) stops after the scans in
+    progress, closing the log cleanly.
     """
     from boxloc.observer import FanOut
-    from boxloc.pipeline import find_graspable_surfaces
     from boxloc.stages.scan_noise import fit_warning
     from recorder.mcap.sink import McapRecorder, RecordingError
+    from recorder.stream import default_workers, ordered_runs
 
     rerun_target = normalize_rerun(rerun)
-    cfg = load_config(config_path, overrides, workers=workers)
-    src = open_source(source, count=count, seed=seed, intrinsics=intrinsics,
-                      depth_scale=depth_scale, max_pixels=cfg.max_pixels,
-                      depth_topic=depth_topic, info_topic=info_topic, base_frame=base_frame)
-    if src.log_config is not None and config_path is None:
-        cfg = src.log_config.with_overrides(list(overrides)) if overrides else src.log_config
-        if workers is not None:
-            cfg = cfg.with_overrides({"workers": workers})
+    cfg = load_config(config_path, overrides)
+    opened = [open_source(s, count=count, seed=seed, intrinsics=intrinsics,
+                          depth_scale=depth_scale, max_pixels=cfg.max_pixels,
+                          depth_topic=depth_topic, info_topic=info_topic,
+                          base_frame=base_frame) for s in sources]
+    configs = [_source_config(src, cfg, config_path, overrides) for src in opened]
+    totals = [src.total for src in opened]
+    total = None if None in totals else sum(t for t in totals if t is not None)
+    n_workers = default_workers() if workers == 0 else workers
+    if total is not None:  # no worker to start for fewer scans; one scan runs in here
+        n_workers = max(1, min(n_workers, total))
+    items = _stream(opened, configs, renumber=len(opened) > 1)
     n_ok = n_failed = n_surfaces = 0
+    errors: list[ReadError] = []
     rec: McapRecorder | None = None
     t_start = time.perf_counter()
     with ExitStack() as stack:
         session = f"boxloc-{datetime.now(UTC).strftime('%Y%m%dT%H%M%SZ')}"
         if record:
             rec = stack.enter_context(McapRecorder(
-                record, config=cfg, overwrite=force,
+                record, config=configs[0], overwrite=force,
                 rotate_bytes=None if rotate_size is None else int(rotate_size * 1e6),
                 rotate_seconds=rotate_duration))
             session = rec.session
@@ -281,14 +375,33 @@ def run(source: str, count: int, seed: int | None, record: str | None, rerun: st
                 observers.append(sink)
         obs = FanOut(*observers)
         stop = stack.enter_context(_stop_requests())
-        show = not quiet and (src.total is None or src.total > 1)
-        progress = stack.enter_context(_progress(show, src.total))
-        task = progress.add_task("scans", total=src.total)
+        show = not quiet and (total is None or total > 1)
+        progress = stack.enter_context(_progress(show, total))
+        task = progress.add_task("scans" if n_workers == 1 else f"scans ({n_workers} workers)",
+                                 total=total)
+        runs: Iterator[tuple[Any, Any]]
+        if n_workers > 1:
+            # closed first (LIFO) when the run ends early: the workers are stopped at once
+            runs = stack.enter_context(closing(ordered_runs(items, n_workers,
+                                                            stop=lambda: bool(stop))))
+        else:
+            from boxloc.pipeline import find_graspable_surfaces
+
+            runs = ((item, None) for item in items)
         try:
-            for scan in src.scans:
-                t0 = time.perf_counter()
+            for item, done in runs:
+                if isinstance(item, ReadError):
+                    errors.append(item)
+                    if not item.last:  # the final one is the run's error, after the log
+                        progress.console.print(f"error: {item.message} (going on)",
+                                               markup=False)
+                    continue
+                scan, t0 = item.scan, time.perf_counter()
                 try:
-                    result = find_graspable_surfaces(scan, cfg, observer=obs)
+                    if done is None:
+                        result = find_graspable_surfaces(scan, item.config, observer=obs)
+                    else:  # run in a worker: the observers get its calls now, in order
+                        result = done.replay(scan, obs)
                 except (RecordingError, KeyboardInterrupt):
                     raise
                 except Exception as e:  # the scan's failure is its result: record, go on
@@ -304,18 +417,33 @@ def run(source: str, count: int, seed: int | None, record: str | None, rerun: st
                     if result.noise is not None and (w := fit_warning(result.noise)):
                         progress.console.print(f"scan {scan.index}: warning: {w}", markup=False)
                     if not quiet and not show:
+                        seconds = time.perf_counter() - t0 if done is None else done.seconds
                         progress.console.print(
                             f"scan {scan.index}: {len(result.surfaces)} surface(s) in "
-                            f"{time.perf_counter() - t0:.1f} s")
+                            f"{seconds:.1f} s")
                 progress.advance(task)
-                if stop:
+                if stop and n_workers == 1:
                     raise KeyboardInterrupt
+            if stop:  # the workers finished the scans they had; all are recorded
+                raise KeyboardInterrupt
         except KeyboardInterrupt:
             progress.console.print("interrupted: closing the log")
             raise
         finally:
             stack.close()
             _report(rec, n_ok, n_failed, n_surfaces, time.perf_counter() - t_start, quiet)
+    if errors:
+        raise InputError(_errors_line(errors))
+
+
+def _errors_line(errors: list[ReadError]) -> str:
+    """The run's one-line error: the last unreadable input's message when nothing followed
+    it (as a run of that input alone says), or how many were reported above."""
+    last, others = errors[-1], len(errors) - 1
+    if last.last:
+        return last.message + (f" ({others} other input(s) could not be read either, "
+                               "reported above)" if others else "")
+    return f"{len(errors)} input(s) could not be read (reported above); every other scan ran"
 
 
 def _report(rec: Any, n_ok: int, n_failed: int, n_surfaces: int, seconds: float,

@@ -1,0 +1,305 @@
+"""`boxloc run SOURCE... --workers N`: several inputs in order, scans run in worker processes
+with the log identical (bit for bit, in scan order) to a serial run's, bad inputs among
+good ones, a worker that dies, the bound on scans in flight, and Ctrl-C.
+
+The stream machinery itself (:mod:`recorder.stream`) is tested on small simulated scans;
+no test here depends on how fast anything is.
+"""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+from cli_run import invoke
+
+from boxloc import io
+from boxloc import simulate as sim
+from boxloc.config import Config
+from boxloc.errors import InputError
+from boxloc.scan import Scan
+from recorder.mcap import channels as C
+from recorder.mcap.log import open_log
+from recorder.stream import (
+    Job,
+    RemoteError,
+    ScanRun,
+    WorkerLost,
+    _portable,
+    ordered_runs,
+    run_job,
+)
+
+ROOT = Path(__file__).resolve().parents[1]
+SPEC = "pallet:width=120,height=90,f=100"
+
+
+def _scan(seed: int) -> Scan:
+    return sim.simulate(SPEC, seed=seed).scan
+
+
+@pytest.fixture(scope="module")
+def scans_dir(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """Four small simulated pallets (a few boxes each) as .npz files, s0 .. s3."""
+    d = tmp_path_factory.mktemp("scans")
+    for k in range(4):
+        io.write_npz(_scan(k + 1), d / f"s{k}.npz")
+    return d
+
+
+def _messages(path: Path) -> list[tuple[str, int, int, bytes]]:
+    """Every message of a log as stored, but the wall-clock timing (the one thing a run
+    on other processes may change)."""
+    return [(m.topic, m.log_time, m.sequence, m.data) for m in open_log(path).messages()
+            if m.topic != C.TIMING]
+
+
+def _ranges(path: Path) -> list[bytes]:
+    return [r.scan.range.tobytes() for r in open_log(path).scans()]
+
+
+# --- the command line ------------------------------------------------------------------------
+
+
+def test_several_sources_run_in_the_order_given(scans_dir: Path, tmp_path: Path) -> None:
+    files = sorted(scans_dir.glob("*.npz"))
+    sub = tmp_path / "sub"
+    sub.mkdir()
+    for f in files[:2]:  # a directory: its files in name order
+        (sub / f.name).write_bytes(f.read_bytes())
+    log = tmp_path / "run.mcap"
+    r = invoke("run", str(files[3]), str(sub), str(files[2]), "--record", str(log), "-q")
+    assert r.returncode == 0, r.stderr
+    order = [files[3], files[0], files[1], files[2]]
+    assert _ranges(log) == [io.read_scan(f).range.tobytes() for f in order]
+    # numbered across the sources, as `boxloc import` numbers them
+    assert [rec.index for rec in open_log(log).scans()] == [0, 1, 2, 3]
+    assert all(rec.complete for rec in open_log(log).scans())
+
+
+def test_several_simulator_specs_are_numbered_across(tmp_path: Path) -> None:
+    log = tmp_path / "sim.mcap"
+    r = invoke("run", "sim:single:width=96,height=72,f=80", "sim:" + SPEC, "--count", "2",
+               "--record", str(log), "-q")
+    assert r.returncode == 0, r.stderr
+    recs = list(open_log(log).scans())
+    assert [x.index for x in recs] == [0, 1, 2, 3]
+    assert [x.scan.shape for x in recs] == [(72, 96)] * 2 + [(90, 120)] * 2
+
+
+def test_workers_write_the_serial_log_bit_for_bit(scans_dir: Path, tmp_path: Path) -> None:
+    serial, parallel = tmp_path / "serial.mcap", tmp_path / "parallel.mcap"
+    r = invoke("run", str(scans_dir), "--record", str(serial), "-q", "--workers", "1")
+    assert r.returncode == 0, r.stderr
+    r = invoke("run", str(scans_dir), "--record", str(parallel), "-q", "--workers", "2")
+    assert r.returncode == 0, r.stderr
+    a, b = _messages(serial), _messages(parallel)
+    assert [m[:3] for m in a] == [m[:3] for m in b]  # the same messages in the same order
+    assert a == b  # and the same bytes
+    assert open_log(serial).config == open_log(parallel).config
+    recs = list(open_log(parallel).scans())
+    assert [x.index for x in recs] == [0, 1, 2, 3] and all(x.complete for x in recs)
+    assert sum(len(x.result.surfaces) for x in recs if x.result is not None) > 0
+
+
+def _garbage(d: Path) -> Path:
+    bad = d / "s1b.npz"  # between s1 and s2 in name order
+    bad.write_bytes(b"not a zip file")
+    return bad
+
+
+@pytest.mark.parametrize("workers", ["1", "0"])
+def test_a_bad_input_among_several_is_reported_and_the_rest_run(
+        scans_dir: Path, tmp_path: Path, workers: str) -> None:
+    d = tmp_path / "mixed"
+    d.mkdir()
+    for f in scans_dir.glob("*.npz"):
+        (d / f.name).write_bytes(f.read_bytes())
+    bad = _garbage(d)
+    also_bad = tmp_path / "truncated.npz"
+    also_bad.write_bytes((scans_dir / "s0.npz").read_bytes()[:500])
+    log = tmp_path / f"mixed{workers}.mcap"
+    r = invoke("run", str(d), str(also_bad), str(scans_dir / "s3.npz"), "--record", str(log),
+               "-q", "--workers", workers)
+    assert r.returncode == 2
+    assert "Traceback" not in r.stderr
+    # each bad input named on its own line, the run's error the last line
+    lines = [ln for ln in r.stderr.splitlines() if ln.strip()]
+    assert any(str(bad) in ln for ln in lines[:-1])
+    assert any(str(also_bad) in ln for ln in lines[:-1])
+    assert lines[-1].startswith("boxloc: error: 2 input(s) could not be read")
+    # every good scan recorded, in order, numbered without gaps
+    good = [d / "s0.npz", d / "s1.npz", d / "s2.npz", d / "s3.npz", scans_dir / "s3.npz"]
+    assert _ranges(log) == [io.read_scan(f).range.tobytes() for f in good]
+    assert [x.index for x in open_log(log).scans()] == [0, 1, 2, 3, 4]
+
+
+def test_a_bad_last_input_is_the_runs_one_line_error(scans_dir: Path, tmp_path: Path) -> None:
+    bad = _garbage(tmp_path)
+    log = tmp_path / "last.mcap"
+    r = invoke("run", str(scans_dir / "s0.npz"), str(scans_dir / "s1.npz"), str(bad),
+               "--record", str(log), "-q", "--workers", "2")
+    assert r.returncode == 2
+    lines = [ln for ln in r.stderr.splitlines() if ln.strip()]
+    # the summary of what was recorded, then the error, said once
+    assert lines[0].startswith("2 scan(s)") and str(log) in lines[0]
+    assert len(lines) == 2 and lines[1].startswith(f"boxloc: error: {bad}: ")
+    assert len(_ranges(log)) == 2
+
+
+def test_a_missing_source_is_refused_before_anything_runs(scans_dir: Path,
+                                                          tmp_path: Path) -> None:
+    log = tmp_path / "never.mcap"
+    r = invoke("run", str(scans_dir / "s0.npz"), str(tmp_path / "typo.npz"), "--record",
+               str(log), "--workers", "2")
+    assert r.returncode == 2
+    assert "not found" in r.stderr and "typo.npz" in r.stderr and "Traceback" not in r.stderr
+    assert not log.exists()
+
+
+def test_a_failing_scan_is_recorded_as_in_a_serial_run(scans_dir: Path,
+                                                       tmp_path: Path) -> None:
+    """A scan the pipeline refuses (no valid range) is that scan's error, the same in both
+    logs, and the scans after it run."""
+    d = tmp_path / "with_empty"
+    d.mkdir()
+    s = io.read_scan(scans_dir / "s0.npz")
+    empty = Scan(range=np.full(s.shape, np.nan, np.float32), sensor=s.sensor)
+    io.write_npz(empty, d / "a_empty.npz")
+    (d / "b.npz").write_bytes((scans_dir / "s1.npz").read_bytes())
+    logs = {}
+    for w in ("1", "2"):
+        logs[w] = tmp_path / f"w{w}.mcap"
+        r = invoke("run", str(d), "--record", str(logs[w]), "-q", "--workers", w)
+        assert r.returncode == 0, r.stderr
+        assert "scan 0: failed: InputError: scan has no valid range" in r.stderr
+    assert _messages(logs["1"]) == _messages(logs["2"])
+    first, second = list(open_log(logs["2"]).scans())
+    assert first.error is not None and first.error["error_type"] == "InputError"
+    assert second.complete and second.result is not None
+
+
+def test_ctrl_c_leaves_a_complete_log_with_every_scan_started(tmp_path: Path) -> None:
+    """Ctrl-C reaches the whole process group: the workers ignore it, finish the scans they
+    have, and the parent records them and closes the log (exit 130)."""
+    log = tmp_path / "interrupted.mcap"
+    cmd = [sys.executable, "-m", "boxloc.cli", "run", "sim:single:width=96,height=72,f=80",
+           "--count", "2000", "--record", str(log), "--quiet", "--workers", "2"]
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            cwd=ROOT, start_new_session=True)
+    try:
+        deadline = time.monotonic() + 120
+        while time.monotonic() < deadline and proc.poll() is None:
+            if log.exists() and log.stat().st_size > 150_000:  # a few scans on disk
+                break
+            time.sleep(0.1)
+        assert proc.poll() is None, proc.communicate()
+        os.killpg(proc.pid, signal.SIGINT)  # as a terminal's Ctrl-C does
+        _, err = proc.communicate(timeout=120)
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+            proc.wait()
+    assert proc.returncode == 130, err
+    assert "Traceback" not in err
+    lg = open_log(log)
+    assert lg.complete
+    recs = list(lg.scans())
+    assert 2 <= len(recs) < 2000
+    assert [x.index for x in recs] == list(range(len(recs)))  # no gap: in order, all kept
+    assert all(x.complete for x in recs)
+
+
+# --- recorder.stream ------------------------------------------------------------------------
+
+
+def _jobs(n: int) -> list[Job]:
+    return [Job(_scan(k + 1), Config()) for k in range(n)]
+
+
+def test_a_scan_run_replays_the_pipelines_calls_in_order() -> None:
+    from boxloc.pipeline import find_graspable_surfaces
+    from boxloc.products import products_equal
+
+    job = _jobs(1)[0]
+    run = run_job(job)
+    assert run.error is None and run.result is not None
+    names = [c[0] for c in run.calls]
+    assert names == ["on_scan", "on_noise", "on_edges", "on_lines", "on_vertices",
+                     "on_hypotheses", "on_verification", "on_selection", "on_surfaces",
+                     "on_result"]
+
+    class Seen:
+        def __init__(self) -> None:
+            self.calls: list[tuple[str, Scan]] = []
+
+        def __getattr__(self, name: str) -> object:
+            return lambda scan, *a: self.calls.append((name, scan))
+
+    seen = Seen()
+    result = run.replay(job.scan, seen)  # type: ignore[arg-type]
+    assert [c[0] for c in seen.calls] == names and all(c[1] is job.scan for c in seen.calls)
+    assert products_equal(result, find_graspable_surfaces(job.scan, Config())) == []
+
+
+def test_an_error_that_does_not_pickle_keeps_its_name_and_message() -> None:
+    class Odd(Exception):
+        def __init__(self, a: int, b: int) -> None:  # pickle cannot rebuild it from args
+            super().__init__(f"odd {a} {b}")
+
+    e = _portable(Odd(1, 2))
+    run = ScanRun((), None, e)
+    with pytest.raises(RemoteError, match="odd 1 2") as info:
+        run.replay(_scan(1), None)  # type: ignore[arg-type]
+    assert type(info.value).__name__ == "Odd"
+    assert _portable(InputError("x")).__class__ is InputError  # picklable: itself
+
+
+def test_results_come_in_item_order_within_the_window() -> None:
+    """Items that are not jobs pass through in their place; never more than the window
+    is read ahead of what was yielded."""
+    jobs = _jobs(5)
+    items: list[object] = [jobs[0], "a read error", *jobs[1:3], "another", *jobs[3:]]
+    read = 0
+
+    def source() -> object:
+        nonlocal read
+        for it in items:
+            read += 1
+            yield it
+
+    got = []
+    for item, run in ordered_runs(source(), 2, window=3):
+        assert read - len(got) <= 3
+        got.append(item)
+        assert (run is None) == isinstance(item, str)
+        if run is not None:
+            assert run.error is None and run.result is not None
+            assert run.result.scan_index == item.scan.index  # type: ignore[attr-defined]
+    assert got == items
+
+
+class _ExitOnUnpickle:
+    """Kills the worker process that unpickles it (as the OOM killer would)."""
+
+    def __reduce__(self) -> tuple[object, tuple[int]]:
+        return (os._exit, (3,))
+
+
+def test_a_scan_that_kills_its_worker_is_failed_and_the_others_run() -> None:
+    a, b, c = _jobs(3)
+    deadly = Job(Scan(range=b.scan.range, sensor=b.scan.sensor, index=b.scan.index,
+                      meta={"x": _ExitOnUnpickle()}), b.config)
+    out = list(ordered_runs([a, deadly, c], 2))
+    assert [job.scan.index for job, _ in out] == [a.scan.index, b.scan.index, c.scan.index]
+    (_, ra), (_, rb), (_, rc) = out
+    assert ra is not None and ra.result is not None and rc is not None and rc.result is not None
+    assert rb is not None and isinstance(rb.error, WorkerLost)
+    assert "died 2 time(s)" in str(rb.error) and "exit code 3" in str(rb.error)
+    assert [c[0] for c in rb.calls] == ["on_scan"]  # recorded as a scan with its error
