@@ -1,6 +1,6 @@
 """Compile boxloc's numba kernels into numba's on-disk cache; scripts/setup.sh runs it.
 
-The kernels (``@numba.njit(cache=True)`` in boxloc/stages/edges.py and boxloc/stages/lines.py)
+The kernels (``@numba.njit(cache=True)`` in boxloc/stages/: edges.py, lines.py, scan_noise.py)
 compile on their first call, about 11 s on one core, and are then written to numba's
 cache: beside the sources (``boxloc/stages/__pycache__/*.nbi, *.nbc``) for a checkout or an
 editable install, or under

@@ -501,9 +501,16 @@ def fit_residuals(
     incidence: str = "model",
     terms: Sequence[str] = NOISE_TERMS,
     base: NoiseModel | None = None,
+    diagnostics: bool = True,
 ) -> tuple[NoiseModel, dict[str, Any]]:
     """:func:`estimate_noise` on flat tiles already cut (one :func:`tile_residuals` per
-    scan); same parameters and returns."""
+    scan); same parameters and returns.
+
+    ``diagnostics=False`` leaves out what only the calibration report reads (the rows'
+    ``std_clipped`` when ``estimator="mad"``, ``incidence_exponent``, ``correlation``,
+    ``tails``, ``fit_rel_rms``: None), for the per-scan model of the pipeline; the model
+    is the same, bit for bit.
+    """
     terms = tuple(terms)
     base = base or NoiseModel()
     rs, ys, cs, ts, shares = [], [], [], [], []
@@ -544,17 +551,22 @@ def fit_residuals(
     nb = int(np.ceil((r.max() - lo) / bin_width)) or 1
     edges = lo + bin_width * np.arange(nb + 1)
     which = np.clip(((r - lo) / bin_width).astype(np.int64), 0, nb - 1)
+    # each bin's points, in their order (the same selection as ``which == b``, found once)
+    order = np.argsort(which, kind="stable")
+    cuts = np.searchsorted(which[order], np.arange(nb + 1))
+    members = [order[cuts[b]:cuts[b + 1]] for b in range(nb)]
+    clipped = estimator == "clipped" or diagnostics
     rows = []
     for b in range(nb):
-        sel = which == b
-        if not sel.any():
+        sel = members[b]
+        if not sel.size:
             continue
         yb = y[sel]
         tiles_b = int(np.unique(tile[sel]).size)
-        row = {
+        row: dict[str, Any] = {
             "lo": float(edges[b]), "hi": float(edges[b + 1]),
-            "range": float(np.median(r[sel])), "count": int(sel.sum()), "tiles": tiles_b,
-            "std_mad": _robust_std(yb), "std_clipped": _clipped_std(yb),
+            "range": float(np.median(r[sel])), "count": int(sel.size), "tiles": tiles_b,
+            "std_mad": _robust_std(yb), "std_clipped": _clipped_std(yb) if clipped else None,
             "mean_cos": float(np.mean(c[sel])),
         }
         row["std"] = row["std_mad"] if estimator == "mad" else row["std_clipped"]
@@ -570,7 +582,7 @@ def fit_residuals(
             f"points from {min_tiles} flat tiles ({r.size} points in total)"
         )
     e_ray = y / np.maximum(c, base.min_cos) if incidence == "model" else y
-    report["incidence_exponent"] = _incidence_exponent(r, c, e_ray, used)
+    report["incidence_exponent"] = _incidence_exponent(r, c, e_ray, used) if diagnostics else None
     g = 1.0
     if incidence == "fit":
         # The incidence law that explains the binned scatter best. The within-bin slope
@@ -581,8 +593,9 @@ def fit_residuals(
             y_try = e_ray * np.maximum(c, base.min_cos) ** g_try
             rows_try = [dict(row) for row in rows]
             for row in rows_try:
-                yb = y_try[which == int(round((row["lo"] - lo) / bin_width))]
-                row["std_mad"], row["std_clipped"] = _robust_std(yb), _clipped_std(yb)
+                yb = y_try[members[int(round((row["lo"] - lo) / bin_width))]]
+                row["std_mad"] = _robust_std(yb)
+                row["std_clipped"] = _clipped_std(yb) if clipped else None
                 row["std"] = row["std_mad"] if estimator == "mad" else row["std_clipped"]
             used_try = [row for row in rows_try if row["used"] and row["std"] > 0]
             if not used_try:
@@ -607,6 +620,10 @@ def fit_residuals(
                           "median": float(np.median(share)) if share.size else None,
                           "std_error": float(share.std() / np.sqrt(share.size))
                           if share.size > 1 else None}
+    if not diagnostics:
+        report.update(correlation=None, tails=None, fit_rel_rms=None,
+                      underdetermined=len(used) < len(terms), model=model.to_dict())
+        return model, report
     with np.errstate(invalid="ignore", divide="ignore"):
         corr = lag_sums[..., 0] / np.sqrt(lag_sums[..., 1] * lag_sums[..., 2])
     report["correlation"] = {
