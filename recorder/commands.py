@@ -198,6 +198,17 @@ def open_source(source: str, *, count: int, seed: int | None, intrinsics: str | 
                               max_pixels=max_pixels), len(files), kind="file")
 
 
+def _box_sizes(path: str | None) -> tuple[Any, dict[str, tuple[str, bytes]] | None]:
+    """``--box-sizes FILE``: the parsed carton list and the file as the log's attachment
+    (``(None, None)`` without one). A bad file is a one-line InputError, before any work."""
+    if path is None:
+        return None, None
+    from boxloc.io.box_sizes import read_box_sizes
+    from recorder.mcap.sink import box_sizes_attachment
+
+    return read_box_sizes(path), box_sizes_attachment(path)
+
+
 def _source_config(src: Source, cfg: Any, config_path: str | None,
                    overrides: tuple[str, ...]) -> Any:
     """The config a source's scans run with: a log's own (with ``--set``) unless
@@ -304,12 +315,18 @@ def _progress(enabled: bool, total: int | None) -> Any:
               metavar="OUT.mcap", help="Also write the surfaces as a ROS 2 bag: PoseArray "
               "/boxloc/grasp_poses and MarkerArray /boxloc/surfaces, on each scan's stamp "
               "and frame.")
+@click.option("--box-sizes", "box_sizes", type=click.Path(dir_okay=False), default=None,
+              metavar="FILE",
+              help="The carton sizes the cell handles: a CSV with the header "
+                   "width,length,height (metres; height may be empty). Part of the recorded "
+                   "config, and attached to the log as box_sizes.csv.")
 @rosbag_options
 @scan_options
 @config_options
 def run(sources: tuple[str, ...], count: int, seed: int | None, record: str | None,
         rerun: str, rotate_size: float | None, rotate_duration: float | None, force: bool,
-        workers: int, quiet: bool, publish_ros2: str | None, depth_topic: str | None,
+        workers: int, quiet: bool, publish_ros2: str | None, box_sizes: str | None,
+        depth_topic: str | None,
         info_topic: str | None, base_frame: str | None, intrinsics: str | None,
         depth_scale: float | None, config_path: str | None,
         overrides: tuple[str, ...]) -> None:
@@ -333,11 +350,16 @@ def run(sources: tuple[str, ...], count: int, seed: int | None, record: str | No
 
     rerun_target = normalize_rerun(rerun)
     cfg = load_config(config_path, overrides)
+    sizes, attachments = _box_sizes(box_sizes)
+    if sizes is not None:
+        cfg = dataclasses.replace(cfg, box_sizes=sizes)
     opened = [open_source(s, count=count, seed=seed, intrinsics=intrinsics,
                           depth_scale=depth_scale, max_pixels=cfg.max_pixels,
                           depth_topic=depth_topic, info_topic=info_topic,
                           base_frame=base_frame) for s in sources]
     configs = [_source_config(src, cfg, config_path, overrides) for src in opened]
+    if sizes is not None:  # a log source's own config too: the file is the cell's list now
+        configs = [dataclasses.replace(c, box_sizes=sizes) for c in configs]
     totals = [src.total for src in opened]
     total = None if None in totals else sum(t for t in totals if t is not None)
     n_workers = default_workers() if workers == 0 else workers
@@ -354,7 +376,7 @@ def run(sources: tuple[str, ...], count: int, seed: int | None, record: str | No
             rec = stack.enter_context(McapRecorder(
                 record, config=configs[0], overwrite=force,
                 rotate_bytes=None if rotate_size is None else int(rotate_size * 1e6),
-                rotate_seconds=rotate_duration))
+                rotate_seconds=rotate_duration, attachments=attachments))
             session = rec.session
         observers: list[Any] = [rec] if rec is not None else []
         if publish_ros2:

@@ -495,3 +495,36 @@ def test_rerun_logs_ambiguous_outlines_and_heights(tmp_path: Path) -> None:
     assert "ambiguous #0: no end evidence, 600x800 mm, 0.480 m2" in out
     out = _rerun("rrd", "print", "-vvv", "--entity", "/world/surfaces", str(path)).stdout
     assert "h 250 mm side" in out and "NO SKU" in out
+
+
+# --- run --box-sizes -------------------------------------------------------------------------
+
+
+def test_run_with_box_sizes_records_the_list_and_attaches_the_file(tmp_path: Path) -> None:
+    csv = tmp_path / "sizes.csv"
+    csv.write_bytes(SIZES_CSV.encode())
+    log = tmp_path / "run.mcap"
+    res = CliRunner().invoke(cli, ["run", "sim:single:width=160,height=120,f=131.25",
+                                   "--record", str(log), "--box-sizes", str(csv), "-q"])
+    assert res.exit_code == 0, res.output
+    lg = open_log(log)
+    assert lg.config is not None and lg.config.box_sizes[0] == (0.3, 0.4, 0.25)
+    assert _attachment_names(log).count(C.BOX_SIZES_ATTACHMENT) == 1
+    assert lg.attachment(C.BOX_SIZES_ATTACHMENT) == SIZES_CSV.encode()
+    (rec,) = list(lg)
+    assert rec.result is not None and rec.result.config_hash == lg.config.hash
+    # with a list, every surface is tested against it: matched or flagged
+    S = rec.surfaces
+    sku_rows = S.tests.of_kind(TestKind.SKU_SIZE)
+    assert len(S) == 0 or len(sku_rows) >= len(S)
+    assert all(int(k) >= 0 or bool(f) for k, f in zip(S.sku, S.sku_flagged))
+
+
+def test_run_refuses_a_bad_box_sizes_file_before_any_work(tmp_path: Path) -> None:
+    bad = tmp_path / "bad.csv"
+    bad.write_text("width,length,height\n0.3,-1,0.2\n")
+    log = tmp_path / "run.mcap"
+    res = CliRunner().invoke(cli, ["run", "sim:single:width=160,height=120,f=131.25",
+                                   "--record", str(log), "--box-sizes", str(bad)])
+    assert res.exit_code == 2 and "row 2: length must be a positive" in res.output
+    assert "Traceback" not in res.output and not log.exists()
