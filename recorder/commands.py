@@ -343,10 +343,7 @@ def run(sources: tuple[str, ...], count: int, seed: int | None, record: str | No
     the same, bit for bit, as with one. Ctrl-C (or SIGTERM) stops after the scans in
     progress, closing the log cleanly.
     """
-    from boxloc.observer import FanOut
-    from boxloc.stages.scan_noise import fit_warning
-    from recorder.mcap.sink import McapRecorder, RecordingError
-    from recorder.stream import default_workers, ordered_runs
+    from recorder.stream import default_workers, ordered_runs, start_early
 
     rerun_target = normalize_rerun(rerun)
     cfg = load_config(config_path, overrides)
@@ -365,6 +362,14 @@ def run(sources: tuple[str, ...], count: int, seed: int | None, record: str | No
     n_workers = default_workers() if workers == 0 else workers
     if total is not None:  # no worker to start for fewer scans; one scan runs in here
         n_workers = max(1, min(n_workers, total))
+    if n_workers > 1:
+        start_early()  # the workers' pipeline imports while the recorder imports here
+    else:
+        from boxloc.pipeline import find_graspable_surfaces
+        from boxloc.stages.scan_noise import fit_warning
+    from boxloc.observer import FanOut
+    from recorder.mcap.sink import McapRecorder, RecordingError
+
     items = _stream(opened, configs, renumber=len(opened) > 1)
     n_ok = n_failed = n_surfaces = 0
     errors: list[ReadError] = []
@@ -407,8 +412,6 @@ def run(sources: tuple[str, ...], count: int, seed: int | None, record: str | No
             runs = stack.enter_context(closing(ordered_runs(items, n_workers,
                                                             stop=lambda: bool(stop))))
         else:
-            from boxloc.pipeline import find_graspable_surfaces
-
             runs = ((item, None) for item in items)
         try:
             for item, done in runs:
@@ -436,7 +439,11 @@ def run(sources: tuple[str, ...], count: int, seed: int | None, record: str | No
                 else:
                     n_ok += 1
                     n_surfaces += len(result.surfaces)
-                    if result.noise is not None and (w := fit_warning(result.noise)):
+                    if done is not None:
+                        w = done.warning
+                    else:
+                        w = fit_warning(result.noise) if result.noise is not None else None
+                    if w:
                         progress.console.print(f"scan {scan.index}: warning: {w}", markup=False)
                     if not quiet and not show:
                         seconds = time.perf_counter() - t0 if done is None else done.seconds

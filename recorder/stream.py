@@ -56,7 +56,7 @@ if TYPE_CHECKING:
     from boxloc.scan import Scan
 
 __all__ = ["Collector", "Job", "RemoteError", "ScanRun", "WorkerLost", "default_workers",
-           "ordered_runs", "run_job"]
+           "ordered_runs", "run_job", "start_early"]
 
 #: New workers a scan gets after the one running it died: one, for a loss that was not the
 #: scan's fault (the OOM killer chose it); a scan that kills its worker twice is failed.
@@ -185,12 +185,17 @@ class ScanRun:
         name and message).
     seconds : float
         Wall time of the pipeline in the worker, s (informational).
+    warning : str or None
+        The noise model's warning about the scan
+        (:func:`boxloc.stages.scan_noise.fit_warning`), made in the worker so that the
+        parent never imports the stages.
     """
 
     calls: tuple[tuple[str, Scan | None, tuple[Any, ...]], ...]
     result: Result | None
     error: Exception | _ErrorInfo | None = None
     seconds: float = 0.0
+    warning: str | None = None
 
     def replay(self, scan: Scan, observer: Observer) -> Result:
         """Make ``observer`` receive the calls the pipeline made, then return its result or
@@ -220,6 +225,7 @@ def run_job(job: Job) -> ScanRun:
     :attr:`ScanRun.error`, after the calls made before it.
     """
     from boxloc.pipeline import find_graspable_surfaces
+    from boxloc.stages.scan_noise import fit_warning
 
     col = Collector(job.scan)
     t0 = time.perf_counter()
@@ -227,7 +233,9 @@ def run_job(job: Job) -> ScanRun:
         result = find_graspable_surfaces(job.scan, job.config, observer=col)
     except Exception as e:  # noqa: BLE001 - the scan's failure is its result
         return ScanRun(tuple(col.calls), None, _portable(e), time.perf_counter() - t0)
-    return ScanRun(tuple(col.calls), result, None, time.perf_counter() - t0)
+    seconds = time.perf_counter() - t0
+    warning = fit_warning(result.noise) if result.noise is not None else None
+    return ScanRun(tuple(col.calls), result, None, seconds, warning)
 
 
 def _lost(job: Job, exitcode: int | None, times: int) -> ScanRun:
@@ -285,6 +293,27 @@ def _worker_main(conn: Connection) -> None:
 # --- the pool -------------------------------------------------------------------------------
 
 
+def _pin_threads() -> None:
+    """One thread per BLAS/OpenMP/numba pool in the processes started from here on (unless
+    the user chose): N workers with a pool of one thread per core each would fight over the
+    cores. The environment is inherited by the forkserver when it starts."""
+    for var in _THREAD_VARS:
+        os.environ.setdefault(var, "1")
+
+
+def start_early() -> None:
+    """Start the forkserver now: it imports the pipeline (about a second) while the caller
+    imports the recorder and opens its sources, instead of after.
+
+    The server is shared by every pool of this process; starting it twice is a no-op.
+    """
+    _pin_threads()
+    if _context().get_start_method() == "forkserver":
+        from multiprocessing import forkserver
+
+        forkserver.ensure_running()
+
+
 def _context() -> Any:
     # forkserver, not fork: the parent runs threads (the progress bar, Rerun), and forking
     # a threaded process can deadlock the child. The server imports the pipeline once, so
@@ -324,8 +353,7 @@ class _Pool:
             if w.task is None:
                 return w
         assert len(self.live) < self.size
-        for var in _THREAD_VARS:  # inherited by the forkserver when it starts
-            os.environ.setdefault(var, "1")
+        _pin_threads()
         parent, child = self.ctx.Pipe()
         # Not a daemon: a worker may start processes itself (Config.workers > 1).
         proc = self.ctx.Process(target=_worker_main, args=(child,), daemon=False,
