@@ -1221,20 +1221,31 @@ class _ScanComparison:
                      f"surface #{p.base} -> #{p.candidate} moved: centre {p.dcenter_mm:.1f} mm, "
                      f"angle {p.dangle_deg:.2f} deg, width {p.dwidth_mm:+.1f} mm, length "
                      f"{p.dlength_mm:+.1f} mm", rule, **p.to_json())
+        # a baseline log older than schema 1.5 could not record heights, sizes or ambiguous
+        # regions (it has no /boxloc/ambiguous record): what the candidate adds there is
+        # reported, not judged (as a stage a log predates is not a difference)
+        old = AMBIGUOUS not in self.a.products
+        note = " (the baseline's log predates box heights and sizes)" if old else ""
+
+        def sku(k: int, flagged: bool) -> str:
+            return f"size {k}" if k >= 0 else ("no listed size (flagged)" if flagged
+                                               else "no size")
+
         for p in s.pairs:
             if p.height_changed:
                 hb, hc = (("n/a" if h is None else f"{h:.0f} mm") for h in p.height_mm)
+                new = old and p.height_mm[0] is None and p.height_source[0] == "NONE"
                 self.add("surfaces", "height_changed",
                          f"surface #{p.base} -> #{p.candidate}: height {hb} "
                          f"({p.height_source[0].lower()}) -> {hc} "
-                         f"({p.height_source[1].lower()})", "height_changed", **p.to_json())
+                         f"({p.height_source[1].lower()})" + (note if new else ""),
+                         None if new else "height_changed", **p.to_json())
             if p.sku_changed:
-                def sku(k: int, flagged: bool) -> str:
-                    return f"size {k}" if k >= 0 else ("no listed size (flagged)" if flagged
-                                                       else "no size")
+                new = old and p.sku[0] < 0 and not p.sku_flagged[0]
                 self.add("surfaces", "sku_changed",
                          f"surface #{p.base} -> #{p.candidate}: {sku(p.sku[0], p.sku_flagged[0])}"
-                         f" -> {sku(p.sku[1], p.sku_flagged[1])}", "sku_changed", **p.to_json())
+                         f" -> {sku(p.sku[1], p.sku_flagged[1])}" + (note if new else ""),
+                         None if new else "sku_changed", **p.to_json())
         if s.pick_order_changed:
             note = "" if s.pick_order_significant else (
                 f" (only between surfaces within {self.tol.surfaces.pick_height_mm:g} mm of "
@@ -1269,7 +1280,6 @@ class _ScanComparison:
                          f"{err_a[f] * 1e3:.1f} -> {err_b[f] * 1e3:.1f} mm", "error_grew",
                          face=f, base_mm=err_a[f] * 1e3, candidate_mm=err_b[f] * 1e3)
 
-
     def _ambiguous(self, a: AmbiguousSet, b: AmbiguousSet) -> None:
         """Ambiguous regions added, removed or changed (extent, place, reason)."""
         ad = self.sd.ambiguous = compare_ambiguous(a, b, self.tol.surfaces)
@@ -1280,10 +1290,12 @@ class _ScanComparison:
             self.add(AMBIGUOUS, "ambiguous_removed", f"ambiguous region #{i} of the baseline "
                      f"({_reason_name(a.reason[i]).lower()}) is gone", "ambiguous_removed",
                      base=i)
+        old = AMBIGUOUS not in self.a.products  # a baseline that could not record any
         for j in ad.added:
             self.add(AMBIGUOUS, "ambiguous_added", f"ambiguous region #{j} of the candidate "
-                     f"({_reason_name(b.reason[j]).lower()}) is new", "ambiguous_added",
-                     candidate=j)
+                     f"({_reason_name(b.reason[j]).lower()}) is new"
+                     + (" (the baseline's log predates ambiguous regions)" if old else ""),
+                     None if old else "ambiguous_added", candidate=j)
         for p in ad.changed:
             why = "" if p.reason[0] == p.reason[1] else (
                 f", reason {p.reason[0].lower()} -> {p.reason[1].lower()}")

@@ -528,3 +528,32 @@ def test_run_refuses_a_bad_box_sizes_file_before_any_work(tmp_path: Path) -> Non
                                    "--record", str(log), "--box-sizes", str(bad)])
     assert res.exit_code == 2 and "row 2: length must be a positive" in res.output
     assert "Traceback" not in res.output and not log.exists()
+
+
+def test_heights_and_regions_added_over_an_old_baseline_are_reported_not_judged(
+        tmp_path: Path) -> None:
+    """A log older than schema 1.5 could not record heights, sizes or ambiguous regions:
+    its replay gaining them is no regression (the same change between two 1.5 logs is)."""
+    scan = make_scan(0)
+    cand = two_surfaces(scan)
+    S = cand.surfaces
+    n = len(S)
+    plain = dataclasses.replace(
+        S, height=np.full(n, np.nan), height_sigma=np.full(n, np.nan),
+        height_source=np.zeros(n, np.int8), sku=np.full(n, -1, np.int32),
+        sku_flagged=np.zeros(n, bool),
+        tests=S.tests.select(~np.isin(S.tests.kind, [TestKind.BOX_HEIGHT, TestKind.SKU_SIZE])))
+    base = dataclasses.replace(cand, surfaces=plain, ambiguous=AmbiguousSet())
+    old = tmp_path / "old.mcap"
+    with McapRecorder(old) as rec:
+        feed(_WithoutAmbiguous(rec), scan, base)
+    new = record(tmp_path / "new.mcap", [(scan, cand)])
+    ld = diff_logs(old, new)
+    kinds = [d.kind for d in ld.all_differences]
+    assert kinds.count("height_changed") == 2 and "ambiguous_added" in kinds
+    assert not ld.regression, [d.message for d in ld.all_differences if d.regression]
+    assert any("predates box heights" in d.message for d in ld.all_differences)
+    # between two 1.5 logs the same change is judged
+    ld = diff_logs(record(tmp_path / "base15.mcap", [(scan, base)]), new)
+    assert ld.regression and {"height_changed", "ambiguous_added"} <= {
+        d.kind for d in ld.all_differences if d.regression}
