@@ -38,7 +38,7 @@ GROUP_KEYS = {
     "ambiguous_area_median_m2", "ambiguous_reasons", "ambiguous_without_top",
     "tops_in_ambiguous", "missed_in_ambiguous", "missed_silently", "height_sources",
     "height_n", "height_err_median_mm", "height_err_p95_mm", "height_by_source",
-    "sku_matched", "sku_flagged", "sku_flagged_tp",
+    "height_stack_like", "sku_matched", "sku_flagged", "sku_flagged_tp",
 }
 #: Every variant reports a height 3 mm too high.
 HEIGHT_BIAS = 0.003
@@ -233,6 +233,7 @@ def test_figures_with_sizes(report: dict[str, Any]) -> None:
     assert hs["side"] + hs["step"] == allf["n_pred"] and hs["sku"] == hs["none"] == 0
     assert hs["side"] == sum(math.ceil(r["runs"]["with_sizes"]["match"]["n_pred"] / 2)
                              for r in rows)
+    assert allf["height_stack_like"] == 0
     by = allf["height_by_source"]
     assert by["side"]["n"] + by["step"]["n"] == allf["height_n"]
     assert allf["sku_flagged"] == allf["sku_flagged_tp"] == 1

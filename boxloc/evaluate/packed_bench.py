@@ -74,8 +74,9 @@ milliseconds where named ``*_ms``):
   ``wrong`` (:meth:`boxloc.evaluate.metrics.WrongRectangles.to_dict`), ``ambiguous``
   (``n``, ``area_m2``, ``reason``, ``tops`` covered by each), ``missed_in_ambiguous``,
   ``heights`` (``sources`` counted over the surfaces; ``face``, ``source``, ``err_mm``,
-  ``sigma_mm`` of the scored ones) and ``sku`` (``matched``, ``flagged``,
-  ``flagged_tp``); no durations, so two runs' rows compare equal
+  ``above_floor_mm`` (the top's height above the floor), ``sigma_mm`` of the scored ones)
+  and ``sku`` (``matched``, ``flagged``, ``flagged_tp``); no durations, so two runs' rows
+  compare equal
 
 Figures of a group (:func:`group_figures`): ``n_scenes``, ``n_scans``, every key of
 :func:`boxloc.evaluate.metrics.aggregate_matches` (``n_exposed`` exposed tops, ``tp``,
@@ -94,7 +95,8 @@ Figures of a group (:func:`group_figures`): ``n_scenes``, ``n_scans``, every key
 - heights: ``height_sources`` (reported surfaces per :class:`boxloc.products.HeightSource`
   name), ``height_n`` (true positives scored: side or step), ``height_err_median_mm``,
   ``height_err_p95_mm``, ``height_by_source`` (per scored source: ``n``, ``median_mm``,
-  ``p95_mm``)
+  ``p95_mm``), ``height_stack_like`` (scored heights nearer the top's height above the
+  floor or the pallet than the box's own: the step seen was the edge of the whole stack)
 - carton list: ``sku_matched`` (surfaces matching a listed size), ``sku_flagged``
   (surfaces matching none), ``sku_flagged_tp`` (true tops flagged: false flags)
 """
@@ -286,6 +288,8 @@ class PackedScore:
     tops_in_ambiguous: int
     missed_in_ambiguous: int
     heights: HeightErrors
+    #: (k,) the scored tops' heights above the floor, metres (the stack with the pallet)
+    above_floor: np.ndarray
     height_sources: dict[str, int]
     sku_matched: int
     sku_flagged: int
@@ -303,6 +307,7 @@ class PackedScore:
             "heights": {"sources": self.height_sources, "face": [int(f) for f in h.face],
                         "source": [HeightSource(int(s)).name.lower() for s in h.source],
                         "err_mm": [round(float(e) * 1e3, 3) for e in h.error],
+                        "above_floor_mm": [round(float(a) * 1e3, 3) for a in self.above_floor],
                         "sigma_mm": [None if not math.isfinite(s) else round(float(s) * 1e3, 3)
                                      for s in h.sigma]},
             "sku": {"matched": self.sku_matched, "flagged": self.sku_flagged,
@@ -362,6 +367,9 @@ def score_packed(result: Any, truth: Any) -> PackedScore:
                        true_box_heights(truth),
                        sigma=_field(s, "height_sigma", n, np.nan, np.float64))
     sku = _field(s, "sku", n, -1, np.int64)
+    boxes = np.asarray(truth.boxes, np.float64).reshape(-1, 7)
+    bi = np.asarray(truth.box_index, np.int64)[hs.face]
+    above_floor = boxes[bi, 2] + 0.5 * boxes[bi, 5]  # base frame: the floor is z = 0
     flagged = _field(s, "sku_flagged", n, False, bool)
     tp_pred = match.tp_pairs[:, 0]
     return PackedScore(
@@ -370,7 +378,7 @@ def score_packed(result: Any, truth: Any) -> PackedScore:
         amb_tops=held[:, exposed].sum(axis=1).astype(np.int64),
         tops_in_ambiguous=int(in_region.sum()),
         missed_in_ambiguous=int((in_region & ~found).sum()),
-        heights=hs,
+        heights=hs, above_floor=above_floor,
         height_sources={h.name.lower(): int((source == h).sum()) for h in HeightSource},
         sku_matched=int((sku >= 0).sum()), sku_flagged=int(flagged.sum()),
         sku_flagged_tp=int(flagged[tp_pred].sum()))
@@ -598,8 +606,15 @@ def _mm(a: np.ndarray, q: float) -> float | None:
 
 
 def _height_figures(scores: Sequence[PackedScore]) -> dict[str, Any]:
+    from boxloc.simulate import PALLET_SIZE
+
     err = np.concatenate([s.heights.error for s in scores]) if scores else np.zeros(0)
     src = np.concatenate([s.heights.source for s in scores]) if scores else np.zeros(0)
+    est = np.concatenate([s.heights.estimate for s in scores]) if scores else np.zeros(0)
+    floor = np.concatenate([s.above_floor for s in scores]) if scores else np.zeros(0)
+    # a height nearer the stack's (down to the floor or the pallet) than the box's own: the
+    # step seen was the edge of the stack, whose layers a zero-gap side does not show
+    stack = np.minimum(np.abs(est - floor), np.abs(est - (floor - PALLET_SIZE[2])))
     by = {}
     for h in (HeightSource.SIDE, HeightSource.STEP):
         e = err[src == h]
@@ -607,7 +622,8 @@ def _height_figures(scores: Sequence[PackedScore]) -> dict[str, Any]:
     return {"height_sources": {h.name.lower(): sum(s.height_sources.get(h.name.lower(), 0)
                                                    for s in scores) for h in HeightSource},
             "height_n": int(err.size), "height_err_median_mm": _mm(err, 50),
-            "height_err_p95_mm": _mm(err, 95), "height_by_source": by}
+            "height_err_p95_mm": _mm(err, 95), "height_by_source": by,
+            "height_stack_like": int((stack < err).sum())}
 
 
 def _ambiguous_figures(scores: Sequence[PackedScore], n_scans: int) -> dict[str, Any]:
