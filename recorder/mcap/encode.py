@@ -9,7 +9,8 @@ Two kinds of messages go into a log:
   ``RawImage`` ``32FC1`` up to schema 1.3, still read); the sensor model and the pose into
   ``boxloc.ScanInfo`` / ``boxloc.SensorModel`` records (float64 bits, not a quaternion).
   Decoding them gives back the same products (:func:`boxloc.products.products_equal` is
-  empty) and the same scan.
+  empty) and the same scan. The result's ambiguous regions (an ``AmbiguousSet``, not a
+  stage's product) are a record of their own the same way (:func:`encode_ambiguous`).
   The statistical tests of every stage are recorded once, as readable rows (stage, kind,
   entities, statistic, dof, critical value, p-value, alpha, decision) on ``/boxloc/tests``,
   and put back into their products when read.
