@@ -37,6 +37,7 @@ from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
 from typing import Any
 
+import numba as nb
 import numpy as np
 import numpy.typing as npt
 
@@ -194,7 +195,8 @@ def tile_residuals(
 
     if scan.shape[0] < patch or scan.shape[1] < patch:
         return nothing(0, {})
-    P = _tiles(np.asarray(scan.points, dtype=np.float64), patch, step)  # (T, n, 3)
+    # cut (and subsample) the tiles first: float64 for the tiles examined only
+    P = _tiles(scan.points, patch, step).astype(np.float64)  # (T, n, 3)
     V = _tiles(valid, patch, step)  # (T, n)
     rejected: dict[str, int] = {}
     keep = V.mean(1) >= min_valid
@@ -213,27 +215,15 @@ def tile_residuals(
     P, V = P[ids], V[ids]
     P0 = np.where(V[..., None], P, 0.0)
 
-    w = V.astype(np.float64)
-    for _ in range(4):  # robust plane: refit on the points within 3.5 sigma (MAD)
-        mean, normal, axes = _weighted_plane(P0, w)
-        h = np.einsum("tnk,tk->tn", P0 - mean[:, None], normal)
-        absh = np.where(V, np.abs(h), np.nan)
-        with _quiet_nan():
-            s = _MAD_TO_STD * np.nanmedian(np.where(w > 0, absh, np.nan), 1)
-        new_w = (V & (absh <= 3.5 * np.maximum(s, 1e-9)[:, None])).astype(np.float64)
-        if np.array_equal(new_w, w):
-            break
-        w = new_w
-    else:  # not converged: fit the plane of the final inliers
-        mean, normal, axes = _weighted_plane(P0, w)
-        h = np.einsum("tnk,tk->tn", P0 - mean[:, None], normal)
+    # robust plane per tile: refit on the points within 3.5 sigma (MAD), at most 4 rounds
+    mean, normal, h, w, ratio = _robust_planes(np.ascontiguousarray(P0), V, 4)
     n_in = w.sum(1)
     outl = 1.0 - n_in / V.sum(1)
     ok = (outl <= max_outliers) & (n_in >= 10)
     rejected["outliers (edge or mixed pixels)"] = int((~ok).sum())
 
     # Flatness: does a quadratic surface explain the tile markedly better than the plane?
-    ratio = _curvature_ratio(P0, w, mean, normal, axes, h)
+    # (``ratio``, from the same kernel)
     curved = ok & ~(ratio <= max_curvature_ratio)
     rejected["curved or folded"] = int(curved.sum())
     ok &= ~curved
@@ -319,45 +309,142 @@ def _quiet_nan() -> Iterator[None]:
         yield
 
 
-def _weighted_plane(P0: np.ndarray, w: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Weighted total-least-squares planes of tiles.
+@nb.njit(cache=True)
+def _robust_planes(
+    P0: np.ndarray, V: np.ndarray, rounds: int
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Robust total-least-squares plane of each tile, and its flatness.
 
-    Returns the centroids (T, 3), unit normals (T, 3) and in-plane axes (T, 2, 3) scaled by
-    their standard deviations (so local coordinates are O(1)).
+    Per tile, the total-least-squares plane of the inliers (all points with a return at
+    first; its normal is the covariance's least eigenvector), then the points
+    within 3.5 robust sigmas (1.4826 x the median |residual| of the current inliers) become
+    the new inliers, until they do not change, at most ``rounds`` times; a tile still
+    changing then gets the plane of its last inliers.
+
+    Parameters
+    ----------
+    P0 : ndarray, shape (T, n, 3), float64, metres
+        The tiles' points, 0 where no return.
+    V : ndarray, shape (T, n), bool
+        Which points have a return.
+    rounds : int
+
+    Returns
+    -------
+    mean : (T, 3) centroids; normal : (T, 3) unit normals toward the sensor;
+    h : (T, n) signed distances from the plane, metres (every point); w : (T, n) float64,
+    1 for the final inliers; ratio : (T,) the residual variance of the plane over that of
+    a quadratic in the plane's coordinates (each scaled by its standard deviation, so they
+    are O(1)), over the final inliers: much above 1 for a curved or folded tile.
     """
-    sw = np.maximum(w.sum(1), 1e-12)
-    mean = np.einsum("tn,tnk->tk", w, P0) / sw[:, None]
-    X = (P0 - mean[:, None]) * np.sqrt(w)[..., None]
-    C = np.einsum("tnk,tnl->tkl", X, X) / sw[:, None, None]
-    evals, evecs = np.linalg.eigh(C)  # ascending
-    normal = evecs[:, :, 0]
-    # Orient normals toward the sensor, so signs are reproducible.
-    flip = np.einsum("tk,tk->t", normal, mean) > 0
-    normal[flip] *= -1
-    scale = np.sqrt(np.maximum(evals[:, 1:], 1e-18))
-    axes = np.stack([evecs[:, :, 1] / scale[:, 0:1], evecs[:, :, 2] / scale[:, 1:2]], 1)
-    return mean, normal, axes
-
-
-def _curvature_ratio(
-    P0: np.ndarray, w: np.ndarray, mean: np.ndarray, normal: np.ndarray, axes: np.ndarray,
-    h: np.ndarray,
-) -> np.ndarray:
-    """Residual variance of the plane over that of a quadratic in the plane's coordinates."""
-    D = P0 - mean[:, None]
-    a = np.einsum("tnk,tk->tn", D, axes[:, 0])
-    b = np.einsum("tnk,tk->tn", D, axes[:, 1])
-    X = np.stack([np.ones_like(a), a, b, a * a, a * b, b * b], -1)  # (T, n, 6)
-    Xw = X * w[..., None]
-    A = np.einsum("tni,tnj->tij", Xw, X) + 1e-12 * np.eye(6)
-    y = np.einsum("tni,tn->ti", Xw, h)
-    coef = np.linalg.solve(A, y[..., None])[..., 0]
-    e = h - np.einsum("tni,ti->tn", X, coef)
-    n = w.sum(1)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        v_plane = (w * h * h).sum(1) / np.maximum(n - 3, 1)
-        v_quad = (w * e * e).sum(1) / np.maximum(n - 6, 1)
-        return v_plane / np.maximum(v_quad, 1e-30)
+    T, n = V.shape
+    mean = np.zeros((T, 3))
+    normal = np.zeros((T, 3))
+    h = np.zeros((T, n))
+    w = np.zeros((T, n))
+    ratio = np.full(T, np.nan)
+    absh = np.empty(n)
+    for t in range(T):
+        wt = np.empty(n)
+        for i in range(n):
+            wt[i] = 1.0 if V[t, i] else 0.0
+        ev = np.zeros(3)
+        E = np.zeros((3, 3))
+        for it in range(rounds + 1):
+            # weighted plane
+            sw = 0.0
+            m0 = m1 = m2 = 0.0
+            for i in range(n):
+                sw += wt[i]
+                m0 += wt[i] * P0[t, i, 0]
+                m1 += wt[i] * P0[t, i, 1]
+                m2 += wt[i] * P0[t, i, 2]
+            sw = max(sw, 1e-12)
+            m0 /= sw
+            m1 /= sw
+            m2 /= sw
+            C = np.zeros((3, 3))
+            for i in range(n):
+                if wt[i] > 0:
+                    x0 = P0[t, i, 0] - m0
+                    x1 = P0[t, i, 1] - m1
+                    x2 = P0[t, i, 2] - m2
+                    C[0, 0] += wt[i] * x0 * x0
+                    C[0, 1] += wt[i] * x0 * x1
+                    C[0, 2] += wt[i] * x0 * x2
+                    C[1, 1] += wt[i] * x1 * x1
+                    C[1, 2] += wt[i] * x1 * x2
+                    C[2, 2] += wt[i] * x2 * x2
+            C[1, 0] = C[0, 1]
+            C[2, 0] = C[0, 2]
+            C[2, 1] = C[1, 2]
+            ev, E = np.linalg.eigh(C / sw)  # ascending
+            n0, n1, n2 = E[0, 0], E[1, 0], E[2, 0]
+            if n0 * m0 + n1 * m1 + n2 * m2 > 0:  # toward the sensor: reproducible signs
+                n0, n1, n2 = -n0, -n1, -n2
+            mean[t, 0], mean[t, 1], mean[t, 2] = m0, m1, m2
+            normal[t, 0], normal[t, 1], normal[t, 2] = n0, n1, n2
+            k = 0
+            for i in range(n):
+                h[t, i] = ((P0[t, i, 0] - m0) * n0 + (P0[t, i, 1] - m1) * n1
+                           + (P0[t, i, 2] - m2) * n2)
+                if wt[i] > 0:
+                    absh[k] = abs(h[t, i])
+                    k += 1
+            if it == rounds:  # not converged: this is the plane of the last inliers
+                break
+            lim = 3.5 * max(_MAD_TO_STD * np.median(absh[:k]), 1e-9) if k > 0 else -1.0
+            same = True
+            for i in range(n):
+                nw = 1.0 if (V[t, i] and abs(h[t, i]) <= lim) else 0.0
+                if nw != wt[i]:
+                    same = False
+                wt[i] = nw
+            if same:
+                break
+        w[t] = wt
+        # flatness: a quadratic in the plane's coordinates against the plane
+        s1 = math.sqrt(max(ev[1], 1e-18))
+        s2 = math.sqrt(max(ev[2], 1e-18))
+        A = np.zeros((6, 6))
+        y = np.zeros(6)
+        X = np.empty(6)
+        vp = 0.0
+        ns = 0.0
+        for i in range(n):
+            if wt[i] <= 0:
+                continue
+            d0 = P0[t, i, 0] - mean[t, 0]
+            d1 = P0[t, i, 1] - mean[t, 1]
+            d2 = P0[t, i, 2] - mean[t, 2]
+            a = (d0 * E[0, 1] + d1 * E[1, 1] + d2 * E[2, 1]) / s1
+            b = (d0 * E[0, 2] + d1 * E[1, 2] + d2 * E[2, 2]) / s2
+            X[0], X[1], X[2], X[3], X[4], X[5] = 1.0, a, b, a * a, a * b, b * b
+            for j in range(6):
+                y[j] += X[j] * h[t, i]
+                for q in range(6):
+                    A[j, q] += X[j] * X[q]
+            vp += h[t, i] * h[t, i]
+            ns += 1.0
+        for j in range(6):
+            A[j, j] += 1e-12
+        coef = np.linalg.solve(A, y)
+        vq = 0.0
+        for i in range(n):
+            if wt[i] <= 0:
+                continue
+            d0 = P0[t, i, 0] - mean[t, 0]
+            d1 = P0[t, i, 1] - mean[t, 1]
+            d2 = P0[t, i, 2] - mean[t, 2]
+            a = (d0 * E[0, 1] + d1 * E[1, 1] + d2 * E[2, 1]) / s1
+            b = (d0 * E[0, 2] + d1 * E[1, 2] + d2 * E[2, 2]) / s2
+            e = h[t, i] - (coef[0] + coef[1] * a + coef[2] * b + coef[3] * a * a
+                           + coef[4] * a * b + coef[5] * b * b)
+            vq += e * e
+        vp /= max(ns - 3.0, 1.0)
+        vq /= max(ns - 6.0, 1.0)
+        ratio[t] = vp / max(vq, 1e-30)
+    return mean, normal, h, w, ratio
 
 
 # --- the fit ------------------------------------------------------------------------------
