@@ -19,6 +19,7 @@ from boxloc.errors import InputError
 from boxloc.observer import NullObserver, Observer
 from boxloc.products import Result
 from boxloc.scan import NoiseModel, Scan
+from boxloc.stages.ambiguous import ambiguous_regions
 from boxloc.stages.edges import detect_edges
 from boxloc.stages.hypotheses import generate_hypotheses
 from boxloc.stages.lines import find_lines
@@ -118,6 +119,8 @@ def find_graspable_surfaces(
         lambda: make_surfaces(scan, vertices, hyps, verification, selection, config),
     )
     obs.on_surfaces(scan, surfaces)
+    # the flat regions not split into boxes: decided by the hypotheses stage, collected
+    ambiguous = ambiguous_regions(hyps, verification, config)
     timing["total"] = float(sum(timing.values()))
 
     result = Result(
@@ -135,6 +138,7 @@ def find_graspable_surfaces(
         surfaces=surfaces,
         timing_ms=timing,
         noise=noise,
+        ambiguous=ambiguous,
     )
     obs.on_result(scan, result)
     return result

@@ -326,7 +326,9 @@ class VertexSet:
         rectangle has this corner on its seam side ``parent_side`` (0-3: v=0, v=length,
         u=0, u=width); or a box corner's vertex of the face across a crease
         (``parent_side`` 4, :func:`boxloc.stages.vertices.corner_vertices`), whose parent is the
-        vertex of two lines it was derived from; -1 for a vertex of two lines. Logs
+        vertex of two lines it was derived from; or a corner of a part of a flat region
+        split at a listed carton size's seams (``parent_side`` 5, the parent the region's
+        vertex); -1 for a vertex of two lines. Logs
         written before these fields existed read back as all -1.
     """
 
@@ -389,6 +391,12 @@ class HypothesisSet:
     att_support, att_threshold : (k,) float64
         |P_f| and the threshold p (edges); the diagonal's test statistic total (vertices).
     att_verified : (k,) bool
+        A REGION attempt (a flat region larger than a box, or a multiple of a listed size;
+        :func:`boxloc.stages.hypotheses.dimensions_from_region`) is never verified as a
+        surface: its ``att_support`` is the number of parts it was split into (0: not
+        split, -1: the same region found from another vertex), its ``att_threshold`` the
+        :class:`AmbiguityReason` it was left ambiguous for (NaN: split). A SKU_SPLIT
+        attempt's ``att_support`` is the region's hypothesis.
     up : (3,) float64
         The up direction the tilt prior and the pick order used (see :mod:`boxloc.stages.up`).
     tests : TestTable
@@ -578,8 +586,9 @@ class SurfaceSet:
     tests : TestTable
         SURFACE_BULGE per surface (``a`` = attempt) whose inliers determine the fit (at
         least ``boxloc.stages.surfaces.MIN_BULGE_POINTS``, not all on one line); a surface
-        without one has ``bulge`` 0 and its centre on the points' plane. SKU_SIZE per
-        surface when ``Config.box_sizes`` lists sizes; BOX_HEIGHT per measured height.
+        without one has ``bulge`` 0 and its centre on the points' plane. END_EVIDENCE per
+        side of every surface; SKU_SIZE per surface when ``Config.box_sizes`` lists sizes;
+        BOX_HEIGHT per height found.
     height, height_sigma : (s,) float64
         The box's height (its top above what it stands on) and its standard deviation,
         metres; NaN where none was measured or listed.

@@ -122,11 +122,12 @@ class TestKind(IntEnum):
     #: ((w - W)^2 + (l - L)^2) / size_tolerance^2 for the nearer of the two orientations,
     #: 2 dof, chi2(2) at alpha; rejected for every listed size flags the box
     SKU_SIZE = 30
-    #: hypothesis stage: the seam a carton size implies inside flat region a (attempt id)
-    #: at its b-th cut (b = 0, 1, ... over the cuts along x then y): statistic = the groove
-    #: z at the cut, however weak; critical = the seam level's z; accepted where the seam
-    #: is seen. The region is split on the sizes' evidence whatever the row says; the row
-    #: records how much the range points back it
+    #: hypothesis stage: the seam a carton size implies inside a flat region, however weak:
+    #: in the region's rows (a = its attempt) b = the cut (x cuts first, then y), in the
+    #: rows of each part's verification (a = the part's attempt) b = its side 0-3 that is
+    #: a cut; statistic = the groove z there, critical = the seam level's z; accepted
+    #: where the seam is seen. The region is split on the size's evidence whatever the
+    #: rows say; they record how much the range points back it
     SKU_SPLIT_SEAM = 31
     #: hypothesis stage: side b (0-3: v=0, v=length, u=0, u=width) of attempt a has evidence
     #: of the box's end: statistic = the evidence (0 none, 1 a line of jump or convex-crease

@@ -42,6 +42,7 @@ from scipy.spatial import cKDTree
 
 from boxloc.config import Config
 from boxloc.products import (
+    AmbiguityReason,
     DimensionSource,
     EdgeMap,
     HypothesisSet,
@@ -50,7 +51,8 @@ from boxloc.products import (
     VertexSet,
 )
 from boxloc.scan import Scan
-from boxloc.stages.seams import face_points, find_seams
+from boxloc.stages.seams import face_points, find_seams, seam_at
+from boxloc.stages.sizes import distinct, match_size, region_splits
 from boxloc.stages.verify import (
     BOUNDARY_BAND,
     SIDE_CORNERS,
@@ -71,6 +73,14 @@ MAX_ATTEMPTS = 6
 MAX_EXTENT_ATTEMPTS = 3
 #: Most rounds of neighbours' corners (a row of touching boxes grows by one box a round).
 MAX_NEIGHBOUR_ROUNDS = 8
+#: How far a flat region is followed along an arm, as a multiple of ``max_edge``: a pallet
+#: layer (1.2 m) of the longest cartons is twice the longest edge; a few in a row on a
+#: wider pallet or a conveyor, four.
+REGION_REACH = 4.0
+#: ``VertexSet.parent_side`` of a part's corner in a flat region split at the seams a
+#: listed carton size implies (0-3 are a neighbour's seam sides, 4 a box corner's
+#: third edge).
+SIZE_PART = 5
 
 
 @dataclass
@@ -340,6 +350,45 @@ def dimensions_from_extent(R: Rectangle, ctx: _Context, work: _VertexWork) -> li
     return out
 
 
+def dimensions_from_region(R: Rectangle, ctx: _Context, work: _VertexWork) -> list[_Attempt]:
+    """The whole flat region at R's vertex, when it is larger than any box.
+
+    Where touching boxes of equal height show no seam (sharp edges, no gap: a tightly
+    packed layer), their tops are one flat region, and no candidate up to ``max_edge``
+    verifies (each is cut short inside it). R's plane is followed along each arm as in
+    :func:`dimensions_from_extent`, out to ``REGION_REACH`` ``max_edge``. If both extents
+    end within the reach, are box edges long (0.9 ``min_edge``) and one is longer than
+    ``max_edge``, the region is a candidate (``DimensionSource.REGION``), verified like a
+    box's top: that its every side ends with evidence (jump, crease, groove, seam) and no
+    seam or edge line crosses it. A region that verifies is never a surface: it is
+    ambiguous, or split at the seams a listed carton size implies (:func:`_split_regions`).
+    FACE_EXTENT rows with b = 2 (x), 3 (y) record the extents where one is longer than
+    ``max_edge``.
+    """
+    cfg = ctx.config
+    k = math.sqrt(chi2_critical(1.0, cfg.alpha))
+    lo = 0.9 * cfg.min_edge
+    strip = (BOUNDARY_BAND * cfg.min_edge, lo)
+    reach = REGION_REACH * cfg.max_edge
+    ext, gaps = [], []
+    for along, across in ((R.x_axis, R.y_axis), (R.y_axis, R.x_axis)):
+        e, g = face_extent(ctx.verify_ctx, R.origin, along, across, R.normal, R.plane_cov,
+                           strip, reach, k, cfg.flatness)
+        ext.append(e)
+        gaps.append(g)
+    ext_a, gap_a = np.array(ext), np.array(gaps)
+    if not (np.isfinite(ext_a) & (ext_a > cfg.max_edge)).any():
+        return []
+    # the region's end must be seen on both arms, and each must be a box edge long
+    ends = np.isfinite(ext_a) & (ext_a >= lo) & (ext_a < reach - gap_a)
+    work.tests.append(TestTable.decision(TestKind.FACE_EXTENT, R.vertex, [2, 3], ext_a, gap_a,
+                                         ends, cfg.alpha))
+    if not ends.all():
+        return []
+    return [_Attempt(DimensionSource.REGION, -1, float(ext_a[0]), float(ext_a[1]), 0.0,
+                     np.nan)]
+
+
 def _seam_peaks(R: Rectangle, ctx: _Context, work: _VertexWork, px: np.ndarray,
                 py: np.ndarray, spacing: float, band: float) -> tuple[np.ndarray, np.ndarray]:
     """Seams inside the region the edge peaks span: extra candidates for the far sides.
@@ -441,8 +490,18 @@ def _work_on_vertex(i: int, ctx: _Context) -> _VertexWork:
     if not ok:
         # the same rectangle again (within a bin) is no new evidence
         tol = work.acc_bin if np.isfinite(work.acc_bin) else 0.0
-        _try_in_turn(R, ctx, work, dimensions_from_extent(R, ctx, work), MAX_EXTENT_ATTEMPTS,
-                     tol)
+        ok, _ = _try_in_turn(R, ctx, work, dimensions_from_extent(R, ctx, work),
+                             MAX_EXTENT_ATTEMPTS, tol)
+    if not ok:
+        for att in dimensions_from_region(R, ctx, work):
+            _verify(R, att, ctx)
+            out = att.outcome
+            assert out is not None
+            if out.accepted:  # a verified region larger than a box is never a surface
+                att.outcome = dataclasses.replace(out, accepted=False,
+                                                  reason=VerifyReason.AMBIGUOUS)
+                att.threshold = float(AmbiguityReason.LARGER_THAN_MAX_BOX)
+            work.attempts.append(att)
     return work
 
 
@@ -466,9 +525,11 @@ def _try_in_turn(R: Rectangle, ctx: _Context, work: _VertexWork, cands: list[_At
     return False, tried
 
 
-def _verify(R: Rectangle, att: _Attempt, ctx: _Context) -> None:
+def _verify(R: Rectangle, att: _Attempt, ctx: _Context,
+            size_sides: frozenset[int] = frozenset(), family: int = 1) -> None:
     att.outcome = verify(ctx.scan, ctx.verify_ctx, R.origin, R.x_axis, R.y_axis, R.normal,
-                         att.width, att.length, R.plane_cov, ctx.config, attempt_id=-1)
+                         att.width, att.length, R.plane_cov, ctx.config, attempt_id=-1,
+                         size_sides=size_sides, family=family)
 
 
 _WORKER_CTX: list[_Context] = []
@@ -526,6 +587,7 @@ def generate_hypotheses(
         ctx = dataclasses.replace(ctx, vertices=V, normal_cov=normal_covariance(V))
         ids = range(new_from, len(V))
         works += _work_on(ids, budget.take(ids, V, up), ctx)
+    ctx, works = _split_regions(ctx, works)
     hyps, ver = _assemble(works, ctx.vertices, config, up)
     row = TestTable.budget(BUDGET_HYPOTHESES, budget.needed, budget.budget, budget.exhausted,
                            config.alpha)
@@ -733,6 +795,192 @@ def neighbour_vertices(vertices: VertexSet, works: list[_VertexWork], new_from: 
     new = list(zip(pts[n0:], D1[n0:], D2[n0:], N[n0:], COV[n0:]))
     return append_vertices(vertices, new, [-1] * n_new, [-1] * n_new, parent, side_of,
                            tests)
+
+
+def _multiples_as_regions(works: list[_VertexWork], config: Config) -> set[int]:
+    """With a carton list, a verified rectangle that is a multiple of a listed size
+    (:func:`boxloc.stages.sizes.region_splits`) is a flat region, not a box: it becomes a
+    REGION attempt (``VerifyReason.AMBIGUOUS``), to be split or left ambiguous. Among
+    them, the ids of those whose size is itself listed (SKU_SIZE accepts): one box is
+    one way to cut them.
+
+    A rectangle of two touching cartons that show no seam, no longer than ``max_edge``,
+    verifies like one box; only the list tells it is two.
+    """
+    single: set[int] = set()
+    if not config.box_sizes:
+        return single
+    for w in works:
+        a = _accepted(w)
+        if a is None or a.source == DimensionSource.REGION:
+            continue
+        if not region_splits(a.width, a.length, config.box_sizes, config.size_tolerance,
+                             config.alpha):
+            continue
+        if match_size(a.width, a.length, config.box_sizes, config.size_tolerance,
+                      config.alpha)[3]:
+            single.add(id(a))
+        assert a.outcome is not None
+        a.outcome = dataclasses.replace(a.outcome, accepted=False,
+                                        reason=VerifyReason.AMBIGUOUS)
+        a.source, a.support, a.threshold = DimensionSource.REGION, 0.0, np.nan
+    return single
+
+
+def _distinct_regions(works: list[_VertexWork], vertices: VertexSet,
+                      min_edge: float) -> list[tuple[int, _Attempt]]:
+    """The verified flat regions (``VerifyReason.AMBIGUOUS`` REGION attempts), one per
+    region: the first found; one found again from another of its corners (each centre
+    inside the other, beyond ``BOUNDARY_BAND`` ``min_edge`` of its sides) is marked a
+    duplicate (``support`` -1)."""
+    kept: list[tuple[int, _Attempt, np.ndarray]] = []
+    mi = BOUNDARY_BAND * min_edge
+
+    def inside(c: np.ndarray, i: int, a: _Attempt) -> bool:
+        d = c - vertices.points[i]
+        u, v = d @ vertices.d1[i], d @ vertices.d2[i]
+        return bool(mi < u < a.width - mi and mi < v < a.length - mi)
+
+    for w in works:
+        for a in w.attempts:
+            if (a.source != DimensionSource.REGION or a.outcome is None
+                    or a.outcome.reason != VerifyReason.AMBIGUOUS):
+                continue
+            i = w.vertex
+            c = rectangle_corners(vertices.points[i], vertices.d1[i], vertices.d2[i],
+                                  a.width, a.length).mean(0)
+            if any(inside(c, j, b) and inside(cj, i, a) for j, b, cj in kept):
+                a.support = -1.0
+                continue
+            kept.append((i, a, c))
+    return [(i, a) for i, a, _ in kept]
+
+
+def _cut_evidence(R: Rectangle, att: _Attempt, ctx: _Context, cuts_x: list[float],
+                  cuts_y: list[float]) -> tuple[np.ndarray, np.ndarray]:
+    """The groove statistic at each implied seam of a region, however weak: (z, critical)
+    of :func:`boxloc.stages.seams.seam_at` at the seam level, the cuts along x then y."""
+    vc = ctx.verify_ctx
+    spacing = vc.spacing_at(R.origin + 0.5 * att.width * R.x_axis + 0.5 * att.length * R.y_axis)
+    fp = face_points(vc.points, vc.valid, vc.sigma, vc.project, R.origin, R.x_axis, R.y_axis,
+                     R.normal, (0.0, att.width), (0.0, att.length), spacing, ctx.config.alpha,
+                     ctx.config.noise.row_corr)
+    z, zc = [], []
+    for coord, cuts in ((fp.u, cuts_x), (fp.v, cuts_y)):
+        for c in cuts:
+            if len(fp):
+                a, b = seam_at(coord, fp.w, fp.scale, c, spacing, vc.seam_alpha, None, False,
+                               fp.row, fp.row_corr)
+            else:
+                a, b = np.nan, np.nan
+            z.append(a)
+            zc.append(b)
+    return np.array(z, np.float64), np.array(zc, np.float64)
+
+
+def _split_regions(ctx: _Context, works: list[_VertexWork]) -> tuple[_Context, list[_VertexWork]]:
+    """Split each verified flat region at the seams a listed carton size implies.
+
+    Without ``Config.box_sizes`` every region stays ambiguous (``LARGER_THAN_MAX_BOX``).
+    With them, the region's extent is tested against every listed size's grids (nx x ny,
+    either orientation; :func:`boxloc.stages.sizes.region_splits`). No grid fits:
+    ``NOT_A_MULTIPLE_OF_A_SIZE``. More than one cuts it differently and the range points
+    show the seams of exactly one (every cut's groove significant at the seam level), that
+    one; else ``SEVERAL_SPLITS``. The split's SKU_SIZE row and a SKU_SPLIT_SEAM row per
+    cut (b = the cut, x first; the groove there however weak) join the region's tests.
+
+    Each part becomes a vertex (``parent`` the region's, ``parent_side`` ``SIZE_PART``)
+    with one attempt of the part's size (``DimensionSource.SKU_SPLIT``), verified with its
+    cut sides on the size's evidence (``size_sides``). If any part fails, the split is
+    not trusted: every part is set ``AMBIGUOUS`` and the region is ambiguous
+    (``NO_END_EVIDENCE``). A REGION attempt's ``support`` is the number of parts (0: not
+    split; -1: a duplicate), its ``threshold`` the :class:`AmbiguityReason` (NaN: split).
+    """
+    cfg = ctx.config
+    vertices = ctx.vertices
+    single = _multiples_as_regions(works, cfg)
+    regions = _distinct_regions(works, vertices, cfg.min_edge)
+    if not regions or not cfg.box_sizes:
+        return ctx, works
+    new: list[tuple[np.ndarray, ...]] = []
+    parent: list[int] = []
+    plans: list[tuple[_Attempt, float, float, frozenset[int]]] = []
+    owners: list[_Attempt] = []
+    tol = cfg.angle_tolerance
+    for h, att in regions:
+        out = att.outcome
+        assert out is not None
+        R = align(vertices, h, ctx.normal_cov)
+        splits = distinct(region_splits(att.width, att.length, cfg.box_sizes,
+                                        cfg.size_tolerance, cfg.alpha), cfg.size_tolerance)
+        if not splits:
+            att.threshold = float(AmbiguityReason.NOT_A_MULTIPLE_OF_A_SIZE)
+            continue
+        evidence = []
+        for sp in splits:
+            ax, bx = att.width / sp.nx, att.length / sp.ny  # the measured part
+            z, zc = _cut_evidence(R, att, ctx, [ax * i for i in range(1, sp.nx)],
+                                  [bx * j for j in range(1, sp.ny)])
+            evidence.append((z, zc, bool(len(z)) and bool(np.all(z > zc))))
+        seen = [i for i, e in enumerate(evidence) if e[2]]
+        if len(seen) == 1:
+            pick = seen[0]
+        elif len(splits) == 1 and id(att) not in single:
+            pick = 0
+        else:  # several ways to cut it (one box of a listed size among them), no seam shown
+            att.threshold = float(AmbiguityReason.SEVERAL_SPLITS)
+            continue
+        sp, (z, zc, _) = splits[pick], evidence[pick]
+        rows = [TestTable.chi2(TestKind.SKU_SIZE, -1, sp.sku, sp.statistic, 2.0, cfg.alpha),
+                TestTable.decision(TestKind.SKU_SPLIT_SEAM, -1, np.arange(len(z)), z, zc,
+                                   z > zc, cfg.alpha)]
+        att.outcome = dataclasses.replace(out, tests=TestTable.concat([out.tests, *rows],
+                                                                      cfg.alpha))
+        att.threshold = np.nan
+        att.support = float(sp.parts)
+        pw, pl = att.width / sp.nx, att.length / sp.ny
+        C = vertices.covariances[h]
+        for j in range(sp.ny):
+            for i in range(sp.nx):
+                u, v = i * pw, j * pl
+                cov = np.zeros((9, 9))
+                cov[:3, :3] = _corner(C, u, v, tol)
+                cov[3:, 3:] = C[3:, 3:]
+                new.append((R.origin + u * R.x_axis + v * R.y_axis, R.x_axis, R.y_axis,
+                            R.normal, cov))
+                parent.append(h)
+                inner = frozenset(si for si, ok in enumerate(
+                    (j > 0, j < sp.ny - 1, i > 0, i < sp.nx - 1)) if ok)
+                plans.append((_Attempt(DimensionSource.SKU_SPLIT, -1, pw, pl, float(h),
+                                       np.nan), pw, pl, inner))
+                owners.append(att)
+    if not new:
+        return ctx, works
+    n0 = len(vertices)
+    V = append_vertices(vertices, new, [-1] * len(new), [-1] * len(new), parent,
+                        [SIZE_PART] * len(new), vertices.tests)
+    ctx = dataclasses.replace(ctx, vertices=V, normal_cov=normal_covariance(V))
+    n_parts = {id(o): int(o.support) for o in owners}
+    part_works = []
+    for k, ((att, _, _, cut), region) in enumerate(zip(plans, owners)):
+        w = _VertexWork(vertex=n0 + k)
+        # the parts of one split are tested together: their interior searches at alpha
+        # over the parts
+        _verify(align(V, n0 + k, ctx.normal_cov), att, ctx, cut, n_parts[id(region)])
+        w.attempts.append(att)
+        part_works.append(w)
+    # a split is trusted only whole: a part that fails leaves the region ambiguous
+    for region in {id(o): o for o in owners}.values():
+        mine = [att for (att, _, _, _), o in zip(plans, owners) if o is region]
+        if all(a.outcome is not None and a.outcome.accepted for a in mine):
+            continue
+        for a in mine:
+            if a.outcome is not None and a.outcome.accepted:
+                a.outcome = dataclasses.replace(a.outcome, accepted=False,
+                                                reason=VerifyReason.AMBIGUOUS)
+        region.support = 0.0
+        region.threshold = float(AmbiguityReason.NO_END_EVIDENCE)
+    return ctx, works + part_works
 
 
 _Rect = tuple[np.ndarray, np.ndarray, np.ndarray, _Attempt]  # origin, x, y, attempt

@@ -22,8 +22,16 @@ import dataclasses
 import numpy as np
 
 from boxloc.config import Config
-from boxloc.products import HypothesisSet, Selection, SurfaceSet, Verification, VertexSet
+from boxloc.products import (
+    DimensionSource,
+    HypothesisSet,
+    Selection,
+    SurfaceSet,
+    Verification,
+    VertexSet,
+)
 from boxloc.scan import Scan
+from boxloc.stages.ambiguous import end_evidence
 from boxloc.stages.height import box_heights, height_context
 from boxloc.stages.sizes import match_size
 from boxloc.stages.vertices import _skew
@@ -136,6 +144,9 @@ def make_surfaces(
         Sn = verification.plane_covariances[j][3:, 3:]
         K = _skew(nf)
         cov[3:, 3:] = K.T @ Sn @ K + float(y @ Sd1 @ y + x @ Sd2 @ x) * np.outer(nf, nf)
+        # what shows each side is the box's end
+        tests.append(end_evidence(verification.tests.select(verification.tests.a == j), j,
+                                  hypotheses.att_source[j] == DimensionSource.SKU_SPLIT))
         q = selection.Q[k, k]
         score = float(q / max(config.mdl_k1 * selection.n_points[k], 1e-12))
         rows.append((h, j, c, nf, x, y, w, ln, corners, score, cov, bulge))

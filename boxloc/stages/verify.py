@@ -51,6 +51,7 @@ refitted to the points inside.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -430,6 +431,13 @@ class _Hypothesis:
     margin: float  # the border margin: the bevel and mixed pixels of the edge itself, metres
     interior_margin: float  # edges beyond it from every side are interior, metres
     band: float  # a side's edges lie within it of the side, metres
+    #: level of the searches for an edge line or a seam inside (VERIFY_INTERIOR,
+    #: VERIFY_SEAM_INTERIOR): alpha, over the parts of a split tested together
+    interior_alpha: float = 0.0
+
+    def __post_init__(self) -> None:
+        if not self.interior_alpha:
+            object.__setattr__(self, "interior_alpha", self.alpha)
 
     @property
     def flank(self) -> float:
@@ -556,7 +564,7 @@ def _test_interior(edges: _FaceEdges, hyp: _Hypothesis) -> tuple[bool, TestTable
     line_count, line_p = _interior_line(edges.u[inside], edges.v[inside], hyp.width,
                                         hyp.length, hyp.spacing, hyp.interior_margin)
     min_line = float(MIN_LINE_POINTS)
-    line_ok = not (line_count >= min_line and line_p < hyp.alpha)
+    line_ok = not (line_count >= min_line and line_p < hyp.interior_alpha)
     return line_ok, TestTable.decision(TestKind.VERIFY_INTERIOR, hyp.attempt_id, -1, line_count,
                                        min_line, line_ok, hyp.alpha, p_value=line_p)
 
@@ -638,6 +646,25 @@ def _test_seam_sides(fp: FacePoints, hyp: _Hypothesis, sides: _Sides,
     return tests
 
 
+def _test_size_sides(fp: FacePoints, hyp: _Hypothesis, sides: _Sides,
+                     size_sides: frozenset[int]) -> TestTable:
+    """SKU_SPLIT_SEAM: the sides a listed size implies are boundaries on the size's
+    evidence; the groove along each, however weak, is recorded (b = side, statistic z,
+    critical the seam level's z, accepted where the seam is seen).
+
+    Completes ``sides`` (``ok``, ``covered``, ``seams``) with them.
+    """
+    tried = sorted(size_sides)
+    zz = np.array([_side_seam(fp, si, hyp.width, hyp.length, hyp.spacing, hyp.seam_alpha)
+                   if len(fp) else (np.nan, np.nan) for si in tried])
+    for si in tried:
+        sides.ok[si] = True
+        sides.covered[si] = int(sides.expected[si])
+        sides.seams.add(si)
+    return TestTable.decision(TestKind.SKU_SPLIT_SEAM, hyp.attempt_id, tried, zz[:, 0],
+                              zz[:, 1], zz[:, 0] > zz[:, 1], hyp.alpha)
+
+
 def _test_seam_interior(fp: FacePoints, hyp: _Hypothesis) -> tuple[bool, list[TestTable]]:
     """VERIFY_SEAM_INTERIOR: no seam crosses the face (the points of the interior, binned
     along x and along y). Returns (crossed, its row, if any points)."""
@@ -649,7 +676,7 @@ def _test_seam_interior(fp: FacePoints, hyp: _Hypothesis) -> tuple[bool, list[Te
                                      (fp.v, fp.u, (mi, length - mi), width)):
         sel = (other >= mi) & (other <= ext - mi)
         found = find_seams(coord[sel], fp.w[sel], fp.scale, lo_hi[0], lo_hi[1],
-                           hyp.spacing, hyp.alpha, fp.row[sel], fp.row_corr)
+                           hyp.spacing, hyp.interior_alpha, fp.row[sel], fp.row_corr)
         # the strongest groove anywhere inside, significant or not (NaN: none measurable)
         int_z.append(found.z_max if np.isfinite(found.z_max) else np.nan)
         int_crit.append(found.critical)
@@ -852,6 +879,8 @@ def verify(
     plane_cov: np.ndarray,
     config: Config,
     attempt_id: int,
+    size_sides: frozenset[int] = frozenset(),
+    family: int = 1,
 ) -> VerifyOutcome:
     """Verify one rectangle hypothesis by the range points inside it.
 
@@ -871,6 +900,15 @@ def verify(
         Covariance of (origin, normal) of the rectangle's plane.
     attempt_id : int
         Recorded as entity ``a`` of every test.
+    size_sides : frozenset of int
+        Sides (0-3) that a listed carton size puts inside a larger flat region (a part of
+        a split, :mod:`boxloc.stages.sizes`): the size is their evidence of the box's end,
+        so they count as boundaries and as ends (a seam) whatever the edges say; the
+        groove there, however weak, is recorded (SKU_SPLIT_SEAM).
+    family : int
+        The rectangle is one of ``family`` parts of a split, verified together: the
+        searches for a line or seam inside each run at alpha / ``family`` (Bonferroni), so
+        that the split as a whole errs at alpha. 1 for a hypothesis of its own.
 
     Returns
     -------
@@ -878,6 +916,8 @@ def verify(
     """
     hyp = _hypothesis(ctx, origin, x_axis, y_axis, normal, width, length, plane_cov, config,
                       attempt_id)
+    if family > 1:
+        hyp = dataclasses.replace(hyp, interior_alpha=hyp.alpha / family)
     alpha, m = hyp.alpha, hyp.margin
     tests: list[TestTable] = []
 
@@ -902,6 +942,8 @@ def verify(
     fp = face_points(ctx.points, ctx.valid, ctx.sigma, ctx.project, origin, x_axis, y_axis,
                      normal, (-B, width + B), (-B, length + B), hyp.spacing, alpha,
                      config.noise.row_corr)
+    if size_sides:
+        tests.append(_test_size_sides(fp, hyp, sides, size_sides))
     tests += _test_seam_sides(fp, hyp, sides, config.support_fraction)
     crossed, rows = _test_seam_interior(fp, hyp)
     tests += rows

@@ -1,0 +1,155 @@
+"""Tightly packed layers (issue #21, points 1 and 2): touching boxes of equal height with
+sharp edges and no gap show no seam. Without a carton list their union is one ambiguous
+region, never a surface; with the list it is split into the right boxes, and a box that
+matches no listed size is flagged."""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+from scenes import box, scene
+
+from boxloc.config import Config
+from boxloc.evaluate.metrics import match_surfaces
+from boxloc.pipeline import find_graspable_surfaces
+from boxloc.products import AmbiguityReason, DimensionSource, Result
+from boxloc.simulate import SimulatedScan
+from boxloc.stages.sizes import match_size, region_splits
+from boxloc.stats import TestKind
+
+#: The site's carton range: the one site input without a carton list (the largest box is
+#: 0.5 m, so two 0.3 x 0.4 cartons side by side cannot be one).
+SITE = dict(min_edge=0.15, max_edge=0.5)
+SIZE = (0.3, 0.4, 0.25)
+
+TWO = [box(-0.15, 0.0, 0.3, 0.4, 0.25), box(0.15, 0.0, 0.3, 0.4, 0.25)]
+FOUR = [box(x, y, 0.3, 0.4, 0.25) for y in (-0.2, 0.2) for x in (-0.15, 0.15)]
+
+
+def _run(boxes: list[list[float]], sizes: tuple[tuple[float, float, float], ...] = ()
+         ) -> tuple[SimulatedScan, Result]:
+    # sharp edges, no gap: the simulator renders no seam at all between the tops
+    sim = scene(boxes, distance=1.5, tilt=0.08, bevel=0.0)
+    return sim, find_graspable_surfaces(sim.scan, Config(**SITE, box_sizes=sizes))
+
+
+@pytest.mark.parametrize("boxes, extent", [(TWO, (0.4, 0.6)), (FOUR, (0.6, 0.8))],
+                         ids=["two", "four"])
+def test_touching_boxes_without_a_seam_are_one_ambiguous_region_without_sizes(
+        boxes: list[list[float]], extent: tuple[float, float]) -> None:
+    _, r = _run(boxes)
+    assert len(r.surfaces) == 0  # no rectangle over two tops, no sliver of one
+    A = r.ambiguous
+    assert len(A) == 1
+    assert A.reason[0] == AmbiguityReason.LARGER_THAN_MAX_BOX
+    # the region's outline is the union's, within a pixel or two (3 mm at 1.5 m)
+    np.testing.assert_allclose([A.width[0], A.length[0]], extent, atol=0.01)
+    assert A.area[0] == pytest.approx(extent[0] * extent[1], rel=0.05)
+    # every side ended with evidence, nothing split it
+    ev = A.tests_of(0).of_kind(TestKind.END_EVIDENCE)
+    assert len(ev) == 4 and ev.accepted.all()
+    seam = A.tests_of(0).of_kind(TestKind.VERIFY_SEAM_INTERIOR)
+    assert len(seam) == 2 and seam.accepted.all()
+    # in the JSON, with its reason and tests, JSON-safe
+    j = json.loads(json.dumps(r.to_json(), allow_nan=False))
+    assert j["surfaces"] == [] and len(j["ambiguous"]) == 1
+    amb = j["ambiguous"][0]
+    assert amb["reason"] == "larger_than_max_box" and np.shape(amb["corners"]) == (4, 3)
+    assert {"kind", "statistic", "dof", "critical", "decision"} <= set(amb["tests"][0])
+
+
+@pytest.mark.parametrize("boxes", [TWO, FOUR], ids=["two", "four"])
+def test_with_sizes_the_region_is_split_into_the_right_boxes(boxes: list[list[float]]) -> None:
+    sim, r = _run(boxes, (SIZE,))
+    m = match_surfaces(r.surfaces, sim.truth)
+    assert m.tp == len(boxes) and m.fp == 0 and len(r.ambiguous) == 0
+    assert (m.tp_iou > 0.9).all()
+    s = r.surfaces
+    assert (s.sku == 0).all() and not s.sku_flagged.any()
+    # each part records the seam its size implies, however weak (none is seen here)
+    H = r.hypotheses
+    assert (H.att_source[s.attempt] == DimensionSource.SKU_SPLIT).all()
+    for j in s.attempt:
+        rows = r.verification.tests.select((r.verification.tests.a == j)
+                                           & (r.verification.tests.kind
+                                              == TestKind.SKU_SPLIT_SEAM))
+        assert len(rows) >= 1
+    ev = s.tests.of_kind(TestKind.END_EVIDENCE)
+    assert len(ev) == 4 * len(s) and ev.accepted.all()
+    assert set(ev.statistic) >= {1.0, 3.0}  # outer sides by edges, inner by the size
+    # and the region's split: a SKU_SIZE row of its grid
+    reg = np.flatnonzero(H.att_source == DimensionSource.REGION)
+    split = reg[H.att_support[reg] > 0]
+    assert len(split) == 1 and H.att_support[split[0]] == len(boxes)  # once, in n parts
+    grid = r.verification.tests.select((r.verification.tests.a == split[0])
+                                       & (r.verification.tests.kind == TestKind.SKU_SIZE))
+    assert len(grid) == 1 and grid.accepted[0] and grid.b[0] == 0
+
+
+def test_two_small_touching_boxes_are_split_with_sizes() -> None:
+    # 0.4 x 0.3 together: within the site's box range, so without a list they pass for one
+    # box (nothing can tell); with it the rectangle is a multiple and matches no size
+    two_small = [box(-0.1, 0.0, 0.2, 0.3, 0.25), box(0.1, 0.0, 0.2, 0.3, 0.25)]
+    sim, r = _run(two_small, ((0.2, 0.3, 0.25),))
+    m = match_surfaces(r.surfaces, sim.truth)
+    assert m.tp == 2 and m.fp == 0 and len(r.ambiguous) == 0
+
+
+def test_a_box_that_matches_no_listed_size_is_flagged() -> None:
+    sim, r = _run([box(0.0, 0.0, 0.3, 0.4, 0.25)], ((0.2, 0.5, math.nan), (0.35, 0.6, 0.3)))
+    s = r.surfaces
+    assert len(s) == 1 and s.sku_flagged[0] and s.sku[0] == -1
+    row = s.tests.of_kind(TestKind.SKU_SIZE)
+    assert len(row) == 1 and not row.accepted[0] and row.dof[0] == 2
+    j = r.to_json()["surfaces"][0]
+    assert j["size_flagged"] is True and j["sku"] is None
+    # and matches when listed (either orientation)
+    _, r = _run([box(0.0, 0.0, 0.3, 0.4, 0.25)], ((0.2, 0.5, math.nan), (0.4, 0.3, 0.25)))
+    assert r.surfaces.sku[0] == 1 and not r.surfaces.sku_flagged[0]
+    assert r.to_json()["surfaces"][0]["sku"] == 1
+
+
+def test_without_sizes_nothing_is_flagged() -> None:
+    _, r = _run([box(0.0, 0.0, 0.3, 0.4, 0.25)])
+    assert len(r.surfaces) == 1 and not r.surfaces.sku_flagged.any()
+    assert (r.surfaces.sku == -1).all()
+    assert len(r.surfaces.tests.of_kind(TestKind.SKU_SIZE)) == 0
+
+
+def test_size_chi2_and_grids() -> None:
+    sizes = ((0.3, 0.4, 0.25),)
+    # one tolerance off in each dimension: chi2 = 2, well inside chi2(2) at 0.01 (9.21)
+    j, T, crit, ok = match_size(0.41, 0.31, sizes, 0.01, 0.01)
+    assert (j, ok) == (0, True) and T == pytest.approx(2.0) and crit == pytest.approx(9.21, 1e-3)
+    assert not match_size(0.45, 0.3, sizes, 0.01, 0.01)[3]
+    grids = region_splits(0.8, 0.6, sizes, 0.01, 0.01)
+    assert [(g.nx, g.ny) for g in grids] == [(2, 2)] and (grids[0].a, grids[0].b) == (0.4, 0.3)
+    assert region_splits(0.9, 0.4, sizes, 0.01, 0.01)[0].nx == 3  # 3 x 1, along x
+    assert region_splits(0.35, 0.4, sizes, 0.01, 0.01) == []  # no multiple
+
+
+def test_locate_box_sizes_end_to_end(tmp_path: Path) -> None:
+    from click.testing import CliRunner
+
+    from boxloc.cli import cli
+    from boxloc.io import write_npz
+
+    sim = scene(TWO, distance=1.5, tilt=0.08, bevel=0.0)
+    scan = tmp_path / "two.npz"
+    write_npz(sim.scan, scan)
+    sizes = tmp_path / "sizes.csv"
+    sizes.write_text("width,length,height\n0.4,0.3,0.25\n")
+    args = ["locate", str(scan), "--set", "min_edge=0.15", "--set", "max_edge=0.5"]
+    out = CliRunner().invoke(cli, args)
+    assert out.exit_code == 0, out.output
+    j = json.loads(out.output)
+    assert j["surfaces"] == [] and j["ambiguous"][0]["reason"] == "larger_than_max_box"
+    out = CliRunner().invoke(cli, [*args, "--box-sizes", str(sizes)])
+    assert out.exit_code == 0, out.output
+    j = json.loads(out.output)
+    assert len(j["surfaces"]) == 2 and j["ambiguous"] == []
+    assert all(s["sku"] == 0 and s["size_flagged"] is False for s in j["surfaces"])
