@@ -100,7 +100,10 @@ def test_trace_prefilter_never_drops_a_point_on_the_line():
     C = np.einsum("nij,nkj->nik", A, A) * rng.uniform(1e-8, 9e-6, n)[:, None, None]
     crit = 9.21
     T, _ = _point_on_line_stat(P, C, c, b)
-    keep = _may_lie_on(P, np.einsum("nii->n", C), c, b, crit)
+    kept = _may_lie_on(P, np.einsum("nii->n", C), np.arange(n), c, b, crit)
+    keep = np.zeros(n, bool)
+    keep[kept] = True
+    assert np.all(np.diff(kept) > 0)  # the candidates in their order
     assert keep[T <= crit].all()
     assert (T <= crit).sum() > 100 and (~keep).sum() > n // 4
 
@@ -111,7 +114,7 @@ def test_inlier_search_with_the_prefilter_finds_the_same_lines(monkeypatch):
     import boxloc.stages.lines as L
     P, s, *_ = _two_lines_and_clutter(3)
     a = find_lines(_scan(), _edge_map(P, s), config=Config(), rng=np.random.default_rng(0))
-    monkeypatch.setattr(L, "_may_lie_on", lambda P, tr, c, b, crit: np.ones(len(P), bool))
+    monkeypatch.setattr(L, "_may_lie_on", lambda P, tr, idx, c, b, crit: idx)
     b_ = find_lines(_scan(), _edge_map(P, s), config=Config(), rng=np.random.default_rng(0))
     assert len(a) >= 2 and products_equal(a, b_) == []
 

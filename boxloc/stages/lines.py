@@ -166,11 +166,19 @@ def _vote_directions(d: np.ndarray, rad: np.ndarray, lut: np.ndarray, nbr: np.nd
     return acc
 
 
+def _cross(u: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """u x v of two 3-vectors, with ``np.cross``'s operations (the same bits) but not its
+    per-call overhead, which dominated this stage's small-array work."""
+    u0, u1, u2 = float(u[0]), float(u[1]), float(u[2])
+    v0, v1, v2 = float(v[0]), float(v[1]), float(v[2])
+    return np.array([u1 * v2 - u2 * v1, u2 * v0 - u0 * v2, u0 * v1 - u1 * v0])
+
+
 def _perp_basis(b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     a = np.array([1.0, 0.0, 0.0]) if abs(b[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
-    e1 = np.cross(b, a)
-    e1 /= np.linalg.norm(e1)
-    e2 = np.cross(b, e1)
+    e1 = _cross(b, a)
+    e1 /= math.sqrt(e1.dot(e1))  # as np.linalg.norm computes it
+    e2 = _cross(b, e1)
     return e1, e2
 
 
@@ -197,19 +205,34 @@ def _point_on_line_stat(
     return T, t
 
 
-def _may_lie_on(P: np.ndarray, tr: np.ndarray, c: np.ndarray, b: np.ndarray,
+@nb.njit(cache=True)
+def _may_lie_on(P: np.ndarray, tr: np.ndarray, idx: np.ndarray, c: np.ndarray, b: np.ndarray,
                 crit: float) -> np.ndarray:
-    """Which points can pass the point-on-line test at ``crit`` (a cheap, exact pre-filter).
+    """The points of ``idx`` that can pass the point-on-line test at ``crit`` (a cheap,
+    exact pre-filter), in their order.
 
     The chi2(2) statistic of a point at perpendicular distance r is at least r^2 over the
     largest eigenvalue of its projected covariance, and that is at most the trace ``tr`` of
     its 3-D covariance: a point with r^2 > crit * tr fails the test, whatever its
-    covariance's shape. (A point with no covariance is kept: the test decides it.)
+    covariance's shape (the factor 1 + 1e-9 keeps rounding on the safe side). A point with
+    no covariance is kept: the test decides it.
     """
-    D = P - c
-    R = D - np.outer(D @ b, b)
-    r2 = np.einsum("ni,ni->n", R, R)
-    return ~(r2 > crit * tr * (1.0 + 1e-9)) | (tr <= 0.0)
+    out = np.empty(idx.shape[0], np.int64)
+    m = 0
+    b0, b1, b2 = b[0], b[1], b[2]
+    for j in range(idx.shape[0]):
+        i = idx[j]
+        d0 = P[i, 0] - c[0]
+        d1 = P[i, 1] - c[1]
+        d2 = P[i, 2] - c[2]
+        t = d0 * b0 + d1 * b1 + d2 * b2
+        r0 = d0 - t * b0
+        r1 = d1 - t * b1
+        r2 = d2 - t * b2
+        if not (r0 * r0 + r1 * r1 + r2 * r2 > crit * tr[i] * (1.0 + 1e-9)) or tr[i] <= 0.0:
+            out[m] = i
+            m += 1
+    return out[:m]
 
 
 def fit_segment(P: np.ndarray, C: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray,
@@ -303,6 +326,7 @@ def find_lines(scan: Scan, edges: EdgeMap, *, config: Config, rng: np.random.Gen
     radius = min(config.max_edge, VOTE_RADIUS_EDGES * config.min_edge)
 
     alive = np.ones(N, bool)
+    alive_idx = np.arange(N)  # np.flatnonzero(alive)
     n_alive = N
     segments: list[_Segment] = []
     trial_of: list[int] = []  # the trial that found each segment
@@ -323,17 +347,17 @@ def find_lines(scan: Scan, edges: EdgeMap, *, config: Config, rng: np.random.Gen
             exhausted = True
             break
         trial += 1
-        alive_idx = np.flatnonzero(alive)
         i0 = int(alive_idx[rng.integers(len(alive_idx))])
         nb = np.asarray(ptree.query_ball_point(P[i0], radius), dtype=np.int64)
         nb = nb[alive[nb] & (nb != i0)]
         work += len(nb)
-        found = _trial(fixed, i0, nb, alive, rng) if len(nb) >= m_min else []
+        found = _trial(fixed, i0, nb, alive_idx, rng) if len(nb) >= m_min else []
         for seg in found:
             alive[seg.support] = False
             segments.append(seg)
             trial_of.append(trial)
         if found:
+            alive_idx = np.flatnonzero(alive)  # changes only here
             n_alive = int(alive.sum())
             fails = 0
         else:
@@ -377,7 +401,7 @@ class _Segment:
     pos_votes: float  # height of the position accumulator's peak
 
 
-def _trial(fixed: _TrialInputs, i0: int, nb: np.ndarray, alive: np.ndarray,
+def _trial(fixed: _TrialInputs, i0: int, nb: np.ndarray, live: np.ndarray,
            rng: np.random.Generator) -> list[_Segment]:
     """One constrained Hough trial from the distinguished edge point ``i0``.
 
@@ -388,8 +412,8 @@ def _trial(fixed: _TrialInputs, i0: int, nb: np.ndarray, alive: np.ndarray,
         The distinguished point.
     nb : ndarray (n,) int64
         Its live neighbours within the vote radius (``i0`` excluded), the voters.
-    alive : ndarray (N,) bool
-        Points no earlier segment took; the inliers are sought among them (not changed).
+    live : ndarray (n_alive,) int64
+        The points no earlier segment took, ascending; the inliers are sought among them.
     rng : numpy.random.Generator
         Draws the voters when there are more than ``MAX_VOTERS``.
 
@@ -456,12 +480,11 @@ def _trial(fixed: _TrialInputs, i0: int, nb: np.ndarray, alive: np.ndarray,
     anchor = p0 + g[pk[0]] * e1 + g[pk[1]] * e2
 
     # inliers among all live points, two rounds of TLS refit
-    live = np.flatnonzero(alive)
     c, bb = anchor, b
     inl = live[:0]
     for _ in range(2):
         # the full test on the points the trace bound leaves: the same inliers, cheaper
-        cand = live[_may_lie_on(P[live], fixed.cov_trace[live], c, bb, chi2_2)]
+        cand = _may_lie_on(P, fixed.cov_trace, live, c, bb, chi2_2)
         T, _t = _point_on_line_stat(P[cand], C[cand], c, bb)
         inl = cand[T <= chi2_2]
         if len(inl) < m_min:
