@@ -253,16 +253,27 @@ def _failed(job: Job, e: Exception) -> ScanRun:
                    _ErrorInfo(type(e).__name__, f"the worker's result was unreadable: {e}"))
 
 
-def _lean(scan: Scan) -> Scan:
-    """The scan without its cached derived arrays (``points``: 3x the range's bytes), which
-    the worker recomputes the same: less to pickle through the pipe."""
-    cached = [k for k, v in vars(type(scan)).items()
-              if isinstance(v, functools.cached_property) and k in vars(scan)]
+def _uncached(obj: Any) -> Any:
+    """A shallow copy of ``obj`` without the values of its ``cached_property`` attributes
+    (or ``obj`` itself when it has none)."""
+    cached = [k for k, v in vars(type(obj)).items()
+              if isinstance(v, functools.cached_property) and k in vars(obj)]
     if not cached:
-        return scan
-    out = copy.copy(scan)
+        return obj
+    out = copy.copy(obj)
     for k in cached:
         vars(out).pop(k, None)
+    return out
+
+
+def _lean(scan: Scan) -> Scan:
+    """The scan without its cached derived data (``points``: 3x the range's bytes; a ray
+    table's search tree), which the worker recomputes the same: less through the pipe."""
+    out = _uncached(scan)
+    sensor = _uncached(scan.sensor)
+    if sensor is not scan.sensor:
+        out = copy.copy(out) if out is scan else out
+        vars(out)["sensor"] = sensor
     return out
 
 

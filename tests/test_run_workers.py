@@ -303,3 +303,21 @@ def test_a_scan_that_kills_its_worker_is_failed_and_the_others_run() -> None:
     assert rb is not None and isinstance(rb.error, WorkerLost)
     assert "died 2 time(s)" in str(rb.error) and "exit code 3" in str(rb.error)
     assert [c[0] for c in rb.calls] == ["on_scan"]  # recorded as a scan with its error
+
+
+def test_a_scan_goes_to_its_worker_without_its_caches() -> None:
+    """The points and a ray table's search tree are recomputed in the worker (the same):
+    they are not pickled; the parent's scan keeps them."""
+    import pickle
+
+    from factories import make_scan
+
+    from recorder.stream import _lean
+
+    s = make_scan(0, shape=(48, 64), raytable=True)
+    _ = s.points, s.sensor._tree  # type: ignore[attr-defined]
+    lean = _lean(s)
+    assert "points" not in vars(lean) and "_tree" not in vars(lean.sensor)
+    assert "points" in vars(s) and "_tree" in vars(s.sensor)
+    assert len(pickle.dumps(lean)) < len(pickle.dumps(s)) / 2
+    assert lean.range is s.range and lean.points.tobytes() == s.points.tobytes()
