@@ -131,7 +131,8 @@ class TestKind(IntEnum):
     SKU_SPLIT_SEAM = 31
     #: hypothesis stage: side b (0-3: v=0, v=length, u=0, u=width) of attempt a has evidence
     #: of the box's end: statistic = the evidence (0 none, 1 a line of jump or convex-crease
-    #: edges, 2 a groove or seam, 3 a listed size's implied seam); critical 1; accepted if any
+    #: edges, 2 a groove or seam, 3 a listed size's implied seam, 4 the outline of the
+    #: verified flat region a part of a split lies on); critical 1; accepted if any
     END_EVIDENCE = 32
     #: result stage: the height of chosen attempt a's box (b = :class:`boxloc.products.
     #: HeightSource`): statistic = the height, metres; critical = its standard deviation,

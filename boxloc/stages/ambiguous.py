@@ -37,15 +37,15 @@ REGION_TEST_KINDS = (TestKind.VERIFY_INTERIOR, TestKind.VERIFY_BOUNDARY,
                      TestKind.VERIFY_CONTINUATION, TestKind.SKU_SIZE, TestKind.SKU_SPLIT_SEAM)
 
 #: END_EVIDENCE's statistic: the evidence of a side's end.
-EVIDENCE_NONE, EVIDENCE_EDGES, EVIDENCE_SEAM, EVIDENCE_SIZE = 0, 1, 2, 3
+EVIDENCE_NONE, EVIDENCE_EDGES, EVIDENCE_SEAM, EVIDENCE_SIZE, EVIDENCE_REGION = 0, 1, 2, 3, 4
 
 
 def end_evidence(tests: TestTable, attempt: int, part: bool = False) -> TestTable:
     """END_EVIDENCE rows of one attempt's four sides, from its verification rows: a line
     of jump or convex-crease edges (VERIFY_BOUNDARY rows 0-3), else a groove or seam
     (VERIFY_SEAM_SIDE), else, for a ``part`` of a split region, a listed size's implied
-    seam (its SKU_SPLIT_SEAM rows, b = side); statistic the evidence, critical 1,
-    accepted if any."""
+    seam (its SKU_SPLIT_SEAM rows, b = side), else the region's verified outline it lies
+    on; statistic the evidence, critical 1, accepted if any."""
     ev = np.zeros(4)
     b = tests.of_kind(TestKind.VERIFY_BOUNDARY)
     for si in range(min(4, len(b))):
@@ -60,6 +60,8 @@ def end_evidence(tests: TestTable, attempt: int, part: bool = False) -> TestTabl
     for si in z.b:
         if 0 <= si < 4 and ev[si] == EVIDENCE_NONE:
             ev[si] = EVIDENCE_SIZE
+    if part:
+        ev[ev == EVIDENCE_NONE] = EVIDENCE_REGION
     return TestTable.decision(TestKind.END_EVIDENCE, attempt, np.arange(4), ev, 1.0, ev >= 1,
                               tests.alpha)
 

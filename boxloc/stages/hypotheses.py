@@ -527,9 +527,13 @@ def _try_in_turn(R: Rectangle, ctx: _Context, work: _VertexWork, cands: list[_At
 
 def _verify(R: Rectangle, att: _Attempt, ctx: _Context,
             size_sides: frozenset[int] = frozenset(), family: int = 1) -> None:
+    # a part's sides that are not cuts lie on its region's verified outline
+    outline = (frozenset(range(4)) - size_sides if att.source == DimensionSource.SKU_SPLIT
+               else frozenset())
     att.outcome = verify(ctx.scan, ctx.verify_ctx, R.origin, R.x_axis, R.y_axis, R.normal,
                          att.width, att.length, R.plane_cov, ctx.config, attempt_id=-1,
-                         size_sides=size_sides, family=family)
+                         size_sides=size_sides, family=family,
+                         region=att.source == DimensionSource.REGION, region_sides=outline)
 
 
 _WORKER_CTX: list[_Context] = []

@@ -189,21 +189,34 @@ def _interior_line(
     p_value : float
         Probability of so high a bin by uniform scatter (1 if no points).
     """
+    count, p, _ = _interior_line_span(u, v, width, length, spacing, margin)
+    return count, p
+
+
+def _interior_line_span(
+    u: np.ndarray, v: np.ndarray, width: float, length: float, spacing: float,
+    margin: float = 0.0,
+) -> tuple[float, float, float]:
+    """:func:`_interior_line`, and how far the points of its highest bin spread along it
+    (metres): a line across a face spans it, a clump of artefact edges does not."""
     n = len(u)
     if n == 0:
-        return 0.0, 1.0
+        return 0.0, 1.0, 0.0
     h = 3.0 * spacing
-    best, best_p = 0.0, 1.0
-    for coord, extent in ((u, width), (v, length)):
+    best, best_p, best_span = 0.0, 1.0, 0.0
+    for coord, other, extent in ((u, v, width), (v, u, length)):
         nb = max(int(np.ceil((extent - 2.0 * margin) / h)), 1)
-        acc = np.bincount(np.clip(((coord - margin) / h).astype(np.int64), 0, nb - 1),
-                          minlength=nb)
-        k = float(acc.max())
+        idx = np.clip(((coord - margin) / h).astype(np.int64), 0, nb - 1)
+        acc = np.bincount(idx, minlength=nb)
+        top = int(np.argmax(acc))
+        k = float(acc[top])
         lam = n / nb
         p = float(min(1.0, nb * st.poisson.sf(k - 1, lam)))
         if p < best_p or (p == best_p and k > best):
+            along = other[idx == top]
             best, best_p = k, p
-    return best, best_p
+            best_span = float(along.max() - along.min()) if len(along) else 0.0
+    return best, best_p, best_span
 
 
 def _side_seam(fp: FacePoints, side: int, width: float, length: float, spacing: float,
@@ -558,13 +571,17 @@ def _test_tilt(hyp: _Hypothesis, up: np.ndarray, max_tilt: float) -> tuple[bool,
         TestKind.VERIFY_TILT, hyp.attempt_id, -1, tilt, max_tilt, tilt <= max_tilt, hyp.alpha)
 
 
-def _test_interior(edges: _FaceEdges, hyp: _Hypothesis) -> tuple[bool, TestTable]:
-    """VERIFY_INTERIOR: no straight line of edge points crosses the interior."""
+def _test_interior(edges: _FaceEdges, hyp: _Hypothesis,
+                   min_span: float = 0.0) -> tuple[bool, TestTable]:
+    """VERIFY_INTERIOR: no straight line of edge points crosses the interior (one whose
+    points spread at least ``min_span`` along it, metres)."""
     inside = edges.interior
-    line_count, line_p = _interior_line(edges.u[inside], edges.v[inside], hyp.width,
-                                        hyp.length, hyp.spacing, hyp.interior_margin)
+    line_count, line_p, span = _interior_line_span(edges.u[inside], edges.v[inside],
+                                                   hyp.width, hyp.length, hyp.spacing,
+                                                   hyp.interior_margin)
     min_line = float(MIN_LINE_POINTS)
-    line_ok = not (line_count >= min_line and line_p < hyp.interior_alpha)
+    line_ok = not (line_count >= min_line and line_p < hyp.interior_alpha
+                   and span >= min_span)
     return line_ok, TestTable.decision(TestKind.VERIFY_INTERIOR, hyp.attempt_id, -1, line_count,
                                        min_line, line_ok, hyp.alpha, p_value=line_p)
 
@@ -881,6 +898,8 @@ def verify(
     attempt_id: int,
     size_sides: frozenset[int] = frozenset(),
     family: int = 1,
+    region: bool = False,
+    region_sides: frozenset[int] = frozenset(),
 ) -> VerifyOutcome:
     """Verify one rectangle hypothesis by the range points inside it.
 
@@ -909,6 +928,16 @@ def verify(
         The rectangle is one of ``family`` parts of a split, verified together: the
         searches for a line or seam inside each run at alpha / ``family`` (Bonferroni), so
         that the split as a whole errs at alpha. 1 for a hypothesis of its own.
+    region : bool
+        The rectangle is a whole flat region larger than a box
+        (:func:`boxloc.stages.hypotheses.dimensions_from_region`): an edge line crosses it
+        only if its points spread along it as far as the supported part of the shortest
+        box edge (``support_fraction`` ``min_edge``). A sensor's artefact edges clump in
+        a few places, and over a region's area some clump would pass for a short line.
+    region_sides : frozenset of int
+        Sides (0-3) of a part of a split region that lie on the region's outline, whose
+        verification showed the face ends there: a side whose own stretch of edges is too
+        short to show it (VERIFY_BOUNDARY rejects) is a boundary on the region's evidence.
 
     Returns
     -------
@@ -930,7 +959,8 @@ def verify(
     # cheap tests first, on the edge points (no rasterization)
     edges = _face_edges(ctx, hyp, config)
     n_int = int(edges.interior.sum())
-    line_ok, row = _test_interior(edges, hyp)
+    line_ok, row = _test_interior(
+        edges, hyp, config.support_fraction * config.min_edge if region else 0.0)
     tests.append(row)
     sides, row = _test_boundary(edges, hyp, ctx, config.support_fraction)
     tests.append(row)
@@ -944,6 +974,11 @@ def verify(
                      config.noise.row_corr)
     if size_sides:
         tests.append(_test_size_sides(fp, hyp, sides, size_sides))
+    for si in sorted(region_sides):
+        if not sides.ok[si]:  # on the region's evidence
+            sides.ok[si] = True
+            sides.covered[si] = int(sides.expected[si])
+            sides.seams.add(si)
     tests += _test_seam_sides(fp, hyp, sides, config.support_fraction)
     crossed, rows = _test_seam_interior(fp, hyp)
     tests += rows
