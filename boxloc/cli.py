@@ -285,6 +285,10 @@ def _print_surfaces(result: Any) -> None:
               help="The sensor x scene-kind matrix (boxloc.simulate.matrix_suite) with the "
                    "default configuration only (no --set, no --config; the box size range is "
                    "the simulator's); --out gets bench_matrix.json and bench_matrix.txt.")
+@click.option("--packed", is_flag=True,
+              help="Zero-gap, sharp-edged layered pallets for every sensor model of the zoo, "
+                   "default configuration with and without the scenes' carton list "
+                   "(boxloc.evaluate.packed_bench); --out gets bench_packed.json.")
 @click.option("--jobs", type=click.IntRange(min=1), default=None,
               help="With --matrix: worker processes (results identical to one). [default: 1]")
 @click.option("--held-out", "held_out", default=None, metavar="SENSOR",
@@ -305,6 +309,7 @@ def bench(
     sections: tuple[str, ...] = (), fuzz_cases: int | None = None,
     scene_sets: tuple[str, ...] = (), seeds: int | None = None, matrix: bool = False,
     jobs: int | None = None, held_out: str | None = None, scan_timeout: float | None = None,
+    packed: bool = False,
 ) -> None:
     """Benchmark the localizer against the open3d baseline on N simulated scenes.
 
@@ -312,7 +317,8 @@ def bench(
     sections come from the `boxloc.bench` entry-point group (see boxloc.evaluate.scene_bench). With
     --real DIR, the real labelled scans of DIR instead (see boxloc.evaluate.real_bench). With
     --matrix, the sensor x scene-kind matrix, default configuration only (see
-    boxloc.evaluate.matrix_bench).
+    boxloc.evaluate.matrix_bench). With --packed, zero-gap layered pallets per sensor model,
+    with and without the carton list (see boxloc.evaluate.packed_bench).
     """
     import os
 
@@ -320,7 +326,10 @@ def bench(
     for var in ("OMP_NUM_THREADS", "NUMBA_NUM_THREADS", "OPENBLAS_NUM_THREADS"):
         os.environ.setdefault(var, "1")
     matrix_only = {"jobs": jobs, "held-out": held_out, "scan-timeout": scan_timeout}
-    if matrix:
+    if matrix and packed:
+        _fail("--matrix and --packed are two benches: give one")
+    if matrix or packed:
+        flag = "--matrix" if matrix else "--packed"
         not_with = {"config": config_path, "set": overrides, "scene-set": scene_sets,
                     "real": real_dir, "frames": frames, "section": sections,
                     "replay": replay_only, "fuzz": fuzz_cases}
@@ -330,8 +339,16 @@ def bench(
                 if ctx.get_parameter_source(k if k != "noise" else "noise_source")
                 is click.core.ParameterSource.COMMANDLINE]
         if bad:
-            _fail(f"--matrix runs the default configuration only and its own scenes: "
+            _fail(f"{flag} runs the default configuration only and its own scenes: "
                   f"{', '.join(bad)} cannot be used with it")
+    if packed:
+        from boxloc.evaluate import packed_bench as pb
+
+        pb.run_packed_bench(n or pb.DEFAULT_N, seed, out=Path(out) if out else None,
+                            jobs=jobs or 1, seeds=seeds or 1, held_out=held_out or pb.HELD_OUT,
+                            scan_timeout=scan_timeout or pb.DEFAULT_SCAN_TIMEOUT)
+        return
+    if matrix:
         from boxloc.evaluate.matrix_bench import (
             DEFAULT_N,
             DEFAULT_SCAN_TIMEOUT,
@@ -345,7 +362,7 @@ def bench(
         return
     given = [f"--{k}" for k, v in matrix_only.items() if v is not None]
     if given:
-        _fail(f"{', '.join(given)} only apply with --matrix")
+        _fail(f"{', '.join(given)} only apply with --matrix or --packed")
     n = 100 if n is None else n
     seeds = 3 if seeds is None else seeds
 
