@@ -411,7 +411,11 @@ class _Ctx:
             for r in _tests(prod.tests, _REGION_TESTS, a=j):
                 if (r["kind"], r["a"], r["b"], r["statistic"]) not in seen:
                     rows.append(r)
+        # the region's own evidence first (END_EVIDENCE, SKU_*), then its attempt's others
+        region_kinds = {k.name for k in _REGION_TESTS}
+        rows.sort(key=lambda r: r["kind"] not in region_kinds)
         for r in rows:
+            r["region_test"] = r["kind"] in region_kinds
             if r["kind"] == TestKind.END_EVIDENCE.name and 0 <= int(r["b"]) < 4:
                 r["side"] = _END_SIDES[int(r["b"])]
                 r["evidence"] = _EVIDENCE.get(int(r["statistic"]), str(r["statistic"]))
@@ -420,6 +424,9 @@ class _Ctx:
             reason_name, text = reason.name, _AMBIGUITY_TEXT[reason]
         except (ValueError, KeyError):
             reason_name = text = str(int(A.reason[k]))
+        if reason_name == AmbiguityReason.LARGER_THAN_MAX_BOX.name:
+            text += (f" ({_num(_mm(A.length[k]))} mm against max_edge "
+                     f"{_num(_mm(self.config.max_edge))} mm)")
         return {"region": k, "reason": reason_name, "reason_text": text,
                 "hypothesis": int(A.hypothesis[k]), "attempt": j,
                 "width_mm": _mm(A.width[k]), "length_mm": _mm(A.length[k]),
@@ -1047,11 +1054,16 @@ def _ambiguous_lines(r: dict[str, Any], ind: str) -> list[str]:
            f"(hypothesis {r['hypothesis']}, attempt {r['attempt']}); corners "
            + ", ".join(_point_text(c) for c in r["corners"])]
     out.append(f"{ind}  why not split: {r['reason_text']}")
-    if r["tests"]:
-        out.append(f"{ind}  tests:")
-        out += [f"{ind}    {_test_text(t)}" for t in r["tests"][:4 * MAX_ITEMS]]
+    own = [t for t in r["tests"] if t.get("region_test")]
+    other = [t for t in r["tests"] if not t.get("region_test")]
+    if own:
+        out.append(f"{ind}  its ends and sizes:")
+        out += [f"{ind}    {_test_text(t)}" for t in own[:4 * MAX_ITEMS]]
     else:
-        out.append(f"{ind}  no test recorded for it")
+        out.append(f"{ind}  no END_EVIDENCE or SKU test recorded for it")
+    if other:
+        out.append(f"{ind}  the other tests of attempt {r['attempt']} ({len(other)}):")
+        out += [f"{ind}    {_test_text(t)}" for t in other[:2 * MAX_ITEMS]]
     return out
 
 
