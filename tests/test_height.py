@@ -63,3 +63,19 @@ def test_without_a_measurement_the_listed_height_else_none() -> None:
     assert src[0] == HeightSource.NONE and math.isnan(h[0]) and len(tests) == 0
     h, sig, src, tests = box_heights(ctx, s, CFG, sku_height=np.array([0.25]))
     assert src[0] == HeightSource.SKU and h[0] == 0.25 and sig[0] == CFG.size_tolerance
+
+
+def test_a_flush_stack_measures_its_whole_height_unless_the_listed_height_says_otherwise(
+        ) -> None:
+    from scenes import TOP
+
+    lower, upper = box(0.0, 0.0, 0.3, 0.4, 0.2), [0.0, 0.0, TOP + 0.3, 0.3, 0.4, 0.2, 0.0]
+    sim = scene([lower, upper], distance=1.5, tilt=0.35, bevel=0.0)
+    r = find_graspable_surfaces(sim.scan, CFG)
+    s = r.surfaces
+    assert len(s) == 1 and s.height_source[0] == HeightSource.SIDE
+    # from the top alone, two flush sharp-edged cartons are one tall one (a limit)
+    assert abs(s.height[0] - 0.4) <= 0.010
+    r = find_graspable_surfaces(sim.scan, dataclasses.replace(CFG, box_sizes=((0.3, 0.4, 0.2),)))
+    s = r.surfaces
+    assert s.sku[0] == 0 and s.height_source[0] == HeightSource.SKU and s.height[0] == 0.2

@@ -19,8 +19,12 @@ Two measurements, per side of the top's rectangle (0-3: v=0, v=length, u=0, u=wi
 A side face seen gives the height directly. Without one, the step down: the smallest
 step of the four sides, since the nearest surface below is the most likely to be what the
 box stands on (a box on the floor at the pallet's edge sees the floor through its outer
-side, the pallet top through the inner ones). Without either, the matched carton size's
-listed height (``HeightSource.SKU``), else none.
+side, the pallet top through the inner ones). Where the matched carton size lists a
+height, a measurement that differs from it (chi2, 1 dof, with the size tolerance) is not
+this carton's: the side of a stack of them, flush, or the step down to the floor beyond
+the pallet; the listed height is reported instead (``HeightSource.SKU``), as it is where
+nothing is measured. Without a list, such a measurement is reported as it is: from the
+top alone, a flush stack of sharp-edged cartons cannot be told from one tall carton.
 
 The standard deviations propagate the noise model: for the side, the sample spacing down
 the face (the run ends within one sample) and the top plane's offset; for the step, the
@@ -272,9 +276,15 @@ def box_heights(scan_ctx: VerifyContext, surfaces: SurfaceSet, config: Config,
             if steps:
                 h, s = min(steps)
                 height[i], sigma[i], source[i] = h, s, HeightSource.STEP
-            elif sku_height is not None and np.isfinite(sku_height[i]):
-                height[i], source[i] = float(sku_height[i]), HeightSource.SKU
-                sigma[i] = config.size_tolerance
+        h_sku = sku_height[i] if sku_height is not None else np.nan
+        if np.isfinite(h_sku) and not (
+                source[i] != HeightSource.NONE
+                and (height[i] - h_sku) ** 2 / (sigma[i] ** 2 + config.size_tolerance**2)
+                <= chi2_critical(1.0, config.alpha)):
+            # nothing measured, or what was is not this carton's height: the side of a
+            # stack of them, or the step down to the floor beyond the pallet
+            height[i], source[i] = float(h_sku), HeightSource.SKU
+            sigma[i] = config.size_tolerance
         if source[i] != HeightSource.NONE:
             rows.append((int(surfaces.attempt[i]), int(source[i]), float(height[i]),
                          float(sigma[i]), bool(height[i] > z_a * sigma[i])))
