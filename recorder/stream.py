@@ -61,8 +61,9 @@ __all__ = ["Collector", "Job", "RemoteError", "ScanRun", "WorkerLost", "default_
 #: New workers a scan gets after the one running it died: one, for a loss that was not the
 #: scan's fault (the OOM killer chose it); a scan that kills its worker twice is failed.
 RETRIES = 1
-#: Modules the forkserver imports once, so that every worker forked from it starts warm.
-_PRELOAD = ["recorder.stream", "boxloc.pipeline"]
+#: Modules the forkserver imports once, so that every worker forked from it starts warm
+#: (``recorder._stream_warm`` loads the numba kernels by running a small scan).
+_PRELOAD = ["recorder.stream", "boxloc.pipeline", "recorder._stream_warm"]
 #: Thread pools pinned to one thread in the workers (one process per core already).
 _THREAD_VARS = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS",
                 "NUMBA_NUM_THREADS")
