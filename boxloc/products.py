@@ -117,6 +117,9 @@ class AmbiguityReason(IntEnum):
     #: with a carton list: the region is a multiple of more than one listed size (or of
     #: one in two ways), and no seam shows which
     SEVERAL_SPLITS = 4
+    #: with a carton list: the region is a multiple of a listed size, but stands less than
+    #: that carton's listed height above what lies beyond its sides (a bare pallet)
+    TOO_LOW_FOR_THE_SIZE = 5
 
 
 class NoiseSource(IntEnum):

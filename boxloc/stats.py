@@ -136,7 +136,10 @@ class TestKind(IntEnum):
     END_EVIDENCE = 32
     #: result stage: the height of chosen attempt a's box (b = :class:`boxloc.products.
     #: HeightSource`): statistic = the height, metres; critical = its standard deviation,
-    #: metres; accepted where the height is significant (> z at alpha sigmas)
+    #: metres; accepted where the height is significant (> z at alpha sigmas). Hypothesis
+    #: stage, in a flat region's rows: the smallest step down beyond its sides (b = STEP)
+    #: against the listed height of the carton it would be split into (critical = that
+    #: height less z at alpha of both uncertainties); rejected leaves it unsplit
     BOX_HEIGHT = 33
 
 

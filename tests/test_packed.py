@@ -153,3 +153,19 @@ def test_locate_box_sizes_end_to_end(tmp_path: Path) -> None:
     j = json.loads(out.output)
     assert len(j["surfaces"]) == 2 and j["ambiguous"] == []
     assert all(s["sku"] == 0 and s["size_flagged"] is False for s in j["surfaces"])
+
+
+@pytest.mark.parametrize("height", [0.25, math.nan], ids=["listed", "unlisted"])
+def test_a_bare_pallet_is_not_split_into_cartons(height: float) -> None:
+    from boxloc.simulate import simulate
+
+    # the pallet's top, 1.2 x 0.8 m, is 4 x 2 cartons of 0.3 x 0.4, and a flat region
+    # larger than a box: it stands 0.144 m above the floor, less than a layer of cartons
+    sim = simulate("empty:seed=0")
+    r = find_graspable_surfaces(sim.scan, Config(min_edge=0.15, max_edge=0.6,
+                                                 box_sizes=((0.3, 0.4, height),)))
+    assert len(r.surfaces) == 0
+    assert list(r.ambiguous.reason) == [AmbiguityReason.TOO_LOW_FOR_THE_SIZE]
+    low = r.ambiguous.tests_of(0).of_kind(TestKind.BOX_HEIGHT)
+    assert len(low) == 1 and not low.accepted[0]
+    assert low.statistic[0] == pytest.approx(0.144, abs=0.01)

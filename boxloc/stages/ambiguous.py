@@ -34,7 +34,8 @@ from boxloc.stats import TestKind, TestTable
 #: its sides end, that nothing splits it, and what the carton list said.
 REGION_TEST_KINDS = (TestKind.VERIFY_INTERIOR, TestKind.VERIFY_BOUNDARY,
                      TestKind.VERIFY_SEAM_SIDE, TestKind.VERIFY_SEAM_INTERIOR,
-                     TestKind.VERIFY_CONTINUATION, TestKind.SKU_SIZE, TestKind.SKU_SPLIT_SEAM)
+                     TestKind.VERIFY_CONTINUATION, TestKind.SKU_SIZE, TestKind.SKU_SPLIT_SEAM,
+                     TestKind.BOX_HEIGHT)
 
 #: END_EVIDENCE's statistic: the evidence of a side's end.
 EVIDENCE_NONE, EVIDENCE_EDGES, EVIDENCE_SEAM, EVIDENCE_SIZE, EVIDENCE_REGION = 0, 1, 2, 3, 4

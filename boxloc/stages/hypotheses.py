@@ -45,12 +45,14 @@ from boxloc.products import (
     AmbiguityReason,
     DimensionSource,
     EdgeMap,
+    HeightSource,
     HypothesisSet,
     Verification,
     VerifyReason,
     VertexSet,
 )
 from boxloc.scan import Scan
+from boxloc.stages.height import step_height
 from boxloc.stages.seams import face_points, find_seams, seam_at
 from boxloc.stages.sizes import distinct, match_size, region_splits
 from boxloc.stages.verify import (
@@ -81,6 +83,10 @@ REGION_REACH = 4.0
 #: listed carton size implies (0-3 are a neighbour's seam sides, 4 a box corner's
 #: third edge).
 SIZE_PART = 5
+#: Height of a pallet (EUR / ISO 6780: 144 mm), metres: a layer of cartons listed without a
+#: height must stand more than this above what lies beyond it to be split into them, so
+#: that a bare pallet on the floor, itself a flat region, is not.
+PALLET_HEIGHT = 0.144
 
 
 @dataclass
@@ -882,6 +888,39 @@ def _cut_evidence(R: Rectangle, att: _Attempt, ctx: _Context, cuts_x: list[float
     return np.array(z, np.float64), np.array(zc, np.float64)
 
 
+def _too_low(R: Rectangle, att: _Attempt, ctx: _Context, listed: float) -> TestTable | None:
+    """Whether a region stands at least a listed carton's height above what lies beyond
+    its sides, as a layer of those cartons must (a bare pallet, 0.144 m above the floor,
+    is a flat region of about a multiple of many sizes).
+
+    The smallest step down beyond its four sides (:func:`boxloc.stages.height.
+    step_height`) against the listed height: a BOX_HEIGHT row (b = ``HeightSource.STEP``,
+    statistic the step, critical the listed height less z at alpha of both
+    uncertainties; for a carton listed without a height, a pallet's height,
+    ``PALLET_HEIGHT``, plus them: its layer stands on a pallet, higher above the floor
+    than the pallet alone), rejected if the region is too low, so a bare pallet is not
+    split into cartons. None where no step is seen (a wall or a taller neighbour beyond
+    every side, or the pallet on a stand).
+    """
+    cfg = ctx.config
+    out = att.outcome
+    assert out is not None
+    k = math.sqrt(chi2_critical(1.0, cfg.alpha))
+    C = rectangle_corners(R.origin, R.x_axis, R.y_axis, att.width, att.length)
+    steps = [step_height(ctx.verify_ctx, C, si, out.plane_center, out.plane_normal, R.x_axis,
+                         R.y_axis, att.width, att.length, 0.5 * cfg.min_edge, k,
+                         cfg.flatness, cfg.min_inlier_fraction)[:2] for si in range(4)]
+    seen = [(h, s) for h, s in steps if np.isfinite(h)]
+    if not seen:
+        return None
+    h, s = min(seen)
+    z = _norm_isf(cfg.alpha) * math.hypot(s, cfg.size_tolerance)
+    # at least the listed height; without one, significantly more than a pallet's
+    crit = listed - z if np.isfinite(listed) else PALLET_HEIGHT + z
+    return TestTable.decision(TestKind.BOX_HEIGHT, -1, int(HeightSource.STEP), h, crit,
+                              h >= crit, cfg.alpha)
+
+
 def _split_regions(ctx: _Context, works: list[_VertexWork]) -> tuple[_Context, list[_VertexWork]]:
     """Split each verified flat region at the seams a listed carton size implies.
 
@@ -938,6 +977,14 @@ def _split_regions(ctx: _Context, works: list[_VertexWork]) -> tuple[_Context, l
         rows = [TestTable.chi2(TestKind.SKU_SIZE, -1, sp.sku, sp.statistic, 2.0, cfg.alpha),
                 TestTable.decision(TestKind.SKU_SPLIT_SEAM, -1, np.arange(len(z)), z, zc,
                                    z > zc, cfg.alpha)]
+        low = _too_low(R, att, ctx, cfg.box_sizes[sp.sku][2])
+        if low is not None:
+            rows.append(low)
+            if not low.accepted[0]:
+                att.outcome = dataclasses.replace(out, tests=TestTable.concat(
+                    [out.tests, *rows], cfg.alpha))
+                att.threshold = float(AmbiguityReason.TOO_LOW_FOR_THE_SIZE)
+                continue
         att.outcome = dataclasses.replace(out, tests=TestTable.concat([out.tests, *rows],
                                                                       cfg.alpha))
         att.threshold = np.nan
