@@ -423,76 +423,20 @@ def _trial(fixed: _TrialInputs, i0: int, nb: np.ndarray, live: np.ndarray,
         The segments of the line found, in order along it; empty when the trial finds
         none.
     """
-    P, C, m_min, k2, chi2_2 = (fixed.points, fixed.covariances, fixed.m_min, fixed.k2,
-                               fixed.chi2_2)
-    p0 = P[i0]
-    V = P[nb] - p0
-    ell = np.linalg.norm(V, axis=1)
-    ok = ell > 0
-    nb, V, ell = nb[ok], V[ok], ell[ok]
-    d = V / ell[:, None]
-    # propagated angular error: J (S_i + S_0) J^T with J = (I - d d^T) / l; trace/2
-    Ssum = C[nb] + C[i0]
-    tr = np.einsum("nii->n", Ssum) - np.einsum("ni,nij,nj->n", d, Ssum, d)
-    sig_theta = np.sqrt(np.maximum(tr, 0) / 2.0) / ell
-    rad = k2 * sig_theta
+    P, C, m_min = fixed.points, fixed.covariances, fixed.m_min
+    nb, d, rad = _vote_inputs(P, C, nb, i0, fixed.k2)
     use = rad <= MAX_VOTE_RADIUS
     if use.sum() < m_min:
         return []
     vi = np.flatnonzero(use)
     if len(vi) > MAX_VOTERS:
         vi = np.sort(rng.choice(vi, MAX_VOTERS, replace=False))
-    # each point votes for every cell of its error region
-    acc = _vote_directions(d[vi], rad[vi], fixed.lut, fixed.neighbours, fixed.directions)
-    peak = int(np.argmax(acc))
-    b = fixed.directions[peak]
-    dir_votes = float(acc[peak])
-    # points whose error region contains the peak: refine the direction from them
-    cosang = np.abs(d @ b)
-    agree = np.arccos(np.clip(cosang, -1, 1)) <= np.maximum(rad, 2 * np.arcsin(0.5 * 1e-3))
-    agree &= use
-    if agree.sum() < m_min - 1:
+    ok, b, anchor, dir_votes, pos_votes = _hough(
+        P, C, nb, d, rad, use, vi, i0, fixed.lut, fixed.neighbours, fixed.directions,
+        fixed.k2, m_min)
+    if not ok:
         return []
-    dd = d[agree] * np.sign(d[agree] @ b)[:, None]
-    b = dd.mean(0)
-    b /= np.linalg.norm(b)
-
-    # HT-2: offset of the line from p0 in the plane perpendicular to b
-    e1, e2 = _perp_basis(b)
-    E = np.stack([e1, e2])
-    sel = np.concatenate([[i0], nb[agree]])
-    O = (P[sel] - p0) @ E.T  # (m, 2)
-    S2 = np.einsum("ij,njk,lk->nil", E, C[sel], E)
-    sig2d = np.sqrt(np.maximum(np.einsum("nii->n", S2) / 2.0, 1e-12))
-    cell = float(np.median(sig2d))
-    half = int(math.ceil(3 * k2 * sig2d[0] / cell)) + 1
-    g = np.arange(-half, half + 1) * cell
-    # gaussian-weighted votes truncated at the chi2(2) region, one vote per point; the
-    # separable kernel makes the accumulator a product of (points x cells) matrices
-    wx = np.exp(-0.5 * ((g[None, :] - O[:, :1]) / sig2d[:, None]) ** 2)
-    wy = np.exp(-0.5 * ((g[None, :] - O[:, 1:]) / sig2d[:, None]) ** 2)
-    tot = wx.sum(1) * wy.sum(1)
-    scale = np.where(tot > 0, 1.0 / np.maximum(tot, 1e-300), 0.0)
-    acc2 = (wx * scale[:, None]).T @ wy
-    acc2[acc2 < 0] = 0.0
-    pk = np.unravel_index(int(np.argmax(acc2)), acc2.shape)
-    pos_votes = float(acc2[pk])
-    anchor = p0 + g[pk[0]] * e1 + g[pk[1]] * e2
-
-    # inliers among all live points, two rounds of TLS refit
-    c, bb = anchor, b
-    inl = live[:0]
-    for _ in range(2):
-        # the full test on the points the trace bound leaves: the same inliers, cheaper
-        cand = _may_lie_on(P, fixed.cov_trace, live, c, bb, chi2_2)
-        T, _t = _point_on_line_stat(P[cand], C[cand], c, bb)
-        inl = cand[T <= chi2_2]
-        if len(inl) < m_min:
-            return []
-        c, bb, _w = _tls(P[inl])
-    T, t = _point_on_line_stat(P[inl], C[inl], c, bb)
-    keep = T <= chi2_2
-    inl, T, t = inl[keep], T[keep], t[keep]
+    inl, T, t = _inliers(P, C, fixed.cov_trace, live, anchor, b, fixed.chi2_2, m_min)
     if len(inl) < m_min:
         return []
     # segments: split at gaps larger than a quarter of the shortest box edge
@@ -518,6 +462,241 @@ def _trial(fixed: _TrialInputs, i0: int, nb: np.ndarray, live: np.ndarray,
             dir_votes=dir_votes, pos_votes=pos_votes,
         ))
     return found
+
+
+# --- the trial's kernels --------------------------------------------------------------------
+
+
+@nb.njit(cache=True)
+def _vote_inputs(P: np.ndarray, C: np.ndarray, nb: np.ndarray, i0: int,
+                 k2: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The voters' directions from p0 and the radii of their error regions.
+
+    Parameters
+    ----------
+    P : (N, 3) float64, metres; C : (N, 3, 3) their covariances
+    nb : (n,) int64
+        The neighbours of ``i0``.
+    i0 : int
+        The distinguished point p0.
+    k2 : float
+        The regions' radius in standard deviations, sqrt(chi2_2).
+
+    Returns
+    -------
+    nb : (m,) the neighbours apart from p0 (distance > 0); d : (m, 3) unit directions
+    p_i - p0; rad : (m,) k2 x the propagated angular error, radians: J (S_i + S_0) J^T with
+    J = (I - d d^T) / l, half its trace, as a standard deviation.
+    """
+    n = nb.shape[0]
+    keep = np.empty(n, np.int64)
+    d = np.empty((n, 3))
+    rad = np.empty(n)
+    m = 0
+    for j in range(n):
+        i = nb[j]
+        v0 = P[i, 0] - P[i0, 0]
+        v1 = P[i, 1] - P[i0, 1]
+        v2 = P[i, 2] - P[i0, 2]
+        ell = math.sqrt(v0 * v0 + v1 * v1 + v2 * v2)
+        if not ell > 0:
+            continue
+        u0, u1, u2 = v0 / ell, v1 / ell, v2 / ell
+        tr = 0.0
+        quad = 0.0
+        for a in range(3):
+            ua = u0 if a == 0 else (u1 if a == 1 else u2)
+            tr += C[i, a, a] + C[i0, a, a]
+            for c in range(3):
+                uc = u0 if c == 0 else (u1 if c == 1 else u2)
+                quad += ua * (C[i, a, c] + C[i0, a, c]) * uc
+        keep[m] = i
+        d[m, 0], d[m, 1], d[m, 2] = u0, u1, u2
+        rad[m] = k2 * math.sqrt(max(tr - quad, 0.0) / 2.0) / ell
+        m += 1
+    return keep[:m], d[:m], rad[:m]
+
+
+@nb.njit(cache=True)
+def _perp(b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Two unit vectors perpendicular to unit b and to each other (as :func:`_perp_basis`)."""
+    if abs(b[0]) < 0.9:
+        a0, a1, a2 = 1.0, 0.0, 0.0
+    else:
+        a0, a1, a2 = 0.0, 1.0, 0.0
+    e1 = np.array([b[1] * a2 - b[2] * a1, b[2] * a0 - b[0] * a2, b[0] * a1 - b[1] * a0])
+    e1 /= math.sqrt(e1[0] * e1[0] + e1[1] * e1[1] + e1[2] * e1[2])
+    e2 = np.array([b[1] * e1[2] - b[2] * e1[1], b[2] * e1[0] - b[0] * e1[2],
+                   b[0] * e1[1] - b[1] * e1[0]])
+    return e1, e2
+
+
+@nb.njit(cache=True)
+def _hough(P: np.ndarray, C: np.ndarray, nb: np.ndarray, d: np.ndarray, rad: np.ndarray,
+           use: np.ndarray, vi: np.ndarray, i0: int, lut: np.ndarray, nbr: np.ndarray,
+           D: np.ndarray, k2: float, m_min: int
+           ) -> tuple[bool, np.ndarray, np.ndarray, float, float]:
+    """The two Hough transforms of one trial: the line's direction, then its position.
+
+    HT-1: the voters ``vi`` vote over their error regions (:func:`_vote_directions`); the
+    points whose region holds the peak refine the direction (their mean). HT-2: p0 and
+    those points, projected on the plane perpendicular to it, vote for the line's offset
+    from p0, each with a Gaussian of its projected error truncated at the chi2(2) region
+    (one vote per point; the kernel is separable).
+
+    Returns
+    -------
+    ok : bool
+        False when fewer than ``m_min - 1`` points agree with the peak.
+    direction : (3,) unit; anchor : (3,) a point of the line, metres; dir_votes, pos_votes :
+    the two peaks' heights.
+    """
+    z3 = np.zeros(3)
+    acc = _vote_directions(d[vi], rad[vi], lut, nbr, D)
+    peak = int(np.argmax(acc))
+    b0 = D[peak]
+    dir_votes = acc[peak]
+    floor = 2.0 * math.asin(0.5 * 1e-3)
+    n = d.shape[0]
+    agree = np.zeros(n, np.bool_)
+    na = 0
+    s0 = s1 = s2 = 0.0
+    for j in range(n):
+        c = abs(d[j, 0] * b0[0] + d[j, 1] * b0[1] + d[j, 2] * b0[2])
+        if use[j] and math.acos(min(max(c, -1.0), 1.0)) <= max(rad[j], floor):
+            agree[j] = True
+            na += 1
+            dot = d[j, 0] * b0[0] + d[j, 1] * b0[1] + d[j, 2] * b0[2]
+            sg = 1.0 if dot > 0 else (-1.0 if dot < 0 else 0.0)
+            s0 += d[j, 0] * sg
+            s1 += d[j, 1] * sg
+            s2 += d[j, 2] * sg
+    if na < m_min - 1:
+        return False, z3, z3, 0.0, 0.0
+    b = np.array([s0 / na, s1 / na, s2 / na])
+    b /= math.sqrt(b[0] * b[0] + b[1] * b[1] + b[2] * b[2])
+
+    # HT-2: the offset of the line from p0 in the plane perpendicular to b
+    e1, e2 = _perp(b)
+    m = na + 1
+    sel = np.empty(m, np.int64)
+    sel[0] = i0
+    k = 1
+    for j in range(n):
+        if agree[j]:
+            sel[k] = nb[j]
+            k += 1
+    O = np.empty((m, 2))
+    sig = np.empty(m)
+    for q in range(m):
+        i = sel[q]
+        v0 = P[i, 0] - P[i0, 0]
+        v1 = P[i, 1] - P[i0, 1]
+        v2 = P[i, 2] - P[i0, 2]
+        O[q, 0] = v0 * e1[0] + v1 * e1[1] + v2 * e1[2]
+        O[q, 1] = v0 * e2[0] + v1 * e2[1] + v2 * e2[2]
+        t11 = 0.0
+        t22 = 0.0
+        for a in range(3):
+            for c in range(3):
+                t11 += e1[a] * C[i, a, c] * e1[c]
+                t22 += e2[a] * C[i, a, c] * e2[c]
+        sig[q] = math.sqrt(max((t11 + t22) / 2.0, 1e-12))
+    cell = np.median(sig)
+    half = int(math.ceil(3.0 * k2 * sig[0] / cell)) + 1
+    G = 2 * half + 1
+    g = (np.arange(G) - half) * cell
+    acc2 = np.zeros((G, G))
+    wx = np.empty(G)
+    wy = np.empty(G)
+    for q in range(m):
+        sx = 0.0
+        sy = 0.0
+        for a in range(G):
+            wx[a] = math.exp(-0.5 * ((g[a] - O[q, 0]) / sig[q]) ** 2)
+            wy[a] = math.exp(-0.5 * ((g[a] - O[q, 1]) / sig[q]) ** 2)
+            sx += wx[a]
+            sy += wy[a]
+        tot = sx * sy
+        if not tot > 0:
+            continue
+        scale = 1.0 / max(tot, 1e-300)
+        for a in range(G):
+            wa = wx[a] * scale
+            for c in range(G):
+                acc2[a, c] += wa * wy[c]
+    pk = int(np.argmax(acc2))
+    pa, pc = pk // G, pk % G
+    anchor = P[i0] + g[pa] * e1 + g[pc] * e2
+    return True, b, anchor, dir_votes, acc2[pa, pc]
+
+
+@nb.njit(cache=True)
+def _on_line_stat(P: np.ndarray, C: np.ndarray, idx: np.ndarray, c: np.ndarray, b: np.ndarray
+                  ) -> tuple[np.ndarray, np.ndarray]:
+    """chi2(2) statistic of each point ``idx`` against line (c, b), and its position t
+    along the line (as :func:`_point_on_line_stat`)."""
+    e1, e2 = _perp(b)
+    n = idx.shape[0]
+    T = np.empty(n)
+    t = np.empty(n)
+    for j in range(n):
+        i = idx[j]
+        d0 = P[i, 0] - c[0]
+        d1 = P[i, 1] - c[1]
+        d2 = P[i, 2] - c[2]
+        t[j] = d0 * b[0] + d1 * b[1] + d2 * b[2]
+        r0 = d0 * e1[0] + d1 * e1[1] + d2 * e1[2]
+        r1 = d0 * e2[0] + d1 * e2[1] + d2 * e2[2]
+        s00 = s01 = s11 = 0.0
+        for a in range(3):
+            for q in range(3):
+                s00 += e1[a] * C[i, a, q] * e1[q]
+                s01 += e1[a] * C[i, a, q] * e2[q]
+                s11 += e2[a] * C[i, a, q] * e2[q]
+        det = s00 * s11 - s01 * s01
+        T[j] = (s11 * r0 * r0 - 2.0 * s01 * r0 * r1 + s00 * r1 * r1) / max(det, 1e-30)
+    return T, t
+
+
+@nb.njit(cache=True)
+def _inliers(P: np.ndarray, C: np.ndarray, tr: np.ndarray, live: np.ndarray,
+             anchor: np.ndarray, b: np.ndarray, crit: float, m_min: int
+             ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The live points on the line through ``anchor`` along ``b``: the point-on-line test
+    (chi2(2) at ``crit``) with two total-least-squares refits of the line.
+
+    Returns
+    -------
+    inl : (k,) int64, ascending; T : (k,) their statistics; t : (k,) their positions along
+    the last fit, metres. Fewer than ``m_min`` points: whatever was left (the trial fails).
+    """
+    c = anchor.copy()
+    bb = b.copy()
+    inl = live[:0]
+    for _ in range(2):
+        cand = _may_lie_on(P, tr, live, c, bb, crit)
+        T, _t = _on_line_stat(P, C, cand, c, bb)
+        inl = cand[T <= crit]
+        k = inl.shape[0]
+        if k < m_min:
+            return inl, T[:0], T[:0]
+        # the total-least-squares line of the inliers
+        c = np.zeros(3)
+        for j in range(k):
+            for a in range(3):
+                c[a] += P[inl[j], a]
+        c /= k
+        M = np.zeros((3, 3))
+        for j in range(k):
+            for a in range(3):
+                for q in range(3):
+                    M[a, q] += (P[inl[j], a] - c[a]) * (P[inl[j], q] - c[q])
+        _w, V = np.linalg.eigh(M)
+        bb = V[:, 2].copy()
+    T, t = _on_line_stat(P, C, inl, c, bb)
+    keep = T <= crit
+    return inl[keep], T[keep], t[keep]
 
 
 def _to_lineset(
