@@ -224,23 +224,37 @@ def locate(
 
 
 def _print_surfaces(result: Any) -> None:
+    import math
+
     from rich.console import Console
     from rich.table import Table
 
+    from boxloc.products import AmbiguityReason, HeightSource
+
     t = Table(title=f"{len(result.surfaces)} graspable surface(s)")
-    for col in ("pick", "center x,y,z [m]", "width [mm]", "length [mm]", "normal", "score"):
+    for col in ("pick", "center x,y,z [m]", "width [mm]", "length [mm]", "height [mm]",
+                "normal", "score"):
         t.add_column(col, justify="right")
     s = result.surfaces
     for i in range(len(s)):
+        h = (f"{s.height[i] * 1e3:.0f} ({HeightSource(int(s.height_source[i])).name.lower()})"
+             if math.isfinite(float(s.height[i])) else "-")
         t.add_row(
             str(int(s.pick_order[i])),
             ", ".join(f"{v:+.3f}" for v in s.centers[i]),
             f"{s.width[i] * 1e3:.1f}",
             f"{s.length[i] * 1e3:.1f}",
+            h + (" size unlisted" if s.sku_flagged[i] else ""),
             ", ".join(f"{v:+.2f}" for v in s.normals[i]),
             f"{s.scores[i]:.3f}",
         )
     Console(stderr=True).print(t)
+    a = result.ambiguous
+    for k in range(len(a)):
+        reason = AmbiguityReason(int(a.reason[k])).name.lower()
+        Console(stderr=True).print(
+            f"ambiguous region {k}: {a.width[k] * 1e3:.0f} x {a.length[k] * 1e3:.0f} mm, "
+            f"{reason} (not graspable as it is)")
     ms = ", ".join(f"{k} {v:.0f}" for k, v in result.timing_ms.items())
     Console(stderr=True).print(f"time [ms]: {ms}")
 
