@@ -269,12 +269,30 @@ def fit_segment(P: np.ndarray, C: np.ndarray) -> tuple[np.ndarray, np.ndarray, n
     return c, b, cov, t
 
 
-def _split_at_gaps(t: np.ndarray, gap: float) -> list[np.ndarray]:
-    """Index groups of sorted positions t separated by more than gap."""
-    order = np.argsort(t, kind="stable")
-    ts = t[order]
-    cuts = np.flatnonzero(np.diff(ts) > gap) + 1
-    return np.split(order, cuts)
+@nb.njit(cache=True)
+def _long_groups(t: np.ndarray, gap: float, m_min: int, min_extent: float
+                 ) -> tuple[np.ndarray, np.ndarray]:
+    """The runs of positions ``t`` (metres along a line) with no gap larger than ``gap``
+    that hold at least ``m_min`` points over at least ``min_extent``.
+
+    Returns
+    -------
+    order : (n,) int64, the stable sort of ``t``; bounds : (k, 2) int64, each run's
+    [start, end) in ``order``, along the line.
+    """
+    order = np.argsort(t, kind="mergesort")  # stable
+    n = t.shape[0]
+    bounds = np.empty((n, 2), np.int64)
+    k = 0
+    lo = 0
+    for i in range(1, n + 1):
+        if i == n or t[order[i]] - t[order[i - 1]] > gap:
+            if i - lo >= m_min and t[order[i - 1]] - t[order[lo]] >= min_extent:
+                bounds[k, 0] = lo
+                bounds[k, 1] = i
+                k += 1
+            lo = i
+    return order, bounds[:k]
 
 
 def find_lines(scan: Scan, edges: EdgeMap, *, config: Config, rng: np.random.Generator) -> LineSet:
@@ -442,13 +460,9 @@ def _trial(fixed: _TrialInputs, i0: int, nb: np.ndarray, live: np.ndarray,
     # segments: split at gaps larger than a quarter of the shortest box edge
     gap = max(0.25 * fixed.min_edge, 4.0 * fixed.spacing)
     found: list[_Segment] = []
-    for grp in _split_at_gaps(t, gap):
-        if len(grp) < m_min:
-            continue
-        idx = inl[grp]
-        extent = float(t[grp].max() - t[grp].min())
-        if extent < 0.5 * fixed.min_edge:
-            continue
+    along, bounds = _long_groups(t, gap, m_min, 0.5 * fixed.min_edge)
+    for lo, hi in bounds:
+        idx = inl[along[lo:hi]]
         cs, bs, cov, ts = fit_segment(P[idx], C[idx])
         if bs @ b < 0:
             bs = -bs
@@ -606,25 +620,22 @@ def _hough(P: np.ndarray, C: np.ndarray, nb: np.ndarray, d: np.ndarray, rad: np.
     half = int(math.ceil(3.0 * k2 * sig[0] / cell)) + 1
     G = 2 * half + 1
     g = (np.arange(G) - half) * cell
-    acc2 = np.zeros((G, G))
-    wx = np.empty(G)
-    wy = np.empty(G)
+    # the accumulator is a product of (cells x points) and (points x cells) matrices
+    WXt = np.empty((G, m))
+    WY = np.empty((m, G))
     for q in range(m):
         sx = 0.0
         sy = 0.0
         for a in range(G):
-            wx[a] = math.exp(-0.5 * ((g[a] - O[q, 0]) / sig[q]) ** 2)
-            wy[a] = math.exp(-0.5 * ((g[a] - O[q, 1]) / sig[q]) ** 2)
-            sx += wx[a]
-            sy += wy[a]
+            WXt[a, q] = math.exp(-0.5 * ((g[a] - O[q, 0]) / sig[q]) ** 2)
+            WY[q, a] = math.exp(-0.5 * ((g[a] - O[q, 1]) / sig[q]) ** 2)
+            sx += WXt[a, q]
+            sy += WY[q, a]
         tot = sx * sy
-        if not tot > 0:
-            continue
-        scale = 1.0 / max(tot, 1e-300)
+        scale = 1.0 / max(tot, 1e-300) if tot > 0 else 0.0
         for a in range(G):
-            wa = wx[a] * scale
-            for c in range(G):
-                acc2[a, c] += wa * wy[c]
+            WXt[a, q] *= scale
+    acc2 = WXt @ WY
     pk = int(np.argmax(acc2))
     pa, pc = pk // G, pk % G
     anchor = P[i0] + g[pa] * e1 + g[pc] * e2
