@@ -37,7 +37,6 @@ import copy
 import functools
 import multiprocessing
 import os
-import pickle
 import signal
 import time
 from collections import deque
@@ -111,10 +110,18 @@ class _ErrorInfo:
 
 
 def _portable(e: Exception) -> Exception | _ErrorInfo:
-    """``e`` itself when it comes back from pickling as the same type with the same message
-    (every BoxlocError, ValueError, ...), else its name and message."""
+    """``e`` itself when it crosses the pipe as the same type with the same message (every
+    BoxlocError, ValueError, ...), else its name and message.
+
+    The check rebuilds ``e`` the way unpickling would (from ``__reduce__``) instead of
+    unpickling anything.
+    """
+    from multiprocessing.reduction import ForkingPickler
+
     try:
-        back = pickle.loads(pickle.dumps(e))
+        ForkingPickler.dumps(e)
+        rv = e.__reduce__()
+        back = rv[0](*rv[1])  # type: ignore[operator]
         if type(back) is type(e) and str(back) == str(e):
             return e
     except Exception:  # noqa: BLE001 - any failure to round-trip: keep the name and text
