@@ -36,7 +36,8 @@ GROUP_KEYS = {
     "errors", "timeouts", "time", "wrong_rectangles", "wrong_no_match", "wrong_spans",
     "off_top", "wrong_rate", "ambiguous_regions", "ambiguous_per_scan",
     "ambiguous_area_median_m2", "ambiguous_reasons", "ambiguous_without_top",
-    "tops_in_ambiguous", "missed_in_ambiguous", "missed_silently", "height_sources",
+    "tops_in_ambiguous", "missed_in_ambiguous", "missed_silently", "silent_scans",
+    "height_sources",
     "height_n", "height_err_median_mm", "height_err_p95_mm", "height_by_source",
     "height_stack_like", "sku_matched", "sku_flagged", "sku_flagged_tp",
 }
@@ -205,7 +206,7 @@ def test_figures_without_sizes(report: dict[str, Any]) -> None:
     assert ov["n_exposed"] == n_exposed and ov["fn"] == _sum(rows, "without_sizes", "fn")
     # every exposed top lies in its scene's region, so no miss is silent
     assert ov["tops_in_ambiguous"] == n_exposed == ov["missed_in_ambiguous"]
-    assert ov["missed_silently"] == 0
+    assert ov["missed_silently"] == 0 and ov["silent_scans"] == 0
     assert ov["height_n"] == 0 and ov["height_err_median_mm"] is None
     for r in rows:
         amb = r["runs"]["without_sizes"]["ambiguous"]
@@ -225,6 +226,7 @@ def test_figures_with_sizes(report: dict[str, Any]) -> None:
     assert dev["recall"] == 1.0 and allf["recall"] < 1.0
     tof_tops = next(r["n_exposed"] for r in rows if r["sensor"] == "tof")
     assert allf["fn"] == tof_tops == allf["missed_silently"]
+    assert allf["silent_scans"] == 1 == g["sensors"]["tof"]["silent_scans"]  # tof: nothing
     # every true top has a side or step height, 3 mm high
     assert allf["height_n"] == allf["tp"] == _sum(rows, "with_sizes", "tp")
     assert allf["height_err_median_mm"] == pytest.approx(HEIGHT_BIAS * 1e3, abs=1e-6)
@@ -269,6 +271,7 @@ def test_a_broken_localizer_scores_nothing() -> None:
         assert ov["wrong_no_match"] + ov["off_top"] == ov["n_pred"]
         assert ov["wrong_no_match"] > 0 and ov["wrong_spans"] == 0
         assert ov["ambiguous_regions"] == 0 and ov["missed_silently"] == ov["n_exposed"]
+        assert ov["silent_scans"] == 0  # it reported something
 
 
 def test_a_slow_run_is_stopped_and_the_other_variant_kept() -> None:

@@ -91,7 +91,8 @@ Figures of a group (:func:`group_figures`): ``n_scenes``, ``n_scans``, every key
   :class:`boxloc.products.AmbiguityReason` name), ``ambiguous_without_top`` (regions
   covering no exposed top by half), ``tops_in_ambiguous`` (exposed tops covered at least
   half by a region), ``missed_in_ambiguous`` (of them, the tops not found),
-  ``missed_silently`` (tops not found and in no region)
+  ``missed_silently`` (tops not found and in no region), ``silent_scans`` (scans with
+  exposed tops but neither a surface nor a region: to the cell the pallet looks empty)
 - heights: ``height_sources`` (reported surfaces per :class:`boxloc.products.HeightSource`
   name), ``height_n`` (true positives scored: side or step), ``height_err_median_mm``,
   ``height_err_p95_mm``, ``height_by_source`` (per scored source: ``n``, ``median_mm``,
@@ -635,13 +636,17 @@ def _ambiguous_figures(scores: Sequence[PackedScore], n_scans: int) -> dict[str,
     n_exposed = sum(s.match.n_exposed for s in scores)
     in_amb = sum(s.tops_in_ambiguous for s in scores)
     missed_amb = sum(s.missed_in_ambiguous for s in scores)
+    # scans with tops to find where the cell got neither a surface nor a region: to it, the
+    # pallet looks empty
+    silent = sum(s.match.n_exposed > 0 and s.match.n_pred == 0 and s.amb_area.size == 0
+                 for s in scores)
     return {"ambiguous_regions": int(area.size),
             "ambiguous_per_scan": area.size / n_scans if n_scans else None,
             "ambiguous_area_median_m2": _pct(area, 50),
             "ambiguous_reasons": {r: names.count(r) for r in sorted(set(names))},
             "ambiguous_without_top": int((tops == 0).sum()),
             "tops_in_ambiguous": in_amb, "missed_in_ambiguous": missed_amb,
-            "missed_silently": n_exposed - n_found - missed_amb}
+            "missed_silently": n_exposed - n_found - missed_amb, "silent_scans": silent}
 
 
 def group_figures(outs: Sequence[_Outcome]) -> dict[str, Any]:
@@ -977,6 +982,7 @@ def _report(outs: list[_Outcome], specs: Sequence[Any], cfg: Config, site: dict[
 
 _COLUMNS = ("", "scans", "tops", "TP / FP / FN", "P", "R", "wrong: n / rate",
             "no-match / spans / off-top", "ambig./scan", "missed: in ambig. / silent",
+            "silent scans",
             "height n", "height err med / p95 [mm]", "source side / step / sku / none",
             "flagged (TP)", "time med / max [s]", "t-out / err")
 
@@ -993,6 +999,7 @@ def _row(name: str, fig: dict[str, Any]) -> list[str]:
             f"{fig['wrong_no_match']} / {fig['wrong_spans']} / {fig['off_top']}",
             "-" if aps is None else f"{aps:.2f}",
             f"{fig['missed_in_ambiguous']} / {fig['missed_silently']}",
+            str(fig["silent_scans"]),
             str(fig["height_n"]),
             f"{_fmt(fig['height_err_median_mm'], 'mm')} / {_fmt(fig['height_err_p95_mm'], 'mm')}",
             " / ".join(str(hs.get(k, 0)) for k in ("side", "step", "sku", "none")),
