@@ -103,9 +103,11 @@ def _fit(P: np.ndarray, s: int, e: int) -> tuple[np.ndarray, np.ndarray]:
 
 
 @nb.njit(cache=True)
-def _max_resid(P: np.ndarray, S: np.ndarray, s: int, e: int, c: np.ndarray, d: np.ndarray):
+def _max_resid2(P: np.ndarray, inv2: np.ndarray, s: int, e: int, c: np.ndarray,
+                d: np.ndarray) -> float:
+    """The largest squared normalized distance of P[s:e+1] from line (c, d); ``inv2`` is
+    1 / sigma^2 per point (squares: no square root or division per point)."""
     best = 0.0
-    arg = s
     for i in range(s, e + 1):
         vx = P[i, 0] - c[0]
         vy = P[i, 1] - c[1]
@@ -114,20 +116,24 @@ def _max_resid(P: np.ndarray, S: np.ndarray, s: int, e: int, c: np.ndarray, d: n
         rx = vx - t * d[0]
         ry = vy - t * d[1]
         rz = vz - t * d[2]
-        z = math.sqrt(rx * rx + ry * ry + rz * rz) / S[i]
-        if z > best:
-            best = z
-            arg = i
-    return best, arg
+        z2 = (rx * rx + ry * ry + rz * rz) * inv2[i]
+        if z2 > best:
+            best = z2
+    return best
 
 
 @nb.njit(cache=True)
 def _split_merge(P: np.ndarray, S: np.ndarray, thr: np.ndarray) -> np.ndarray:
     """Split-and-merge of one scan line into segments; returns (m, 2) inclusive bounds.
 
-    ``thr[n]`` is the largest normalized residual allowed in a segment of n points.
+    ``thr[n]`` is the largest normalized residual allowed in a segment of n points. The
+    residuals are compared squared, against ``thr**2`` (the same order and decisions, up
+    to a rounding of the last bit, without a square root and a division per point).
     """
     n = P.shape[0]
+    inv2 = np.empty(n)
+    for i in range(n):
+        inv2[i] = 1.0 / (S[i] * S[i])
     bounds = np.empty((n, 2), np.int64)
     nb_ = 0
     stack = np.empty((n + 1, 2), np.int64)
@@ -160,11 +166,11 @@ def _split_merge(P: np.ndarray, S: np.ndarray, thr: np.ndarray) -> np.ndarray:
                 vx, vy, vz = P[i, 0] - ax, P[i, 1] - ay, P[i, 2] - az
                 t = vx * ux + vy * uy + vz * uz
                 rx, ry, rz = vx - t * ux, vy - t * uy, vz - t * uz
-                z = math.sqrt(rx * rx + ry * ry + rz * rz) / S[i]
-                if z > best:
-                    best = z
+                z2 = (rx * rx + ry * ry + rz * rz) * inv2[i]
+                if z2 > best:
+                    best = z2
                     arg = i
-        if arg >= 0 and best > thr[e - s + 1]:
+        if arg >= 0 and best > thr[e - s + 1] * thr[e - s + 1]:
             # push right first so the left half is processed first
             stack[sp, 0] = arg
             stack[sp, 1] = e
@@ -193,8 +199,7 @@ def _split_merge(P: np.ndarray, S: np.ndarray, thr: np.ndarray) -> np.ndarray:
             ps = bounds[nb_ - 1, 0]
             if e - ps + 1 >= 3:
                 c, d = _fit(P, ps, e)
-                z, _ = _max_resid(P, S, ps, e, c, d)
-                if z <= thr[e - ps + 1]:
+                if _max_resid2(P, inv2, ps, e, c, d) <= thr[e - ps + 1] * thr[e - ps + 1]:
                     bounds[nb_ - 1, 1] = e
                     k += 1
                     continue
@@ -755,16 +760,16 @@ def detect_edges(scan: Scan, *, config: Config) -> EdgeMap:
     order = np.lexsort((kd, flat))
     flat_s = flat[order]
     uniq, start = np.unique(flat_s, return_index=True)
-    groups = np.split(order, start[1:]) if len(order) else []
+    stop = np.r_[start[1:], len(order)].astype(np.int64)
     n = len(uniq)
     out_pt = np.empty((n, 3))
     out_cov = np.empty((n, 3, 3))
     out_kind = np.empty(n, np.uint8)
     out_str = np.empty(n)
     out_dir = np.empty(n, np.uint8)
-    single = np.array([len(g) == 1 for g in groups], bool)
+    single = stop - start == 1
     if n:
-        idx1 = np.array([g[0] for g in groups])
+        idx1 = order[start]
         out_pt[:] = pt[idx1]
         out_cov[:] = cov[idx1]
         out_kind[:] = kd[idx1]
@@ -772,7 +777,7 @@ def detect_edges(scan: Scan, *, config: Config) -> EdgeMap:
         out_dir[:] = sd[idx1]
         chi3 = chi2_critical(3.0, config.alpha)
         for gi in np.flatnonzero(~single):
-            g = groups[gi]
+            g = order[start[gi]:stop[gi]]
             # fuse only estimates that agree (chi2(3)); else keep the first by kind order
             d = pt[g] - pt[g[0]]
             Ssum = cov[g] + cov[g[0]]
