@@ -185,9 +185,12 @@ def test_a_failing_scan_is_recorded_as_in_a_serial_run(scans_dir: Path,
     assert second.complete and second.result is not None
 
 
-def test_ctrl_c_leaves_a_complete_log_with_every_scan_started(tmp_path: Path) -> None:
-    """Ctrl-C reaches the whole process group: the workers ignore it, finish the scans they
-    have, and the parent records them and closes the log (exit 130)."""
+@pytest.mark.parametrize("how", ["ctrl-c", "sigterm"])
+def test_an_interrupt_leaves_a_complete_log_with_every_scan_started(tmp_path: Path,
+                                                                    how: str) -> None:
+    """Ctrl-C reaches the whole process group, SIGTERM (a service stopped) the parent: the
+    workers ignore both and finish the scans they have, and the parent records them and
+    closes the log (exit 130)."""
     log = tmp_path / "interrupted.mcap"
     cmd = [sys.executable, "-m", "boxloc.cli", "run", "sim:single:width=96,height=72,f=80",
            "--count", "2000", "--record", str(log), "--quiet", "--workers", "2"]
@@ -200,7 +203,10 @@ def test_ctrl_c_leaves_a_complete_log_with_every_scan_started(tmp_path: Path) ->
                 break
             time.sleep(0.1)
         assert proc.poll() is None, proc.communicate()
-        os.killpg(proc.pid, signal.SIGINT)  # as a terminal's Ctrl-C does
+        if how == "ctrl-c":
+            os.killpg(proc.pid, signal.SIGINT)  # as a terminal's Ctrl-C does
+        else:
+            proc.send_signal(signal.SIGTERM)
         _, err = proc.communicate(timeout=120)
     finally:
         if proc.poll() is None:
