@@ -169,3 +169,11 @@ def test_a_bare_pallet_is_not_split_into_cartons(height: float) -> None:
     low = r.ambiguous.tests_of(0).of_kind(TestKind.BOX_HEIGHT)
     assert len(low) == 1 and not low.accepted[0]
     assert low.statistic[0] == pytest.approx(0.144, abs=0.01)
+
+
+def test_every_side_of_a_reported_surface_has_evidence_of_the_box_end() -> None:
+    # an ordinary box: its four sides are jumps to the pallet (END_EVIDENCE 1, edges)
+    _, r = _run([box(0.0, 0.0, 0.3, 0.4, 0.25)])
+    ev = r.surfaces.tests.of_kind(TestKind.END_EVIDENCE)
+    assert len(ev) == 4 and ev.accepted.all() and (ev.statistic == 1.0).all()
+    assert (ev.a == r.surfaces.attempt[0]).all() and list(ev.b) == [0, 1, 2, 3]
