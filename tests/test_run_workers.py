@@ -327,3 +327,25 @@ def test_a_scan_goes_to_its_worker_without_its_caches() -> None:
     assert "points" in vars(s) and "_tree" in vars(s.sensor)
     assert len(pickle.dumps(lean)) < len(pickle.dumps(s)) / 2
     assert lean.range is s.range and lean.points.tobytes() == s.points.tobytes()
+
+
+def test_a_full_disk_with_workers_fails_in_one_line_and_keeps_earlier_scans(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """The parent writes the log: its write error ends the run as in a serial run (the
+    workers are stopped), and the scans written before it are recoverable."""
+    from click.testing import CliRunner
+    from factories import FullDisk
+
+    from boxloc.cli import cli
+    from recorder.mcap.recover import recover_log
+    from recorder.mcap.sink import McapRecorder
+
+    monkeypatch.setattr(McapRecorder, "_open_stream", lambda self, p: FullDisk(p, 150_000))
+    res = CliRunner().invoke(cli, ["run", "sim:single:width=96,height=72,f=80", "--count",
+                                   "50", "--record", str(tmp_path / "x.mcap"), "-q",
+                                   "--workers", "2"])
+    assert res.exit_code == 2, res.output
+    lines = [ln for ln in res.output.splitlines() if ln.startswith("boxloc: error")]
+    assert len(lines) == 1 and "no space left on device" in lines[0]
+    assert "Traceback" not in res.output
+    assert recover_log(tmp_path / "x.mcap").scans >= 1
