@@ -103,11 +103,11 @@ def _fit(P: np.ndarray, s: int, e: int) -> tuple[np.ndarray, np.ndarray]:
 
 
 @nb.njit(cache=True)
-def _max_resid2(P: np.ndarray, inv2: np.ndarray, s: int, e: int, c: np.ndarray,
-                d: np.ndarray) -> float:
-    """The largest squared normalized distance of P[s:e+1] from line (c, d); ``inv2`` is
-    1 / sigma^2 per point (squares: no square root or division per point)."""
-    best = 0.0
+def _within(P: np.ndarray, inv2: np.ndarray, s: int, e: int, c: np.ndarray, d: np.ndarray,
+            lim2: float) -> bool:
+    """Whether every point of P[s:e+1] lies within normalized distance sqrt(lim2) of line
+    (c, d); ``inv2`` is 1 / sigma^2 per point (squares: no square root or division per
+    point). Stops at the first point beyond."""
     for i in range(s, e + 1):
         vx = P[i, 0] - c[0]
         vy = P[i, 1] - c[1]
@@ -116,10 +116,9 @@ def _max_resid2(P: np.ndarray, inv2: np.ndarray, s: int, e: int, c: np.ndarray,
         rx = vx - t * d[0]
         ry = vy - t * d[1]
         rz = vz - t * d[2]
-        z2 = (rx * rx + ry * ry + rz * rz) * inv2[i]
-        if z2 > best:
-            best = z2
-    return best
+        if (rx * rx + ry * ry + rz * rz) * inv2[i] > lim2:
+            return False
+    return True
 
 
 @nb.njit(cache=True)
@@ -132,8 +131,13 @@ def _split_merge(P: np.ndarray, S: np.ndarray, thr: np.ndarray) -> np.ndarray:
     """
     n = P.shape[0]
     inv2 = np.empty(n)
+    X = np.empty(n)
+    Y = np.empty(n)
+    Z = np.empty(n)
+    z2 = np.empty(n)
     for i in range(n):
         inv2[i] = 1.0 / (S[i] * S[i])
+        X[i], Y[i], Z[i] = P[i, 0], P[i, 1], P[i, 2]
     bounds = np.empty((n, 2), np.int64)
     nb_ = 0
     stack = np.empty((n + 1, 2), np.int64)
@@ -162,13 +166,16 @@ def _split_merge(P: np.ndarray, S: np.ndarray, thr: np.ndarray) -> np.ndarray:
             ux /= L
             uy /= L
             uz /= L
+            # two passes: the distances (element-wise over coordinate arrays, which the
+            # compiler vectorizes), then the first largest
             for i in range(s + 1, e):
-                vx, vy, vz = P[i, 0] - ax, P[i, 1] - ay, P[i, 2] - az
+                vx, vy, vz = X[i] - ax, Y[i] - ay, Z[i] - az
                 t = vx * ux + vy * uy + vz * uz
                 rx, ry, rz = vx - t * ux, vy - t * uy, vz - t * uz
-                z2 = (rx * rx + ry * ry + rz * rz) * inv2[i]
-                if z2 > best:
-                    best = z2
+                z2[i] = (rx * rx + ry * ry + rz * rz) * inv2[i]
+            for i in range(s + 1, e):
+                if z2[i] > best:
+                    best = z2[i]
                     arg = i
         if arg >= 0 and best > thr[e - s + 1] * thr[e - s + 1]:
             # push right first so the left half is processed first
@@ -199,7 +206,7 @@ def _split_merge(P: np.ndarray, S: np.ndarray, thr: np.ndarray) -> np.ndarray:
             ps = bounds[nb_ - 1, 0]
             if e - ps + 1 >= 3:
                 c, d = _fit(P, ps, e)
-                if _max_resid2(P, inv2, ps, e, c, d) <= thr[e - ps + 1] * thr[e - ps + 1]:
+                if _within(P, inv2, ps, e, c, d, thr[e - ps + 1] * thr[e - ps + 1]):
                     bounds[nb_ - 1, 1] = e
                     k += 1
                     continue
