@@ -290,6 +290,7 @@ def _scan_line_edges(
     cs = np.empty((nk, 3))
     ds = np.empty((nk, 3))
     vd = np.empty(nk)
+    tpos = np.empty(n)  # each sample's position along its segment's line, metres
     for j in range(nk):
         k = keep[j]
         c, d = _fit(P, B[k, 0], B[k, 1])
@@ -302,6 +303,7 @@ def _scan_line_edges(
         ss = 0.0
         for i in range(B[k, 0], B[k, 1] + 1):
             t = (P[i, 0] - c[0]) * d[0] + (P[i, 1] - c[1]) * d[1] + (P[i, 2] - c[2]) * d[2]
+            tpos[i] = t  # kept for the correlated sum below
             st2 += t * t
             ss += S[i] * S[i]
         vd[j] = ss / (B[k, 1] - B[k, 0] + 1) / max(st2, 1e-30)
@@ -309,14 +311,12 @@ def _scan_line_edges(
             K = rho.shape[0] - 1
             num = 0.0
             for i in range(B[k, 0], B[k, 1] + 1):
-                ti = (P[i, 0] - c[0]) * d[0] + (P[i, 1] - c[1]) * d[1] + (P[i, 2] - c[2]) * d[2]
+                ti = tpos[i]
                 for q in range(i, B[k, 1] + 1):
                     lag = abs(pix[q] - pix[i])
                     if lag > K:
                         break
-                    tq = ((P[q, 0] - c[0]) * d[0] + (P[q, 1] - c[1]) * d[1]
-                          + (P[q, 2] - c[2]) * d[2])
-                    w = ti * tq * S[i] * S[q] * rho[lag]
+                    w = ti * tpos[q] * S[i] * S[q] * rho[lag]
                     num += w if q == i else 2.0 * w
             vd[j] = max(vd[j], num / max(st2 * st2, 1e-60))
     # grooves inside a segment: a short run of samples significantly behind its line, with
