@@ -342,6 +342,7 @@ def find_lines(scan: Scan, edges: EdgeMap, *, config: Config, rng: np.random.Gen
     )
     ptree = cKDTree(P)
     radius = min(config.max_edge, VOTE_RADIUS_EDGES * config.min_edge)
+    near: dict[int, np.ndarray] = {}  # each drawn point's neighbours within the radius
 
     alive = np.ones(N, bool)
     alive_idx = np.arange(N)  # np.flatnonzero(alive)
@@ -366,7 +367,9 @@ def find_lines(scan: Scan, edges: EdgeMap, *, config: Config, rng: np.random.Gen
             break
         trial += 1
         i0 = int(alive_idx[rng.integers(len(alive_idx))])
-        nb = np.asarray(ptree.query_ball_point(P[i0], radius), dtype=np.int64)
+        nb = near.get(i0)
+        if nb is None:  # a point is drawn again and again when the trials run long
+            nb = near[i0] = np.asarray(ptree.query_ball_point(P[i0], radius), dtype=np.int64)
         nb = nb[alive[nb] & (nb != i0)]
         work += len(nb)
         found = _trial(fixed, i0, nb, alive_idx, rng) if len(nb) >= m_min else []
