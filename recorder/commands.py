@@ -152,17 +152,14 @@ def open_source(source: str, *, count: int, seed: int | None, intrinsics: str | 
     any scan is run; what goes wrong while reading comes as :class:`ReadError` items.
     """
     if source.startswith("sim:"):
-        from boxloc.simulate import parse_spec, simulate
+        from boxloc.simulate import parse_spec
+        from recorder.stream import SimScan
 
         spec = parse_spec(source[4:])
         first = spec.seed if seed is None else seed
-
-        def sims() -> Iterator[Any]:
-            for i in range(count):
-                scan = simulate(spec, seed=first + i).scan
-                yield dataclasses.replace(scan, index=i)
-
-        return Source(_guarded(sims()), count, kind="sim")
+        # made where they run (the parent, or the worker of --workers N): Job.make_scan
+        sims = (SimScan(spec, first + i, i) for i in range(count))
+        return Source(sims, count, kind="sim")
     p = Path(source)
     if not p.exists():
         raise InputError(f"SOURCE not found: {p}")
@@ -369,6 +366,7 @@ def run(sources: tuple[str, ...], count: int, seed: int | None, record: str | No
         from boxloc.stages.scan_noise import fit_warning
     from boxloc.observer import FanOut
     from recorder.mcap.sink import McapRecorder, RecordingError
+    from recorder.stream import Encoding
 
     items = _stream(opened, configs, renumber=len(opened) > 1)
     n_ok = n_failed = n_surfaces = 0
@@ -401,6 +399,9 @@ def run(sources: tuple[str, ...], count: int, seed: int | None, record: str | No
                 stack.callback(sink.close)
                 observers.append(sink)
         obs = FanOut(*observers)
+        # a scan the worker encoded goes to the recorder as bytes, its calls to the others
+        others = FanOut(*observers[1:]) if rec is not None else obs
+        write = rec.write_encoded if rec is not None else None
         stop = stack.enter_context(_stop_requests())
         show = not quiet and (total is None or total > 1)
         progress = stack.enter_context(_progress(show, total))
@@ -409,8 +410,10 @@ def run(sources: tuple[str, ...], count: int, seed: int | None, record: str | No
         runs: Iterator[tuple[Any, Any]]
         if n_workers > 1:
             # closed first (LIFO) when the run ends early: the workers are stopped at once
+            encoding = None if rec is None else Encoding(rec.max_points, rec.config)
             runs = stack.enter_context(closing(ordered_runs(items, n_workers,
-                                                            stop=lambda: bool(stop))))
+                                                            stop=lambda: bool(stop),
+                                                            encoding=encoding)))
         else:
             runs = ((item, None) for item in items)
         try:
@@ -421,18 +424,25 @@ def run(sources: tuple[str, ...], count: int, seed: int | None, record: str | No
                         progress.console.print(f"error: {item.message} (going on)",
                                                markup=False)
                     continue
-                scan, t0 = item.scan, time.perf_counter()
+                t0 = time.perf_counter()
+                scan = _scan_of(item, done)
+                if isinstance(scan, ReadError):  # a simulated scan that could not be made
+                    errors.append(scan)
+                    progress.console.print(f"error: {scan.message} (going on)", markup=False)
+                    continue
                 try:
                     if done is None:
                         result = find_graspable_surfaces(scan, item.config, observer=obs)
+                    elif done.encoded:  # the worker encoded it: the recorder writes bytes
+                        result = done.replay(scan, others, write=write)
                     else:  # run in a worker: the observers get its calls now, in order
                         result = done.replay(scan, obs)
                 except (RecordingError, KeyboardInterrupt):
                     raise
                 except Exception as e:  # the scan's failure is its result: record, go on
                     n_failed += 1
-                    if rec is not None:
-                        rec.on_error(scan, e)
+                    if rec is not None and not (done is not None and done.encoded):
+                        rec.on_error(scan, e)  # (an encoded scan ends with its error)
                     msg = str(e).splitlines()[0] if str(e) else ""
                     progress.console.print(f"scan {scan.index}: failed: "
                                            f"{type(e).__name__}: {msg}", markup=False)
@@ -463,6 +473,19 @@ def run(sources: tuple[str, ...], count: int, seed: int | None, record: str | No
             _report(rec, n_ok, n_failed, n_surfaces, time.perf_counter() - t_start, quiet)
     if errors:
         raise InputError(_errors_line(errors))
+
+
+def _scan_of(item: Any, done: Any) -> Any:
+    """The scan of a job, from its worker (a simulated one made there) or made here; a
+    :class:`ReadError` for a simulated scan that could not be made."""
+    if done is not None and done.unread is not None:
+        return ReadError(done.unread)
+    if done is not None and done.scan is not None:
+        return done.scan
+    try:
+        return item.make_scan()
+    except BoxlocError as e:
+        return ReadError(str(e))
 
 
 def _errors_line(errors: list[ReadError]) -> str:

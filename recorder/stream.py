@@ -4,10 +4,18 @@
 :func:`boxloc.pipeline.find_graspable_surfaces` with a :class:`Collector`, an observer that
 keeps every call it receives (the products are frozen dataclasses of NumPy arrays, so they
 pickle), and sends them back as a :class:`ScanRun`. The parent replays them onto the real
-observers (MCAP, Rerun, ROS 2) with :meth:`ScanRun.replay`, one scan after the other in scan
+observers (Rerun, ROS 2) with :meth:`ScanRun.replay`, one scan after the other in scan
 order, as if the pipeline had run in the parent. The log is therefore the same, bit for bit,
 as a serial run's: the trial seeds come from the scan and the config, never from the
-process, and the recorder sees the same calls in the same order.
+process, and the observers see the same calls in the same order.
+
+The MCAP messages are encoded in the worker too (with an :class:`Encoding`): a
+:class:`recorder.mcap.sink.ScanEncoder`, the code the recorder itself encodes with, turns
+the calls into the scan's messages, and the parent only writes them
+(:meth:`recorder.mcap.sink.McapRecorder.write_encoded`: compression, the file, fsync). A
+simulated scan (:class:`SimScan`) is made in the worker as well: its spec and seed travel,
+not the scan. The parent's share of the work per scan is then reading the source and
+writing the chunk.
 
 Bounds and failures:
 
@@ -34,6 +42,7 @@ from __future__ import annotations
 
 import contextlib
 import copy
+import dataclasses
 import functools
 import multiprocessing
 import os
@@ -53,16 +62,18 @@ if TYPE_CHECKING:
     from boxloc.observer import Observer
     from boxloc.products import Result
     from boxloc.scan import Scan
+    from recorder.mcap.sink import EncodedScan
 
-__all__ = ["Collector", "Job", "RemoteError", "ScanRun", "WorkerLost", "default_workers",
-           "ordered_runs", "run_job", "start_early"]
+__all__ = ["Collector", "Encoding", "Job", "RemoteError", "ScanRun", "SimScan", "WorkerLost",
+           "default_workers", "ordered_runs", "run_job", "start_early"]
 
 #: New workers a scan gets after the one running it died: one, for a loss that was not the
 #: scan's fault (the OOM killer chose it); a scan that kills its worker twice is failed.
 RETRIES = 1
 #: Modules the forkserver imports once, so that every worker forked from it starts warm
 #: (``recorder._stream_warm`` loads the numba kernels by running a small scan).
-_PRELOAD = ["recorder.stream", "boxloc.pipeline", "recorder._stream_warm"]
+_PRELOAD = ["recorder.stream", "boxloc.pipeline", "recorder.mcap.sink", "boxloc.simulate",
+            "recorder._stream_warm"]
 #: Thread pools pinned to one thread in the workers (one process per core already).
 _THREAD_VARS = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS",
                 "NUMBA_NUM_THREADS")
@@ -82,11 +93,46 @@ def default_workers() -> int:
 
 
 @dataclass(frozen=True)
-class Job:
-    """One scan to run, with the config to run it with."""
+class SimScan:
+    """A simulated scan, made where it runs: the spec and the seed travel, not the scan.
 
-    scan: Scan
+    ``make()`` is :func:`boxloc.simulate.simulate` (deterministic: the same arrays, bit for
+    bit, in any process) with the scan numbered ``index``.
+    """
+
+    spec: Any
+    seed: int
+    index: int
+
+    def make(self) -> Scan:
+        from boxloc.simulate import simulate
+
+        return dataclasses.replace(simulate(self.spec, seed=self.seed).scan, index=self.index)
+
+
+@dataclass(frozen=True)
+class Job:
+    """One scan to run (or a simulated one to make first), with the config to run it with."""
+
+    scan: Scan | SimScan
     config: Config
+
+    def make_scan(self) -> Scan:
+        """The scan itself (simulated now for a :class:`SimScan`)."""
+        return self.scan.make() if isinstance(self.scan, SimScan) else self.scan
+
+
+@dataclass(frozen=True)
+class Encoding:
+    """The workers encode each scan's MCAP messages, as the parent's recorder would.
+
+    The arguments of :class:`recorder.mcap.sink.ScanEncoder` that change its bytes: the
+    recorder's ``max_points`` and ``config`` (the config of a scan that fails before its
+    ``on_scan``).
+    """
+
+    max_points: int
+    config: Config | None = None
 
 
 class RemoteError(Exception):
@@ -197,6 +243,14 @@ class ScanRun:
         The noise model's warning about the scan
         (:func:`boxloc.stages.scan_noise.fit_warning`), made in the worker so that the
         parent never imports the stages.
+    encoded : tuple of EncodedScan
+        The scan's MCAP messages, encoded in the worker (with an :class:`Encoding`; else
+        empty), ending with its result or error: what the parent's recorder writes.
+    scan : Scan or None
+        The scan the worker made from a :class:`SimScan` (without its cached points).
+    unread : str or None
+        Why the worker could not make the scan of a :class:`SimScan` (the message of the
+        :class:`~boxloc.errors.BoxlocError` it raised); nothing else is set then.
     """
 
     calls: tuple[tuple[str, Scan | None, tuple[Any, ...]], ...]
@@ -204,8 +258,12 @@ class ScanRun:
     error: Exception | _ErrorInfo | None = None
     seconds: float = 0.0
     warning: str | None = None
+    encoded: tuple[EncodedScan, ...] = ()
+    scan: Scan | None = None
+    unread: str | None = None
 
-    def replay(self, scan: Scan, observer: Observer) -> Result:
+    def replay(self, scan: Scan, observer: Observer,
+               write: Callable[[EncodedScan], None] | None = None) -> Result:
         """Make ``observer`` receive the calls the pipeline made, then return its result or
         raise its error, as :func:`~boxloc.pipeline.find_graspable_surfaces` with that
         observer would have.
@@ -215,7 +273,14 @@ class ScanRun:
         scan : Scan
             The parent's copy of the job's scan (what the observers record).
         observer : Observer
+            Receives the calls (not the recorder, when ``write`` takes the encoded scan).
+        write : callable, optional
+            ``write(encoded)`` for each of :attr:`encoded` first
+            (:meth:`recorder.mcap.sink.McapRecorder.write_encoded`).
         """
+        if write is not None:
+            for enc in self.encoded:
+                write(enc)
         for name, own, args in self.calls:
             getattr(observer, name)(scan if own is None else own, *args)
         if self.error is not None:
@@ -226,24 +291,57 @@ class ScanRun:
         return self.result
 
 
-def run_job(job: Job) -> ScanRun:
+def run_job(job: Job, encoding: Encoding | None = None) -> ScanRun:
     """Run the pipeline on one scan with a :class:`Collector` (in a worker).
 
     A failure of the pipeline is the scan's result, as in a serial run: it comes back in
     :attr:`ScanRun.error`, after the calls made before it.
+
+    Parameters
+    ----------
+    job : Job
+        A :class:`SimScan` is simulated here first.
+    encoding : Encoding, optional
+        Also encode the scan's MCAP messages (:attr:`ScanRun.encoded`) with a
+        :class:`recorder.mcap.sink.ScanEncoder`, the recorder's own code; a failed scan
+        ends with its error, as the parent's loop ends it in a serial run
+        (``McapRecorder.on_error``).
     """
+    from boxloc.errors import BoxlocError
     from boxloc.pipeline import find_graspable_surfaces
     from boxloc.stages.scan_noise import fit_warning
 
-    col = Collector(job.scan)
+    made: Scan | None = None
+    if isinstance(job.scan, SimScan):
+        try:
+            made = job.scan.make()
+        except BoxlocError as e:  # a serial run reports it as an unreadable input
+            return ScanRun((), None, unread=str(e))
+    scan = made if made is not None else job.scan
+    assert not isinstance(scan, SimScan)
+    back = None if made is None else _lean(made)
+    col = Collector(scan)
+    observer: Observer = col
+    encoded: list[EncodedScan] = []
+    enc = None
+    if encoding is not None:
+        from boxloc.observer import FanOut
+        from recorder.mcap.sink import ScanEncoder
+
+        enc = ScanEncoder(encoded.append, max_points=encoding.max_points,
+                          config=encoding.config)
+        observer = FanOut(col, enc)
     t0 = time.perf_counter()
     try:
-        result = find_graspable_surfaces(job.scan, job.config, observer=col)
+        result = find_graspable_surfaces(scan, job.config, observer=observer)
     except Exception as e:  # noqa: BLE001 - the scan's failure is its result
-        return ScanRun(tuple(col.calls), None, _portable(e), time.perf_counter() - t0)
+        if enc is not None:
+            enc.on_error(scan, e)
+        return ScanRun(tuple(col.calls), None, _portable(e), time.perf_counter() - t0,
+                       encoded=tuple(encoded), scan=back)
     seconds = time.perf_counter() - t0
     warning = fit_warning(result.noise) if result.noise is not None else None
-    return ScanRun(tuple(col.calls), result, None, seconds, warning)
+    return ScanRun(tuple(col.calls), result, None, seconds, warning, tuple(encoded), back)
 
 
 def _lost(job: Job, exitcode: int | None, times: int) -> ScanRun:
@@ -298,8 +396,8 @@ def _worker_main(conn: Connection) -> None:
             return
         if msg is None:
             return
-        i, job = msg
-        run = run_job(job)
+        i, job, encoding = msg
+        run = run_job(job, encoding)
         try:
             conn.send((i, run))
         except (OSError, EOFError):
@@ -409,7 +507,8 @@ class _Pool:
 
 def ordered_runs(items: Iterable[Any], workers: int, *,
                  stop: Callable[[], bool] | None = None, window: int | None = None,
-                 retries: int = RETRIES) -> Generator[tuple[Any, ScanRun | None], None, None]:
+                 retries: int = RETRIES, encoding: Encoding | None = None,
+                 ) -> Generator[tuple[Any, ScanRun | None], None, None]:
     """Run every :class:`Job` of ``items`` on ``workers`` processes; yield in item order.
 
     Parameters
@@ -427,6 +526,9 @@ def ordered_runs(items: Iterable[Any], workers: int, *,
         at least ``workers``).
     retries : int
         New workers a scan gets after its worker died.
+    encoding : Encoding, optional
+        The workers also encode each scan's MCAP messages (:attr:`ScanRun.encoded`), so
+        that the parent only writes them.
 
     Yields
     ------
@@ -492,7 +594,8 @@ def ordered_runs(items: Iterable[Any], workers: int, *,
                 w, job = pool.free(), held[i]
                 w.task = i
                 try:
-                    w.conn.send((i, Job(_lean(job.scan), job.config)))
+                    lean = job.scan if isinstance(job.scan, SimScan) else _lean(job.scan)
+                    w.conn.send((i, Job(lean, job.config), encoding))
                 except OSError:  # it died between two scans
                     lost(w, i)
             # 2. the next item in order, as soon as it is there

@@ -27,9 +27,11 @@ from boxloc.scan import Scan
 from recorder.mcap import channels as C
 from recorder.mcap.log import open_log
 from recorder.stream import (
+    Encoding,
     Job,
     RemoteError,
     ScanRun,
+    SimScan,
     WorkerLost,
     _portable,
     ordered_runs,
@@ -106,6 +108,82 @@ def test_workers_write_the_serial_log_bit_for_bit(scans_dir: Path, tmp_path: Pat
     recs = list(open_log(parallel).scans())
     assert [x.index for x in recs] == [0, 1, 2, 3] and all(x.complete for x in recs)
     assert sum(len(x.result.surfaces) for x in recs if x.result is not None) > 0
+
+
+def test_simulated_scans_made_in_the_workers_give_the_serial_log(tmp_path: Path) -> None:
+    """With --workers 2 a sim: source's scans are simulated (and encoded) in the workers:
+    the log is the serial one's, bit for bit, the timing's fields too but its wall times."""
+    logs = {}
+    for w in ("1", "2"):
+        logs[w] = tmp_path / f"sim{w}.mcap"
+        r = invoke("run", "sim:" + SPEC, "--count", "3", "--seed", "5", "--record",
+                   str(logs[w]), "-q", "--workers", w)
+        assert r.returncode == 0, r.stderr
+    assert _messages(logs["1"]) == _messages(logs["2"])
+    timing = [[m.topic for m in open_log(x).messages() if m.topic == C.TIMING]
+              for x in logs.values()]
+    assert timing == [[C.TIMING] * 3] * 2
+    assert _ranges(logs["2"]) == [
+        sim.simulate(SPEC, seed=5 + k).scan.range.tobytes() for k in range(3)]
+
+
+def test_a_simulated_scan_that_cannot_be_made_is_reported_and_the_rest_run(
+        tmp_path: Path) -> None:
+    """A SimScan whose spec the simulator refuses is an unreadable input, in the worker as
+    in the parent; the scans after it run."""
+    import copy
+
+    good = sim.parse_spec(SPEC)
+    bad = copy.copy(good)
+    object.__setattr__(bad, "width", 0)  # past the spec's own check: simulate refuses it
+    jobs = [Job(SimScan(good, 1, 0), Config()), Job(SimScan(bad, 1, 1), Config()),
+            Job(SimScan(good, 2, 2), Config())]
+    with pytest.raises(InputError, match="scene width"):
+        jobs[1].make_scan()
+    out = list(ordered_runs(jobs, 2, encoding=Encoding(100)))
+    assert [r.unread is not None for _, r in out] == [False, True, False]  # type: ignore[union-attr]
+    assert "scene width" in (out[1][1].unread or "")  # type: ignore[union-attr]
+    for (_job, run), seed in zip(out[::2], (1, 2)):
+        assert run is not None and run.scan is not None and run.result is not None
+        assert run.scan.range.tobytes() == sim.simulate(good, seed=seed).scan.range.tobytes()
+
+
+def test_a_scan_encoded_in_a_worker_is_written_as_the_recorder_writes_it(
+        tmp_path: Path) -> None:
+    """ScanEncoder is the recorder's own encoding: a scan encoded by run_job and written
+    with write_encoded gives the bytes of the recorder as the pipeline's observer."""
+    from boxloc.observer import NullObserver
+    from boxloc.pipeline import find_graspable_surfaces
+    from recorder.mcap.sink import McapRecorder
+
+    jobs = _jobs(2)
+    cfg = jobs[0].config
+    direct, written = tmp_path / "direct.mcap", tmp_path / "written.mcap"
+    with McapRecorder(direct, config=cfg, session="s", max_points=300) as rec:
+        for job in jobs:
+            find_graspable_surfaces(job.make_scan(), job.config, observer=rec)
+    with McapRecorder(written, config=cfg, session="s", max_points=300) as rec:
+        for job in jobs:
+            run = run_job(job, Encoding(rec.max_points, rec.config))
+            assert len(run.encoded) == 1 and run.encoded[0].messages[-1][0] == C.RESULT
+            assert run.encoded[0].n_surfaces == len(run.result.surfaces)  # type: ignore[union-attr]
+            run.replay(job.make_scan(), NullObserver(), write=rec.write_encoded)
+        assert rec.n_scans == 2
+    assert _messages(direct) == _messages(written)
+    assert open_log(direct).metadata["boxloc.run"]["config_hash"] == \
+        open_log(written).metadata["boxloc.run"]["config_hash"]
+
+
+def test_an_encoded_scan_is_refused_while_the_recorder_has_one_in_progress(
+        tmp_path: Path) -> None:
+    from recorder.mcap.sink import McapRecorder
+
+    job = _jobs(1)[0]
+    run = run_job(job, Encoding(100))
+    with McapRecorder(tmp_path / "x.mcap", config=job.config) as rec:
+        rec.on_scan(job.make_scan(), job.config)
+        with pytest.raises(ValueError, match="in progress"):
+            rec.write_encoded(run.encoded[0])
 
 
 def _garbage(d: Path) -> Path:

@@ -357,6 +357,221 @@ class _Pending:
     #: the Result's ambiguous regions (on_result); None until then
     ambiguous: Any = None
 
+    def encoded(self) -> EncodedScan:
+        """The scan's messages as they are now, without its products."""
+        n_surf = len(self.products["surfaces"]) if "surfaces" in self.products else 0
+        return EncodedScan(index=self.scan.index, capture_time_ns=self.scan.capture_time_ns,
+                           sensor=self.scan.sensor, log_time=self.log_time, config=self.config,
+                           sensor_hash=self.sensor_hash, messages=tuple(self.messages),
+                           n_surfaces=n_surf, encode_s=self.record_s)
+
+
+@dataclass(frozen=True)
+class EncodedScan:
+    """One scan's messages, encoded, in the order the recorder writes them as one chunk.
+
+    Made by a :class:`ScanEncoder` (the recorder's own, or one in a worker process of
+    ``boxloc run --workers N``) and written by :meth:`McapRecorder.write_encoded`. It holds
+    bytes and a few scalars, not the products: cheap to send between processes.
+
+    Attributes
+    ----------
+    index, capture_time_ns : int
+        The scan's index and capture time, ns.
+    sensor : SensorModel
+        The scan's sensor (its ``/scan/sensor`` record and the calibration attachments are
+        written by the recorder, once per file).
+    log_time : int
+        The scan's log time, ns (:func:`recorder.mcap.channels.scan_log_time`).
+    config : Config
+        The config the scan ran with (one config per file).
+    sensor_hash : str
+    messages : tuple of (str, bytes)
+        Topic and encoded message, in order; the last one is ``/boxloc/result`` or
+        ``/boxloc/error``.
+    n_surfaces : int
+    encode_s : float
+        Wall time spent encoding, s (what ``/boxloc/timing`` reports as the recorder's).
+    """
+
+    index: int
+    capture_time_ns: int
+    sensor: SensorModel
+    log_time: int
+    config: Config
+    sensor_hash: str
+    messages: tuple[tuple[str, bytes], ...]
+    n_surfaces: int
+    encode_s: float
+
+
+class ScanEncoder(NullObserver):
+    """Encode the pipeline's calls about each scan into the messages the recorder writes:
+    the pure half of :class:`McapRecorder` (no file, no clock but the timing it reports).
+
+    When a scan ends (``on_result``, ``on_error``, or the next ``on_scan`` without either)
+    its messages go to ``emit`` as one :class:`EncodedScan`. :class:`McapRecorder` writes
+    what its own encoder emits; ``boxloc run --workers N`` runs one in each worker process
+    and its parent writes what they emit, in scan order, with
+    :meth:`McapRecorder.write_encoded`. The same code makes the bytes either way.
+
+    Parameters
+    ----------
+    emit : callable
+        ``emit(encoded)``, once per scan, in the order the scans end.
+    max_points : int
+        Points of the decimated ``/scan/points`` view (0: no point cloud).
+    config : Config, optional
+        The config of a scan that ends in ``on_error`` without an ``on_scan`` first.
+    lock : RLock, optional
+        Held while the scan in progress is handed over (the recorder's:
+        :meth:`McapRecorder.record_outcome` adds to that scan from other threads).
+    """
+
+    def __init__(self, emit: Callable[[EncodedScan], None], *,
+                 max_points: int = DEFAULT_MAX_POINTS, config: Config | None = None,
+                 lock: Any = None) -> None:
+        self.emit = emit
+        self.max_points = int(max_points)
+        self.config = config
+        self.lock = lock if lock is not None else threading.RLock()
+        self.pending: _Pending | None = None
+
+    def on_scan(self, scan: Scan, config: Config) -> None:
+        t0 = time.perf_counter()
+        if self.pending is not None:
+            # The previous scan never got its result: the pipeline raised and nobody told us.
+            self.end(self.pending, error=("Incomplete", self.pending.last_stage,
+                                          "the pipeline did not finish this scan"))
+        t = C.scan_log_time(scan.capture_time_ns, scan.index)
+        digest = E.sensor_hash(scan.sensor)
+        p = _Pending(scan=scan, log_time=t, config=config, sensor_hash=digest)
+        self.pending = p
+        p.messages.append((C.SCAN_INFO, E.encode_scan_info(scan, digest)))
+        p.messages.append((C.SCAN_RANGE, E.encode_range(scan, t)))
+        p.messages.append((C.SCAN_PREVIEW, E.encode_range_preview(scan, t)))
+        if isinstance(scan.sensor, PinholeModel):
+            p.messages.append((C.SCAN_CALIBRATION, E.encode_calibration(scan.sensor, t)))
+        if scan.sensor_to_base is not None:
+            p.messages.append((C.SCAN_POSE, E.encode_pose(scan.sensor_to_base, t)))
+        if self.max_points > 0:
+            p.messages.append((C.SCAN_POINTS, E.encode_points(scan, t, self.max_points)))
+        p.record_s += time.perf_counter() - t0
+
+    def _pending_for(self, scan: Scan, what: str) -> _Pending:
+        p = self.pending
+        if p is None or p.scan is not scan:
+            raise ValueError(f"on_{what} for scan {scan.index} without on_scan first")
+        return p
+
+    def stage(self, stage: str, scan: Scan, product: Any) -> None:
+        """Encode one stage's product (``on_<stage>``)."""
+        t0 = time.perf_counter()
+        p = self._pending_for(scan, stage)
+        p.products[stage] = product
+        p.last_stage = stage
+        p.messages.append((C.STAGE_TOPICS[stage],
+                           E.encode_product(stage, product, scan.index, scan.capture_time_ns)))
+        if stage == "edges":
+            p.messages.append((C.EDGE_MAP, E.encode_edge_map(product, p.log_time)))
+            p.messages.append((C.EDGE_POINTS, E.encode_edge_points(product, p.log_time)))
+        p.record_s += time.perf_counter() - t0
+
+    def on_noise(self, scan: Scan, noise: Any) -> None:
+        self.stage("noise", scan, noise)
+
+    def on_edges(self, scan: Scan, edges: Any) -> None:
+        self.stage("edges", scan, edges)
+
+    def on_lines(self, scan: Scan, lines: Any) -> None:
+        self.stage("lines", scan, lines)
+
+    def on_vertices(self, scan: Scan, vertices: Any) -> None:
+        self.stage("vertices", scan, vertices)
+
+    def on_hypotheses(self, scan: Scan, hypotheses: Any) -> None:
+        self.stage("hypotheses", scan, hypotheses)
+
+    def on_verification(self, scan: Scan, verification: Any) -> None:
+        self.stage("verification", scan, verification)
+
+    def on_selection(self, scan: Scan, selection: Any) -> None:
+        self.stage("selection", scan, selection)
+
+    def on_surfaces(self, scan: Scan, surfaces: Any) -> None:
+        self.stage("surfaces", scan, surfaces)
+
+    def on_result(self, scan: Scan, result: Any) -> None:
+        t0 = time.perf_counter()
+        p = self._pending_for(scan, "result")
+        missing = [s for s in STAGES
+                   if s not in p.products and getattr(result, s) is not None]
+        for s in missing:  # a caller that skipped on_<stage>: the Result has them all
+            self.stage(s, scan, getattr(result, s))
+        amb = getattr(result, "ambiguous", None)
+        if amb is not None:  # written even when empty: the set reads back bit for bit
+            p.ambiguous = amb
+            p.messages.append((C.AMBIGUOUS, E.encode_ambiguous(amb, scan.index,
+                                                               scan.capture_time_ns)))
+        p.record_s += time.perf_counter() - t0
+        self.end(p, result=result)
+
+    def on_error(self, scan: Scan, exc: BaseException, stage: str | None = None) -> None:
+        """End the scan in progress as failed: its products so far and the error.
+
+        Parameters
+        ----------
+        scan : Scan
+        exc : BaseException
+            What the pipeline raised.
+        stage : str, optional
+            The stage that raised; default: the one after the last product received.
+        """
+        with self.lock:
+            p = self.pending
+            if p is None or p.scan is not scan:
+                self.on_scan(scan, self.config or Config())
+                p = self.pending
+            assert p is not None
+            if stage is None:
+                # the stage after the last product received
+                nxt = max((STAGES.index(s) + 1 for s in p.products), default=0)
+                stage = STAGES[nxt] if nxt < len(STAGES) else "result"
+            msg = str(exc).splitlines()[0] if str(exc) else ""
+            self.end(p, error=(type(exc).__name__, stage, msg[:2000]))
+
+    def end(self, p: _Pending, *, result: Any = None,
+            error: tuple[str, str, str] | None = None) -> None:
+        """Add the end-of-scan messages to scan ``p`` and emit it.
+
+        The last message of a scan is its ``/boxloc/result`` or ``/boxloc/error``: a
+        reader knows a scan is whole when it sees one.
+        """
+        with self.lock:  # a pick outcome reported now goes in this chunk or the next
+            if self.pending is p:
+                self.pending = None
+        t0 = time.perf_counter()
+        idx, t = p.scan.index, p.log_time
+        tables = {s: p.products[s].tests for s in STAGES
+                  if s in p.products and hasattr(p.products[s], "tests")}
+        if p.ambiguous is not None:
+            tables[E.AMBIGUOUS_STAGE] = p.ambiguous.tests
+        if "surfaces" in p.products:  # written here: the ambiguous regions come with the result
+            p.messages.append((C.LOCATE, E.encode_locate_json(idx, p.products["surfaces"],
+                                                              p.ambiguous)))
+        p.messages.append((C.TESTS, E.encode_test_rows(idx, tables)))
+        p.messages.append((C.SCENE, E.encode_scene({**p.products, "ambiguous": p.ambiguous},
+                                                   idx, t)))
+        timing = dict(result.timing_ms) if result is not None else {}
+        p.record_s += time.perf_counter() - t0
+        p.messages.append((C.TIMING, E.encode_timing(idx, timing, p.record_s * 1e3)))
+        if result is not None:
+            p.messages.append((C.RESULT, E.encode_result_info(result)))
+        else:
+            etype, stage, msg = error or ("Incomplete", p.last_stage, "")
+            p.messages.append((C.ERROR, E.encode_error(idx, stage, etype, msg)))
+        self.emit(p.encoded())
+
 
 @dataclass
 class _Part:
@@ -464,7 +679,8 @@ class McapRecorder(NullObserver):
         self._lock = threading.RLock()
         self._part: _Part | None = None
         self._n_parts = 0
-        self._pending: _Pending | None = None
+        self._enc = ScanEncoder(self._write_scan, max_points=self.max_points, config=config,
+                                lock=self._lock)
         self._broken: str | None = None
         self._finished = False
         self.paths: list[Path] = []
@@ -496,40 +712,20 @@ class McapRecorder(NullObserver):
         self.finish()
 
     # --- observer --------------------------------------------------------------------------
+    # The messages are made by self._enc (a ScanEncoder, the same code a worker of
+    # `boxloc run --workers N` encodes with); it hands each scan to _write_scan.
+
+    @property
+    def _pending(self) -> _Pending | None:
+        return self._enc.pending
 
     def on_scan(self, scan: Scan, config: Config) -> None:
-        t0 = time.perf_counter()
         self._check_open()
-        if self._pending is not None:
-            # The previous scan never got its result: the pipeline raised and nobody told us.
-            self._close_scan(self._pending, error=("Incomplete", self._pending.last_stage,
-                                                   "the pipeline did not finish this scan"))
-        t = C.scan_log_time(scan.capture_time_ns, scan.index)
-        digest = E.sensor_hash(scan.sensor)
-        p = _Pending(scan=scan, log_time=t, config=config, sensor_hash=digest)
-        self._pending = p
-        self._add(p, C.SCAN_INFO, E.encode_scan_info(scan, digest))
-        self._add(p, C.SCAN_RANGE, E.encode_range(scan, t))
-        self._add(p, C.SCAN_PREVIEW, E.encode_range_preview(scan, t))
-        if isinstance(scan.sensor, PinholeModel):
-            self._add(p, C.SCAN_CALIBRATION, E.encode_calibration(scan.sensor, t))
-        if scan.sensor_to_base is not None:
-            self._add(p, C.SCAN_POSE, E.encode_pose(scan.sensor_to_base, t))
-        if self.max_points > 0:
-            self._add(p, C.SCAN_POINTS, E.encode_points(scan, t, self.max_points))
-        p.record_s += time.perf_counter() - t0
+        self._enc.on_scan(scan, config)
 
     def _stage(self, stage: str, scan: Scan, product: Any) -> None:
-        t0 = time.perf_counter()
-        p = self._pending_for(scan, stage)
-        p.products[stage] = product
-        p.last_stage = stage
-        self._add(p, C.STAGE_TOPICS[stage],
-                  E.encode_product(stage, product, scan.index, scan.capture_time_ns))
-        if stage == "edges":
-            self._add(p, C.EDGE_MAP, E.encode_edge_map(product, p.log_time))
-            self._add(p, C.EDGE_POINTS, E.encode_edge_points(product, p.log_time))
-        p.record_s += time.perf_counter() - t0
+        self._check_open()
+        self._enc.stage(stage, scan, product)
 
     def on_noise(self, scan: Scan, noise: Any) -> None:
         self._stage("noise", scan, noise)
@@ -556,19 +752,8 @@ class McapRecorder(NullObserver):
         self._stage("surfaces", scan, surfaces)
 
     def on_result(self, scan: Scan, result: Any) -> None:
-        t0 = time.perf_counter()
-        p = self._pending_for(scan, "result")
-        missing = [s for s in STAGES
-                   if s not in p.products and getattr(result, s) is not None]
-        for s in missing:  # a caller that skipped on_<stage>: the Result has them all
-            self._stage(s, scan, getattr(result, s))
-        amb = getattr(result, "ambiguous", None)
-        if amb is not None:  # written even when empty: the set reads back bit for bit
-            p.ambiguous = amb
-            self._add(p, C.AMBIGUOUS, E.encode_ambiguous(amb, scan.index,
-                                                         scan.capture_time_ns))
-        p.record_s += time.perf_counter() - t0
-        self._close_scan(p, result=result)
+        self._check_open()
+        self._enc.on_result(scan, result)
 
     def on_error(self, scan: Scan, exc: BaseException, stage: str | None = None) -> None:
         """Close the scan in progress as failed: its products so far and the error.
@@ -582,17 +767,27 @@ class McapRecorder(NullObserver):
             The stage that raised; default: the one after the last product received.
         """
         with self._lock:
-            p = self._pending
-            if p is None or p.scan is not scan:
-                self.on_scan(scan, self.config or Config())
-                p = self._pending
-            assert p is not None
-            if stage is None:
-                # the stage after the last product received
-                nxt = max((STAGES.index(s) + 1 for s in p.products), default=0)
-                stage = STAGES[nxt] if nxt < len(STAGES) else "result"
-            msg = str(exc).splitlines()[0] if str(exc) else ""
-            self._close_scan(p, error=(type(exc).__name__, stage, msg[:2000]))
+            self._check_open()
+            self._enc.config = self.config
+            self._enc.on_error(scan, exc, stage)
+
+    def write_encoded(self, encoded: EncodedScan) -> None:
+        """Write a scan a :class:`ScanEncoder` encoded elsewhere (a worker process), as if
+        it had been recorded here: the same bytes, one chunk, flushed and fsynced.
+
+        Raises
+        ------
+        ValueError
+            If this recorder has a scan of its own in progress (the order would mix).
+        RecordingError
+            If the log cannot be written.
+        """
+        with self._lock:
+            self._check_open()
+            if self._enc.pending is not None:
+                raise ValueError(f"scan {self._enc.pending.scan.index} is in progress; "
+                                 f"cannot write scan {encoded.index} before it ends")
+            self._write_scan(encoded)
 
     # --- scans without a pipeline run ------------------------------------------------------
 
@@ -628,16 +823,15 @@ class McapRecorder(NullObserver):
                                  f"{scan.shape}, got {lab.dtype} {lab.shape}")
         with self._lock:
             self.on_scan(scan, config or self.config or Config())
-            p = self._pending
+            p = self._enc.pending
             assert p is not None
-            self._pending = None
+            self._enc.pending = None
             if labels is not None:
-                self._add(p, C.SCAN_LABELS, E.encode_labels(lab, scan.index,
-                                                            scan.capture_time_ns))
-            self._add(p, C.SCAN_END, E.encode_scan_end(scan.index, scan.capture_time_ns,
-                                                       origin))
-            self._write_scan(p)
-            self.record_seconds += p.record_s
+                p.messages.append((C.SCAN_LABELS, E.encode_labels(lab, scan.index,
+                                                                  scan.capture_time_ns)))
+            p.messages.append((C.SCAN_END, E.encode_scan_end(scan.index, scan.capture_time_ns,
+                                                             origin)))
+            self._write_scan(p.encoded())
             return self.scans[-1]
 
     # --- pick outcomes ---------------------------------------------------------------------
@@ -694,16 +888,16 @@ class McapRecorder(NullObserver):
                 return
             self._finished = True
             try:
-                if self._pending is not None and self._broken is None:
-                    p = self._pending
-                    self._close_scan(p, error=("Interrupted", p.last_stage,
-                                               "recording ended before the scan's result"))
+                p = self._enc.pending
+                if p is not None and self._broken is None:
+                    self._enc.end(p, error=("Interrupted", p.last_stage,
+                                            "recording ended before the scan's result"))
                 if self._part is None and not self.paths and self._broken is None \
                         and self.config is not None:
                     # Nothing was recorded: still leave a valid log with its provenance.
                     self._open_part(self.config, None, 0)
             finally:
-                self._pending = None
+                self._enc.pending = None
                 self._close_part()
 
     close = finish
@@ -720,84 +914,44 @@ class McapRecorder(NullObserver):
         if self._finished:
             raise RecordingError("the recorder is finished")
 
-    def _pending_for(self, scan: Scan, what: str) -> _Pending:
-        self._check_open()
-        p = self._pending
-        if p is None or p.scan is not scan:
-            raise ValueError(f"on_{what} for scan {scan.index} without on_scan first")
-        return p
-
-    def _add(self, p: _Pending, topic: str, data: bytes) -> None:
-        p.messages.append((topic, data))
-
-    def _close_scan(self, p: _Pending, *, result: Any = None,
-                    error: tuple[str, str, str] | None = None) -> None:
-        """Add the end-of-scan messages and write the scan as one chunk.
-
-        The last message of a scan is its ``/boxloc/result`` or ``/boxloc/error``: a
-        reader knows a scan is whole when it sees one.
-        """
-        with self._lock:  # a pick outcome reported now goes in this chunk or the next
-            self._pending = None
+    def _write_scan(self, enc: EncodedScan) -> None:
+        """Write one scan's messages as one chunk (after the sensor record, when the file
+        has not had this sensor yet); flush and fsync."""
         t0 = time.perf_counter()
-        encode_s = p.record_s
-        idx, t = p.scan.index, p.log_time
-        tables = {s: p.products[s].tests for s in STAGES
-                  if s in p.products and hasattr(p.products[s], "tests")}
-        if p.ambiguous is not None:
-            tables[E.AMBIGUOUS_STAGE] = p.ambiguous.tests
-        if "surfaces" in p.products:  # written here: the ambiguous regions come with the result
-            p.messages.append((C.LOCATE, E.encode_locate_json(idx, p.products["surfaces"],
-                                                              p.ambiguous)))
-        p.messages.append((C.TESTS, E.encode_test_rows(idx, tables)))
-        p.messages.append((C.SCENE, E.encode_scene({**p.products, "ambiguous": p.ambiguous},
-                                                   idx, t)))
-        timing = dict(result.timing_ms) if result is not None else {}
-        p.record_s += time.perf_counter() - t0
-        p.messages.append((C.TIMING, E.encode_timing(idx, timing, p.record_s * 1e3)))
-        if result is not None:
-            p.messages.append((C.RESULT, E.encode_result_info(result)))
-        else:
-            etype, stage, msg = error or ("Incomplete", p.last_stage, "")
-            p.messages.append((C.ERROR, E.encode_error(idx, stage, etype, msg)))
         try:
-            self._write_scan(p)
+            with self._lock, defer_signals():
+                self._check_broken()
+                part = self._part_for(enc)
+                f = part.file
+                try:
+                    if part.sensor_hash != enc.sensor_hash:
+                        f.add(f.spec_channel(C.SCAN_SENSOR), enc.log_time,
+                              E.encode_sensor(enc.sensor, enc.index, enc.capture_time_ns),
+                              sequence=enc.index)
+                        part.sensor_hash = enc.sensor_hash
+                    for topic, data in enc.messages:
+                        f.add(f.spec_channel(topic), enc.log_time, data, sequence=enc.index)
+                    f.commit()
+                except OSError as e:
+                    self._fail(part, e)
+                part.n_scans += 1
+                if part.first_log_time is None:
+                    part.first_log_time = enc.log_time
+                part.last_log_time = max(part.last_log_time, enc.log_time)
+                w = ScanWritten(index=enc.index, path=f.path, log_time=enc.log_time,
+                                n_surfaces=enc.n_surfaces)
+                self.scans.append(w)
+                self._by_index[w.index] = w
+                if self.rotate_bytes is not None and f.size >= self.rotate_bytes:
+                    self._close_part()
         finally:
-            self.record_seconds += encode_s + (time.perf_counter() - t0)
-
-    def _write_scan(self, p: _Pending) -> None:
-        with self._lock, defer_signals():
-            self._check_broken()
-            part = self._part_for(p)
-            f = part.file
-            try:
-                if part.sensor_hash != p.sensor_hash:
-                    f.add(f.spec_channel(C.SCAN_SENSOR), p.log_time,
-                          E.encode_sensor(p.scan.sensor, p.scan.index, p.scan.capture_time_ns),
-                          sequence=p.scan.index)
-                    part.sensor_hash = p.sensor_hash
-                for topic, data in p.messages:
-                    f.add(f.spec_channel(topic), p.log_time, data, sequence=p.scan.index)
-                f.commit()
-            except OSError as e:
-                self._fail(part, e)
-            part.n_scans += 1
-            if part.first_log_time is None:
-                part.first_log_time = p.log_time
-            part.last_log_time = max(part.last_log_time, p.log_time)
-            n_surf = len(p.products["surfaces"]) if "surfaces" in p.products else 0
-            w = ScanWritten(index=p.scan.index, path=f.path, log_time=p.log_time,
-                            n_surfaces=n_surf)
-            self.scans.append(w)
-            self._by_index[w.index] = w
-            if self.rotate_bytes is not None and f.size >= self.rotate_bytes:
-                self._close_part()
+            self.record_seconds += enc.encode_s + (time.perf_counter() - t0)
 
     def _check_broken(self) -> None:
         if self._broken is not None:
             raise RecordingError(f"the recorder stopped after an error: {self._broken}")
 
-    def _rotates_before(self, p: _Pending) -> bool:
+    def _rotates_before(self, p: _Pending | EncodedScan) -> bool:
         """Whether scan ``p`` will start a new file (log-time span, or a new config)."""
         part = self._part
         if part is None:
@@ -806,13 +960,13 @@ class McapRecorder(NullObserver):
                     and p.log_time - part.first_log_time >= self.rotate_ns)
         return too_long or part.config_hash != p.config.hash
 
-    def _part_for(self, p: _Pending) -> _Part:
+    def _part_for(self, p: EncodedScan) -> _Part:
         part = self._part
         if part is not None and self._rotates_before(p):
             self._close_part()
             part = None
         if part is None:
-            part = self._open_part(p.config, p.scan.sensor, p.log_time)
+            part = self._open_part(p.config, p.sensor, p.log_time)
         return part
 
     def _path(self, k: int) -> Path:
