@@ -122,8 +122,13 @@ def _within(P: np.ndarray, inv2: np.ndarray, s: int, e: int, c: np.ndarray, d: n
 
 
 @nb.njit(cache=True)
-def _split_merge(P: np.ndarray, S: np.ndarray, thr: np.ndarray) -> np.ndarray:
-    """Split-and-merge of one scan line into segments; returns (m, 2) inclusive bounds.
+def _split_merge(P: np.ndarray, S: np.ndarray, thr: np.ndarray
+                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Split-and-merge of one scan line into segments.
+
+    Returns (m, 2) inclusive bounds, (m, 6) the centroid and direction of each segment's
+    line (:func:`_fit`) and (m,) whether that is set (a segment that a merge made; the
+    others are not fitted here).
 
     ``thr[n]`` is the largest normalized residual allowed in a segment of n points. The
     residuals are compared squared, against ``thr**2`` (the same order and decisions, up
@@ -194,7 +199,10 @@ def _split_merge(P: np.ndarray, S: np.ndarray, thr: np.ndarray) -> np.ndarray:
         v = out[k, 1]
         if out[k + 1, 0] == v:
             out[k + 1, 0] = v + 1
-    # merge neighbours whose union is still a line (TLS fit, max normalized residual)
+    # merge neighbours whose union is still a line (TLS fit, max normalized residual); the
+    # fit of a segment's last merge is its line (:func:`_fit` of its bounds), kept
+    fits = np.empty((n, 6))
+    fitted = np.zeros(n, np.bool_)
     k = 0
     while k < no:
         s = out[k, 0]
@@ -208,13 +216,17 @@ def _split_merge(P: np.ndarray, S: np.ndarray, thr: np.ndarray) -> np.ndarray:
                 c, d = _fit(P, ps, e)
                 if _within(P, inv2, ps, e, c, d, thr[e - ps + 1] * thr[e - ps + 1]):
                     bounds[nb_ - 1, 1] = e
+                    fits[nb_ - 1, :3] = c
+                    fits[nb_ - 1, 3:] = d
+                    fitted[nb_ - 1] = True
                     k += 1
                     continue
         bounds[nb_, 0] = s
         bounds[nb_, 1] = e
+        fitted[nb_] = False
         nb_ += 1
         k += 1
-    return bounds[:nb_]
+    return bounds[:nb_], fits[:nb_], fitted[:nb_]
 
 
 @nb.njit(cache=True)
@@ -278,7 +290,7 @@ def _scan_line_edges(
     n = P.shape[0]
     if n < 2 * min_pts:
         return n_out
-    B = _split_merge(P, S, thr)
+    B, fits, fitted = _split_merge(P, S, thr)
     m = B.shape[0]
     # keep segments with enough points
     keep = np.empty(m, np.int64)
@@ -293,7 +305,10 @@ def _scan_line_edges(
     tpos = np.empty(n)  # each sample's position along its segment's line, metres
     for j in range(nk):
         k = keep[j]
-        c, d = _fit(P, B[k, 0], B[k, 1])
+        if fitted[k]:  # the merge's fit of these very bounds
+            c, d = fits[k, :3], fits[k, 3:]
+        else:
+            c, d = _fit(P, B[k, 0], B[k, 1])
         cs[j] = c
         ds[j] = d
         # direction variance of a line fit: mean sigma^2 / sum (t - t_mean)^2 for white
