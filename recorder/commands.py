@@ -424,12 +424,12 @@ def run(sources: tuple[str, ...], count: int, seed: int | None, record: str | No
                         progress.console.print(f"error: {item.message} (going on)",
                                                markup=False)
                     continue
-                t0 = time.perf_counter()
                 scan = _scan_of(item, done)
                 if isinstance(scan, ReadError):  # a simulated scan that could not be made
                     errors.append(scan)
                     progress.console.print(f"error: {scan.message} (going on)", markup=False)
                     continue
+                t0 = time.perf_counter()
                 try:
                     if done is None:
                         result = find_graspable_surfaces(scan, item.config, observer=obs)

@@ -1,4 +1,5 @@
-"""The ``recording`` section of ``boxloc bench``: what recording costs.
+"""The ``recording`` section of ``boxloc bench``: what recording costs, and the throughput of
+``boxloc run --workers``.
 
 Registered in the ``boxloc.bench`` entry-point group. On the first :data:`N_SCANS` scenes of
 the benchmark (640x480 by default) it measures the time the MCAP recorder and the Rerun
@@ -6,16 +7,185 @@ sink add to the pipeline and the log bytes per scan (and by channel, in kB), aga
 targets of issue 22: each cost <= 5 % of the pipeline's own time, <= 1 MB per scan with all
 intermediates. The time figures are the work done inside the sink over the pipeline's time
 (robust on a busy machine); the end-to-end differences of two runs are reported too.
+
+Throughput (issue 22 part 4, >= :data:`TARGET_SPEEDUP` x scans per second on 2 cores): the
+first :data:`N_STREAM` scenes are written as scan files and recorded by
+``boxloc run DIR --record LOG --workers W`` for W = 1, then 2, each a process of its own as
+a user starts it, so the figures include start-up (imports, the workers' forkserver). Wall
+time gives scans/s and the speed-up; the CPU time of each run's whole process tree
+(parent, forkserver, workers; read with psutil every :data:`POLL_S`) is reported beside
+it, because on a loaded machine the wall time depends on what else runs. From the CPU
+times, ``cpu_bound_speedup`` = 2 x CPU(1) / CPU(2) is the speed-up two idle cores would
+allow at most (the parallel run's extra CPU is what keeps it below 2). Both logs must be
+the same, but for the wall-clock ``/boxloc/timing``.
 """
 
 from __future__ import annotations
 
+import os
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
 from typing import Any
 
 #: Scans measured (enough to average over scene kinds, few enough to take under a minute).
 N_SCANS = 10
 TARGET_FRACTION = 0.05
 TARGET_BYTES_PER_SCAN = 1_000_000
+#: Scans of each throughput run: 8 per worker, so that start-up (~2 s) is not all it shows.
+N_STREAM = 16
+#: The speed-up of ``--workers 2`` over ``--workers 1`` that issue 22 asks for.
+TARGET_SPEEDUP = 1.8
+#: Seconds between two reads of the process tree's CPU times (the last interval of each
+#: process, at most this much CPU, is not seen).
+POLL_S = 0.02
+
+
+def run_measured(cmd: list[str]) -> dict[str, Any]:
+    """Run ``cmd``; its wall time and the CPU time of every process it starts.
+
+    Returns
+    -------
+    dict
+        ``wall_s``; ``cpu_s`` (user + system of the command and every descendant, s: the
+        command's own, with the children it waited for, from its exit status; the others
+        as last read); ``processes`` (the command and the descendants counted apart);
+        ``returncode``; ``stderr`` (its last line).
+
+    Notes
+    -----
+    A direct child still running at the last read before the command exited is taken
+    as one it did not wait for (it outlived the command or ended in the last
+    :data:`POLL_S`), and counted apart.
+    """
+    import psutil
+
+    errf = tempfile.TemporaryFile()  # not a pipe: a chatty command never blocks on it
+    t0 = time.perf_counter()
+    proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=errf)
+    root = psutil.Process(proc.pid)
+    seen: dict[int, float] = {}
+    direct: set[int] = set()  # the command's own children
+    last: set[int] = set()  # the processes of the last read
+    rusage = None
+    try:
+        while True:
+            pid, status, ru = os.wait4(proc.pid, os.WNOHANG)
+            if pid:
+                rusage, proc.returncode = ru, os.waitstatus_to_exitcode(status)
+                break
+            try:
+                kids = root.children(recursive=True)
+                # an exited command's children were given to init before this listing
+                exited = root.status() == psutil.STATUS_ZOMBIE
+            except psutil.NoSuchProcess:
+                kids, exited = [], True
+            if exited:
+                continue  # reaped at the next turn; the last read stays the last
+            last = set()
+            for q in kids:
+                try:
+                    c = q.cpu_times()
+                    seen[q.pid] = c.user + c.system
+                    last.add(q.pid)
+                    if q.ppid() == proc.pid:
+                        direct.add(q.pid)
+                except psutil.NoSuchProcess:
+                    pass
+            time.sleep(POLL_S)
+        wall = time.perf_counter() - t0
+        errf.seek(0)
+        err = errf.read().decode(errors="replace")
+    finally:
+        if proc.returncode is None:
+            proc.kill()
+            proc.wait()
+        errf.close()
+    # A child the command waited for (git, run by the recorder) is in its rusage already;
+    # one that outlived it (the forkserver, which reaps the workers) is not.
+    counted = {pid: t for pid, t in seen.items() if pid not in direct or pid in last}
+    lines = err.strip().splitlines()
+    return {
+        "wall_s": wall,
+        "cpu_s": rusage.ru_utime + rusage.ru_stime + sum(counted.values()),
+        "processes": 1 + len(counted),
+        "returncode": proc.returncode,
+        "stderr": lines[-1] if lines else "",
+    }
+
+
+def _messages(path: Path) -> list[tuple[str, int, int, bytes]]:
+    """A log's messages as stored, but the wall-clock timing."""
+    from recorder.mcap import channels as C
+    from recorder.mcap.log import open_log
+
+    return [(m.topic, m.log_time, m.sequence, m.data) for m in open_log(path).messages()
+            if m.topic != C.TIMING]
+
+
+def measure_throughput(scans: list[Any], config: Any, *, workers: tuple[int, ...] = (1, 2),
+                       ) -> dict[str, Any]:
+    """``boxloc run DIR --record LOG --workers W`` on the same scans, for each W in order.
+
+    Parameters
+    ----------
+    scans : list of Scan
+        Written as ``.npz`` files (the run reads them as a user's files).
+    config : Config
+        Given to the runs as ``--config``.
+    workers : tuple of int
+        The ``--workers`` of each run; the first is the reference of ``speedup``.
+
+    Returns
+    -------
+    dict
+        ``scans``; ``runs`` (per W: ``workers``, ``wall_s``, ``scans_per_s``, ``cpu_s``,
+        ``cpu_per_scan_s``, ``processes``); ``speedup`` (scans/s of the last run over the
+        first's); ``cpu_bound_speedup`` (W_last x CPU(first) / CPU(last), with W_last the
+        last run's workers); ``same_log`` (every log equal to the first's, but the
+        timing); ``load_average_1min`` (before the runs) and ``cpu_count``.
+
+    Raises
+    ------
+    RuntimeError
+        If a run fails (its last line of stderr).
+    """
+    from boxloc.io import write_npz
+
+    load = os.getloadavg()[0] if hasattr(os, "getloadavg") else None
+    with tempfile.TemporaryDirectory(prefix="boxloc-throughput-") as tmp:
+        src = Path(tmp) / "scans"
+        src.mkdir()
+        for k, scan in enumerate(scans):
+            write_npz(scan, src / f"scan-{k:04d}.npz")
+        cfg = Path(tmp) / "config.toml"
+        cfg.write_text(config.to_toml())
+        runs, logs = [], []
+        for w in workers:
+            log = Path(tmp) / f"workers{w}.mcap"
+            r = run_measured([sys.executable, "-m", "boxloc.cli", "run", str(src), "--record",
+                              str(log), "--config", str(cfg), "-q", "--workers", str(w)])
+            if r["returncode"] != 0:
+                raise RuntimeError(f"boxloc run --workers {w} failed ({r['returncode']}): "
+                                   f"{r['stderr']}")
+            runs.append({"workers": w, "wall_s": round(r["wall_s"], 3),
+                         "scans_per_s": round(len(scans) / r["wall_s"], 3),
+                         "cpu_s": round(r["cpu_s"], 3),
+                         "cpu_per_scan_s": round(r["cpu_s"] / len(scans), 4),
+                         "processes": r["processes"]})
+            logs.append(_messages(log))
+    first, last = runs[0], runs[-1]
+    return {
+        "scans": len(scans),
+        "runs": runs,
+        "speedup": round(last["scans_per_s"] / first["scans_per_s"], 3),
+        "cpu_bound_speedup": round(last["workers"] * first["cpu_s"] / last["cpu_s"], 3),
+        "same_log": all(x == logs[0] for x in logs[1:]),
+        "load_average_1min": None if load is None else round(load, 2),
+        "cpu_count": os.cpu_count(),
+    }
 
 
 def recording_section(ctx: Any) -> dict[str, Any]:
@@ -27,6 +197,8 @@ def recording_section(ctx: Any) -> dict[str, Any]:
     scans = [simulate(spec).scan for spec in ctx.specs[:N_SCANS]]
     mcap = measure_overhead(scans, ctx.config)
     rr = measure_rerun_overhead(scans, ctx.config)
+    stream = [simulate(spec).scan for spec in ctx.specs[:N_STREAM]]
+    tp = measure_throughput(stream, ctx.config)
     return {
         "scans": len(scans),
         "mcap_fraction": mcap["recorder_fraction"],
@@ -38,10 +210,16 @@ def recording_section(ctx: Any) -> dict[str, Any]:
         "mcap_kb_per_scan_by_channel": {t: round(c["zstd"] / 1e3, 1)
                                         for t, c in mcap["channels"].items()},
         "rrd_bytes_per_scan": rr["rrd_bytes"] / max(len(scans), 1),
+        # boxloc run DIR --workers 1, then 2, on the same scans (start-up included)
+        "throughput": tp,
+        "run_workers_speedup": tp["speedup"],
         "targets": {
             "mcap_fraction <= 0.05": bool(mcap["recorder_fraction"] <= TARGET_FRACTION),
             "rerun_fraction <= 0.05": bool(rr["log_fraction"] <= TARGET_FRACTION),
             "mcap_bytes_per_scan <= 1 MB": bool(
                 mcap["bytes_per_scan"] <= TARGET_BYTES_PER_SCAN),
+            f"run --workers 2 >= {TARGET_SPEEDUP}x scans/s of --workers 1": bool(
+                tp["speedup"] >= TARGET_SPEEDUP),
+            "run --workers 2 log == --workers 1 log": bool(tp["same_log"]),
         },
     }

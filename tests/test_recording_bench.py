@@ -1,0 +1,51 @@
+"""The ``recording`` section's throughput figure: ``boxloc run --workers 1`` and ``2`` on the
+same scans, each a process tree of its own, with wall and CPU time and the logs compared.
+
+No test here depends on how fast anything is: the figures are checked for what they are
+made of, not for their values.
+"""
+
+from __future__ import annotations
+
+import sys
+
+import pytest
+
+from boxloc import simulate as sim
+from boxloc.config import Config
+from recorder.recording_bench import measure_throughput, run_measured
+
+SPEC = "pallet:width=120,height=90,f=100"
+
+
+def test_throughput_runs_both_worker_counts_on_the_same_scans_and_compares_the_logs() -> None:
+    scans = [sim.simulate(SPEC, seed=k).scan for k in (1, 2, 3)]
+    tp = measure_throughput(scans, Config())
+    assert tp["scans"] == 3
+    one, two = tp["runs"]
+    assert (one["workers"], two["workers"]) == (1, 2)
+    # serial: one process; parallel: the parent, the forkserver and its workers at least
+    assert one["processes"] == 1 and two["processes"] >= 3
+    for r in (one, two):
+        assert r["wall_s"] > 0 and r["cpu_s"] > 0
+        assert r["scans_per_s"] == pytest.approx(3 / r["wall_s"], rel=1e-2)
+    assert tp["speedup"] == pytest.approx(two["scans_per_s"] / one["scans_per_s"], rel=1e-2)
+    assert tp["cpu_bound_speedup"] == pytest.approx(2 * one["cpu_s"] / two["cpu_s"], rel=1e-2)
+    assert tp["same_log"] is True
+
+
+def test_a_run_that_fails_is_an_error_with_its_message() -> None:
+    with pytest.raises(RuntimeError, match="no scan files"):
+        measure_throughput([], Config())
+
+
+def test_run_measured_counts_the_cpu_of_processes_the_command_leaves_running() -> None:
+    """A grandchild that the command does not wait for (as the workers' forkserver) is
+    counted from its own CPU times."""
+    burn = ("import time; t = time.process_time()\n"
+            "while time.process_time() - t < 0.4: pass\ntime.sleep(1.0)")
+    start = ("import subprocess, sys, time; subprocess.Popen([sys.executable, '-c', "
+             f"{burn!r}]); time.sleep(0.8)")  # it leaves the burner running
+    r = run_measured([sys.executable, "-c", start])
+    assert r["returncode"] == 0 and r["processes"] == 2
+    assert r["cpu_s"] >= 0.38
