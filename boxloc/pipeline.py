@@ -120,7 +120,7 @@ def find_graspable_surfaces(
     )
     obs.on_surfaces(scan, surfaces)
     # the flat regions not split into boxes: decided by the hypotheses stage, collected
-    ambiguous = ambiguous_regions(hyps, verification, config)
+    ambiguous = ambiguous_regions(hyps, verification, config, surfaces.attempt)
     timing["total"] = float(sum(timing.values()))
 
     result = Result(

@@ -67,8 +67,13 @@ def end_evidence(tests: TestTable, attempt: int, part: bool = False) -> TestTabl
                               tests.alpha)
 
 
+#: A region whose points the reported surfaces explain at least this share of is resolved
+#: (its boxes were found by their own evidence): not ambiguous. Half: most of it.
+RESOLVED_SHARE = 0.5
+
+
 def ambiguous_regions(hypotheses: HypothesisSet, verification: Verification,
-                      config: Config) -> AmbiguousSet:
+                      config: Config, chosen: np.ndarray | None = None) -> AmbiguousSet:
     """The flat regions not reported as surfaces and not split into them.
 
     Parameters
@@ -80,6 +85,9 @@ def ambiguous_regions(hypotheses: HypothesisSet, verification: Verification,
     verification : Verification
         The regions' outcome (``VerifyReason.AMBIGUOUS``), refitted planes and tests.
     config : Config
+    chosen : (s,) int, optional
+        The attempts reported as surfaces: a region whose inliers they explain for at
+        least ``RESOLVED_SHARE`` is left out.
 
     Returns
     -------
@@ -92,6 +100,10 @@ def ambiguous_regions(hypotheses: HypothesisSet, verification: Verification,
     js = [j for j in range(H.n_attempts)
           if H.att_source[j] == DimensionSource.REGION
           and verification.reason[j] == VerifyReason.AMBIGUOUS and H.att_support[j] == 0]
+    if chosen is not None and len(chosen) and js:
+        found = np.unique(np.concatenate([verification.inliers_of(int(j)) for j in chosen]))
+        js = [j for j in js
+              if np.isin(verification.inliers_of(j), found).mean() < RESOLVED_SHARE]
     K = len(js)
     corners = np.zeros((K, 4, 3))
     area, width, length = np.zeros(K), np.zeros(K), np.zeros(K)
