@@ -6,6 +6,11 @@ writes them as one zstd chunk, flushes and fsyncs. So a crash (SIGKILL, power lo
 at most the scan in progress, and ``boxloc recover`` gets every earlier scan back; SIGINT
 and SIGTERM are held off while a chunk is being written, so they never tear one.
 
+The messages are made by a :class:`ScanEncoder`, the recorder's pure half (observer calls
+in, one :class:`EncodedScan` of bytes per scan out); the recorder writes them. ``boxloc run
+--workers N`` runs the encoder in its worker processes and the recorder's
+:meth:`McapRecorder.write_encoded` in the parent: the same code makes the same bytes.
+
 Files are chunked, zstd-compressed, indexed, with a summary section, one per recording
 session, rotated by size, by log-time duration, or when the config changes (one config per
 file). Each file starts with a ``boxloc.run`` metadata record (version, git commit and dirty
