@@ -94,6 +94,9 @@ class VerifyContext:
     #: level of a seam as a face's boundary (SEAM_PEAK, VERIFY_SEAM_SIDE): alpha over the
     #: scan's seam searches (:func:`seam_alpha`)
     seam_alpha: float
+    #: (N,) jump height or fold angle of each edge point (``EdgeMap.strength``); None: not
+    #: known (every jump counts as a boundary)
+    edge_strength: np.ndarray | None = None
 
     @classmethod
     def build(cls, scan: Scan, edges: EdgeMap, config: Config, up: np.ndarray,
@@ -105,7 +108,7 @@ class VerifyContext:
         valid = np.isfinite(r)
         return cls(P, sr, sl**2, valid, edges.points, edges.kinds,
                    scan.sensor.pixel_angle, np.asarray(up, dtype=np.float64),
-                   scan.sensor.project, seam_alpha(config.alpha, n_vertices))
+                   scan.sensor.project, seam_alpha(config.alpha, n_vertices), edges.strength)
 
     def spacing_at(self, point: np.ndarray) -> float:
         """Expected spacing of edge points along an edge at ``point``, metres."""
@@ -497,6 +500,9 @@ class _FaceEdges:
     kinds: np.ndarray  # (n,) EdgeKind
     near_plane: np.ndarray  # (n,) bool: on the rectangle's plane
     interior: np.ndarray  # (n,) bool: on the plane and beyond the interior margin
+    #: (n,) bool: a jump no higher than the flatness prior allows within one face (tape, a
+    #: label, a bulge's fold), or None where the strengths are unknown
+    minor: np.ndarray | None = None
 
 
 def _face_edges(ctx: VerifyContext, hyp: _Hypothesis, config: Config) -> _FaceEdges:
@@ -517,7 +523,12 @@ def _face_edges(ctx: VerifyContext, hyp: _Hypothesis, config: Config) -> _FaceEd
                   + hyp.spacing)
     mi = hyp.interior_margin
     interior = near_plane & (eu > mi) & (eu < width - mi) & (ev > mi) & (ev < length - mi)
-    return _FaceEdges(eu, ev, ctx.edge_kinds[reach], near_plane, interior)
+    kinds = ctx.edge_kinds[reach]
+    minor = None
+    if ctx.edge_strength is not None and len(ctx.edge_strength) == len(ctx.edge_points):
+        minor = (kinds == EdgeKind.JUMP) & (ctx.edge_strength[reach]
+                                            <= hyp.k * config.flatness)
+    return _FaceEdges(eu, ev, kinds, near_plane, interior, minor)
 
 
 @dataclass
@@ -571,11 +582,14 @@ def _test_tilt(hyp: _Hypothesis, up: np.ndarray, max_tilt: float) -> tuple[bool,
         TestKind.VERIFY_TILT, hyp.attempt_id, -1, tilt, max_tilt, tilt <= max_tilt, hyp.alpha)
 
 
-def _test_interior(edges: _FaceEdges, hyp: _Hypothesis,
-                   min_span: float = 0.0) -> tuple[bool, TestTable]:
+def _test_interior(edges: _FaceEdges, hyp: _Hypothesis, min_span: float = 0.0,
+                   minor_too: bool = True) -> tuple[bool, TestTable]:
     """VERIFY_INTERIOR: no straight line of edge points crosses the interior (one whose
-    points spread at least ``min_span`` along it, metres)."""
+    points spread at least ``min_span`` along it, metres; of jumps no higher than the
+    flatness prior allows, only if ``minor_too``)."""
     inside = edges.interior
+    if not minor_too and edges.minor is not None:
+        inside = inside & ~edges.minor
     line_count, line_p, span = _interior_line_span(edges.u[inside], edges.v[inside],
                                                    hyp.width, hyp.length, hyp.spacing,
                                                    hyp.interior_margin)
@@ -961,14 +975,19 @@ def verify(
     # cheap tests first, on the edge points (no rasterization)
     edges = _face_edges(ctx, hyp, config)
     n_int = int(edges.interior.sum())
+    # in a flat region and its parts, a jump no higher than the flatness prior lies within
+    # one face (tape, a label): the region is flat there, so it parts no two boxes
     line_ok, row = _test_interior(
-        edges, hyp, config.support_fraction * config.min_edge if region else 0.0)
+        edges, hyp, config.support_fraction * config.min_edge if region else 0.0,
+        minor_too=not (region or family > 1))
     tests.append(row)
     sides, row = _test_boundary(edges, hyp, ctx, config.support_fraction)
     tests.append(row)
     # a whole flat region is verified by its outline: what lies inside (a seam the sizes
     # imply, a decoration's edges) decides only how it splits, and is recorded
-    if not line_ok and not region:
+    # a part of a split region is one by the listed size; inside it, the range points'
+    # seam test decides (tape and labels put lines of edges on the lids)
+    if not line_ok and not region and family == 1:
         return _failed(VerifyReason.INTERIOR_EDGES, tests, alpha, n_interior_edges=n_int)
 
     # seams, from the range points of the rectangle and a margin around it (the flanks)
