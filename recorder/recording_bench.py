@@ -34,8 +34,10 @@ from typing import Any
 N_SCANS = 10
 TARGET_FRACTION = 0.05
 TARGET_BYTES_PER_SCAN = 1_000_000
-#: Scans of each throughput run: 8 per worker, so that start-up (~2 s) is not all it shows.
-N_STREAM = 16
+#: Scans of each throughput run: 16 per worker, so that the start-up (~1.5 s before the
+#: workers' first scan, ~1 s of it in the serial run too) weighs little against a stream's
+#: steady state (~14 s of scans per worker at 640x480).
+N_STREAM = 32
 #: The speed-up of ``--workers 2`` over ``--workers 1`` that issue 22 asks for.
 TARGET_SPEEDUP = 1.8
 #: Seconds between two reads of the process tree's CPU times (the last interval of each

@@ -127,6 +127,29 @@ def test_simulated_scans_made_in_the_workers_give_the_serial_log(tmp_path: Path)
         sim.simulate(SPEC, seed=5 + k).scan.range.tobytes() for k in range(3)]
 
 
+def test_other_observers_get_the_calls_while_the_recorder_gets_the_encoded_scan(
+        tmp_path: Path) -> None:
+    """With --publish-ros2 beside --record, the worker's calls are replayed onto the
+    publisher and its encoded messages written by the recorder: both outputs are the
+    serial run's."""
+    from mcap.reader import make_reader
+
+    def ros2(path: Path) -> list[tuple[str, int, bytes]]:
+        with open(path, "rb") as f:
+            return [(ch.topic, m.log_time, m.data)
+                    for _, ch, m in make_reader(f).iter_messages()]
+
+    out = {}
+    for w in ("1", "2"):
+        out[w] = (tmp_path / f"log{w}.mcap", tmp_path / f"ros{w}.mcap")
+        r = invoke("run", "sim:" + SPEC, "--count", "3", "--record", str(out[w][0]),
+                   "--publish-ros2", str(out[w][1]), "-q", "--workers", w)
+        assert r.returncode == 0, r.stderr
+    assert _messages(out["1"][0]) == _messages(out["2"][0])
+    a, b = ros2(out["1"][1]), ros2(out["2"][1])
+    assert len(a) >= 6 and a == b  # a PoseArray and a MarkerArray per scan
+
+
 def test_a_simulated_scan_that_cannot_be_made_is_reported_and_the_rest_run(
         tmp_path: Path) -> None:
     """A SimScan whose spec the simulator refuses is an unreadable input, in the worker as
