@@ -877,7 +877,7 @@ def run_packed_bench(
         from rich.console import Console
 
         with (d / TABLE_NAME).open("w") as fh:
-            print_packed_report(report, Console(file=fh, width=240, no_color=True))
+            print_packed_report(report, Console(file=fh, width=280, no_color=True))
     if progress and con is not None:
         print_packed_report(report, con)
         if out is not None:
@@ -1051,12 +1051,12 @@ def print_packed_report(report: dict[str, Any], console: Any) -> None:
         for lid, fig in g["lids"].items():
             vt.add_row(*_row(f"{lid} lids, all", fig["all"]))
         console.print(vt)
-        reasons = g["overall"]["all"]["ambiguous_reasons"]
-        if reasons:
-            console.print(escape(f"{v}: ambiguous regions by reason: "
-                                 + ", ".join(f"{k} {c}" for k, c in reasons.items())
-                                 + f"; regions over no exposed top: "
-                                 f"{g['overall']['all']['ambiguous_without_top']}"))
+        ov = g["overall"]["all"]
+        reasons = ", ".join(f"{k} {c}" for k, c in ov["ambiguous_reasons"].items())
+        console.print(escape(f"{v}: ambiguous regions by reason: {reasons or 'none'}; regions "
+                             f"over no exposed top: {ov['ambiguous_without_top']}; scored "
+                             f"heights nearer the stack's than the box's: "
+                             f"{ov['height_stack_like']} of {ov['height_n']}"))
 
     _print_draws(console, report["seeds"], list(report["variants"]))
     tm = report["timing"]
