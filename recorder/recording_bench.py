@@ -144,10 +144,11 @@ def measure_throughput(scans: list[Any], config: Any, *, workers: tuple[int, ...
     -------
     dict
         ``scans``; ``runs`` (per W: ``workers``, ``wall_s``, ``scans_per_s``, ``cpu_s``,
-        ``cpu_per_scan_s``, ``processes``); ``speedup`` (scans/s of the last run over the
-        first's); ``cpu_bound_speedup`` (W_last x CPU(first) / CPU(last), with W_last the
-        last run's workers); ``same_log`` (every log equal to the first's, but the
-        timing); ``load_average_1min`` (before the runs) and ``cpu_count``.
+        ``cpu_per_scan_s``, ``core_share`` = CPU / (wall x W), ``processes``);
+        ``speedup`` (scans/s of the last run over the first's); ``cpu_bound_speedup``
+        (W_last x CPU(first) / CPU(last), with W_last the last run's workers);
+        ``same_log`` (every log equal to the first's, but the timing);
+        ``load_average_1min`` (before the runs) and ``cpu_count``.
 
     Raises
     ------
@@ -176,6 +177,9 @@ def measure_throughput(scans: list[Any], config: Any, *, workers: tuple[int, ...
                          "scans_per_s": round(len(scans) / r["wall_s"], 3),
                          "cpu_s": round(r["cpu_s"], 3),
                          "cpu_per_scan_s": round(r["cpu_s"] / len(scans), 4),
+                         # the share of its W cores the run got (about 1 on idle cores;
+                         # less when other work competes for them)
+                         "core_share": round(r["cpu_s"] / (r["wall_s"] * w), 3),
                          "processes": r["processes"]})
             logs.append(_messages(log))
     first, last = runs[0], runs[-1]

@@ -29,6 +29,8 @@ def test_throughput_runs_both_worker_counts_on_the_same_scans_and_compares_the_l
     for r in (one, two):
         assert r["wall_s"] > 0 and r["cpu_s"] > 0
         assert r["scans_per_s"] == pytest.approx(3 / r["wall_s"], rel=1e-2)
+        assert r["core_share"] == pytest.approx(
+            r["cpu_s"] / (r["wall_s"] * r["workers"]), rel=1e-2)
     assert tp["speedup"] == pytest.approx(two["scans_per_s"] / one["scans_per_s"], rel=1e-2)
     assert tp["cpu_bound_speedup"] == pytest.approx(2 * one["cpu_s"] / two["cpu_s"], rel=1e-2)
     assert tp["same_log"] is True
