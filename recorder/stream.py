@@ -319,7 +319,6 @@ def run_job(job: Job, encoding: Encoding | None = None) -> ScanRun:
             return ScanRun((), None, unread=str(e))
     scan = made if made is not None else job.scan
     assert not isinstance(scan, SimScan)
-    back = None if made is None else _lean(made)
     col = Collector(scan)
     observer: Observer = col
     encoded: list[EncodedScan] = []
@@ -338,10 +337,18 @@ def run_job(job: Job, encoding: Encoding | None = None) -> ScanRun:
         if enc is not None:
             enc.on_error(scan, e)
         return ScanRun(tuple(col.calls), None, _portable(e), time.perf_counter() - t0,
-                       encoded=tuple(encoded), scan=back)
+                       encoded=_sendable(encoded), scan=None if made is None else _lean(made))
     seconds = time.perf_counter() - t0
     warning = fit_warning(result.noise) if result.noise is not None else None
-    return ScanRun(tuple(col.calls), result, None, seconds, warning, tuple(encoded), back)
+    return ScanRun(tuple(col.calls), result, None, seconds, warning, _sendable(encoded),
+                   None if made is None else _lean(made))
+
+
+def _sendable(encoded: list[EncodedScan]) -> tuple[EncodedScan, ...]:
+    """The encoded scans with their sensors' caches dropped (a ray table's search tree,
+    built by the pipeline): the parent encodes a sensor from its table alone."""
+    return tuple(e if _uncached(e.sensor) is e.sensor else
+                 dataclasses.replace(e, sensor=_uncached(e.sensor)) for e in encoded)
 
 
 def _lost(job: Job, exitcode: int | None, times: int) -> ScanRun:

@@ -430,6 +430,22 @@ def test_a_scan_goes_to_its_worker_without_its_caches() -> None:
     assert lean.range is s.range and lean.points.tobytes() == s.points.tobytes()
 
 
+def test_an_encoded_scan_comes_back_without_its_sensors_caches() -> None:
+    """What the pipeline cached on a ray table in the worker (its search tree, its pixel
+    angle) does not travel back with the encoded scan; the sensor record is the same."""
+    from factories import make_scan
+
+    from recorder.mcap import encode as E
+
+    s = make_scan(0, shape=(48, 64), raytable=True)
+    run = run_job(Job(s, Config()), Encoding(100))
+    cached = {"_tree", "pixel_angle"} & set(vars(s.sensor))
+    assert cached  # the pipeline used them
+    (enc,) = run.encoded
+    assert not cached & set(vars(enc.sensor))
+    assert E.encode_sensor(enc.sensor, 0, 0) == E.encode_sensor(s.sensor, 0, 0)
+
+
 def test_a_full_disk_with_workers_fails_in_one_line_and_keeps_earlier_scans(
         tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     """The parent writes the log: its write error ends the run as in a serial run (the
