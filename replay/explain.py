@@ -53,6 +53,7 @@ from boxloc.products import (
     VerifyReason,
 )
 from boxloc.scan import NoiseModel
+from boxloc.stages.hypotheses import SIZE_PART
 from boxloc.stages.vertices import THIRD_EDGE
 from boxloc.stats import BUDGET_HYPOTHESES, BUDGET_LINES, TestKind, TestTable
 
@@ -182,6 +183,8 @@ class _Ctx:
             tests = (_tests(V.tests, lines_tests,
                             pair=(int(V.line_a[par]), int(V.line_b[par])))
                      + _tests(V.tests, [TestKind.BOX_CORNER], a=par, b=max(la, lb)))
+        elif par >= 0 and side == SIZE_PART:  # a part of the parent's split region: its
+            tests = []  # SKU_SPLIT_SEAM rows are the part's verification's
         elif par >= 0:  # offered from the parent's seam side
             tests = _tests(V.tests, [TestKind.NEIGHBOUR_CORNER], a=par)
         else:
@@ -913,6 +916,9 @@ def _vertex_lines(v: dict[str, Any], ind: str) -> list[str]:
     par, side = v.get("parent", -1), v.get("parent_side", -1)
     if par >= 0 and side == THIRD_EDGE:
         out.append(f"{ind}  a box corner: vertex V{par}'s crease and its third edge")
+    elif par >= 0 and side == SIZE_PART:
+        out.append(f"{ind}  a part's corner: vertex V{par}'s flat region, split at the seams "
+                   f"a listed carton size implies")
     elif par >= 0:
         out.append(f"{ind}  a neighbour's corner, on side {side} of vertex V{par}'s rectangle")
     for ln in v.get("lines", []):

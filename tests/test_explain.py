@@ -239,3 +239,16 @@ def test_a_surface_says_where_its_centre_is_and_why(log: Path, records: dict[int
     assert t["a"] == int(S.attempt[k]) and t["dof"] == 1
     text = format_explanation(explain(log, i, surface=k))
     assert "lid bulge" in text and "SURFACE_BULGE" in text
+
+
+def test_a_split_parts_corner_is_named_as_such() -> None:
+    """A vertex made for a part of a flat region split at a listed size reads as that, not
+    as a neighbour's corner (``VertexSet.parent_side`` SIZE_PART)."""
+    from boxloc.stages.hypotheses import SIZE_PART
+    from replay.explain import _vertex_lines
+
+    v = {"id": 7, "point": [0.1, 0.2, 1.5], "normal": [0.0, 0.0, -1.0], "parent": 2}
+    part = "\n".join(_vertex_lines({**v, "parent_side": SIZE_PART}, ""))
+    seam = "\n".join(_vertex_lines({**v, "parent_side": 1}, ""))
+    assert "a part's corner: vertex V2's flat region" in part and "neighbour" not in part
+    assert "a neighbour's corner, on side 1 of vertex V2" in seam
