@@ -31,7 +31,15 @@ def test_throughput_runs_both_worker_counts_on_the_same_scans_and_compares_the_l
         assert r["scans_per_s"] == pytest.approx(3 / r["wall_s"], rel=1e-2)
         assert r["core_share"] == pytest.approx(
             r["cpu_s"] / (r["wall_s"] * r["workers"]), rel=1e-2)
+        # a run of the first W scans: start-up and one scan per worker
+        assert 0 < r["first_scans_wall_s"]
+        if r["steady_scans_per_s"] is not None:  # None if the difference is not positive
+            assert r["steady_scans_per_s"] == pytest.approx(
+                (3 - r["workers"]) / (r["wall_s"] - r["first_scans_wall_s"]), rel=1e-2)
     assert tp["speedup"] == pytest.approx(two["scans_per_s"] / one["scans_per_s"], rel=1e-2)
+    if tp["steady_speedup"] is not None:
+        assert tp["steady_speedup"] == pytest.approx(
+            two["steady_scans_per_s"] / one["steady_scans_per_s"], rel=1e-2)
     assert tp["cpu_bound_speedup"] == pytest.approx(2 * one["cpu_s"] / two["cpu_s"], rel=1e-2)
     assert tp["same_log"] is True
 
