@@ -1,0 +1,510 @@
+"""The bare-plane benchmark: do the localizer's tests keep their size on real noise?
+
+Issue 20, part 2: "on bare planes for every sensor model, edge points per pixel <= 2 alpha,
+and zero surfaces in at least 99 of 100 scans". A scene with no box is the null hypothesis
+of nearly every test the localizer runs: whatever a level-alpha test rejects there is a
+false alarm, and the rate at which it does is the test's real size under that sensor's
+noise (correlated, heavy-tailed, quantized), which may differ from the nominal alpha.
+
+:func:`run_bare_bench` draws, for every sensor of the zoo (:data:`boxloc.simulate.SENSORS`),
+``n`` bare scenes, alternating the two no-box kinds (``floor``: bare floor; ``empty``: a bare
+pallet on the floor), with the camera, resolution, bevel, bulge and decoration drawn as
+:func:`boxloc.simulate.matrix_suite` draws them (distance 1-3.5 m, tilt 0-30 deg, 320x240 to
+1280x960; the noise scale 0.5-3x and the stereo class left to the scene seed). Every scan is
+localized with the default configuration and the matrix bench's one site input, the box
+footprint range (:func:`boxloc.evaluate.matrix_bench.matrix_config`); nothing else set.
+
+Figures per sensor (and pooled):
+
+- ``edge_points_per_pixel``: pixels labelled an edge over image pixels (the bare pallet
+  of ``empty`` has real edges, so ``false_edge_points_per_pixel`` counts only those farther
+  than 1 px from a true edge); target <= 2 alpha.
+- ``zero_surface_scans`` of ``n_scans`` (a timed-out or crashed scan is not clean);
+  target >= 99 %.
+- ``tests``: per :class:`boxloc.stats.TestKind` recorded in any product of the run, rows
+  (tested), rejected, and their ratio. Whether a ratio is a test's size depends on the
+  kind: :data:`NULL_KINDS` are level-alpha tests whose null holds at every row on a bare
+  plane (``rate`` is compared against alpha); the others are decisions whose rejection is
+  not a false alarm there, or tests applied only to candidates that earlier tests let
+  through (their rate is conditional), reported for reading only.
+- ``noise_fit``: scans whose NOISE_FIT test rejected the model in use, of the scans with
+  one (the scan's residuals do not fit the model the later stages used).
+
+A scan that takes longer than ``scan_timeout`` seconds (from the end of its simulation) is
+killed; it counts as not clean and is listed under ``timeouts``.
+
+Layout of ``bench_bare.json`` (schema ``boxloc.bench_bare/1``): ``schema``, ``version``,
+``n`` (scenes per sensor), ``seed``, ``jobs``, ``scan_timeout_s``, ``alpha``, ``config``,
+``config_hash``, ``site``, ``sensors``, ``null_kinds`` (names), ``groups`` (``sensors``:
+per sensor, and ``all``: the figures above plus ``time``: median and max ms), ``targets``
+(per sensor and target: ``value``, ``bound``, ``pass``), ``timeouts``, ``errors``, ``run_s``,
+``scenes`` (one row per scan, in order: ``index``, ``sensor``, ``kind``, ``spec_text``,
+``pixels``, ``status``, ``error``, ``surfaces``, ``edge_points``, ``false_edge_points``,
+``tests``: ``{kind name: [tested, rejected]}``, ``noise_fit``: true (fits), false, or null
+(no NOISE_FIT row), ``noise_source``, ``wall_ms``).
+
+Run: ``python -m boxloc.evaluate.bare_bench --n 100 --seed 0 --jobs 2 --out DIR``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import json
+import math
+import multiprocessing
+import sys
+import time
+from collections.abc import Callable, Sequence
+from multiprocessing.connection import Connection
+from multiprocessing.connection import wait as mp_wait
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from boxloc import __version__
+from boxloc.config import Config
+from boxloc.errors import InputError
+
+SCHEMA = "boxloc.bench_bare/1"
+REPORT_NAME = "bench_bare.json"
+TABLE_NAME = "bench_bare.txt"
+#: The two scene kinds with no box, alternated per sensor.
+BARE_KINDS: tuple[str, ...] = ("floor", "empty")
+DEFAULT_N = 100
+DEFAULT_SCAN_TIMEOUT = 120.0
+#: Test kinds that are level-alpha tests whose null holds at every recorded row on a bare
+#: plane, so that rejected / tested estimates their size. JUMP and CREASE rows are the edge
+#: stage's breakpoints, each a test of "no jump" / "no fold" on a plane: every rejection is
+#: a false edge point. POINT_ON_LINE, LINES_MEET, COPLANAR and the verification tests are
+#: applied only to candidates that earlier false alarms made (conditional, not a size);
+#: NO_RETURN, BUDGET, FACE_EXTENT, EDGE_SUPPORT and the like are decisions, not tests.
+NULL_KIND_NAMES: tuple[str, ...] = ("JUMP", "CREASE")
+
+Localizer = Callable[[Any, Config], Any]
+
+
+def bare_suite(n: int, seed: int = 0, sensors: Sequence[str] | None = None) -> list[Any]:
+    """``n`` bare scenes per sensor, interleaved (scene ``i``: sensor ``i % S``, kind
+    ``BARE_KINDS[(i // S) % 2]``), every other draw as :func:`matrix_suite` makes it.
+
+    Raises
+    ------
+    InputError
+        On n < 1, seed < 0 or an unknown sensor.
+    """
+    from boxloc.simulate import SENSORS, SceneSpec
+    from boxloc.simulate.suites import _MATRIX_F640, _MATRIX_SIZES
+
+    if isinstance(n, bool) or not isinstance(n, int) or n < 1:
+        raise InputError(f"--n must be an integer >= 1, got {n!r}")
+    if isinstance(seed, bool) or not isinstance(seed, int) or seed < 0:
+        raise InputError(f"--seed must be an integer >= 0, got {seed!r}")
+    sens = tuple(sensors) if sensors is not None else SENSORS
+    for s in sens:
+        if s not in SENSORS:
+            raise InputError(f"unknown sensor {s!r}: one of {', '.join(SENSORS)}")
+    rng = np.random.default_rng(np.random.SeedSequence([int(seed), 0xB4E2]))
+    specs = []
+    for i in range(n * len(sens)):
+        sensor = sens[i % len(sens)]
+        kind = BARE_KINDS[(i // len(sens)) % len(BARE_KINDS)]
+        distance = round(float(rng.uniform(1.0, 3.5)), 3)
+        tilt = round(float(rng.uniform(0.0, math.radians(30.0))), 4)
+        w, h = _MATRIX_SIZES[int(rng.integers(len(_MATRIX_SIZES)))]
+        sharp, bevel = rng.random() < 1 / 3, round(float(rng.uniform(0.0005, 0.005)), 4)
+        bulge = round(float(rng.uniform(0.003, 0.015)), 4) if rng.random() < 0.4 else 0.0
+        deco = rng.random() < 0.5
+        scene_seed = int(rng.integers(0, 2**31))
+        specs.append(SceneSpec(
+            kind=kind, seed=scene_seed, width=w, height=h,
+            f=round(_MATRIX_F640[sensor] * w / 640, 3), distance=distance, tilt=tilt,
+            bevel=0.0 if sharp else bevel, bulge=bulge, sensor=sensor,
+            tape=0.6 if deco else 0.0, labels=0.5 if deco else 0.0))
+    return specs
+
+
+# --- one scan ----------------------------------------------------------------------------
+
+
+def _test_tables(result: Any) -> list[Any]:
+    """Every TestTable of the result's products."""
+    out = []
+    for name in ("noise", "edges", "lines", "vertices", "hypotheses", "verification",
+                 "selection", "surfaces", "ambiguous"):
+        prod = getattr(result, name, None)
+        t = getattr(prod, "tests", None)
+        if t is not None:
+            out.append(t)
+    return out
+
+
+def scan_figures(result: Any, truth_labels: np.ndarray) -> dict[str, Any]:
+    """The bare-plane figures of one localized scan, from its recorded products.
+
+    Parameters
+    ----------
+    result : boxloc.products.Result (or alike)
+    truth_labels : (H, W) uint8
+        The simulator's true edge labels.
+    """
+    from boxloc.evaluate.metrics import edge_report
+    from boxloc.stats import TestKind
+
+    tests: dict[str, list[int]] = {}
+    for t in _test_tables(result):
+        kinds = np.asarray(t.kind)
+        acc = np.asarray(t.accepted, dtype=bool)
+        for k in np.unique(kinds):
+            sel = kinds == k
+            name = TestKind(int(k)).name
+            row = tests.setdefault(name, [0, 0])
+            row[0] += int(sel.sum())
+            row[1] += int((~acc[sel]).sum())
+    edges = getattr(result, "edges", None)
+    n_pts = n_false = None
+    if edges is not None:
+        rep = edge_report(edges.labels, truth_labels)["any"]
+        n_pts, n_false = int(rep["n_pred"]), int(rep["n_pred"] - rep["correct"])
+    noise = getattr(result, "noise", None)
+    fit: bool | None = None
+    if noise is not None and len(noise.tests):
+        fit = bool(np.all(noise.tests.accepted))
+    return {"surfaces": int(len(result.surfaces)), "edge_points": n_pts,
+            "false_edge_points": n_false, "tests": dict(sorted(tests.items())),
+            "noise_fit": fit,
+            "noise_source": None if noise is None else int(noise.source)}
+
+
+def _default_localizer(scan: Any, config: Config) -> Any:
+    from boxloc.pipeline import find_graspable_surfaces
+
+    return find_graspable_surfaces(scan, config)
+
+
+def _scan_task(spec: Any, config: Config, localizer: Localizer,
+               conn: Connection | None = None) -> dict[str, Any]:
+    """Simulate and localize one scene; ``conn`` is told when the localizer starts."""
+    from boxloc.evaluate.scene_bench import _err
+    from boxloc.simulate import simulate
+
+    try:
+        sim = simulate(spec)
+    except Exception as e:  # noqa: BLE001 - a scene that cannot be made is a reported error
+        return {"status": "error", "phase": "simulate", "error": _err(e)}
+    if conn is not None:
+        conn.send(("started",))
+    try:
+        t0 = time.perf_counter()
+        result = localizer(sim.scan, config)
+        wall = (time.perf_counter() - t0) * 1e3
+        figs = scan_figures(result, sim.truth.edge_labels)
+    except Exception as e:  # noqa: BLE001 - a crash on one scene is a result
+        return {"status": "error", "phase": "localize", "error": _err(e)}
+    return {"status": "ok", "wall_ms": wall, **figs}
+
+
+def _child(conn: Connection, spec: Any, config: Config, localizer: Localizer) -> None:
+    with contextlib.suppress(KeyboardInterrupt, BrokenPipeError, EOFError):
+        from boxloc.evaluate.scene_bench import _limit_threads
+
+        _limit_threads()
+        conn.send(("done", _scan_task(spec, config, localizer, conn)))
+
+
+def _run_all(specs: Sequence[Any], config: Config, localizer: Localizer, jobs: int,
+             limit: float | None, on_done: Callable[[int, dict[str, Any]], None]) -> None:
+    """One forked process per scan, ``jobs`` at a time, each killed at its deadline
+    (``limit`` seconds after its simulation ends; the simulation has the same limit)."""
+    methods = multiprocessing.get_all_start_methods()
+    ctx: Any = multiprocessing.get_context("fork" if "fork" in methods else "spawn")
+    queue = list(range(len(specs)))[::-1]
+    running: dict[int, tuple[Any, Connection, list[float]]] = {}
+    inf = float("inf")
+    while queue or running:
+        while queue and len(running) < jobs:
+            i = queue.pop()
+            parent, child = ctx.Pipe()
+            p = ctx.Process(target=_child, args=(child, specs[i], config, localizer),
+                            daemon=True)
+            p.start()
+            child.close()
+            running[i] = (p, parent, [time.monotonic() + limit if limit else inf])
+        soonest = min(d[0] for _, _, d in running.values())
+        wait = None if soonest == inf else max(0.0, soonest - time.monotonic())
+        mp_wait([c for _, c, _ in running.values()]
+                + [p.sentinel for p, _, _ in running.values()], wait)
+        now = time.monotonic()
+        for i in list(running):
+            p, conn, dl = running[i]
+            res = None
+            try:
+                while conn.poll():
+                    msg = conn.recv()
+                    if msg[0] == "started":
+                        dl[0] = now + limit if limit else inf
+                    else:
+                        res = msg[1]
+            except (EOFError, OSError):
+                pass
+            if res is None and p.is_alive() and dl[0] > now:
+                continue
+            if res is None:
+                if p.is_alive():
+                    res = {"status": "timeout", "error": f"no result within {limit:g} s",
+                           "wall_ms": None if limit is None else limit * 1e3}
+                else:
+                    res = {"status": "error", "phase": "worker",
+                           "error": f"the worker process died (exit code {p.exitcode})"}
+            if p.is_alive():
+                p.kill()
+            p.join(timeout=10)
+            conn.close()
+            del running[i]
+            on_done(i, res)
+
+
+# --- figures -----------------------------------------------------------------------------
+
+
+def group_figures(rows: Sequence[dict[str, Any]], alpha: float) -> dict[str, Any]:
+    """Pooled figures of some scans (see the module docstring)."""
+    n = len(rows)
+    ok = [r for r in rows if r["status"] == "ok"]
+    clean = sum(r["surfaces"] == 0 for r in ok)
+    with_edges = [r for r in ok if r["edge_points"] is not None]
+    pixels = sum(r["pixels"] for r in with_edges)
+    pts = sum(r["edge_points"] for r in with_edges)
+    false_pts = sum(r["false_edge_points"] for r in with_edges)
+    tests: dict[str, dict[str, Any]] = {}
+    for r in ok:
+        for k, (t, rej) in r["tests"].items():
+            d = tests.setdefault(k, {"tested": 0, "rejected": 0})
+            d["tested"] += t
+            d["rejected"] += rej
+    for k, d in tests.items():
+        d["rate"] = d["rejected"] / d["tested"] if d["tested"] else None
+        d["level_alpha_null"] = k in NULL_KIND_NAMES
+    fits = [r["noise_fit"] for r in ok if r["noise_fit"] is not None]
+    walls = np.asarray([r["wall_ms"] for r in rows if r.get("wall_ms") is not None], float)
+    return {
+        "n_scans": n, "ok": len(ok),
+        "timeouts": sum(r["status"] == "timeout" for r in rows),
+        "errors": sum(r["status"] == "error" for r in rows),
+        "surfaces": sum(r["surfaces"] for r in ok),
+        "zero_surface_scans": clean, "zero_surface_share": clean / n if n else None,
+        "pixels": pixels, "edge_points": pts, "false_edge_points": false_pts,
+        "edge_points_per_pixel": pts / pixels if pixels else None,
+        "false_edge_points_per_pixel": false_pts / pixels if pixels else None,
+        "edge_points_per_pixel_over_alpha": pts / pixels / alpha if pixels else None,
+        "tests": dict(sorted(tests.items())),
+        "noise_fit": {"scans": len(fits), "rejected": sum(not f for f in fits),
+                      "rate": (sum(not f for f in fits) / len(fits)) if fits else None},
+        "time": {"median_ms": float(np.median(walls)) if walls.size else None,
+                 "max_ms": float(walls.max()) if walls.size else None},
+    }
+
+
+def _targets(groups: dict[str, Any], alpha: float) -> list[dict[str, Any]]:
+    out = []
+    for s, g in groups["sensors"].items():
+        for name, key, op, bound in (
+                ("edge points per pixel", "edge_points_per_pixel", "<=", 2 * alpha),
+                ("false edge points per pixel", "false_edge_points_per_pixel", "<=",
+                 2 * alpha),
+                ("scans with zero surfaces", "zero_surface_share", ">=", 0.99)):
+            v = g[key]
+            ok = None if v is None else (v <= bound if op == "<=" else v >= bound)
+            out.append({"sensor": s, "name": name, "key": key, "op": op, "bound": bound,
+                        "value": v, "pass": ok})
+    return out
+
+
+def run_bare_bench(n: int = DEFAULT_N, seed: int = 0, *, out: str | Path | None = None,
+                   jobs: int = 1, scan_timeout: float | None = DEFAULT_SCAN_TIMEOUT,
+                   sensors: Sequence[str] | None = None, specs: Sequence[Any] | None = None,
+                   localizer: Localizer | None = None, progress: bool = False,
+                   console: Any = None) -> dict[str, Any]:
+    """Run the bare-plane benchmark (see the module docstring).
+
+    Parameters
+    ----------
+    n : int
+        Bare scenes per sensor.
+    seed : int
+        Seeds :func:`bare_suite`.
+    out : path, optional
+        Directory for ``bench_bare.json`` and ``bench_bare.txt``.
+    jobs : int
+        Scans run at once, each in its own process.
+    scan_timeout : float or None
+        Seconds a scan may run before it is killed (a timed-out scan is not clean).
+    sensors : sequence of str, optional
+        A subset of the zoo (default: all).
+    specs : sequence of SceneSpec, optional
+        These scenes instead of the suite (tests use tiny ones).
+    localizer : callable, optional
+        ``(scan, config) -> Result``; default the pipeline. Runs in a forked process.
+    progress : bool
+        Print one line per scan and the table (rich, stderr).
+
+    Returns
+    -------
+    dict
+        The report.
+
+    Raises
+    ------
+    InputError
+        On n < 1, jobs < 1, a non-positive timeout or an unknown sensor.
+    """
+    from boxloc.evaluate.matrix_bench import matrix_config
+    from boxloc.evaluate.scene_bench import _jsonable, _spec_text
+
+    if isinstance(jobs, bool) or not isinstance(jobs, int) or jobs < 1:
+        raise InputError(f"--jobs must be an integer >= 1, got {jobs!r}")
+    if scan_timeout is not None and not scan_timeout > 0:
+        raise InputError(f"--scan-timeout must be > 0 seconds, got {scan_timeout!r}")
+    specs = list(specs) if specs is not None else bare_suite(n, seed, sensors)
+    if not specs:
+        raise InputError("bench needs at least one scene")
+    cfg, site = matrix_config(specs)
+    import boxloc.pipeline  # noqa: F401 - imported once here, shared by the forked children
+
+    con = console
+    if con is None and progress:
+        from rich.console import Console
+
+        con = Console(stderr=True)
+    rows: list[dict[str, Any] | None] = [None] * len(specs)
+
+    def on_done(i: int, res: dict[str, Any]) -> None:
+        s = specs[i]
+        row = {"index": i, "sensor": str(s.sensor), "kind": str(s.kind),
+               "spec_text": _spec_text(s), "pixels": int(s.width * s.height),
+               "status": res["status"], "error": res.get("error"),
+               "surfaces": res.get("surfaces", 0), "edge_points": res.get("edge_points"),
+               "false_edge_points": res.get("false_edge_points"),
+               "tests": res.get("tests", {}), "noise_fit": res.get("noise_fit"),
+               "noise_source": res.get("noise_source"), "wall_ms": res.get("wall_ms")}
+        rows[i] = row
+        if con is not None:
+            done = sum(r is not None for r in rows)
+            epp = (row["edge_points"] / row["pixels"]) if row["edge_points"] is not None else None
+            con.print(f"[{done}/{len(specs)}] scene {i} ({row['sensor']}, {row['kind']}, "
+                      f"{s.width}x{s.height}): {row['status']}, surfaces {row['surfaces']}, "
+                      f"edge/px {'-' if epp is None else f'{epp:.4f}'}"
+                      + (f", {row['wall_ms'] / 1e3:.1f} s" if row["wall_ms"] else ""),
+                      markup=False, highlight=False)
+
+    t0 = time.monotonic()
+    _run_all(specs, cfg, localizer or _default_localizer, jobs, scan_timeout, on_done)
+    run_s = time.monotonic() - t0
+    done = [r for r in rows if r is not None]
+    assert len(done) == len(specs)
+    present = list(dict.fromkeys(r["sensor"] for r in done))
+    groups = {"sensors": {s: group_figures([r for r in done if r["sensor"] == s], cfg.alpha)
+                          for s in present},
+              "all": group_figures(done, cfg.alpha)}
+    report = _jsonable({
+        "schema": SCHEMA, "version": __version__, "n": n,
+        "n_scans": len(done), "seed": seed, "jobs": jobs, "scan_timeout_s": scan_timeout,
+        "alpha": cfg.alpha, "config": cfg.to_dict(), "config_hash": cfg.hash, "site": site,
+        "sensors": present, "kinds": list(BARE_KINDS), "null_kinds": list(NULL_KIND_NAMES),
+        "groups": groups, "targets": _targets(groups, cfg.alpha),
+        "timeouts": [{"scene": r["index"], "sensor": r["sensor"], "spec_text": r["spec_text"]}
+                     for r in done if r["status"] == "timeout"],
+        "errors": [{"scene": r["index"], "sensor": r["sensor"], "error": r["error"]}
+                   for r in done if r["status"] == "error"],
+        "run_s": round(run_s, 3), "scenes": done})
+    if out is not None:
+        d = Path(out)
+        d.mkdir(parents=True, exist_ok=True)
+        (d / REPORT_NAME).write_text(json.dumps(report, indent=1) + "\n")
+        from rich.console import Console
+
+        with (d / TABLE_NAME).open("w") as fh:
+            print_bare_report(report, Console(file=fh, width=200, no_color=True))
+    if con is not None:
+        print_bare_report(report, con)
+    return report
+
+
+def _f(v: Any, fmt: str = ".4f") -> str:
+    return "-" if v is None else format(v, fmt)
+
+
+def print_bare_report(report: dict[str, Any], console: Any) -> None:
+    """The per-sensor table, the targets, and the rejection rate of every test kind."""
+    from rich.markup import escape
+    from rich.table import Table
+
+    a = report["alpha"]
+    g = report["groups"]
+    t = Table(title=escape(
+        f"boxloc bare-plane bench: {report['n_scans']} scans, seed {report['seed']}, default "
+        f"configuration (min_edge {report['config']['min_edge']:g} m, max_edge "
+        f"{report['config']['max_edge']:g} m), alpha {a:g}"))
+    for c in ("sensor", "scans", "t-out / err", "zero-surface scans", "surfaces",
+              f"edge/px (<= {2 * a:g})", "false edge/px", "NOISE_FIT rejected",
+              "time med / max [s]"):
+        t.add_column(escape(c), justify="left" if c == "sensor" else "right")
+    for name, fig in [*g["sensors"].items(), ("all", g["all"])]:
+        nf, tm = fig["noise_fit"], fig["time"]
+        t.add_row(escape(name), str(fig["n_scans"]), f"{fig['timeouts']} / {fig['errors']}",
+                  f"{fig['zero_surface_scans']} / {fig['n_scans']} "
+                  f"({_f(fig['zero_surface_share'], '.2f')})",
+                  str(fig["surfaces"]), _f(fig["edge_points_per_pixel"]),
+                  _f(fig["false_edge_points_per_pixel"]),
+                  f"{nf['rejected']} / {nf['scans']}",
+                  " / ".join(_f(None if v is None else v / 1e3, ".1f")
+                             for v in (tm["median_ms"], tm["max_ms"])))
+    console.print(t)
+    kinds = sorted({k for fig in g["sensors"].values() for k in fig["tests"]})
+    kt = Table(title=escape(f"rejected / tested per test kind (* a level-alpha test under "
+                            f"the null on a bare plane: compare with alpha {a:g})"))
+    kt.add_column("kind")
+    for s in g["sensors"]:
+        kt.add_column(escape(s), justify="right")
+    for k in kinds:
+        cells = [escape(k + (" *" if k in report["null_kinds"] else ""))]
+        for fig in g["sensors"].values():
+            d = fig["tests"].get(k)
+            cells.append("-" if d is None else
+                         f"{d['rejected']} / {d['tested']} ({_f(d['rate'], '.3f')})")
+        kt.add_row(*cells)
+    console.print(kt)
+    mark = {True: "PASS", False: "FAIL", None: "n/a"}
+    for r in report["targets"]:
+        console.print(escape(f"{r['sensor']}: {r['name']} {_f(r['value'])} {r['op']} "
+                             f"{r['bound']:g}: {mark[r['pass']]}"), highlight=False)
+    for to in report["timeouts"]:
+        console.print(escape(f"[timeout] scene {to['scene']} ({to['sensor']}): "
+                             f"{to['spec_text']}"))
+    for e in report["errors"]:
+        console.print(escape(f"[error] scene {e['scene']} ({e['sensor']}): {e['error']}"))
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    p = argparse.ArgumentParser(prog="python -m boxloc.evaluate.bare_bench",
+                                description="Bare-plane benchmark: test sizes on real noise.")
+    p.add_argument("--n", type=int, default=DEFAULT_N, help="bare scenes per sensor")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--jobs", type=int, default=1)
+    p.add_argument("--scan-timeout", type=float, default=DEFAULT_SCAN_TIMEOUT)
+    p.add_argument("--sensor", action="append", default=None,
+                   help="only this sensor (repeatable)")
+    p.add_argument("--out", default=None)
+    a = p.parse_args(argv)
+    try:
+        run_bare_bench(a.n, a.seed, out=a.out, jobs=a.jobs, scan_timeout=a.scan_timeout,
+                       sensors=a.sensor, progress=True)
+    except InputError as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
