@@ -11,10 +11,18 @@ from __future__ import annotations
 from dataclasses import dataclass
 from enum import IntEnum
 from functools import lru_cache
+from typing import Any
 
 import numpy as np
 import numpy.typing as npt
-from scipy import stats as _st
+
+
+def _scipy_stats() -> Any:
+    """scipy.stats, imported on first use: it costs ~0.7 s of CPU, and the processes that
+    only read products (log readers, ``run --workers``' parent) never compute a test."""
+    from scipy import stats
+
+    return stats
 
 
 class TestKind(IntEnum):
@@ -151,7 +159,7 @@ BUDGET_HYPOTHESES = 2
 @lru_cache(maxsize=256)
 def chi2_critical(dof: float, alpha: float) -> float:
     """Critical value ``chi2_{dof, 1-alpha}``."""
-    return float(_st.chi2.ppf(1.0 - alpha, dof))
+    return float(_scipy_stats().chi2.ppf(1.0 - alpha, dof))
 
 
 def half_normal_sigma(x: np.ndarray, alpha: float,
@@ -170,8 +178,8 @@ def half_normal_sigma(x: np.ndarray, alpha: float,
         The two-sided critical value (z at alpha / 2).
     """
     x = np.asarray(x, dtype=np.float64)
-    med = float(_st.halfnorm.ppf(0.5))
-    k = float(_st.norm.isf(alpha / 2.0))
+    med = float(_scipy_stats().halfnorm.ppf(0.5))
+    k = float(_scipy_stats().norm.isf(alpha / 2.0))
     sigma = float(np.median(x)) / med
     kept = np.ones(len(x), bool)
     for _ in range(max_iter):
@@ -198,7 +206,7 @@ def chi2_test(
     """
     t = np.asarray(statistic, dtype=np.float64)
     crit = chi2_critical(float(dof), float(alpha))
-    p = _st.chi2.sf(t, dof)
+    p = _scipy_stats().chi2.sf(t, dof)
     return t, crit, np.asarray(p, dtype=np.float64), t <= crit
 
 
