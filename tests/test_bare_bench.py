@@ -29,7 +29,7 @@ def _table(n: int, rejected: int, kind: TestKind) -> TestTable:
     acc = np.ones(n, bool)
     acc[:rejected] = False
     return TestTable(kind=np.full(n, int(kind), np.uint8), a=np.full(n, -1, np.int32),
-                     b=np.full(n, -1, np.int32), statistic=np.zeros(n),
+                     b=np.full(n, -1, np.int32), statistic=np.where(acc, 0.0, 2.0),
                      dof=np.ones(n, np.float32), critical=np.ones(n), p_value=np.full(n, 0.5),
                      accepted=acc, alpha=0.01)
 
@@ -85,8 +85,11 @@ def test_figures_come_from_the_products(tmp_path: Path) -> None:
     assert a["zero_surface_scans"] == 0 and a["surfaces"] == n
     assert a["edge_points"] == 7 * n and a["pixels"] == 160 * 120 * n
     assert a["edge_points_per_pixel"] == pytest.approx(7 / (160 * 120))
+    samples = sum(row["samples"] for row in r["scenes"])
+    assert 0 < samples <= 2 * a["pixels"]
     assert a["tests"]["JUMP"] == {"tested": 10 * n, "rejected": 3 * n, "rate": 0.3,
-                                  "level_alpha_null": True}
+                                  "level_alpha_null": False,
+                                  "per_sample": pytest.approx(3 * n / samples)}
     assert a["noise_fit"] == {"scans": n, "rejected": n, "rate": 1.0}
     zs = [t for t in r["targets"] if t["key"] == "zero_surface_share"]
     assert len(zs) == len(sim.SENSORS) and not any(t["pass"] for t in zs)

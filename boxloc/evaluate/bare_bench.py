@@ -23,10 +23,15 @@ Figures per sensor (and pooled):
   target >= 99 %.
 - ``tests``: per :class:`boxloc.stats.TestKind` recorded in any product of the run, rows
   (tested), rejected, and their ratio. Whether a ratio is a test's size depends on the
-  kind: :data:`NULL_KINDS` are level-alpha tests whose null holds at every row on a bare
-  plane (``rate`` is compared against alpha); the others are decisions whose rejection is
-  not a false alarm there, or tests applied only to candidates that earlier tests let
-  through (their rate is conditional), reported for reading only.
+  kind: :data:`NULL_KIND_NAMES` are level-alpha tests whose null holds at every row on a
+  bare plane (``rate`` is compared against alpha); the others are decisions whose
+  rejection is not a false alarm there, or tests applied only to candidates that earlier
+  false alarms made (their rate is conditional), reported for reading only. The edge
+  stage records a row only where it found an edge point (every JUMP and CREASE row there
+  is a rejection of "no jump" / "no fold": its ``accepted`` is always true), so for its
+  kinds ``rejected`` counts rows whose statistic exceeds the critical value and
+  ``per_sample`` divides them by the scan-line samples tested (valid pixels x 2 scan
+  directions): the edge stage's false-alarm rate per sample.
 - ``noise_fit``: scans whose NOISE_FIT test rejected the model in use, of the scans with
   one (the scan's residuals do not fit the model the later stages used).
 
@@ -40,8 +45,8 @@ per sensor, and ``all``: the figures above plus ``time``: median and max ms), ``
 (per sensor and target: ``value``, ``bound``, ``pass``), ``timeouts``, ``errors``, ``run_s``,
 ``scenes`` (one row per scan, in order: ``index``, ``sensor``, ``kind``, ``spec_text``,
 ``pixels``, ``status``, ``error``, ``surfaces``, ``edge_points``, ``false_edge_points``,
-``tests``: ``{kind name: [tested, rejected]}``, ``noise_fit``: true (fits), false, or null
-(no NOISE_FIT row), ``noise_source``, ``wall_ms``).
+``tests``: ``{kind name: [tested, rejected]}``, ``samples``, ``noise_fit``: true (fits),
+false, or null (no NOISE_FIT row), ``noise_source``, ``wall_ms``).
 
 Run: ``python -m boxloc.evaluate.bare_bench --n 100 --seed 0 --jobs 2 --out DIR``.
 """
@@ -75,12 +80,16 @@ BARE_KINDS: tuple[str, ...] = ("floor", "empty")
 DEFAULT_N = 100
 DEFAULT_SCAN_TIMEOUT = 120.0
 #: Test kinds that are level-alpha tests whose null holds at every recorded row on a bare
-#: plane, so that rejected / tested estimates their size. JUMP and CREASE rows are the edge
-#: stage's breakpoints, each a test of "no jump" / "no fold" on a plane: every rejection is
-#: a false edge point. POINT_ON_LINE, LINES_MEET, COPLANAR and the verification tests are
-#: applied only to candidates that earlier false alarms made (conditional, not a size);
-#: NO_RETURN, BUDGET, FACE_EXTENT, EDGE_SUPPORT and the like are decisions, not tests.
-NULL_KIND_NAMES: tuple[str, ...] = ("JUMP", "CREASE")
+#: plane, so that rejected / tested estimates their size. NOISE_FIT: one row per scan, the
+#: model in use against the scan's own flat residuals (the null holds when the model is
+#: right). JUMP and CREASE rows are only the edge stage's detections (their size is
+#: ``per_sample``, and edge points per pixel); POINT_ON_LINE, LINES_MEET, COPLANAR and the
+#: verification tests are applied only to candidates that earlier false alarms made
+#: (conditional, not a size); NO_RETURN, BUDGET, FACE_EXTENT, EDGE_SUPPORT and the like are
+#: decisions, not tests.
+NULL_KIND_NAMES: tuple[str, ...] = ("NOISE_FIT",)
+#: Kinds of the edge stage's table, which records detections only (see the docstring).
+EDGE_KIND_NAMES: tuple[str, ...] = ("JUMP", "CREASE")
 
 Localizer = Callable[[Any, Config], Any]
 
@@ -140,7 +149,8 @@ def _test_tables(result: Any) -> list[Any]:
     return out
 
 
-def scan_figures(result: Any, truth_labels: np.ndarray) -> dict[str, Any]:
+def scan_figures(result: Any, truth_labels: np.ndarray,
+                 valid: int | None = None) -> dict[str, Any]:
     """The bare-plane figures of one localized scan, from its recorded products.
 
     Parameters
@@ -148,21 +158,27 @@ def scan_figures(result: Any, truth_labels: np.ndarray) -> dict[str, Any]:
     result : boxloc.products.Result (or alike)
     truth_labels : (H, W) uint8
         The simulator's true edge labels.
+    valid : int, optional
+        Pixels with a return (each is a sample of a row and of a column scan line).
     """
     from boxloc.evaluate.metrics import edge_report
     from boxloc.stats import TestKind
 
     tests: dict[str, list[int]] = {}
+    edges = getattr(result, "edges", None)
+    edge_id = id(getattr(edges, "tests", None))
     for t in _test_tables(result):
         kinds = np.asarray(t.kind)
         acc = np.asarray(t.accepted, dtype=bool)
+        if id(t) == edge_id and hasattr(t, "statistic"):
+            # detections only: the null is rejected where the statistic passed its critical
+            acc = ~(np.asarray(t.statistic) > np.asarray(t.critical))
         for k in np.unique(kinds):
             sel = kinds == k
             name = TestKind(int(k)).name
             row = tests.setdefault(name, [0, 0])
             row[0] += int(sel.sum())
             row[1] += int((~acc[sel]).sum())
-    edges = getattr(result, "edges", None)
     n_pts = n_false = None
     if edges is not None:
         rep = edge_report(edges.labels, truth_labels)["any"]
@@ -173,7 +189,7 @@ def scan_figures(result: Any, truth_labels: np.ndarray) -> dict[str, Any]:
         fit = bool(np.all(noise.tests.accepted))
     return {"surfaces": int(len(result.surfaces)), "edge_points": n_pts,
             "false_edge_points": n_false, "tests": dict(sorted(tests.items())),
-            "noise_fit": fit,
+            "noise_fit": fit, "samples": None if valid is None else 2 * int(valid),
             "noise_source": None if noise is None else int(noise.source)}
 
 
@@ -199,7 +215,9 @@ def _scan_task(spec: Any, config: Config, localizer: Localizer,
         t0 = time.perf_counter()
         result = localizer(sim.scan, config)
         wall = (time.perf_counter() - t0) * 1e3
-        figs = scan_figures(result, sim.truth.edge_labels)
+        rng = np.asarray(sim.scan.range, np.float64)
+        valid = int((np.isfinite(rng) & (rng > 0)).sum())
+        figs = scan_figures(result, sim.truth.edge_labels, valid)
     except Exception as e:  # noqa: BLE001 - a crash on one scene is a result
         return {"status": "error", "phase": "localize", "error": _err(e)}
     return {"status": "ok", "wall_ms": wall, **figs}
@@ -283,9 +301,12 @@ def group_figures(rows: Sequence[dict[str, Any]], alpha: float) -> dict[str, Any
             d = tests.setdefault(k, {"tested": 0, "rejected": 0})
             d["tested"] += t
             d["rejected"] += rej
+    samples = sum(r["samples"] or 0 for r in ok)
     for k, d in tests.items():
         d["rate"] = d["rejected"] / d["tested"] if d["tested"] else None
         d["level_alpha_null"] = k in NULL_KIND_NAMES
+        if k in EDGE_KIND_NAMES:
+            d["per_sample"] = d["rejected"] / samples if samples else None
     fits = [r["noise_fit"] for r in ok if r["noise_fit"] is not None]
     walls = np.asarray([r["wall_ms"] for r in rows if r.get("wall_ms") is not None], float)
     return {
@@ -387,7 +408,8 @@ def run_bare_bench(n: int = DEFAULT_N, seed: int = 0, *, out: str | Path | None 
                "surfaces": res.get("surfaces", 0), "edge_points": res.get("edge_points"),
                "false_edge_points": res.get("false_edge_points"),
                "tests": res.get("tests", {}), "noise_fit": res.get("noise_fit"),
-               "noise_source": res.get("noise_source"), "wall_ms": res.get("wall_ms")}
+               "samples": res.get("samples"), "noise_source": res.get("noise_source"),
+               "wall_ms": res.get("wall_ms")}
         rows[i] = row
         if con is not None:
             done = sum(r is not None for r in rows)
@@ -472,7 +494,9 @@ def print_bare_report(report: dict[str, Any], console: Any) -> None:
         for fig in g["sensors"].values():
             d = fig["tests"].get(k)
             cells.append("-" if d is None else
-                         f"{d['rejected']} / {d['tested']} ({_f(d['rate'], '.3f')})")
+                         f"{d['rejected']} / {d['tested']} ({_f(d['rate'], '.3f')})"
+                         + (f", {_f(d['per_sample'], '.5f')}/sample" if "per_sample" in d
+                            else ""))
         kt.add_row(*cells)
     console.print(kt)
     mark = {True: "PASS", False: "FAIL", None: "n/a"}
