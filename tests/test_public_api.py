@@ -73,3 +73,13 @@ def test_the_layout_keeps_the_dependency_direction() -> None:
         bad = {m for m in _imports(path)
                if m.startswith(("boxloc.simulate", "boxloc.evaluate", "boxloc.cli"))}
         assert not bad, f"{path.relative_to(ROOT)} imports {sorted(bad)}"
+
+
+def test_reading_products_does_not_import_scipy_stats() -> None:
+    """Processes that only read products (log readers, ``run --workers``' parent) do not
+    pay for scipy.stats (~0.7 s of CPU); the tests import it when they compute."""
+    code = ("import sys, boxloc.products, recorder.mcap.log; "
+            "print('scipy.stats' in sys.modules)")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         check=True).stdout
+    assert out.strip() == "False"
