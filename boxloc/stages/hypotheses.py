@@ -53,7 +53,7 @@ from boxloc.products import (
 )
 from boxloc.scan import Scan
 from boxloc.stages.height import step_height
-from boxloc.stages.seams import face_points, find_seams, seam_at
+from boxloc.stages.seams import face_points, find_seams, norm_isf, seam_at
 from boxloc.stages.sizes import distinct, match_size, region_splits
 from boxloc.stages.verify import (
     BOUNDARY_BAND,
@@ -474,7 +474,7 @@ def _peaks(acc: np.ndarray, h: float, lo: float, min_height: float, alpha: float
 
 
 def _norm_isf(alpha: float) -> float:
-    return float(st.norm.isf(alpha))
+    return float(norm_isf(alpha))
 
 
 def _pinv_quad(e: np.ndarray, S: np.ndarray, rank: int) -> float:
@@ -1062,7 +1062,7 @@ def _crossings(rects: list[_Rect], config: Config) -> list[tuple[float, int, boo
     owner, z_seg = np.array(own), np.array(zs)
     A, B = np.array(p0), np.array(p1)
     k = math.sqrt(chi2_critical(1.0, config.alpha))
-    crit_all = float(st.norm.isf(config.alpha / len(owner)))
+    crit_all = float(norm_isf(config.alpha / len(owner)))
     mi = BOUNDARY_BAND * config.min_edge
     s = np.linspace(0.0, 1.0, 21)
     P = A[:, None, :] + s[None, :, None] * (B - A)[:, None, :]  # (segments, 21, 3)
