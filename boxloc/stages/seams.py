@@ -178,7 +178,7 @@ def _in_reach(coord: np.ndarray, centres: np.ndarray, h: float) -> np.ndarray:
     return (coord >= centres.min() - r) & (coord <= centres.max() + r)
 
 
-def norm_isf(q: float | np.ndarray) -> np.ndarray:
+def norm_isf(q: float | np.ndarray) -> np.ndarray | np.float64:
     """``scipy.stats.norm.isf(q)`` bit for bit, without its ~0.1 ms of argument handling.
 
     scipy computes ``-ndtri(q) * 1.0 + 0.0`` (scale 1, loc 0); ``0.0 - ndtri(q)`` is the
