@@ -1,7 +1,7 @@
 """Compile boxloc's numba kernels into numba's on-disk cache; scripts/setup.sh runs it.
 
-The kernels (``@numba.njit(cache=True)`` in boxloc/stages/edges.py, lines.py, scan_noise.py
-and boxloc/calibrate/noise.py; 17 of them) compile on their first call, about 30 s on one
+The kernels (``@numba.njit(cache=True)`` in boxloc/stages/edges.py, lines.py, scan_noise.py,
+seams.py and boxloc/calibrate/noise.py; 18 of them) compile on their first call, about 30 s on one
 core (8 kernels, 22 s, before the stages' trials and tile fits became kernels), and are then
 written to numba's cache: beside the sources (``boxloc/stages/__pycache__/*.nbi, *.nbc`` and
 ``boxloc/calibrate/__pycache__/``) for a checkout or an editable install, or under
@@ -48,6 +48,17 @@ def _cached(kernel: Any) -> bool:
         return False
 
 
+def _seam_kernels() -> None:
+    """The seam statistic with image rows sharing noise (``row_corr`` > 0, the Kinect's):
+    the simulated scan above has none, so its kernel is called here on a few points."""
+    import numpy as np
+
+    from boxloc.stages.seams import seam_z
+
+    coord = np.linspace(0.0, 0.1, 50)
+    seam_z(coord, np.zeros(50), 0.001, np.array([0.05]), 0.005, np.arange(50) // 5, 0.25)
+
+
 def warm_up() -> int:
     """Run the pipeline on a 160 x 120 simulated scan; print what was compiled or loaded.
 
@@ -65,6 +76,7 @@ def warm_up() -> int:
     spec = dataclasses.replace(spec, width=160, height=120,
                                f=float(spec.f) * 160 / spec.width)
     find_graspable_surfaces(simulate(spec).scan, Config())
+    _seam_kernels()
     found = kernels()
     compiled = sum(sum(k.stats.cache_misses.values()) for k in found.values())
     loaded = sum(sum(k.stats.cache_hits.values()) for k in found.values())
