@@ -105,3 +105,28 @@ def test_thresholds_grow_with_line_length():
     assert t[10] < t[100] < t[640]
     assert t[1] == pytest.approx(2.576, abs=1e-3)
     assert run_thresholds(640, 0.01)[640] < t[640]
+
+
+def test_local_scale_follows_a_noisier_region_and_ignores_edges():
+    """The local noise scale: 1 where the noise is at the scan's level (white noise, and
+    beside a depth jump), the noise's own ratio where it is 3x (a heavy tail's region)."""
+    from boxloc.stages.edges import SCALE_TILE_PX, local_scale
+
+    rng = np.random.default_rng(7)
+    H, W = 240, 320
+    S = np.full((H, W), 0.002)
+    r = 2.0 + rng.normal(0.0, 0.002, (H, W))
+    r[:, 160:] += 0.1  # a 10 cm jump down the middle
+    loud = (slice(96, 160), slice(32, 96))
+    r[loud] += rng.normal(0.0, 0.002 * np.sqrt(8.0), (64, 64))  # 3x the sigma
+    g = local_scale(r, S)
+    assert g.shape == (H, W) and np.all(g >= 1.0)
+    inner = (slice(96 + SCALE_TILE_PX, 160 - SCALE_TILE_PX), slice(32 + SCALE_TILE_PX,
+                                                                  96 - SCALE_TILE_PX))
+    assert 2.5 < np.median(g[inner]) < 3.5
+    quiet = g[:64, 200:]
+    assert np.median(quiet) < 1.1 and quiet.max() < 1.3
+    assert g[:64, 150:170].max() < 1.3  # the tiles the jump crosses
+    # no return: NaN ranges leave the scale at 1
+    r2 = np.full((H, W), np.nan)
+    assert np.all(local_scale(r2, S) == 1.0)

@@ -31,6 +31,7 @@ jump if the gap between the lines fails a chi2(1) continuity test.
 from __future__ import annotations
 
 import math
+import warnings
 
 import cv2
 import numba as nb
@@ -645,11 +646,72 @@ def correlation_lags(length_px: float) -> np.ndarray:
 
 
 def point_sigma(scan: Scan, config: Config) -> np.ndarray:
-    """Per-pixel noise sigma (metres) used for line fitting, (H, W), NaN where no return."""
+    """Per-pixel noise sigma (metres) used for line fitting, (H, W), NaN where no return:
+    the noise model's, times the scan's local scale (:func:`local_scale`)."""
     r = scan.range.astype(np.float64)
     sr = config.noise.sigma_range(r)
     sl = config.noise.sigma_lateral(r, scan.sensor.pixel_angle)
-    return np.sqrt(sr * sr + sl * sl)
+    S = np.sqrt(sr * sr + sl * sl)
+    return S * local_scale(r, S)
+
+
+#: Side of the tiles over which the local noise scale is measured, pixels (as the noise
+#: stage's flat tiles, :data:`boxloc.stages.scan_noise.PATCH_PX`).
+SCALE_TILE_PX = 16
+
+
+def local_scale(r: np.ndarray, S: np.ndarray, tile: int = SCALE_TILE_PX) -> np.ndarray:
+    """How much larger than its typical level the noise is around each pixel, (H, W) >= 1.
+
+    Real depth noise is heavy-tailed because its scale varies over the image (the matching
+    quality of a stereo camera, the returned power of a time-of-flight pixel): a sample
+    beyond 5 sigma is an ordinary sample where the local scale is 3x. A test scaled by the
+    range law alone then splits such regions into false edges. Per tile, the median
+    |second difference| of the ranges along rows and columns over the model's sigma, over
+    its median across the scan's tiles, is the local scale (a median: the few triplets
+    that straddle an edge or a seam do not move it); tiles at or below the scan's level
+    keep the model (so a white-noise scan's tests keep their rate, and the model, fitted
+    to the scan's flat tiles, stays the scale at the typical level); bilinear between tile
+    centres. Second differences rather than plane residuals: correlated noise partly
+    cancels in them, but by the same factor in every tile, which the ratio removes.
+
+    Parameters
+    ----------
+    r : (H, W) float64, metres (NaN or <= 0: no return)
+    S : (H, W) float64, metres: the noise model's sigma
+    tile : int, pixels
+    """
+    H, W = r.shape
+    th, tw = H // tile, W // tile
+    out = np.ones((H, W))
+    if th < 1 or tw < 1:
+        return out
+    with np.errstate(invalid="ignore", divide="ignore"):
+        zr = np.abs(r[:, :-2] - 2.0 * r[:, 1:-1] + r[:, 2:]) / S[:, 1:-1]
+        zc = np.abs(r[:-2] - 2.0 * r[1:-1] + r[2:]) / S[1:-1]
+    A = np.full((2, H, W), np.nan)
+    A[0, :, 1:-1] = zr
+    A[1, 1:-1, :] = zc
+    A = A[:, :th * tile, :tw * tile].reshape(2, th, tile, tw, tile)
+    A = A.transpose(1, 3, 0, 2, 4).reshape(th, tw, -1)
+    A[~np.isfinite(A)] = np.nan
+    n = np.sum(np.isfinite(A), axis=2)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # a tile without returns
+        med = np.nanmedian(A, axis=2)
+    good = (n >= tile * tile // 2) & np.isfinite(med) & (med > 0)
+    if good.sum() < 4:
+        return out
+    g = np.where(good, med / np.median(med[good]), 1.0)
+    g = np.maximum(g, 1.0).astype(np.float32)
+    full = cv2.resize(g, (tw * tile, th * tile), interpolation=cv2.INTER_LINEAR)
+    out[:th * tile, :tw * tile] = full
+    # the border strips beyond the last whole tile take the nearest tile's value
+    if th * tile < H:
+        out[th * tile:, :] = out[th * tile - 1:th * tile, :]
+    if tw * tile < W:
+        out[:, tw * tile:] = out[:, tw * tile - 1:tw * tile]
+    return out
 
 
 #: A scan line finds an edge reliably when it crosses it within this angle of the edge's
