@@ -314,7 +314,16 @@ class _Slot:
 
 
 class _Workers:
-    """``jobs`` worker processes, each running one scan at a time under a deadline."""
+    """``jobs`` worker processes, each running one scan at a time under a deadline.
+
+    The worker's main function is :meth:`target`; another bench's workers override it (the
+    messages are the same: ``(task, spec, payload)`` in, ``ready``/``started``/``done`` out).
+    """
+
+    @staticmethod
+    def target() -> Callable[..., None]:
+        """The worker processes' main function, ``fn(conn, localizer, warm)``."""
+        return _worker_main
 
     def __init__(self, localizer: Localizer, jobs: int, warm: tuple[Any, Config] | None,
                  limit: float | None) -> None:
@@ -329,7 +338,7 @@ class _Workers:
     def start(self, warm: bool = True) -> _Slot:
         parent, child = self.ctx.Pipe()
         w = self.warm if warm else None
-        proc = self.ctx.Process(target=_worker_main, args=(child, self.localizer, w),
+        proc = self.ctx.Process(target=self.target(), args=(child, self.localizer, w),
                                 daemon=True)
         proc.start()
         child.close()
@@ -357,10 +366,12 @@ class _Workers:
             slot.proc.join(timeout=5)
             self.kill(slot)
 
-    def send(self, slot: _Slot, task: int, spec: Any, config: Config) -> None:
+    def send(self, slot: _Slot, task: int, spec: Any, payload: Any) -> None:
+        """Start ``task``: the scene ``spec`` and what the worker runs it with (a Config
+        here, another bench's job description there)."""
         slot.task, slot.started, slot.meta = task, None, None
         slot.deadline = self._deadline()  # the simulation has the same limit
-        slot.conn.send((task, spec, config))
+        slot.conn.send((task, spec, payload))
 
     def wait(self) -> list[_Slot]:
         """The slots with a message, a dead process or a passed deadline."""
@@ -373,18 +384,22 @@ class _Workers:
                 if s.conn in hit or s.proc.sentinel in hit or s.deadline <= now]
 
 
-def _run_tasks(tasks: Sequence[tuple[int, Any, Config]], localizer: Localizer, jobs: int,
+def _run_tasks(tasks: Sequence[tuple[int, Any, Any]], localizer: Localizer, jobs: int,
                limit: float | None, warm: tuple[Any, Config] | None,
                on_done: Callable[[int, dict[str, Any]], None],
-               on_start: Callable[[int], None] | None = None) -> dict[str, Any]:
+               on_start: Callable[[int], None] | None = None,
+               workers: type[_Workers] = _Workers) -> dict[str, Any]:
     """Run every task on worker processes; ``on_done(task, result)`` as each ends.
+
+    ``tasks`` are ``(index, spec, payload)``; ``workers`` the pool's class (the packed
+    bench's runs its own task function).
 
     A result is the worker's (:func:`_scan_task`), or ``{"status": "timeout" | "error",
     "phase", "error", "meta", "wall_ms"}`` made here when the worker was killed at its
     deadline or died. Returns the workers' thread pinning and the warm-up timeouts.
     """
     queue = list(range(len(tasks)))[::-1]
-    pool = _Workers(localizer, min(jobs, len(tasks)), warm, limit)
+    pool = workers(localizer, min(jobs, len(tasks)), warm, limit)
     done = 0
     try:
         while done < len(tasks):

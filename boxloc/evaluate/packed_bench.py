@@ -127,7 +127,7 @@ from boxloc.evaluate.matrix_bench import (
     HELD_OUT,
     SCOPES,
     _pct,
-    _Slot,
+    _run_tasks,
     _warmup_spec,
     _Workers,
     matrix_config,
@@ -519,83 +519,9 @@ def _packed_worker_main(conn: Connection, localizer: Localizer,
 class _PackedWorkers(_Workers):
     """The matrix bench's workers, running :func:`_packed_task` instead of its scan task."""
 
-    def start(self, warm: bool = True) -> _Slot:
-        parent, child = self.ctx.Pipe()
-        w = self.warm if warm else None
-        proc = self.ctx.Process(target=_packed_worker_main, args=(child, self.localizer, w),
-                                daemon=True)
-        proc.start()
-        child.close()
-        slot = _Slot(proc, parent, deadline=self._deadline())
-        self.slots.append(slot)
-        return slot
-
-    def send_job(self, slot: _Slot, task: int, spec: Any, job: _Job) -> None:
-        slot.task, slot.started, slot.meta = task, None, None
-        slot.deadline = self._deadline()  # the simulation has the same limit
-        slot.conn.send((task, spec, job))
-
-
-def _run_tasks(tasks: Sequence[tuple[int, Any, _Job]], localizer: Localizer, jobs: int,
-               limit: float | None, warm: tuple[Any, Config] | None,
-               on_done: Callable[[int, dict[str, Any]], None],
-               on_start: Callable[[int], None] | None = None) -> dict[str, Any]:
-    """Run every task on worker processes; ``on_done(task, result)`` as each ends.
-
-    The loop of :func:`boxloc.evaluate.matrix_bench._run_tasks`, on :class:`_PackedWorkers`:
-    a worker killed at its deadline gives a ``timeout`` result, one that died an ``error``.
-    """
-    queue = list(range(len(tasks)))[::-1]
-    pool = _PackedWorkers(localizer, min(jobs, len(tasks)), warm, limit)
-    done = 0
-    try:
-        while done < len(tasks):
-            for s in pool.slots:
-                if s.ready and s.task is None and queue:
-                    i = queue.pop()
-                    pool.send_job(s, i, tasks[i][1], tasks[i][2])
-                    if on_start is not None:
-                        on_start(i)
-            for s in pool.wait():
-                try:
-                    msg = s.conn.recv() if s.conn.poll() else None
-                except (EOFError, OSError):
-                    msg = None
-                if msg is not None:
-                    if msg[0] == "ready":
-                        s.ready, s.deadline = True, float("inf")
-                        pool.threads = pool.threads or msg[1]
-                    elif msg[0] == "started":
-                        s.started, s.meta, s.deadline = time.monotonic(), msg[2], pool._deadline()
-                    else:
-                        assert s.task is not None
-                        on_done(s.task, msg[2])
-                        done += 1
-                        s.task, s.deadline = None, float("inf")
-                    continue
-                alive = s.proc.is_alive()
-                if alive and s.deadline > time.monotonic():
-                    continue  # woken by its sentinel's neighbour: nothing for this one
-                pool.kill(s)
-                if s.task is None:  # lost while warming up (or idle): a new one, cold
-                    pool.warmup_timeouts += alive
-                    pool.start(warm=False)
-                    continue
-                phase = "localize" if s.started is not None else "simulate"
-                if alive:
-                    res = {"status": "timeout", "phase": phase, "meta": s.meta,
-                           "error": f"no result within the scan limit of {limit:g} s",
-                           "wall_ms": None if limit is None else limit * 1e3}
-                else:
-                    res = {"status": "error", "phase": phase, "meta": s.meta,
-                           "error": f"the worker process died (exit code {s.proc.exitcode})"}
-                on_done(s.task, res)
-                done += 1
-                if queue:
-                    pool.start()
-    finally:
-        pool.close()
-    return {"threads": pool.threads, "warmup_timeouts": pool.warmup_timeouts}
+    @staticmethod
+    def target() -> Callable[..., None]:
+        return _packed_worker_main
 
 
 # --- figures -----------------------------------------------------------------------------
@@ -859,7 +785,7 @@ def run_packed_bench(
         bar, task_id = progress_bar(con, "packed", len(tasks))
     try:
         info = _run_tasks(tasks, localizer or _default_localizer, jobs, scan_timeout, warm,
-                          on_done, on_start)
+                          on_done, on_start, workers=_PackedWorkers)
     finally:
         if bar is not None:
             bar.stop()
