@@ -208,8 +208,10 @@ def test_a_side_with_a_few_seam_edges_is_covered_by_its_seam():
     r = find_graspable_surfaces(sim.scan, Config())
     m = match_surfaces(r.surfaces, sim.truth)
     # 10 of 10 at alpha per seam search; at the scan's seam level (verify.seam_alpha, over
-    # its 18 vertices) three seams of this layer fall short and their tops are missed
-    assert m.fp == 0 and m.tp >= 7
+    # its 18 vertices) three seams of this layer fall short and their tops are missed, and
+    # since the edge stage's local noise scale (937849d: fewer false edges on heavy-tailed
+    # sensors; the 24-scene bench kept its 69 tops) a fourth
+    assert m.fp == 0 and m.tp >= 6
     t = r.verification.tests
     saved = 0
     for a in r.surfaces.attempt:
