@@ -10,11 +10,14 @@ only show it, between markers that this script owns::
 Usage (from the repository's root, with the project's venv)::
 
     .venv/bin/python scripts/bench_tables.py [--matrix FILE] [--real FILE] [--sim FILE]
+                                             [--packed FILE] [--bare FILE]
                                              [--date D] [--commit C] [--command CMD]
     .venv/bin/python scripts/bench_tables.py --check
 
 1. Each report given (``bench_matrix.json`` of ``boxloc bench --matrix``, ``bench_real.json``
-   of ``bench --real``, ``bench.json`` of ``bench``) is checked against its schema, trimmed
+   of ``bench --real``, ``bench.json`` of ``bench``, ``bench_packed.json`` of ``bench
+   --packed``, ``bench_bare.json`` of ``python -m boxloc.evaluate.bare_bench``) is checked
+   against its schema, trimmed
    of its per-scan rows (``scenes``, ``frames``, per-scan times: the raw file is hundreds
    of kB) and written to ``docs/results/<its name>`` with a ``provenance`` section: the
    date, the commit and the command that produced it. The reports carry none of the three,
@@ -30,7 +33,8 @@ the wrong schema, an unknown region or a region left open exits 2 with one line.
 
 Regions: ``bench:matrix:{summary,targets,kinds,cells,stages}``,
 ``bench:real:{summary,targets,draws,inputs,stages}``,
-``bench:sim:{summary,kinds,draws,stages}``, each closed by ``<!-- /bench -->``; and
+``bench:sim:{summary,kinds,draws,stages}``, ``bench:packed:{summary,targets}``,
+``bench:bare:{summary,targets,tests}``, each closed by ``<!-- /bench -->``; and
 ``log:channels`` (from :data:`recorder.mcap.channels.CHANNELS`), closed by ``<!-- /log -->``.
 """
 
@@ -64,7 +68,7 @@ class ToolError(Exception):
     """A problem with an input: reported as one line, exit status 2."""
 
 
-# --- the three kinds of report ----------------------------------------------------------------
+# --- the kinds of report -----------------------------------------------------------------
 
 
 @dataclass(frozen=True)
@@ -74,11 +78,13 @@ class Kind:
     Attributes
     ----------
     name : str
-        ``matrix``, ``real`` or ``sim``: the option (``--matrix``) and the regions' middle word.
+        ``matrix``, ``real``, ``sim``, ``packed`` or ``bare``: the option (``--matrix``)
+        and the regions' middle word.
     file : str
         Its file name, in the bench's output directory and in docs/results.
     schema : str or None
-        The report's ``schema`` field (only the matrix report has one); reports without it
+        The report's ``schema`` field (the matrix, packed and bare reports have one); reports
+        without it
         are told apart by ``required`` keys and the absence of ``schema``.
     required : tuple of str
         Top-level keys the tables read.
@@ -114,6 +120,16 @@ KINDS: dict[str, Kind] = {
                 ("scenes", "timing.boxloc.per_scene_total_ms",
                  "timing.baseline.per_scene_total_ms"),
                 "boxloc bench --n 100 --out DIR"),
+    "packed": Kind("packed", "bench_packed.json", "boxloc.bench_packed/1",
+                   ("n", "seed", "sensors", "variants", "held_out", "groups", "targets",
+                    "timing", "timeouts", "errors"),
+                   ("scenes", "timing.per_scan_ms"),
+                   "boxloc bench --packed --n 96 --out DIR"),
+    "bare": Kind("bare", "bench_bare.json", "boxloc.bench_bare/1",
+                 ("n", "seed", "alpha", "sensors", "null_kinds", "groups", "targets",
+                  "timeouts", "errors"),
+                 ("scenes",),
+                 "python -m boxloc.evaluate.bare_bench --n 100 --jobs 2 --out DIR"),
 }
 
 
@@ -125,7 +141,7 @@ def check_report(report: Any, kind: Kind, where: str) -> None:
     schema = report.get("schema")
     if kind.schema is not None and schema != kind.schema:
         raise ToolError(f"{where}: schema {schema!r}, expected {kind.schema!r} "
-                        f"(a {kind.file} of boxloc bench --{kind.name})")
+                        f"(a {kind.file}: {kind.make})")
     if kind.schema is None and schema is not None:
         raise ToolError(f"{where}: a {schema} report, not a {kind.file}")
     missing = [k for k in kind.required if k not in report]
@@ -206,6 +222,15 @@ def _config_sets(config: dict[str, Any], skip: set[str]) -> list[str]:
 def reconstruct_command(report: dict[str, Any], kind: Kind) -> str:
     """The ``boxloc bench`` command line that produced ``report``, from its fields."""
     seeds = int(report.get("seeds", {}).get("n", 1))
+    if kind.name == "packed":
+        return (f"boxloc bench --packed --n {report['n']} --seed {report['seed']} "
+                f"--seeds {seeds} --jobs {report.get('jobs', 1)} "
+                f"--held-out {report['held_out']['sensor']} "
+                f"--scan-timeout {report.get('scan_timeout_s', 120):g} --out DIR")
+    if kind.name == "bare":
+        return (f"python -m boxloc.evaluate.bare_bench --n {report['n']} --seed "
+                f"{report['seed']} --jobs {report.get('jobs', 1)} "
+                f"--scan-timeout {report.get('scan_timeout_s', 120):g} --out DIR")
     if kind.name == "matrix":
         return (f"boxloc bench --matrix --n {report['n']} --seed {report['seed']} "
                 f"--seeds {seeds} --jobs {report.get('jobs', 1)} "
@@ -583,6 +608,161 @@ def sim_stages(r: dict[str, Any]) -> str:
     return _stage_table({}, methods) + f"\n\nPeak RSS of the whole process: {peaks}."
 
 
+# --- packed layers (bench_packed.json) ------------------------------------------------------
+
+
+PACKED_VARIANTS = {"without_sizes": "without sizes", "with_sizes": "with sizes"}
+
+
+def _heights(g: dict[str, Any]) -> str:
+    """Height error median / p95 (mm) over the tops whose height came from a side or a
+    step, with their count."""
+    if not g.get("height_n"):
+        return "– (0)"
+    return (f"{num(g.get('height_err_median_mm'), 1)} / {num(g.get('height_err_p95_mm'), 1)}"
+            f" ({g['height_n']})")
+
+
+def _sources(g: dict[str, Any]) -> str:
+    hs = g.get("height_sources") or {}
+    return " / ".join(str(hs.get(k, 0)) for k in ("side", "step", "sku", "none"))
+
+
+def _wrong(g: dict[str, Any]) -> str:
+    """Wrong rectangles over the rectangles reported (count), or a dash where none was."""
+    if not g.get("n_pred", g.get("tp", 0) + g.get("fp", 0)):
+        return "–"
+    return f"{num(g.get('wrong_rate'))} ({g.get('wrong_rectangles', 0)})"
+
+
+def packed_summary(r: dict[str, Any]) -> str:
+    held = r["held_out"]["sensor"]
+    rows = []
+    for v in r["variants"]:
+        gv = r["groups"].get(v)
+        if gv is None:
+            continue
+        groups = [(s + (" (held out)" if s == held else ""), gv["sensors"][s])
+                  for s in r["sensors"] if s in gv["sensors"]]
+        groups += [(f"**all but {held}**", gv["overall"]["development"]),
+                   ("**all sensors**", gv["overall"]["all"])]
+        for label, g in groups:
+            rows.append([PACKED_VARIANTS.get(v, v), label, num(g.get("n_scans")), counts(g),
+                         precision(g), recall(g), _wrong(g),
+                         num(g.get("ambiguous_per_scan"), 2), num(g.get("silent_scans")),
+                         _heights(g), _sources(g)])
+    head = ["variant", "sensor", "scans", "TP / FP / FN", "precision", "recall",
+            "wrong-rectangle rate (count)", "ambiguous regions per scan", "silent scans",
+            "height error median / p95 (mm) (n)",
+            "reported tops' height source: side / step / sku / none"]
+    note = (f"Layered pallets with no gaps between cartons: {r['n']} scenes (suite seed "
+            f"{r['seed']}) over {len(r['sensors'])} sensor models, "
+            f"{int(r.get('seeds', {}).get('n', 1))} draw(s) of the random trials. *Without "
+            "sizes* runs the default configuration; *with sizes* also gives the scene's carton "
+            "sizes (`box_sizes`). A wrong rectangle is a reported top that is no box's top "
+            "(rate over the tops reported); an ambiguous region is a flat region reported as "
+            "not splittable into tops; a silent scan has exposed tops but reports neither a "
+            "surface nor a region (to the cell the pallet looks empty). Height errors are over "
+            "the true positives whose height came from a visible side or a step to a "
+            "neighbour; the sources count every reported top (a *sku* height is the given "
+            "size's).")
+    return table(head, rows) + "\n\n" + note
+
+
+def packed_targets(r: dict[str, Any]) -> str:
+    held = r["held_out"]["sensor"]
+    rows = []
+    for t in r["targets"]:
+        unit = t.get("unit") or ""
+        u = f" {unit}" if unit else ""
+        cells = [t["name"], t.get("target", "")]
+        for scope in ("development", "all"):
+            s = t.get(scope) or {}
+            where = f" ({s['where']})" if s.get("where") not in (None, "overall") else ""
+            cells += [num(s.get("value"), 1 if unit == "mm" else 3) + u + where,
+                      verdict(s.get("pass"))]
+        rows.append(cells)
+    return (table(["target (issue 21 point 4)", "bound", f"without {held}", "",
+                   f"with {held}", ""], rows)
+            + "\n\nA bound over every sensor shows its worst sensor in parentheses.")
+
+
+# --- bare planes (bench_bare.json) -----------------------------------------------------------
+
+
+def _bare_groups(r: dict[str, Any]) -> list[tuple[str, dict[str, Any]]]:
+    g = r["groups"]
+    out = [(s, g["sensors"][s]) for s in r["sensors"] if s in g["sensors"]]
+    return out + [("**all sensors**", g["all"])]
+
+
+def bare_summary(r: dict[str, Any]) -> str:
+    alpha = float(r["alpha"])
+    rows = []
+    for label, g in _bare_groups(r):
+        t, nf = g.get("time") or {}, g.get("noise_fit") or {}
+        edge = g.get("edge_points_per_pixel")
+        zero = g.get("zero_surface_share")
+        rows.append([label, num(g.get("n_scans")),
+                     f"{g.get('timeouts', 0)} / {g.get('errors', 0)}",
+                     f"{g.get('zero_surface_scans', 0)} / {g.get('ok', 0)} ({num(zero, 2)})",
+                     verdict(None if zero is None else zero >= 0.99),
+                     num(g.get("surfaces")), num(edge, 4),
+                     verdict(None if edge is None else edge <= 2 * alpha),
+                     num(g.get("false_edge_points_per_pixel"), 4),
+                     f"{nf.get('rejected', 0)} / {nf.get('scans', 0)} ({num(nf.get('rate'))})",
+                     f"{secs(t.get('median_ms'))} / {secs(t.get('max_ms'))}"])
+    head = ["sensor", "scans", "timeouts / errors", "scans with 0 surfaces", ">= 99 %",
+            "surfaces", "edge points per pixel", f"<= 2 alpha = {2 * alpha:g}",
+            "false edge points per pixel", "NOISE_FIT rejected / tested",
+            "time median / max (s)"]
+    kinds = ", ".join(r.get("kinds", []))
+    note = (f"{r['n']} bare scenes per sensor model ({kinds}; suite seed {r['seed']}), "
+            f"alpha {alpha:g}: no box in view, so every surface is a false alarm. Edge points "
+            "per pixel count every pixel labelled an edge (a bare pallet has real edges); a "
+            "false edge point is one farther than 1 px from a true edge.")
+    return table(head, rows) + "\n\n" + note
+
+
+def bare_targets(r: dict[str, Any]) -> str:
+    rows = [[t["sensor"], t["name"], f"{t.get('op', '')} {num(t.get('bound'), 2)}",
+             num(t.get("value"), 4), verdict(t.get("pass"))] for t in r["targets"]]
+    return table(["sensor", "target", "bound", "value", ""], rows)
+
+
+def bare_tests(r: dict[str, Any]) -> str:
+    alpha = float(r["alpha"])
+    null = set(r["null_kinds"])
+    groups = [(s, r["groups"]["sensors"][s]) for s in r["sensors"]
+              if s in r["groups"]["sensors"]]
+    names: list[str] = []
+    for _, g in groups:
+        names += [k for k in g.get("tests", {}) if k not in names]
+    rows = []
+    for k in sorted(names):
+        row = [f"`{k}`" + (" *" if k in null else "")]
+        for _, g in groups:
+            e = g.get("tests", {}).get(k)
+            if not e or not e.get("tested"):
+                row.append("–")
+                continue
+            cell = f"{e['rejected']} / {e['tested']} ({num(e.get('rate'))})"
+            if "per_sample" in e:
+                cell += f", {num(e['per_sample'], 5)} per sample"
+            if k in null:
+                cell += f" = {num(float(e.get('rate', 0.0)) / alpha, 1)} alpha"
+            row.append(cell)
+        rows.append(row)
+    note = (f"Rejected / tested per test kind, from the scans' records. * marks a test that "
+            f"is level alpha under the null a bare plane is ({', '.join(sorted(null))}): its "
+            f"rate should be near alpha = {alpha:g}, shown as a multiple of alpha. The other "
+            "kinds test hypotheses the pipeline built from a bare plane's false edges or "
+            "regions, not a null, so their rate is not compared with alpha. `JUMP` and "
+            "`CREASE` count detections only (every recorded one is a rejection); their per-"
+            "sample rate is over 2 × the valid pixels (two directions).")
+    return table(["test kind", *[s for s, _ in groups]], rows) + "\n\n" + note
+
+
 RENDERERS: dict[str, dict[str, Callable[[dict[str, Any]], str]]] = {
     "matrix": {"summary": matrix_summary, "targets": matrix_targets, "kinds": matrix_kinds,
                "cells": matrix_cells, "stages": matrix_stages},
@@ -590,6 +770,8 @@ RENDERERS: dict[str, dict[str, Callable[[dict[str, Any]], str]]] = {
              "inputs": real_inputs, "stages": real_stages},
     "sim": {"summary": sim_summary, "kinds": sim_kinds, "draws": sim_draws,
             "stages": sim_stages},
+    "packed": {"summary": packed_summary, "targets": packed_targets},
+    "bare": {"summary": bare_summary, "targets": bare_targets, "tests": bare_tests},
 }
 
 
@@ -704,7 +886,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             raise ToolError("--command names one report's command: give one report with it")
         if not given and (args.date or args.commit or args.command):
             raise ToolError("--date, --commit and --command stamp a report given with "
-                            "--matrix, --real or --sim")
+                            "--matrix, --real, --sim, --packed or --bare")
         for kind, path in given:
             out = ingest(path, kind, root, date=args.date, commit=args.commit,
                          command=args.command)
