@@ -1,9 +1,10 @@
 """scripts/bench_tables.py: the docs' benchmark tables come from the bench's JSON reports.
 
-Small fixture reports, shaped like the three benches' (bench_matrix.json, bench_real.json,
-bench.json), go through the script into a scratch checkout; the tables must show their
-figures, a second run must change nothing, and a report of the wrong schema must stop the
-script with one line and exit status 2 before it writes anything.
+Small fixture reports, shaped like the benches' (bench_matrix.json, bench_real.json,
+bench.json, bench_packed.json, bench_bare.json), go through the script into a scratch
+checkout; the tables must show their figures, a second run must change nothing, and a
+report of the wrong schema must stop the script with one line and exit status 2 before it
+writes anything.
 """
 
 from __future__ import annotations
@@ -419,3 +420,209 @@ def test_the_matrix_command_is_rebuilt_from_the_report() -> None:
     assert bt.reconstruct_command(rep, bt.KINDS["matrix"]) == (
         "boxloc bench --matrix --n 320 --seed 0 --seeds 3 --jobs 1 --held-out laser "
         "--scan-timeout 60 --out DIR")
+
+
+# --- packed layers and bare planes -------------------------------------------------------------
+
+PACKED_DOC = """# Benchmarks
+
+<!-- bench:packed:summary -->
+<!-- /bench -->
+
+<!-- bench:packed:targets -->
+<!-- /bench -->
+
+<!-- bench:bare:summary -->
+<!-- /bench -->
+
+<!-- bench:bare:targets -->
+<!-- /bench -->
+
+<!-- bench:bare:tests -->
+<!-- /bench -->
+"""
+
+
+def _packed_group(tp: int, fp: int, fn: int, wrong: int, height_n: int) -> dict[str, Any]:
+    n_pred = tp + fp
+    return {**_group(tp, fp, fn), "wrong_rectangles": wrong,
+            "wrong_rate": wrong / n_pred if n_pred else 0.0, "ambiguous_regions": 3,
+            "ambiguous_per_scan": 1.5, "silent_scans": 1,
+            "height_sources": {"none": 0, "side": 2, "step": 1, "sku": 4},
+            "height_n": height_n,
+            "height_err_median_mm": 6.25 if height_n else None,
+            "height_err_p95_mm": 31.5 if height_n else None}
+
+
+def packed_report() -> dict[str, Any]:
+    def variant(tp: int, wrong: int) -> dict[str, Any]:
+        laser = _packed_group(tp, 1, 10, wrong, 3)
+        return {"overall": {"development": laser, "all": _packed_group(2 * tp, 1, 20, wrong, 5)},
+                "sensors": {"laser": laser, "tof": _packed_group(0, 0, 9, 0, 0)}}
+
+    def target(name: str, variant: str, key: str, bound: float, dev: float, all_: float,
+               where: str = "overall", unit: str = "") -> dict[str, Any]:
+        return {"name": name, "variant": variant, "key": key, "op": "<=", "bound": bound,
+                "target": f"<= {bound:g}" + (f" {unit}" if unit else ""), "unit": unit,
+                "development": {"value": dev, "where": where, "pass": dev <= bound},
+                "all": {"value": all_, "where": where, "pass": all_ <= bound}}
+
+    return {
+        "schema": "boxloc.bench_packed/1", "version": "0.1.0", "mode": "packed", "n": 4,
+        "seed": 0, "jobs": 1, "scan_timeout_s": 120.0, "config": {"alpha": 0.01},
+        "config_hash": "facade01", "held_out": {"sensor": "tof"}, "sensors": ["laser", "tof"],
+        "variants": ["without_sizes", "with_sizes"], "lids": ["flat"],
+        "seeds": {"n": 1, "trial_seeds": [0], "per_seed": [], "spread": {}},
+        "groups": {"without_sizes": variant(1, 1), "with_sizes": variant(9, 0)},
+        "targets": [target("wrong-rectangle rate without sizes, every sensor", "without_sizes",
+                           "wrong_rate", 0.01, 0.5, 0.5, where="laser"),
+                    target("median height error, with sizes", "with_sizes",
+                           "height_err_median_mm", 10.0, 6.25, 6.25, unit="mm")],
+        "timeouts": [], "errors": {"total": 0, "list": []},
+        "timing": {"without_sizes": {}, "with_sizes": {}, "per_scan_ms": [900.0] * 8,
+                   "run_s": 20.0},
+        "memory": {}, "scenes": [{"index": i} for i in range(4)],
+    }
+
+
+def _bare_group(n: int, zero: int, edge: float, tests: dict[str, Any]) -> dict[str, Any]:
+    return {"n_scans": n, "ok": n, "timeouts": 0, "errors": 0, "surfaces": n - zero,
+            "zero_surface_scans": zero, "zero_surface_share": zero / n, "pixels": 1000 * n,
+            "edge_points": int(edge * 1000 * n), "false_edge_points": 0,
+            "edge_points_per_pixel": edge, "false_edge_points_per_pixel": edge / 2,
+            "tests": tests, "noise_fit": {"scans": n, "rejected": 1, "rate": 1 / n},
+            "time": {"median_ms": 1250.0, "max_ms": 4000.0}}
+
+
+def bare_report() -> dict[str, Any]:
+    laser_tests = {"NOISE_FIT": {"tested": 50, "rejected": 1, "rate": 0.02,
+                                 "level_alpha_null": True},
+                   "JUMP": {"tested": 30, "rejected": 30, "rate": 1.0,
+                            "level_alpha_null": False, "per_sample": 0.00021},
+                   "FACE_EXTENT": {"tested": 8, "rejected": 2, "rate": 0.25,
+                                   "level_alpha_null": False}}
+    stereo_tests = {"NOISE_FIT": {"tested": 40, "rejected": 4, "rate": 0.1,
+                                  "level_alpha_null": True}}
+    laser = _bare_group(50, 50, 0.0017, laser_tests)
+    stereo = _bare_group(40, 38, 0.0351, stereo_tests)
+    targets = [{"sensor": s, "name": "edge points per pixel", "key": "edge_points_per_pixel",
+                "op": "<=", "bound": 0.02, "value": g["edge_points_per_pixel"],
+                "pass": g["edge_points_per_pixel"] <= 0.02}
+               for s, g in (("laser", laser), ("active-stereo", stereo))]
+    return {
+        "schema": "boxloc.bench_bare/1", "version": "0.1.0", "n": 50, "n_scans": 90, "seed": 0,
+        "jobs": 2, "scan_timeout_s": 120.0, "alpha": 0.01, "config": {"alpha": 0.01},
+        "config_hash": "b0a7d0c5", "site": {}, "sensors": ["laser", "active-stereo"],
+        "kinds": ["floor", "empty"], "null_kinds": ["NOISE_FIT"],
+        "groups": {"sensors": {"laser": laser, "active-stereo": stereo},
+                   "all": _bare_group(90, 88, 0.0165, {})},
+        "targets": targets, "timeouts": [], "errors": [], "run_s": 30.0,
+        "scenes": [{"index": i} for i in range(90)],
+    }
+
+
+@pytest.fixture()
+def packed_checkout(tmp_path: Path) -> Path:
+    root = tmp_path / "repo"
+    (root / "docs").mkdir(parents=True)
+    (root / "docs" / "benchmarks.md").write_text(PACKED_DOC)
+    return root
+
+
+def test_packed_and_bare_tables_are_generated_from_their_reports(
+        packed_checkout: Path, tmp_path: Path) -> None:
+    root = packed_checkout
+    assert _run(root, "--packed", str(_write(tmp_path / "p" / "bench_packed.json",
+                                             packed_report())),
+                "--date", "2026-11-25 14:00 UTC", "--commit", "abc1234") == 0
+    assert _run(root, "--bare", str(_write(tmp_path / "b" / "bench_bare.json", bare_report())),
+                "--date", "2026-11-25 14:10 UTC", "--commit", "def5678") == 0
+    doc = (root / "docs" / "benchmarks.md").read_text()
+    assert "No report yet" not in doc
+    # packed: one row per variant and sensor, with the wrong-rectangle rate and its count,
+    # ambiguous regions per scan, silent scans, height error and its sources
+    assert ("| without sizes | laser | 2 | 1 / 1 / 10 | 0.500 | 0.091 | 0.500 (1) | 1.50 | 1 "
+            "| 6.2 / 31.5 (3) | 2 / 1 / 4 / 0 |") in doc
+    assert ("| with sizes | tof (held out) | 2 | 0 / 0 / 9 | – | 0.000 | – | 1.50 | 1 | – (0) "
+            "|") in doc
+    assert "| with sizes | **all sensors** | 2 | 18 / 1 / 20 |" in doc
+    assert ("| wrong-rectangle rate without sizes, every sensor | <= 0.01 | 0.500 (laser) | "
+            "miss | 0.500 (laser) | miss |") in doc
+    assert "| median height error, with sizes | <= 10 mm | 6.2 mm | pass |" in doc
+    assert "| with sizes | laser | 2 | 9 / 1 / 10 | 0.900 | 0.474 | 0.000 (0) |" in doc
+    assert ("*2026-11-25 14:00 UTC, commit abc1234, boxloc 0.1.0, config facade01: `boxloc "
+            "bench --packed --n 4 --seed 0 --seeds 1 --jobs 1 --held-out tof --scan-timeout "
+            "120 --out DIR` (reconstructed); [report](results/bench_packed.json).*") in doc
+    # bare: per sensor against 99 % and 2 alpha; the rates per test kind, NOISE_FIT vs alpha
+    assert "| laser | 50 | 0 / 0 | 50 / 50 (1.00) | pass | 0 | 0.0017 | pass |" in doc
+    assert "| 1 / 50 (0.020) | 1.25 / 4.00 |" in doc
+    assert "| active-stereo | 40 | 0 / 0 | 38 / 40 (0.95) | miss | 2 | 0.0351 | miss |" in doc
+    assert "<= 2 alpha = 0.02" in doc
+    assert "| active-stereo | edge points per pixel | <= 0.02 | 0.0351 | miss |" in doc
+    assert ("| `NOISE_FIT` * | 1 / 50 (0.020) = 2.0 alpha | 4 / 40 (0.100) = 10.0 alpha |"
+            in doc)
+    assert "| `JUMP` | 30 / 30 (1.000), 0.00021 per sample | – |" in doc
+    assert "| `FACE_EXTENT` | 2 / 8 (0.250) | – |" in doc
+    assert "commit def5678" in doc and "[report](results/bench_bare.json)" in doc
+    # the committed copies lose their per-scan rows and keep their figures
+    p = json.loads((root / "docs" / "results" / "bench_packed.json").read_text())
+    assert "scenes" not in p and "per_scan_ms" not in p["timing"]
+    assert p["groups"] == packed_report()["groups"]
+    b = json.loads((root / "docs" / "results" / "bench_bare.json").read_text())
+    assert "scenes" not in b and b["provenance"]["trimmed"] == ["scenes"]
+    assert b["groups"] == bare_report()["groups"]
+    # idempotent
+    first = _snapshot(root)
+    assert _run(root) == 0 and _run(root, "--check") == 0
+    assert _snapshot(root) == first
+
+
+def _packed_without_variants() -> dict[str, Any]:
+    r = packed_report()
+    del r["variants"]
+    return r
+
+
+@pytest.mark.parametrize("option, report, message", [
+    ("--packed", matrix_report, "schema 'boxloc.bench_matrix/1', expected "
+                                "'boxloc.bench_packed/1'"),
+    ("--packed", _packed_without_variants, "not a bench_packed.json report: no variants"),
+    ("--bare", packed_report, "schema 'boxloc.bench_packed/1', expected "
+                              "'boxloc.bench_bare/1'"),
+    ("--bare", lambda: {**bare_report(), "schema": "boxloc.bench_bare/2"},
+     "schema 'boxloc.bench_bare/2'"),
+    ("--matrix", bare_report, "schema 'boxloc.bench_bare/1', expected"),
+    ("--sim", packed_report, "a boxloc.bench_packed/1 report, not a bench.json"),
+])
+def test_a_packed_or_bare_report_of_the_wrong_kind_is_refused(
+        packed_checkout: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str], option: str,
+        report: Any, message: str) -> None:
+    before = _snapshot(packed_checkout)
+    path = _write(tmp_path / "in" / "report.json", report())
+    assert _run(packed_checkout, option, str(path)) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and err.startswith("bench_tables: ") and message in err, err
+    assert _snapshot(packed_checkout) == before
+
+
+def test_a_bare_report_missing_a_figure_is_one_line(
+        packed_checkout: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """A committed report that passes the schema check but lacks a table's figure: one line
+    naming the region, exit 2, not a traceback."""
+    rep = bare_report()
+    del rep["groups"]["all"]
+    _write(packed_checkout / "docs" / "results" / "bench_bare.json", rep)
+    assert _run(packed_checkout) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "cannot make bench:bare:summary" in err, err
+
+
+def test_the_packed_and_bare_commands_are_rebuilt_from_the_reports() -> None:
+    assert bt.reconstruct_command(bare_report(), bt.KINDS["bare"]) == (
+        "python -m boxloc.evaluate.bare_bench --n 50 --seed 0 --jobs 2 --scan-timeout 120 "
+        "--out DIR")
+    rep = packed_report()
+    rep.update(n=96, jobs=2)
+    assert bt.reconstruct_command(rep, bt.KINDS["packed"]) == (
+        "boxloc bench --packed --n 96 --seed 0 --seeds 1 --jobs 2 --held-out tof "
+        "--scan-timeout 120 --out DIR")
