@@ -31,6 +31,10 @@ def _readonly(a: np.ndarray) -> np.ndarray:
     return a
 
 
+#: Largest image (pixels) whose pinhole rays are cached: 1920x1080, 50 MB per entry.
+RAY_CACHE_PIXELS = 1920 * 1080
+
+
 @functools.lru_cache(maxsize=2)
 def _pinhole_rays(fx: float, fy: float, cx: float, cy: float, width: int,
                   height: int) -> np.ndarray:
@@ -94,10 +98,15 @@ class PinholeModel:
     def rays(self) -> np.ndarray:
         """Unit rays, shape (H, W, 3), float64, read-only.
 
-        Cached per model: a stream of scans from one camera builds them once (12 ms at
-        640x480, four times that at 1280x960, otherwise paid on every scan).
+        Cached per model up to :data:`RAY_CACHE_PIXELS`: a stream of scans from one camera
+        builds them once (12 ms at 640x480, four times that at 1280x960, otherwise paid on
+        every scan). Larger images build them each time, so that a huge scan's rays (400 MB
+        at 4096x4096) do not stay alive beside its pipeline.
         """
-        return _pinhole_rays(self.fx, self.fy, self.cx, self.cy, self.width, self.height)
+        args = (self.fx, self.fy, self.cx, self.cy, self.width, self.height)
+        if self.width * self.height > RAY_CACHE_PIXELS:
+            return _pinhole_rays.__wrapped__(*args)
+        return _pinhole_rays(*args)
 
     def project(self, P_sensor: FloatArray) -> np.ndarray:
         """Project points (..., 3) to pixel coordinates (..., 2) as (column u, row v), float64.
