@@ -308,15 +308,17 @@ def test_mosd_row_offsets_make_no_seam_on_a_covered_top() -> None:
     truth = top_faces(scan, L)
     lower = int(np.argmin(truth.heights))
     assert not truth.exposed[lower]
+    # (Read as independent, rho = 0, the covered strip was reported until the edge stage's
+    # local noise scale, 937849d, stopped its false edges too; the row term's own effect on
+    # a seam is tested on constructed rows in test_seams.)
     seam = TestKind.VERIFY_SEAM_SIDE
-    for rho, covered_found in ((0.0, True), (0.28, False)):
-        r = find_graspable_surfaces(scan, Config().with_overrides(
-            [*MOSD_CONFIG, f"noise.row_corr={rho}"]))
-        m = score_real(r.surfaces, truth, scan)
-        assert m.tp == truth.n_exposed == 1
-        assert (lower in m.pred_face) == covered_found
-        t = r.verification.tests
-        assert bool(((t.kind == seam) & t.accepted).any()) == covered_found
+    r = find_graspable_surfaces(scan, Config().with_overrides(
+        [*MOSD_CONFIG, "noise.row_corr=0.28"]))
+    m = score_real(r.surfaces, truth, scan)
+    assert m.tp == truth.n_exposed == 1
+    assert lower not in m.pred_face
+    t = r.verification.tests
+    assert not ((t.kind == seam) & t.accepted).any()
 
 
 @pytest.mark.real_data("learn9.pcd")
