@@ -282,9 +282,10 @@ def _progress(enabled: bool, total: int | None) -> Any:
         TimeElapsedColumn,
     )
 
+    # soft_wrap: an error line names a file; wrapped at 80 columns it would be two lines
     return Progress(TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(),
-                    TimeElapsedColumn(), console=Console(stderr=True), disable=not enabled,
-                    transient=False)
+                    TimeElapsedColumn(), console=Console(stderr=True, soft_wrap=True),
+                    disable=not enabled, transient=False)
 
 
 @click.command("run")
