@@ -303,6 +303,11 @@ def _print_surfaces(result: Any) -> None:
               help="Zero-gap, sharp-edged layered pallets for every sensor model of the zoo, "
                    "default configuration with and without the scenes' carton list "
                    "(boxloc.evaluate.packed_bench); --out gets bench_packed.json.")
+@click.option("--bare", is_flag=True,
+              help="Bare floors and pallets per sensor model of the zoo, default configuration: "
+                   "false edges per pixel, scans with zero surfaces, each test's rejection rate "
+                   "(boxloc.evaluate.bare_bench); --n is scenes per sensor; --out gets "
+                   "bench_bare.json.")
 @click.option("--jobs", type=click.IntRange(min=1), default=None,
               help="With --matrix: worker processes (results identical to one). [default: 1]")
 @click.option("--held-out", "held_out", default=None, metavar="SENSOR",
@@ -323,7 +328,7 @@ def bench(
     sections: tuple[str, ...] = (), fuzz_cases: int | None = None,
     scene_sets: tuple[str, ...] = (), seeds: int | None = None, matrix: bool = False,
     jobs: int | None = None, held_out: str | None = None, scan_timeout: float | None = None,
-    packed: bool = False,
+    packed: bool = False, bare: bool = False,
 ) -> None:
     """Benchmark the localizer against the open3d baseline on N simulated scenes.
 
@@ -332,7 +337,8 @@ def bench(
     --real DIR, the real labelled scans of DIR instead (see boxloc.evaluate.real_bench). With
     --matrix, the sensor x scene-kind matrix, default configuration only (see
     boxloc.evaluate.matrix_bench). With --packed, zero-gap layered pallets per sensor model,
-    with and without the carton list (see boxloc.evaluate.packed_bench).
+    with and without the carton list (see boxloc.evaluate.packed_bench). With --bare, bare
+    floors and pallets per sensor model (see boxloc.evaluate.bare_bench).
     """
     import os
 
@@ -340,10 +346,11 @@ def bench(
     for var in ("OMP_NUM_THREADS", "NUMBA_NUM_THREADS", "OPENBLAS_NUM_THREADS"):
         os.environ.setdefault(var, "1")
     matrix_only = {"jobs": jobs, "held-out": held_out, "scan-timeout": scan_timeout}
-    if matrix and packed:
-        _fail("--matrix and --packed are two benches: give one")
-    if matrix or packed:
-        flag = "--matrix" if matrix else "--packed"
+    chosen = [f for f, on in (("--matrix", matrix), ("--packed", packed), ("--bare", bare)) if on]
+    if len(chosen) > 1:
+        _fail(f"{' and '.join(chosen)} are separate benches: give one")
+    if chosen:
+        flag = chosen[0]
         not_with = {"config": config_path, "set": overrides, "scene-set": scene_sets,
                     "real": real_dir, "frames": frames, "section": sections,
                     "replay": replay_only, "fuzz": fuzz_cases}
@@ -355,6 +362,17 @@ def bench(
         if bad:
             _fail(f"{flag} runs the default configuration only and its own scenes: "
                   f"{', '.join(bad)} cannot be used with it")
+    if bare:
+        if held_out is not None:
+            _fail("--held-out does not apply with --bare (every sensor is reported apart)")
+        if seeds is not None:
+            _fail("--seeds does not apply with --bare (no random trials are pooled)")
+        from boxloc.evaluate import bare_bench as bb
+
+        bb.run_bare_bench(n or bb.DEFAULT_N, seed, out=Path(out) if out else None,
+                          jobs=jobs or 1, scan_timeout=scan_timeout or bb.DEFAULT_SCAN_TIMEOUT,
+                          progress=True)
+        return
     if packed:
         from boxloc.evaluate import packed_bench as pb
 
@@ -376,7 +394,7 @@ def bench(
         return
     given = [f"--{k}" for k, v in matrix_only.items() if v is not None]
     if given:
-        _fail(f"{', '.join(given)} only apply with --matrix or --packed")
+        _fail(f"{', '.join(given)} only apply with --matrix, --packed or --bare")
     n = 100 if n is None else n
     seeds = 3 if seeds is None else seeds
 

@@ -267,7 +267,7 @@ def test_cli_matrix_refuses_settings(monkeypatch: pytest.MonkeyPatch, tmp_path: 
         assert r.exit_code == 2, (extra, r.output)
         assert "default configuration only" in r.output and "Traceback" not in r.output
     r = runner.invoke(cli, ["bench", "--n", "1", "--jobs", "2"])
-    assert r.exit_code == 2 and "only apply with --matrix or --packed" in r.output
+    assert r.exit_code == 2 and "only apply with --matrix, --packed or --bare" in r.output
     r = runner.invoke(cli, ["bench", "--matrix", "--n", "1", "--held-out", "sonar"])
     assert r.exit_code == 2 and "--held-out" in r.output
     seen: dict[str, Any] = {}
@@ -313,6 +313,30 @@ def test_cli_packed_runs_the_packed_bench_with_defaults_only(
                             str(tmp_path / "o")])
     assert r.exit_code == 0, r.output
     assert (seen["n"], seen["jobs"], seen["out"]) == (8, 2, tmp_path / "o")
+
+
+def test_cli_bare_runs_the_bare_bench_with_defaults_only(
+        monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> None:
+    from boxloc.evaluate import bare_bench as bb
+
+    runner = CliRunner()
+    for extra in (["--set", "alpha=0.05"], ["--packed"], ["--held-out", "laser"],
+                  ["--seeds", "2"]):
+        r = runner.invoke(cli, ["bench", "--bare", "--n", "1", *extra])
+        assert r.exit_code == 2, (extra, r.output)
+        assert "Traceback" not in r.output
+    seen: dict[str, Any] = {}
+
+    def fake(n: int, seed: int, **kw: Any) -> dict[str, Any]:
+        seen.update(n=n, seed=seed, **kw)
+        return {}
+
+    monkeypatch.setattr(bb, "run_bare_bench", fake)
+    r = runner.invoke(cli, ["bench", "--bare", "--seed", "3", "--jobs", "2", "--out",
+                            str(tmp_path / "o")])
+    assert r.exit_code == 0, r.output
+    assert (seen["n"], seen["seed"], seen["jobs"], seen["out"]) == (
+        bb.DEFAULT_N, 3, 2, tmp_path / "o")
 
 
 def test_matrix_config_refuses_scenes_of_another_box_range() -> None:
