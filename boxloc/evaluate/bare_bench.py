@@ -55,8 +55,6 @@ from __future__ import annotations
 
 import argparse
 import contextlib
-import json
-import math
 import multiprocessing
 import sys
 import time
@@ -103,8 +101,8 @@ def bare_suite(n: int, seed: int = 0, sensors: Sequence[str] | None = None) -> l
     InputError
         On n < 1, seed < 0 or an unknown sensor.
     """
-    from boxloc.simulate import SENSORS, SceneSpec
-    from boxloc.simulate.suites import _MATRIX_F640, _MATRIX_SIZES
+    from boxloc.simulate import SENSORS
+    from boxloc.simulate.suites import draw_matrix_spec
 
     if isinstance(n, bool) or not isinstance(n, int) or n < 1:
         raise InputError(f"--n must be an integer >= 1, got {n!r}")
@@ -115,23 +113,9 @@ def bare_suite(n: int, seed: int = 0, sensors: Sequence[str] | None = None) -> l
         if s not in SENSORS:
             raise InputError(f"unknown sensor {s!r}: one of {', '.join(SENSORS)}")
     rng = np.random.default_rng(np.random.SeedSequence([int(seed), 0xB4E2]))
-    specs = []
-    for i in range(n * len(sens)):
-        sensor = sens[i % len(sens)]
-        kind = BARE_KINDS[(i // len(sens)) % len(BARE_KINDS)]
-        distance = round(float(rng.uniform(1.0, 3.5)), 3)
-        tilt = round(float(rng.uniform(0.0, math.radians(30.0))), 4)
-        w, h = _MATRIX_SIZES[int(rng.integers(len(_MATRIX_SIZES)))]
-        sharp, bevel = rng.random() < 1 / 3, round(float(rng.uniform(0.0005, 0.005)), 4)
-        bulge = round(float(rng.uniform(0.003, 0.015)), 4) if rng.random() < 0.4 else 0.0
-        deco = rng.random() < 0.5
-        scene_seed = int(rng.integers(0, 2**31))
-        specs.append(SceneSpec(
-            kind=kind, seed=scene_seed, width=w, height=h,
-            f=round(_MATRIX_F640[sensor] * w / 640, 3), distance=distance, tilt=tilt,
-            bevel=0.0 if sharp else bevel, bulge=bulge, sensor=sensor,
-            tape=0.6 if deco else 0.0, labels=0.5 if deco else 0.0))
-    return specs
+    return [draw_matrix_spec(rng, sens[i % len(sens)],
+                             BARE_KINDS[(i // len(sens)) % len(BARE_KINDS)])
+            for i in range(n * len(sens))]
 
 
 # --- one scan ----------------------------------------------------------------------------
@@ -380,7 +364,7 @@ def run_bare_bench(n: int = DEFAULT_N, seed: int = 0, *, out: str | Path | None 
     InputError
         On n < 1, jobs < 1, a non-positive timeout or an unknown sensor.
     """
-    from boxloc.evaluate.matrix_bench import matrix_config
+    from boxloc.evaluate.matrix_bench import matrix_config, write_report
     from boxloc.evaluate.scene_bench import _jsonable, _spec_text
 
     if isinstance(jobs, bool) or not isinstance(jobs, int) or jobs < 1:
@@ -440,16 +424,7 @@ def run_bare_bench(n: int = DEFAULT_N, seed: int = 0, *, out: str | Path | None 
         "errors": [{"scene": r["index"], "sensor": r["sensor"], "error": r["error"]}
                    for r in done if r["status"] == "error"],
         "run_s": round(run_s, 3), "scenes": done})
-    if out is not None:
-        d = Path(out)
-        d.mkdir(parents=True, exist_ok=True)
-        (d / REPORT_NAME).write_text(json.dumps(report, indent=1) + "\n")
-        from rich.console import Console
-
-        with (d / TABLE_NAME).open("w") as fh:
-            print_bare_report(report, Console(file=fh, width=200, no_color=True))
-    if con is not None:
-        print_bare_report(report, con)
+    write_report(report, out, REPORT_NAME, TABLE_NAME, print_bare_report, con)
     return report
 
 

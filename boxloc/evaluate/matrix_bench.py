@@ -686,19 +686,28 @@ def run_matrix_bench(
                      held_out=held_out, scan_timeout=scan_timeout, warmup=warmup,
                      trial_seeds=[d.trial_seed for d in draws], info=info, run_s=run_s,
                      sensors=SENSORS, kinds=MATRIX_KINDS)
+    write_report(report, out, REPORT_NAME, TABLE_NAME, print_matrix_report,
+                 con if progress else None)
+    return report
+
+
+def write_report(report: dict[str, Any], out: Path | str | None, report_name: str,
+                 table_name: str, printer: Callable[[dict[str, Any], Any], None],
+                 console: Any, width: int = 200) -> None:
+    """A bench's report as ``out/report_name`` (JSON) and its tables as ``out/table_name``
+    (plain text, ``width`` columns), and the tables on ``console`` (None: not printed)."""
     if out is not None:
         d = Path(out)
         d.mkdir(parents=True, exist_ok=True)
-        (d / REPORT_NAME).write_text(json.dumps(report, indent=1) + "\n")
+        (d / report_name).write_text(json.dumps(report, indent=1) + "\n")
         from rich.console import Console
 
-        with (d / TABLE_NAME).open("w") as fh:
-            print_matrix_report(report, Console(file=fh, width=200, no_color=True))
-    if progress and con is not None:
-        print_matrix_report(report, con)
+        with (d / table_name).open("w") as fh:
+            printer(report, Console(file=fh, width=width, no_color=True))
+    if console is not None:
+        printer(report, console)
         if out is not None:
-            con.print(f"wrote {Path(out) / REPORT_NAME} and {Path(out) / TABLE_NAME}")
-    return report
+            console.print(f"wrote {Path(out) / report_name} and {Path(out) / table_name}")
 
 
 def _parent_meta(spec: Any) -> dict[str, Any]:

@@ -107,7 +107,6 @@ from __future__ import annotations
 import argparse
 import contextlib
 import dataclasses
-import json
 import math
 import sys
 import tempfile
@@ -131,6 +130,7 @@ from boxloc.evaluate.matrix_bench import (
     _warmup_spec,
     _Workers,
     matrix_config,
+    write_report,
 )
 from boxloc.evaluate.metrics import (
     HeightErrors,
@@ -796,18 +796,8 @@ def run_packed_bench(
                      held_out=held_out, scan_timeout=scan_timeout, warmup=warmup,
                      trial_seeds=[d.trial_seed for d in draws], info=info, run_s=run_s,
                      sensors=SENSORS, variants=variants)
-    if out is not None:
-        d = Path(out)
-        d.mkdir(parents=True, exist_ok=True)
-        (d / REPORT_NAME).write_text(json.dumps(report, indent=1) + "\n")
-        from rich.console import Console
-
-        with (d / TABLE_NAME).open("w") as fh:
-            print_packed_report(report, Console(file=fh, width=280, no_color=True))
-    if progress and con is not None:
-        print_packed_report(report, con)
-        if out is not None:
-            con.print(f"wrote {Path(out) / REPORT_NAME} and {Path(out) / TABLE_NAME}")
+    write_report(report, out, REPORT_NAME, TABLE_NAME, print_packed_report,
+                 con if progress else None, width=280)
     return report
 
 

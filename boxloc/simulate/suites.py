@@ -80,20 +80,23 @@ def matrix_suite(n: int, seed: int = 0) -> list[SceneSpec]:
     if isinstance(seed, bool) or not isinstance(seed, int | np.integer) or seed < 0:
         raise InputError(f"matrix suite seed must be an integer >= 0, got {seed!r}")
     rng = np.random.default_rng(np.random.SeedSequence([int(seed), 0x3A7F]))
-    specs = []
-    for i in range(int(n)):
-        sensor = SENSORS[i % len(SENSORS)]
-        kind = MATRIX_KINDS[(i // len(SENSORS)) % len(MATRIX_KINDS)]
-        distance = round(float(rng.uniform(1.0, 3.5)), 3)
-        tilt = round(float(rng.uniform(0.0, math.radians(30.0))), 4)
-        w, h = _MATRIX_SIZES[int(rng.integers(len(_MATRIX_SIZES)))]
-        sharp, bevel = rng.random() < 1 / 3, round(float(rng.uniform(0.0005, 0.005)), 4)
-        bulge = round(float(rng.uniform(0.003, 0.015)), 4) if rng.random() < 0.4 else 0.0
-        deco = rng.random() < 0.5
-        scene_seed = int(rng.integers(0, 2**31))
-        specs.append(SceneSpec(
-            kind=kind, seed=scene_seed, width=w, height=h,
-            f=round(_MATRIX_F640[sensor] * w / 640, 3), distance=distance, tilt=tilt,
-            bevel=0.0 if (sharp or kind == "layered") else bevel, bulge=bulge, sensor=sensor,
-            tape=0.6 if deco else 0.0, labels=0.5 if deco else 0.0))
-    return specs
+    return [draw_matrix_spec(rng, SENSORS[i % len(SENSORS)],
+                             MATRIX_KINDS[(i // len(SENSORS)) % len(MATRIX_KINDS)])
+            for i in range(int(n))]
+
+
+def draw_matrix_spec(rng: np.random.Generator, sensor: str, kind: str) -> SceneSpec:
+    """One scene of the matrix's distribution (see :func:`matrix_suite`) for a given sensor
+    and kind, drawn from ``rng`` (the same draws, in the same order, for every kind)."""
+    distance = round(float(rng.uniform(1.0, 3.5)), 3)
+    tilt = round(float(rng.uniform(0.0, math.radians(30.0))), 4)
+    w, h = _MATRIX_SIZES[int(rng.integers(len(_MATRIX_SIZES)))]
+    sharp, bevel = rng.random() < 1 / 3, round(float(rng.uniform(0.0005, 0.005)), 4)
+    bulge = round(float(rng.uniform(0.003, 0.015)), 4) if rng.random() < 0.4 else 0.0
+    deco = rng.random() < 0.5
+    scene_seed = int(rng.integers(0, 2**31))
+    return SceneSpec(
+        kind=kind, seed=scene_seed, width=w, height=h,
+        f=round(_MATRIX_F640[sensor] * w / 640, 3), distance=distance, tilt=tilt,
+        bevel=0.0 if (sharp or kind == "layered") else bevel, bulge=bulge, sensor=sensor,
+        tape=0.6 if deco else 0.0, labels=0.5 if deco else 0.0)
