@@ -465,7 +465,8 @@ def test_publish_ros2_writes_poses_and_markers_standard_tools_read(
     with AnyReader([out]) as rd:
         assert {c.topic: c.msgtype for c in rd.connections} == {
             "/boxloc/grasp_poses": "geometry_msgs/msg/PoseArray",
-            "/boxloc/surfaces": "visualization_msgs/msg/MarkerArray"}
+            "/boxloc/surfaces": "visualization_msgs/msg/MarkerArray",
+            "/boxloc/ambiguous": "visualization_msgs/msg/MarkerArray"}
         msgs = [(c.topic, t, rd.deserialize(raw, c.msgtype)) for c, t, raw in rd.messages()]
     poses = [m for topic, _, m in msgs if topic == "/boxloc/grasp_poses"]
     marks = [m for topic, _, m in msgs if topic == "/boxloc/surfaces"]
@@ -497,7 +498,7 @@ def test_publish_ros2_writes_poses_and_markers_standard_tools_read(
         rd2 = make_reader(f, decoder_factories=[DecoderFactory()])
         n = sum(1 for _ in rd2.iter_decoded_messages())
         assert rd2.get_header().profile == "ros2"
-    assert n == 4
+    assert n == 6  # poses, rectangles and ambiguous regions of two scans
     doctor = shutil.which("pymcap-cli", path=str(Path(sys.executable).parent)) or "pymcap-cli"
     d = subprocess.run([doctor, "doctor", str(out)], capture_output=True, text=True, timeout=120)
     assert d.returncode == 0, d.stdout + d.stderr

@@ -16,8 +16,18 @@ in its frame (the bag's ``frame_id``, else boxloc's ``sensor``):
     green for the first pick, orange for the others) and its pick order as text
     (``boxloc/pick_order``).
 
-A scan with no surface gets an empty PoseArray and only the ``DELETEALL``; a scan whose
-pipeline failed gets nothing. The log time of both messages is the scan's capture time
+``/boxloc/ambiguous`` (``visualization_msgs/msg/MarkerArray``)
+    The flat regions that may hold several boxes but that no evidence splits
+    (:class:`boxloc.products.AmbiguousSet`, the ``ambiguous`` list of ``locate``): never
+    surfaces, so the cell can push, re-scan or ask. A ``DELETEALL``, then per region a
+    closed magenta ``LINE_STRIP`` of its outline (namespace ``boxloc/ambiguous``, id = the
+    region's ``id`` in the ``locate`` JSON) and its reason as text at its centre
+    (``boxloc/ambiguous_reason``, same id; the lower-case
+    :class:`boxloc.products.AmbiguityReason` name, e.g. ``larger_than_max_box``).
+
+A scan with no surface gets an empty PoseArray and only the ``DELETEALL``s; a scan whose
+pipeline failed gets nothing (all three are written when the scan's result is complete).
+The log time of every message is the scan's capture time
 (:func:`recorder.mcap.channels.scan_log_time`), so the bag lines up with the original one.
 """
 
@@ -33,10 +43,14 @@ from boxloc.errors import InputError
 from boxloc.observer import NullObserver
 from boxloc.scan import Scan
 
-__all__ = ["GRASP_TOPIC", "MARKER_TOPIC", "Ros2Publisher", "grasp_orientation"]
+__all__ = ["AMBIGUOUS_NS", "AMBIGUOUS_REASON_NS", "AMBIGUOUS_TOPIC", "GRASP_TOPIC",
+           "MARKER_TOPIC", "Ros2Publisher", "grasp_orientation"]
 
 GRASP_TOPIC = "/boxloc/grasp_poses"
 MARKER_TOPIC = "/boxloc/surfaces"
+AMBIGUOUS_TOPIC = "/boxloc/ambiguous"
+#: Marker namespaces of the ambiguous regions: outlines, reasons.
+AMBIGUOUS_NS, AMBIGUOUS_REASON_NS = "boxloc/ambiguous", "boxloc/ambiguous_reason"
 #: Line width of the rectangles, metres: visible at a few metres, thinner than a box edge.
 LINE_WIDTH_M = 0.005
 #: Height of the pick-order text, metres.
@@ -46,6 +60,8 @@ _ARROW, _LINE_STRIP, _TEXT = 0, 4, 9
 _ADD, _DELETEALL = 0, 3
 _FIRST = (0.1, 0.9, 0.2, 1.0)
 _OTHER = (1.0, 0.55, 0.0, 1.0)
+#: magenta, as the Rerun view draws them (world/ambiguous): not a pick, look before acting
+_AMBIGUOUS = (1.0, 0.0, 1.0, 1.0)
 
 
 def grasp_orientation(x_axis: np.ndarray, normal: np.ndarray) -> np.ndarray:
@@ -95,15 +111,22 @@ class Ros2Publisher(NullObserver):
         self.n_scans = 0
         self._closed = False
 
-    def on_surfaces(self, scan: Scan, surfaces: Any) -> None:
-        from scipy.spatial.transform import Rotation
-
+    def on_result(self, scan: Scan, result: Any) -> None:
+        """Write the scan's grasp poses, rectangles and ambiguous regions (all or nothing:
+        only a scan whose pipeline finished has a result)."""
         from boxloc.io.rosbag import header
         from recorder.mcap.channels import scan_log_time
 
-        T = self._w.types
         t = scan_log_time(scan.capture_time_ns, scan.index)
-        hdr = header(T, t, _frame_of(scan))
+        hdr = header(self._w.types, t, _frame_of(scan))
+        self._surfaces(hdr, t, result.surfaces)
+        self._ambiguous(hdr, t, result.ambiguous)
+        self.n_scans += 1
+
+    def _surfaces(self, hdr: Any, t: int, surfaces: Any) -> None:
+        from scipy.spatial.transform import Rotation
+
+        T = self._w.types
         order = np.argsort(np.asarray(surfaces.pick_order), kind="stable")
         poses, markers = [], [self._marker(hdr, "", 0, _ARROW, _DELETEALL, (0, 0, 0, 0))]
         Point, Quat = T["geometry_msgs/msg/Point"], T["geometry_msgs/msg/Quaternion"]
@@ -130,7 +153,28 @@ class Ros2Publisher(NullObserver):
             markers.append(text)
         self._w.write(GRASP_TOPIC, T["geometry_msgs/msg/PoseArray"](header=hdr, poses=poses), t)
         self._w.write(MARKER_TOPIC, T["visualization_msgs/msg/MarkerArray"](markers=markers), t)
-        self.n_scans += 1
+
+    def _ambiguous(self, hdr: Any, t: int, ambiguous: Any) -> None:
+        from boxloc.products import AmbiguityReason
+
+        T = self._w.types
+        Point = T["geometry_msgs/msg/Point"]
+        markers = [self._marker(hdr, "", 0, _ARROW, _DELETEALL, (0, 0, 0, 0))]
+        for k in range(len(ambiguous)):
+            ring = np.asarray(ambiguous.corners[k], np.float64)
+            line = self._marker(hdr, AMBIGUOUS_NS, k, _LINE_STRIP, _ADD, _AMBIGUOUS)
+            line.points = [Point(x=float(p[0]), y=float(p[1]), z=float(p[2]))
+                           for p in (*ring, ring[0])]
+            line.scale.x = LINE_WIDTH_M
+            markers.append(line)
+            text = self._marker(hdr, AMBIGUOUS_REASON_NS, k, _TEXT, _ADD, _AMBIGUOUS)
+            c = ring.mean(axis=0)
+            text.pose.position = Point(x=float(c[0]), y=float(c[1]), z=float(c[2]))
+            text.scale.z = TEXT_HEIGHT_M
+            text.text = AmbiguityReason(int(ambiguous.reason[k])).name.lower()
+            markers.append(text)
+        self._w.write(AMBIGUOUS_TOPIC, T["visualization_msgs/msg/MarkerArray"](markers=markers),
+                      t)
 
     def _marker(self, hdr: Any, ns: str, ident: int, kind: int, action: int,
                 color: tuple[float, float, float, float]) -> Any:
