@@ -11,16 +11,19 @@ Usage (from the repository's root, with the project's venv)::
 
     .venv/bin/python scripts/bench_tables.py [--matrix FILE] [--real FILE] [--sim FILE]
                                              [--packed FILE] [--bare FILE]
+                                             [--speed FILE] [--footprint FILE]
                                              [--date D] [--commit C] [--command CMD]
     .venv/bin/python scripts/bench_tables.py --check
 
 1. Each report given (``bench_matrix.json`` of ``boxloc bench --matrix``, ``bench_real.json``
    of ``bench --real``, ``bench.json`` of ``bench``, ``bench_packed.json`` of ``bench
-   --packed``, ``bench_bare.json`` of ``python -m boxloc.evaluate.bare_bench``) is checked
-   against its schema, trimmed
-   of its per-scan rows (``scenes``, ``frames``, per-scan times: the raw file is hundreds
-   of kB) and written to ``docs/results/<its name>`` with a ``provenance`` section: the
-   date, the commit and the command that produced it. The reports carry none of the three,
+   --packed``, ``bench_bare.json`` of ``python -m boxloc.evaluate.bare_bench``,
+   ``bench_speed.json`` of ``scripts/profile_stages.py --out``, and, as
+   ``bench_footprint.json``, the ``bench.json`` of ``boxloc bench --section recording``) is
+   checked against its schema, trimmed of its per-scan rows (``scenes``, ``frames``,
+   per-scan times: the raw file is hundreds of kB) and written to ``docs/results/<its
+   name>`` with a ``provenance`` section: the date, the commit and the command that produced
+   it. The reports (but the speed report, which records its own) carry none of the three,
    so they come from ``--date``, ``--commit`` and ``--command`` when given, else the date
    is the file's modification time, the commit the last one before the run began (marked
    ``inferred``: the run may have had uncommitted changes) and the command is
@@ -34,7 +37,9 @@ the wrong schema, an unknown region or a region left open exits 2 with one line.
 Regions: ``bench:matrix:{summary,targets,kinds,cells,stages}``,
 ``bench:real:{summary,targets,draws,inputs,stages}``,
 ``bench:sim:{summary,kinds,draws,stages}``, ``bench:packed:{summary,targets}``,
-``bench:bare:{summary,targets,tests}``, each closed by ``<!-- /bench -->``; and
+``bench:bare:{summary,targets,tests}``, ``bench:speed:summary``,
+``bench:footprint:{summary,channels}`` (the summary also reads the speed report's peak RSS),
+each closed by ``<!-- /bench -->``; and
 ``log:channels`` (from :data:`recorder.mcap.channels.CHANNELS`), closed by ``<!-- /log -->``.
 """
 
@@ -92,6 +97,11 @@ class Kind:
         Dotted keys trimmed from the committed copy (per-scan rows).
     make : str
         How to make the report (a region's text while it is absent).
+    source : str or None
+        The name of the file the bench writes, when not ``file``.
+    uses : tuple of str
+        Other kinds whose reports this kind's tables also read (keyword arguments of the
+        renderers, None while absent).
     """
 
     name: str
@@ -100,6 +110,8 @@ class Kind:
     required: tuple[str, ...]
     drop: tuple[str, ...]
     make: str
+    source: str | None = None
+    uses: tuple[str, ...] = ()
 
 
 KINDS: dict[str, Kind] = {
@@ -130,6 +142,16 @@ KINDS: dict[str, Kind] = {
                   "timeouts", "errors"),
                  ("scenes",),
                  "python -m boxloc.evaluate.bare_bench --n 100 --jobs 2 --out DIR"),
+    "speed": Kind("speed", "bench_speed.json", "boxloc.bench_speed/1",
+                  ("suite", "n", "seed", "size", "scans", "stages_ms", "wall_ms", "baseline",
+                   "targets", "memory", "machine"),
+                  ("per_scan_ms",),
+                  "nice .venv/bin/python scripts/profile_stages.py --suite matrix --n 32 "
+                  "--out DIR/bench_speed.json"),
+    "footprint": Kind("footprint", "bench_footprint.json", None,
+                      ("n", "seed", "config", "config_hash", "sections"), (),
+                      "boxloc bench --section recording --out DIR", source="bench.json",
+                      uses=("speed",)),
 }
 
 
@@ -149,6 +171,9 @@ def check_report(report: Any, kind: Kind, where: str) -> None:
         raise ToolError(f"{where}: not a {kind.file} report: no {', '.join(missing)}")
     if kind.name == "sim" and report.get("mode") is not None:
         raise ToolError(f"{where}: a {report['mode']!r} report, not a {kind.file}")
+    if kind.name == "footprint" and not isinstance(
+            (report.get("sections") or {}).get("recording"), dict):
+        raise ToolError(f"{where}: no recording section (make it with `{kind.make}`)")
 
 
 def load_json(path: Path) -> Any:
@@ -188,6 +213,10 @@ def _run_seconds(report: dict[str, Any]) -> float:
     t = report.get("timing", {})
     if isinstance(t.get("run_s"), int | float):
         return float(t["run_s"])
+    tp = ((report.get("sections") or {}).get("recording") or {}).get("throughput") or {}
+    if tp.get("runs"):  # the recording section: its throughput runs, a lower bound
+        return sum(float(r.get("wall_s") or 0) + float(r.get("first_scans_wall_s") or 0)
+                   for r in tp["runs"])
     total = 0.0
     for m in t.values() if isinstance(t, dict) else ():
         for key in ("per_frame_ms", "per_scene_total_ms"):
@@ -222,6 +251,15 @@ def _config_sets(config: dict[str, Any], skip: set[str]) -> list[str]:
 def reconstruct_command(report: dict[str, Any], kind: Kind) -> str:
     """The ``boxloc bench`` command line that produced ``report``, from its fields."""
     seeds = int(report.get("seeds", {}).get("n", 1))
+    if kind.name == "speed":
+        return (f"python scripts/profile_stages.py --suite {report['suite']} --n {report['n']} "
+                f"--seed {report['seed']} --size {report['size']}"
+                + (" --no-baseline" if report.get("baseline") is None else "")
+                + " --out DIR/bench_speed.json")
+    if kind.name == "footprint":
+        return " ".join([f"boxloc bench --section recording --n {report['n']} --seed "
+                         f"{report['seed']}", *_config_sets(report["config"], set()),
+                         "--out DIR"])
     if kind.name == "packed":
         return (f"boxloc bench --packed --n {report['n']} --seed {report['seed']} "
                 f"--seeds {seeds} --jobs {report.get('jobs', 1)} "
@@ -330,6 +368,8 @@ def table(head: Sequence[str], rows: Sequence[Sequence[str]]) -> str:
 def stamp(report: dict[str, Any], kind: Kind, link: str) -> str:
     p = report.get("provenance", {})
     commit = p.get("commit", "unknown") + (" (inferred)" if p.get("commit_inferred") else "")
+    if p.get("dirty") == "true":
+        commit += " with uncommitted changes"
     cmd = p.get("command") or reconstruct_command(report, kind)
     how = " (reconstructed)" if p.get("command_reconstructed") else ""
     return (f"*{p.get('date', 'date unknown')}, commit {commit}, boxloc "
@@ -763,7 +803,133 @@ def bare_tests(r: dict[str, Any]) -> str:
     return table(["test kind", *[s for s, _ in groups]], rows) + "\n\n" + note
 
 
-RENDERERS: dict[str, dict[str, Callable[[dict[str, Any]], str]]] = {
+# --- speed (bench_speed.json, scripts/profile_stages.py) ---------------------------------------
+
+
+def _ms(v: Any) -> str:
+    return num(v, 1)
+
+
+def _times(x: Any) -> str:
+    return "–" if x is None else f"{x:.2f}×"
+
+
+def speed_summary(r: dict[str, Any]) -> str:
+    rows = []
+    for name, f in r["stages_ms"].items():
+        share = f.get("share")
+        label = "**total**" if name == "total" else name
+        rows.append([label, _ms(f.get("median")), _ms(f.get("p99")), _ms(f.get("max")),
+                     "" if share is None else f"{100 * share:.0f} %"])
+    base = r.get("baseline")
+    if base is not None:
+        bw, ratio = base.get("wall_ms") or {}, base.get("ratio") or {}
+        errs = len(base.get("errors") or [])
+        rows.append(["open3d baseline, same scans" + (f" ({errs} crashed)" if errs else ""),
+                     _ms(bw.get("median")), _ms(bw.get("p99")), _ms(bw.get("max")), ""])
+        rows.append(["boxloc / baseline (time)", _times(ratio.get("median")),
+                     _times(ratio.get("p99")), "", ""])
+    goals = {t.get("key"): t for t in r["targets"]}
+    rows.append(["target (issue 22)", *[
+        f"≤ {num(goals[k].get('bound_ms'), 0)}: {verdict(goals[k].get('pass'))}"
+        if k in goals else "" for k in ("median", "p99")], "", ""])
+    m, mc = r["memory"], r["machine"]
+    note = (f"{r['scans']} scans of `{r['suite']}_suite({r['n']}, {r['seed']})` at "
+            f"{r['size']}, one process, numba and BLAS on one thread, after a warm-up scan; "
+            f"stages from `Result.timing_ms`. Peak RSS {num(m.get('process_max_rss_mb'), 0)} "
+            f"MB. {mc.get('cpu_count')} cores shared with other jobs (load average "
+            f"{num(mc.get('load_average_1min_before'), 1)} before, "
+            f"{num(mc.get('load_average_1min_after'), 1)} after): times vary 10–20 % "
+            "between runs.")
+    return (table(["stage", "median (ms)", "p99 (ms)", "max (ms)", "share of median total"],
+                  rows) + "\n\n" + note)
+
+
+# --- footprint (bench_footprint.json, boxloc bench --section recording) ------------------------
+
+
+def _goal(sec: dict[str, Any], metric: str, percent: bool = False) -> tuple[str, str]:
+    """The bound and verdict of the section's target on ``metric``, or two empty cells.
+
+    The recording section names a target by its condition (``"mcap_fraction <= 0.05"``,
+    ``"run --workers 2 >= 1.8x scans/s of --workers 1"``): the bound is what follows the
+    metric, its operator as a sign, a fraction as a percentage when ``percent``.
+    """
+    signs = {"<=": "≤", ">=": "≥", "==": "="}
+    for key, ok in (sec.get("targets") or {}).items():
+        m = re.fullmatch(re.escape(metric) + r"\s*(<=|>=|==)\s*(\S+)(.*)", key)
+        if m is None:
+            continue
+        op, value, rest = m.groups()
+        if op == "==":
+            return "equal", verdict(ok)
+        if percent:
+            try:
+                value = f"{100 * float(value):g} %"
+            except ValueError:
+                pass
+        value = re.sub(r"^(\d+(?:\.\d+)?)x$", r"\1×", value)
+        return f"{signs[op]} {value}{rest}", verdict(ok)
+    return "", ""
+
+
+def _pct(v: Any) -> str:
+    return "–" if v is None else f"{100 * v:.1f} %"
+
+
+def footprint_summary(r: dict[str, Any], speed: dict[str, Any] | None = None) -> str:
+    sec = r["sections"]["recording"]
+    tp = sec.get("throughput") or {}
+    runs = {int(x["workers"]): x for x in tp.get("runs", [])}
+    rows = [["MCAP log per 640×480 scan (file / scans)",
+             f"{num(sec.get('mcap_bytes_per_scan', 0) / 1e6, 2)} MB (largest scan "
+             f"{num(sec.get('mcap_max_scan_bytes', 0) / 1e6, 2)} MB)",
+             *_goal(sec, "mcap_bytes_per_scan")],
+            ["MCAP: time in the recorder / pipeline",
+             f"{_pct(sec.get('mcap_fraction'))} (end to end "
+             f"{_pct(sec.get('mcap_end_to_end_fraction'))})", *_goal(sec, "mcap_fraction", True)],
+            ["Rerun: the sink's work / pipeline",
+             f"{_pct(sec.get('rerun_fraction'))} (end to end "
+             f"{_pct(sec.get('rerun_end_to_end_fraction'))})",
+             *_goal(sec, "rerun_fraction", True)],
+            ["Rerun .rrd per scan", f"{num(sec.get('rrd_bytes_per_scan', 0) / 1e6, 2)} MB",
+             "", ""]]
+    if runs:
+        shares = " / ".join(num(runs[w].get("core_share"), 2) for w in sorted(runs))
+        rows.append([f"`run --workers 2` / `--workers 1`, scans/s ({tp.get('scans')} scans)",
+                     f"{_times(tp.get('speedup'))} (steady {_times(tp.get('steady_speedup'))};"
+                     f" core shares {shares})", *_goal(sec, "run --workers 2")])
+        rows.append(["`--workers 2` log = `--workers 1` log", num(tp.get("same_log")),
+                     *_goal(sec, "run --workers 2 log")])
+    if speed is not None:
+        p = speed.get("provenance", {})
+        rows.append([f"peak RSS, one process at {speed.get('size')}",
+                     f"{num(speed['memory'].get('process_max_rss_mb'), 0)} MB (speed run, "
+                     f"{p.get('commit', 'unknown')})", "", ""])
+    load = tp.get("load_average_1min")
+    note = (f"First {sec.get('scans')} scans of `scene_suite({r['n']}, {r['seed']})` "
+            "(640×480). A time share is the sink's own work over the pipeline's time (robust "
+            "on a busy machine; end to end is noisier). Throughput: `boxloc run DIR --record "
+            f"LOG` processes on {tp.get('cpu_count')} cores shared with other jobs (load "
+            f"average {num(load, 1)}): a core share below 1 means other work took the rest, "
+            "so the ratio is not an idle machine's.")
+    return table(["figure", "measured", "target (issue 22)", ""], rows) + "\n\n" + note
+
+
+def footprint_channels(r: dict[str, Any], **_uses: Any) -> str:
+    # every table of the kind is given the reports it uses (Kind.uses); this one reads none
+    ch = r["sections"]["recording"].get("mcap_kb_per_scan_by_channel") or {}
+    total = sum(float(v) for v in ch.values()) or 1.0
+    rows = [[f"`{t}`", num(float(v), 1), f"{100 * float(v) / total:.1f} %"]
+            for t, v in sorted(ch.items(), key=lambda kv: -float(kv[1]))]
+    return (table(["channel", "kB per scan (zstd, alone)", "share"], rows)
+            + "\n\nEach channel's messages of a scan compressed alone at the recorder's level; "
+            "the log compresses a scan's channels together, so they add up to about its "
+            "size, not exactly.")
+
+
+
+RENDERERS: dict[str, dict[str, Callable[..., str]]] = {
     "matrix": {"summary": matrix_summary, "targets": matrix_targets, "kinds": matrix_kinds,
                "cells": matrix_cells, "stages": matrix_stages},
     "real": {"summary": real_summary, "targets": real_targets, "draws": real_draws,
@@ -772,6 +938,8 @@ RENDERERS: dict[str, dict[str, Callable[[dict[str, Any]], str]]] = {
             "stages": sim_stages},
     "packed": {"summary": packed_summary, "targets": packed_targets},
     "bare": {"summary": bare_summary, "targets": bare_targets, "tests": bare_tests},
+    "speed": {"summary": speed_summary},
+    "footprint": {"summary": footprint_summary, "channels": footprint_channels},
 }
 
 
@@ -828,10 +996,10 @@ def render_region(family: str, name: str, reports: Reports, doc: Path) -> str:
     link = os.path.relpath(path, doc.parent).replace(os.sep, "/")
     if rep is None:
         return (f"*No report yet. Run `{kind.make}`, then `python scripts/bench_tables.py "
-                f"--{kind.name} DIR/{kind.file}` (it writes `{RESULTS_DIR.as_posix()}/{kind.file}` "
-                "and this table).*")
+                f"--{kind.name} DIR/{kind.source or kind.file}` (it writes "
+                f"`{RESULTS_DIR.as_posix()}/{kind.file}` and this table).*")
     try:
-        body = fn(rep)
+        body = fn(rep, **{k: reports.get(KINDS[k]) for k in kind.uses})
     except (KeyError, TypeError, ValueError, AttributeError) as e:
         raise ToolError(f"{path.relative_to(reports.root)}: cannot make bench:{name} "
                         f"({type(e).__name__}: {e})") from None
@@ -886,7 +1054,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             raise ToolError("--command names one report's command: give one report with it")
         if not given and (args.date or args.commit or args.command):
             raise ToolError("--date, --commit and --command stamp a report given with "
-                            "--matrix, --real, --sim, --packed or --bare")
+                            + ", ".join(f"--{k}" for k in KINDS))
         for kind, path in given:
             out = ingest(path, kind, root, date=args.date, commit=args.commit,
                          command=args.command)

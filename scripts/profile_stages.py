@@ -7,13 +7,40 @@ warm-up scan; the table gives each stage's median, p99 and maximum of
 adds the K functions with the most own time under cProfile (a second pass, since the
 profiler slows Python code several-fold: its times are for ranking, not for the table).
 
+The open3d baseline (:func:`boxloc.evaluate.baseline.baseline_surfaces`, as ``boxloc bench``
+runs it) is timed on the same scans after the pipeline, unless ``--no-baseline``; the
+report gives the pipeline's median and p99 over the baseline's. The thread pools are pinned
+to one thread as ``boxloc bench`` pins them (the targets of issue 22 are per core).
+
+``--out FILE`` writes the figures as JSON (schema :data:`SCHEMA`), for
+``scripts/bench_tables.py --speed FILE``:
+
+- ``schema``, ``version``, ``suite``, ``n``, ``seed``, ``size`` (``"WxH"`` or ``"native"``),
+  ``scans``, ``pixels`` (median per scan), ``config_hash``, ``threads``, ``warmup``
+- ``stages_ms``: per stage in pipeline order, then ``total`` (``Result.timing_ms``):
+  ``median``, ``p99``, ``max`` (ms) and ``share`` (of the median total)
+- ``wall_ms``: ``median``, ``p99``, ``max`` of the whole call (ms, ``perf_counter``)
+- ``baseline``: null with ``--no-baseline``, else ``wall_ms`` (the same figures for
+  ``baseline_surfaces``), ``errors`` and ``ratio`` (boxloc's ``total`` over the baseline's
+  wall time: ``median``, ``p99``)
+- ``targets``: ``name``, ``key``, ``bound_ms``, ``value_ms``, ``pass``
+- ``memory``: the process's peak resident set (``ru_maxrss``, MB) after simulating and the
+  warm-up scan (``process_max_rss_mb_before``), after the timed pipeline runs
+  (``process_max_rss_mb``: the pipeline's peak, simulation included) and, with the
+  baseline, after it (``process_max_rss_mb_with_baseline``)
+- ``machine``: ``cpu_count``, ``load_average_1min`` before and after the timed runs (the
+  machine is shared: a load above its one busy core means other work competed)
+- ``run_s``: the timed pipeline runs, seconds; ``per_scan_ms``: each scan's total
+- ``provenance``: ``date`` (UTC, end of the run), ``commit`` and ``dirty`` of the boxloc
+  source tree that ran (:func:`recorder.mcap.sink.git_info`), ``command``
+
 Run it on one core, with nothing else busy, e.g.::
 
-    nice .venv/bin/python scripts/profile_stages.py --suite matrix --n 32
+    nice .venv/bin/python scripts/profile_stages.py --suite matrix --n 32 --out speed.json
     nice .venv/bin/python scripts/profile_stages.py --suite scene --n 12 --cprofile 25
 
 Usage: python scripts/profile_stages.py [--suite scene|matrix] [--n N] [--seed S]
-[--size WxH|native] [--cprofile K] [--scans-cache DIR]
+[--size WxH|native] [--cprofile K] [--scans-cache DIR] [--no-baseline] [--out FILE]
 """
 
 from __future__ import annotations
@@ -21,21 +48,31 @@ from __future__ import annotations
 import argparse
 import cProfile
 import dataclasses
+import datetime as dt
 import hashlib
 import io
+import json
 import math
+import os
 import pickle
 import pstats
+import shlex
 import sys
 import time
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-import numpy as np
+# numpy is imported in the functions: the thread pools are pinned before it loads (main)
 
 #: The stages in pipeline order (``boxloc.pipeline``), then the total.
 STAGES = ("noise", "edges", "lines", "up", "vertices", "hypotheses", "select", "surfaces",
           "total")
+#: The report's ``schema`` (``scripts/bench_tables.py --speed`` checks it).
+SCHEMA = "boxloc.bench_speed/1"
+#: Issue 22's targets for one 640x480 scan on one core: (name, key of ``stages_ms.total``,
+#: bound in ms).
+TARGETS = (("median time per scan", "median", 100.0), ("p99 time per scan", "p99", 500.0))
 
 
 def _specs(suite: str, n: int, seed: int, size: tuple[int, int] | None) -> list[Any]:
@@ -72,25 +109,131 @@ def _scans(specs: list[Any], cache: Path | None) -> list[Any]:
     return out
 
 
-def _p99(x: np.ndarray) -> float:
-    # the 99th percentile by linear interpolation (numpy's default); with fewer than 100
-    # scenes it lies between the two largest
-    return float(np.percentile(x, 99)) if x.size else math.nan
+def figures(values: Sequence[float]) -> dict[str, float | None]:
+    """Median, p99 and maximum of durations (ms); None each when there are none.
+
+    The 99th percentile is numpy's linear interpolation: with fewer than 100 scans it lies
+    between the two largest.
+    """
+    import numpy as np
+
+    x = np.asarray([v for v in values if math.isfinite(v)], dtype=np.float64)
+    if not x.size:
+        return {"median": None, "p99": None, "max": None}
+    return {"median": round(float(np.median(x)), 3),
+            "p99": round(float(np.percentile(x, 99)), 3), "max": round(float(x.max()), 3)}
+
+
+def stage_figures(times: dict[str, list[float]]) -> dict[str, dict[str, float | None]]:
+    """:func:`figures` per stage in pipeline order (stages the runs did not time last),
+    each with ``share``: its median over the median total."""
+    names = [k for k in STAGES if k in times] + [k for k in times if k not in STAGES]
+    out = {k: figures(times[k]) for k in names}
+    total = out.get("total", {}).get("median")
+    for k, f in out.items():
+        med = f["median"]
+        f["share"] = (round(med / total, 4) if k != "total" and total and med is not None
+                      else None)
+    return out
 
 
 def stage_table(times: dict[str, list[float]]) -> str:
     """The markdown table of per-stage times (ms): median, p99, max, share of the total."""
-    total = float(np.median(times["total"])) if times.get("total") else math.nan
     lines = ["| stage | median ms | p99 ms | max ms | share of median total |",
              "|---|---:|---:|---:|---:|"]
-    for name in STAGES:
-        if name not in times:
-            continue
-        x = np.asarray(times[name], dtype=np.float64)
-        med = float(np.median(x))
-        share = f"{100 * med / total:.0f} %" if name != "total" and total > 0 else ""
-        lines.append(f"| {name} | {med:.1f} | {_p99(x):.1f} | {float(x.max()):.1f} | {share} |")
+    for name, f in stage_figures(times).items():
+        share = "" if f["share"] is None else f"{100 * f['share']:.0f} %"
+        lines.append(f"| {name} | {f['median']:.1f} | {f['p99']:.1f} | {f['max']:.1f} | "
+                     f"{share} |")
     return "\n".join(lines)
+
+
+def _ratio(a: float | None, b: float | None) -> float | None:
+    return round(a / b, 3) if a is not None and b else None
+
+
+def _target(name: str, key: str, bound: float, value: float | None) -> dict[str, Any]:
+    return {"name": name, "key": key, "bound_ms": bound, "value_ms": value,
+            "pass": None if value is None else bool(value <= bound)}
+
+
+def _load() -> float | None:
+    return round(os.getloadavg()[0], 2) if hasattr(os, "getloadavg") else None
+
+
+def time_baseline(scans: list[Any], config: Any) -> tuple[list[float], list[str]]:
+    """Wall time (ms) of the open3d baseline on each scan, after one untimed warm-up call,
+    and its errors (one line each: a crash is reported, not timed)."""
+    from boxloc.evaluate.baseline import baseline_surfaces
+
+    baseline_surfaces(scans[0], config=config)  # open3d's first call sets up its pools
+    walls, errors = [], []
+    for scan in scans:
+        t0 = time.perf_counter()
+        try:
+            baseline_surfaces(scan, config=config)
+        except Exception as e:  # noqa: BLE001 - a crash on one scan is a result
+            errors.append(f"scan {scan.index}: {type(e).__name__}: {e}".splitlines()[0])
+            continue
+        walls.append((time.perf_counter() - t0) * 1e3)
+    return walls, errors
+
+
+def speed_report(times: dict[str, list[float]], walls: list[float],
+                 baseline: tuple[list[float], list[str]] | None, *, suite: str, n: int,
+                 seed: int, size: tuple[int, int] | None, pixels: list[int], config: Any,
+                 threads: dict[str, Any], run_s: float, rss_mb: tuple[float, float],
+                 load: tuple[float | None, float | None], argv: Sequence[str]
+                 ) -> dict[str, Any]:
+    """The JSON report of a profile run (layout in the module's docstring).
+
+    Parameters
+    ----------
+    times : dict of str to list of float
+        ``Result.timing_ms`` per stage, one value per scan, ms.
+    walls : list of float
+        The whole ``find_graspable_surfaces`` call per scan, ms.
+    baseline : (list of float, list of str) or None
+        :func:`time_baseline`'s walls (ms) and errors; None when not run.
+    rss_mb : (float, float)
+        The process's peak RSS (MB) before and after the timed pipeline runs.
+    """
+    import boxloc
+    from boxloc.evaluate.scene_bench import process_max_rss_mb
+    from recorder.mcap.sink import git_info
+
+    stages = stage_figures(times)
+    total = stages.get("total", figures([]))
+    base = None
+    if baseline is not None:
+        bw = figures(baseline[0])
+        base = {"wall_ms": bw, "errors": baseline[1],
+                "ratio": {q: _ratio(total[q], bw[q]) for q in ("median", "p99")}}
+    commit, dirty = git_info()
+    return {
+        "schema": SCHEMA, "version": boxloc.__version__, "suite": suite, "n": n, "seed": seed,
+        "size": "native" if size is None else f"{size[0]}x{size[1]}", "scans": len(walls),
+        "pixels": int(sorted(pixels)[len(pixels) // 2]) if pixels else 0,
+        "config_hash": config.hash, "threads": threads, "warmup": True,
+        "stages_ms": stages, "wall_ms": figures(walls), "baseline": base,
+        "targets": [_target(name, key, bound, total[key]) for name, key, bound in TARGETS],
+        "memory": {"process_max_rss_mb_before": round(rss_mb[0], 1),
+                   "process_max_rss_mb": round(rss_mb[1], 1),
+                   "process_max_rss_mb_with_baseline": None if baseline is None else
+                   round(process_max_rss_mb(), 1)},
+        "machine": {"cpu_count": os.cpu_count(), "load_average_1min_before": load[0],
+                    "load_average_1min_after": load[1]},
+        "run_s": round(run_s, 3),
+        "per_scan_ms": [round(v, 3) for v in times.get("total", [])],
+        "provenance": {
+            "date": dt.datetime.now(dt.UTC).strftime("%Y-%m-%d %H:%M UTC"),
+            "commit": commit[:7] if commit != "unknown" else commit,
+            "commit_inferred": False, "dirty": dirty,
+            "command": " ".join(["python scripts/profile_stages.py",
+                                 *map(shlex.quote, argv)]),
+            "command_reconstructed": False,
+        },
+    }
 
 
 def profile_table(stats: pstats.Stats, k: int) -> str:
@@ -105,8 +248,9 @@ def profile_table(stats: pstats.Stats, k: int) -> str:
     return "\n".join(lines)
 
 
-def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+def main(argv: Sequence[str] | None = None) -> int:
+    argv = list(sys.argv[1:] if argv is None else argv)
+    ap = argparse.ArgumentParser(description=(__doc__ or "").splitlines()[0])
     ap.add_argument("--suite", choices=("scene", "matrix"), default="matrix")
     ap.add_argument("--n", type=int, default=32, help="scenes (default 32: each matrix cell once)")
     ap.add_argument("--seed", type=int, default=0)
@@ -116,6 +260,10 @@ def main(argv: list[str] | None = None) -> int:
                     help="also list the K functions with the most own time")
     ap.add_argument("--scans-cache", type=Path, default=None, metavar="DIR",
                     help="keep the simulated scans here (pickles) for repeated runs")
+    ap.add_argument("--no-baseline", action="store_true",
+                    help="do not time the open3d baseline on the same scans")
+    ap.add_argument("--out", type=Path, default=None, metavar="FILE",
+                    help="write the figures as JSON (for scripts/bench_tables.py --speed)")
     a = ap.parse_args(argv)
     if a.n < 1:
         print(f"profile_stages: --n must be >= 1, got {a.n}", file=sys.stderr)
@@ -130,23 +278,48 @@ def main(argv: list[str] | None = None) -> int:
             return 2
         size = (w, h)
 
+    # one core, as `boxloc bench` measures: pin the pools before numpy and numba load
+    for var in ("OMP_NUM_THREADS", "NUMBA_NUM_THREADS", "OPENBLAS_NUM_THREADS"):
+        os.environ.setdefault(var, "1")
     from boxloc.config import Config
+    from boxloc.evaluate.scene_bench import _limit_threads, process_max_rss_mb
     from boxloc.pipeline import find_graspable_surfaces
 
+    threads = _limit_threads()
     config = Config()
     scans = _scans(_specs(a.suite, a.n, a.seed, size), a.scans_cache)
     find_graspable_surfaces(scans[0], config)  # numba kernels and lazy tables, not timed
+    rss_before = process_max_rss_mb()
+    load_before = _load()
     times: dict[str, list[float]] = {}
+    walls: list[float] = []
     t0 = time.perf_counter()
     for scan in scans:
+        t1 = time.perf_counter()
         res = find_graspable_surfaces(scan, config)
+        walls.append((time.perf_counter() - t1) * 1e3)
         for k, v in res.timing_ms.items():
             times.setdefault(k, []).append(float(v))
     wall = time.perf_counter() - t0
+    load_after = _load()
+    rss_after = process_max_rss_mb()
+    baseline = None if a.no_baseline else time_baseline(scans, config)
     shape = "native sizes" if size is None else f"{size[0]}x{size[1]}"
     print(f"Per-stage time over {a.n} scenes of `{a.suite}_suite({a.n}, {a.seed})` at {shape} "
           f"(ms, `Result.timing_ms`; {wall:.1f} s in all):\n")
     print(stage_table(times))
+    if a.out is not None:
+        report = speed_report(times, walls, baseline, suite=a.suite, n=a.n, seed=a.seed,
+                              size=size, pixels=[s.range.size for s in scans], config=config,
+                              threads=threads, run_s=wall, rss_mb=(rss_before, rss_after),
+                              load=(load_before, load_after), argv=argv)
+        if report["baseline"] is not None:
+            r = report["baseline"]["ratio"]
+            print(f"\nboxloc's total over the open3d baseline's time on the same scans: "
+                  f"median {r['median']}x, p99 {r['p99']}x")
+        a.out.parent.mkdir(parents=True, exist_ok=True)
+        a.out.write_text(json.dumps(report, indent=1) + "\n")
+        print(f"\nwrote {a.out}")
     if a.cprofile > 0:
         prof = cProfile.Profile()
         prof.enable()

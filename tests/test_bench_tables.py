@@ -626,3 +626,237 @@ def test_the_packed_and_bare_commands_are_rebuilt_from_the_reports() -> None:
     assert bt.reconstruct_command(rep, bt.KINDS["packed"]) == (
         "boxloc bench --packed --n 96 --seed 0 --seeds 1 --jobs 2 --held-out tof "
         "--scan-timeout 120 --out DIR")
+
+
+# --- speed and footprint (issue 22 part 6) -----------------------------------------------------
+
+PROFILE = ROOT / "scripts" / "profile_stages.py"
+
+SPEED_DOC = """# boxloc
+
+<!-- bench:speed:summary -->
+<!-- /bench -->
+
+<!-- bench:footprint:summary -->
+<!-- /bench -->
+
+<!-- bench:footprint:channels -->
+<!-- /bench -->
+"""
+
+
+def _stage(median: float, p99: float, mx: float, share: float | None) -> dict[str, Any]:
+    return {"median": median, "p99": p99, "max": mx, "share": share}
+
+
+def speed_report() -> dict[str, Any]:
+    """Shaped like scripts/profile_stages.py --out (two stages and the total)."""
+    return {
+        "schema": "boxloc.bench_speed/1", "version": "0.1.0", "suite": "matrix", "n": 32,
+        "seed": 0, "size": "640x480", "scans": 32, "pixels": 307200,
+        "config_hash": "feedc0de", "threads": {"numba_threads": 1}, "warmup": True,
+        "stages_ms": {"edges": _stage(104.0, 248.1, 253.7, 0.198),
+                      "hypotheses": _stage(280.7, 1193.9, 1271.0, 0.5338),
+                      "total": _stage(525.8, 1821.6, 2085.1, None)},
+        "wall_ms": {"median": 527.0, "p99": 1823.0, "max": 2086.0},
+        "baseline": {"wall_ms": {"median": 250.4, "p99": 455.4, "max": 470.0}, "errors": [],
+                     "ratio": {"median": 2.1, "p99": 4.0}},
+        "targets": [{"name": "median time per scan", "key": "median", "bound_ms": 100.0,
+                     "value_ms": 525.8, "pass": False},
+                    {"name": "p99 time per scan", "key": "p99", "bound_ms": 500.0,
+                     "value_ms": 1821.6, "pass": False}],
+        "memory": {"process_max_rss_mb_before": 400.0, "process_max_rss_mb": 612.4,
+                   "process_max_rss_mb_with_baseline": 700.0},
+        "machine": {"cpu_count": 2, "load_average_1min_before": 1.62,
+                    "load_average_1min_after": 2.5},
+        "run_s": 18.9, "per_scan_ms": [525.8] * 32,
+        "provenance": {"date": "2026-11-25 15:30 UTC", "commit": "4b381f9",
+                       "commit_inferred": False, "dirty": "false",
+                       "command": "python scripts/profile_stages.py --suite matrix --n 32 "
+                                  "--out /tmp/s.json",
+                       "command_reconstructed": False},
+    }
+
+
+def footprint_report() -> dict[str, Any]:
+    """Shaped like `boxloc bench --section recording --out DIR`'s bench.json."""
+    return {
+        "version": "0.1.0", "n": 100, "seed": 0, "config": {}, "config_hash": "feedc0de",
+        "threads": {"numba_threads": 1},
+        "sections": {"recording": {
+            "scans": 10, "mcap_fraction": 0.0449, "mcap_end_to_end_fraction": 0.229,
+            "mcap_bytes_per_scan": 1005461.8, "mcap_max_scan_bytes": 1184446,
+            "rerun_fraction": 0.0294, "rerun_end_to_end_fraction": 0.079,
+            "mcap_kb_per_scan_by_channel": {"/scan/range": 689.4, "/boxloc/edges": 142.8,
+                                            "/boxloc/result": 0.2},
+            "rrd_bytes_per_scan": 1816564.9,
+            "throughput": {"scans": 32, "runs": [
+                {"workers": 1, "wall_s": 33.8, "scans_per_s": 0.947, "cpu_s": 20.4,
+                 "core_share": 0.604, "first_scans_wall_s": 2.7},
+                {"workers": 2, "wall_s": 14.7, "scans_per_s": 2.18, "cpu_s": 19.0,
+                 "core_share": 0.648, "first_scans_wall_s": 2.7}],
+                "speedup": 2.302, "steady_speedup": 2.507, "cpu_bound_speedup": 2.147,
+                "same_log": True, "load_average_1min": 3.53, "cpu_count": 2},
+            "run_workers_speedup": 2.302,
+            "targets": {"mcap_fraction <= 0.05": True, "rerun_fraction <= 0.05": True,
+                        "mcap_bytes_per_scan <= 1 MB": False,
+                        "run --workers 2 >= 1.8x scans/s of --workers 1": True,
+                        "run --workers 2 >= 1.8x, steady state": True,
+                        "run --workers 2 log == --workers 1 log": True},
+        }},
+        "errors": {"total": 0, "list": []},
+    }
+
+
+@pytest.fixture()
+def speed_checkout(tmp_path: Path) -> Path:
+    root = tmp_path / "repo"
+    (root / "docs").mkdir(parents=True)
+    (root / "README.md").write_text(SPEED_DOC)
+    return root
+
+
+def test_speed_and_footprint_tables_come_from_their_reports(speed_checkout: Path,
+                                                            tmp_path: Path) -> None:
+    root = speed_checkout
+    # the footprint alone: its tables, and no peak-RSS row while the speed report is absent
+    assert _run(root, "--footprint", str(_write(tmp_path / "f" / "bench.json",
+                                                footprint_report())),
+                "--date", "2026-11-25 15:09 UTC", "--commit", "bc27de9") == 0
+    doc = (root / "README.md").read_text()
+    assert "peak RSS" not in doc
+    assert "*No report yet. Run `nice .venv/bin/python scripts/profile_stages.py" in doc
+    assert ("| MCAP log per 640×480 scan (file / scans) | 1.01 MB (largest scan 1.18 MB) | "
+            "≤ 1 MB | miss |") in doc
+    assert "| 4.5 % (end to end 22.9 %) | ≤ 5 % | pass |" in doc
+    assert "| 2.9 % (end to end 7.9 %) | ≤ 5 % | pass |" in doc
+    assert "| Rerun .rrd per scan | 1.82 MB |" in doc
+    assert ("| `run --workers 2` / `--workers 1`, scans/s (32 scans) | 2.30× (steady 2.51×; "
+            "core shares 0.60 / 0.65) | ≥ 1.8× scans/s of --workers 1 | pass |") in doc
+    assert "| `--workers 2` log = `--workers 1` log | yes | equal | pass |" in doc
+    assert "2 cores shared with other jobs (load average 3.5)" in doc
+    assert ("*2026-11-25 15:09 UTC, commit bc27de9, boxloc 0.1.0, config feedc0de: `boxloc "
+            "bench --section recording --n 100 --seed 0 --out DIR` (reconstructed); "
+            "[report](docs/results/bench_footprint.json).*") in doc
+    # by channel, largest first, with its share
+    assert "| `/scan/range` | 689.4 | 82.8 % |" in doc
+    assert doc.index("`/scan/range`") < doc.index("`/boxloc/edges`") < doc.index(
+        "`/boxloc/result`")
+    # then the speed report: its own provenance stamps the table; the footprint gains the row
+    assert _run(root, "--speed", str(_write(tmp_path / "s" / "bench_speed.json",
+                                            speed_report()))) == 0
+    doc = (root / "README.md").read_text()
+    assert ("*2026-11-25 15:30 UTC, commit 4b381f9, boxloc 0.1.0, config feedc0de: `python "
+            "scripts/profile_stages.py --suite matrix --n 32 --out /tmp/s.json`; "
+            "[report](docs/results/bench_speed.json).*") in doc
+    assert "| edges | 104.0 | 248.1 | 253.7 | 20 % |" in doc
+    assert "| hypotheses | 280.7 | 1193.9 | 1271.0 | 53 % |" in doc
+    assert "| **total** | 525.8 | 1821.6 | 2085.1 |  |" in doc
+    assert "| open3d baseline, same scans | 250.4 | 455.4 | 470.0 |  |" in doc
+    assert "| boxloc / baseline (time) | 2.10× | 4.00× |  |  |" in doc
+    assert "| target (issue 22) | ≤ 100: miss | ≤ 500: miss |  |  |" in doc
+    assert "Peak RSS 612 MB" in doc and "(load average 1.6 before, 2.5 after)" in doc
+    assert "| peak RSS, one process at 640x480 | 612 MB (speed run, 4b381f9) |" in doc
+    # the committed speed report loses its per-scan times, keeps its figures
+    s = json.loads((root / "docs" / "results" / "bench_speed.json").read_text())
+    assert "per_scan_ms" not in s and s["stages_ms"] == speed_report()["stages_ms"]
+    assert s["provenance"]["command_reconstructed"] is False
+    f = json.loads((root / "docs" / "results" / "bench_footprint.json").read_text())
+    assert f["sections"] == footprint_report()["sections"]
+    # idempotent, and --check sees a stale table
+    first = _snapshot(root)
+    assert _run(root) == 0 and _run(root, "--check") == 0 and _snapshot(root) == first
+    rep = speed_report()
+    rep["stages_ms"]["total"]["median"] = 99.0
+    _write(root / "docs" / "results" / "bench_speed.json", rep)
+    assert _run(root, "--check") == 1 and _snapshot(root)["README.md"] == first["README.md"]
+    assert _run(root) == 0 and "| **total** | 99.0 |" in (root / "README.md").read_text()
+
+
+def test_a_dirty_tree_and_a_missing_baseline_show_in_the_speed_table(
+        speed_checkout: Path, tmp_path: Path) -> None:
+    rep = speed_report()
+    rep["provenance"]["dirty"] = "true"
+    rep["baseline"] = None
+    assert _run(speed_checkout, "--speed", str(_write(tmp_path / "s.json", rep))) == 0
+    doc = (speed_checkout / "README.md").read_text()
+    assert "commit 4b381f9 with uncommitted changes" in doc
+    assert "baseline" not in doc.split("<!-- bench:footprint")[0].split("-->", 1)[1]
+    assert bt.reconstruct_command(rep, bt.KINDS["speed"]) == (
+        "python scripts/profile_stages.py --suite matrix --n 32 --seed 0 --size 640x480 "
+        "--no-baseline --out DIR/bench_speed.json")
+
+
+def _no_recording() -> dict[str, Any]:
+    r = footprint_report()
+    r["sections"] = {"replay": {}}
+    return r
+
+
+@pytest.mark.parametrize("option, report, message", [
+    ("--speed", matrix_report, "schema 'boxloc.bench_matrix/1', expected "
+                               "'boxloc.bench_speed/1'"),
+    ("--speed", lambda: {k: v for k, v in speed_report().items() if k != "stages_ms"},
+     "not a bench_speed.json report: no stages_ms"),
+    ("--footprint", _no_recording, "no recording section (make it with `boxloc bench "
+                                   "--section recording --out DIR`)"),
+    ("--footprint", speed_report, "a boxloc.bench_speed/1 report, not a bench_footprint.json"),
+    ("--sim", footprint_report, "not a bench.json report: no seeds"),
+])
+def test_a_speed_or_footprint_report_of_the_wrong_kind_is_refused(
+        speed_checkout: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str], option: str,
+        report: Any, message: str) -> None:
+    before = _snapshot(speed_checkout)
+    assert _run(speed_checkout, option, str(_write(tmp_path / "in.json", report()))) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and err.startswith("bench_tables: ") and message in err, err
+    assert _snapshot(speed_checkout) == before
+
+
+def test_profile_stages_writes_a_report_the_tables_read(speed_checkout: Path,
+                                                         tmp_path: Path) -> None:
+    """The profile, on two small scans, end to end into the speed table (no figure is
+    checked but its consistency: the run's times vary)."""
+    out = tmp_path / "speed.json"
+    p = subprocess.run([sys.executable, str(PROFILE), "--suite", "scene", "--n", "2",
+                        "--size", "96x72", "--out", str(out)], capture_output=True, text=True,
+                       timeout=600, cwd=ROOT)
+    assert p.returncode == 0, p.stderr
+    rep = json.loads(out.read_text())
+    assert rep["schema"] == "boxloc.bench_speed/1" and rep["scans"] == 2
+    assert rep["size"] == "96x72" and rep["pixels"] == 96 * 72
+    assert rep["threads"]["numba_threads"] == 1
+    assert list(rep["stages_ms"])[-1] == "total" and "hypotheses" in rep["stages_ms"]
+    for f in rep["stages_ms"].values():
+        assert f["median"] <= f["p99"] <= f["max"]
+    total, base = rep["stages_ms"]["total"], rep["baseline"]
+    assert base["errors"] == [] and base["ratio"]["median"] == pytest.approx(
+        total["median"] / base["wall_ms"]["median"], rel=1e-2)
+    assert [t["pass"] for t in rep["targets"]] == [total["median"] <= 100.0,
+                                                   total["p99"] <= 500.0]
+    assert len(rep["per_scan_ms"]) == 2 and rep["memory"]["process_max_rss_mb"] > 0
+    assert rep["provenance"]["command"] == (
+        f"python scripts/profile_stages.py --suite scene --n 2 --size 96x72 --out {out}")
+    assert _run(speed_checkout, "--speed", str(out)) == 0
+    doc = (speed_checkout / "README.md").read_text()
+    assert "2 scans of `scene_suite(2, 0)` at 96x72" in doc and "| **total** |" in doc
+
+
+def test_profile_stages_refuses_bad_options_in_one_line() -> None:
+    p = subprocess.run([sys.executable, str(PROFILE), "--size", "big"], capture_output=True,
+                       text=True, timeout=120, cwd=ROOT)
+    assert p.returncode == 2 and p.stderr.count("\n") == 1, p.stderr
+    assert "--size must be WxH or 'native', got 'big'" in p.stderr
+
+
+def test_the_readme_stays_short() -> None:
+    """The README is for users: long prose goes to docs/ (issue 22 part 6 keeps it at most
+    15,000 bytes with the speed and footprint tables in it)."""
+    readme = (ROOT / "README.md").read_bytes()
+    assert len(readme) <= 15_000, len(readme)
+    text = readme.decode()
+    for region in ("bench:speed:summary", "bench:footprint:summary"):
+        assert f"<!-- {region} -->" in text
+    # the two commands of the set-up stay as they are
+    assert "bash scripts/demo.sh    # installs" in text
+    assert "bash scripts/test.sh    # installs, then runs ruff, mypy and pytest" in text
