@@ -55,13 +55,27 @@ def read_log_model(path: str | os.PathLike[str]) -> LogModel:
                    for a in r.iter_attachments()]
         _LOG_CACHE[path] = LogModel(hdr.library, md, att, msgs)
     cached = _LOG_CACHE[path]
+    # Every mutable part copied (a message's channel metadata too): a case's mutations must
+    # never reach the cache, or the next case of the same worker would start from them.
     return LogModel(cached.library, [(n, dict(v)) for n, v in cached.metadata],
-                    [list(a) for a in cached.attachments], [dict(x) for x in cached.messages])
+                    [list(a) for a in cached.attachments],
+                    [{**x, "ch_meta": dict(x["ch_meta"])} for x in cached.messages])
 
 
 def write_log_model(m: LogModel, path: Path) -> None:
-    """Write a :class:`LogModel` as a valid MCAP file (whatever its content)."""
+    """Write a :class:`LogModel` as a valid MCAP file (whatever its content).
+
+    The bytes are a function of ``m`` alone: the chunks are compressed at the recorder's
+    zstd level (:data:`recorder.mcap.sink.ZSTD_LEVEL`), whatever this process did before.
+    """
     from mcap.writer import CompressionType, Writer
+
+    # Importing the recorder sets the zstd level of every mcap Writer in the process
+    # (recorder.mcap.sink replaces mcap.writer's zstandard). Without this import the level
+    # was the library's (3) in a fresh worker and the recorder's (1) once an earlier case of
+    # the same worker had recovered a log (recorder.mcap.recover imports the sink): the same
+    # case, content for content, gave other bytes depending on which worker ran it after what.
+    import recorder.mcap.sink  # noqa: F401
 
     with open(path, "wb") as f:
         w = Writer(f, compression=CompressionType.ZSTD)

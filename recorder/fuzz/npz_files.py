@@ -25,10 +25,19 @@ def _npy_member(descr: str, shape: tuple[int, ...], payload: bytes = b"",
     return f.getvalue() + payload
 
 
+#: The members' modification time: the zip format's earliest, so that a case's bytes do not
+#: depend on the clock (``writestr`` with a name stamps the current local time).
+_ZIP_TIME = (1980, 1, 1, 0, 0, 0)
+
+
 def _write_zip(path: Path, members: dict[str, bytes]) -> None:
+    """Write ``members`` (``{name: bytes}``, in order) as an uncompressed zip, as
+    :func:`numpy.savez` does, with a fixed member time."""
     with zipfile.ZipFile(path, "w") as zf:
         for k, v in members.items():
-            zf.writestr(k, v)
+            info = zipfile.ZipInfo(k, date_time=_ZIP_TIME)
+            info.external_attr = 0o600 << 16  # what writestr(name, ...) gives: rw-------
+            zf.writestr(info, v)
 
 
 def _npy(a: np.ndarray) -> bytes:
