@@ -9,14 +9,17 @@ import os
 import shutil
 import sys
 import tempfile
+from collections import Counter
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
+from boxloc.errors import BoxlocError, InputError
 from recorder.fuzz.bags import bag_steps
 from recorder.fuzz.cases import Case, Job
+from recorder.fuzz.corpus import corpus_at, default_sample_logs
 from recorder.fuzz.execute import run_step
-from recorder.fuzz.generate import generate
+from recorder.fuzz.generate import generate, write_cases
 from recorder.fuzz.log_bytes import log_steps
 from recorder.fuzz.run import run_fuzz
 from recorder.fuzz.scan_files import scan_file_steps
@@ -85,7 +88,35 @@ def main(argv: Sequence[str] | None = None) -> int:
     ap.add_argument("--out", default=None, help="work directory (kept)")
     ap.add_argument("--workers", type=int, default=2)
     ap.add_argument("--case", default=None, help="re-run a saved failing case directory")
+    ap.add_argument("--write-cases", default=None, metavar="DIR",
+                    help="only write the inputs of the --n cases into DIR/case-NNNNN/ (and "
+                         "DIR/cases.json), without running them")
+    ap.add_argument("--corpus", default=None, metavar="DIR",
+                    help="with --write-cases: the corpus directory, reused if it holds one "
+                         "(default DIR/corpus); share it to compare two runs' cases")
     a = ap.parse_args(argv)
+    try:
+        return _main(a)
+    except BoxlocError as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
+
+
+def _main(a: Any) -> int:
+    if a.n < 0:
+        raise InputError(f"--n must be >= 0, got {a.n}")
+    if a.corpus and not a.write_cases:
+        raise InputError("--corpus is only used with --write-cases")
+    if a.write_cases:
+        out = Path(a.write_cases)
+        corpus = corpus_at(Path(a.corpus) if a.corpus else out / "corpus",
+                           default_sample_logs())
+        rows = write_cases(a.n, a.seed, out, corpus)
+        by_cat = Counter(r["category"] for r in rows)
+        print(json.dumps({"cases": len(rows), "by_category": dict(by_cat),
+                          "files": sum(len(r["files"]) for r in rows),
+                          "index": str(out / "cases.json")}, indent=1))
+        return 0
     if a.case:
         print(json.dumps(reproduce(a.case), indent=1))
         return 0

@@ -134,3 +134,40 @@ def build_corpus(d: Path, sample_logs: Sequence[str | os.PathLike[str]] = ()) ->
         "depth_scale": 0.001,
         "bags": [str(x) for x in bags],
     }
+
+
+#: The file in a corpus directory that lists its inputs (what :func:`build_corpus` returned).
+CORPUS_INDEX = "corpus.json"
+
+
+def corpus_at(d: Path, sample_logs: Sequence[str | os.PathLike[str]] = ()) -> dict[str, Any]:
+    """The corpus in ``d``: the one written there before (listed in ``d/corpus.json``),
+    else a new one (written, then listed).
+
+    Two builds never agree byte for byte (the corpus logs hold the stages' wall-clock
+    timings and their creation time), so runs that must be given the same inputs, such as
+    a comparison of two runs' cases, share one corpus directory.
+
+    Raises
+    ------
+    InputError
+        ``d/corpus.json`` is not a corpus index, or names a file that is gone.
+    """
+    from boxloc.errors import InputError
+
+    index = d / CORPUS_INDEX
+    if not index.is_file():
+        corpus = build_corpus(d, sample_logs)
+        index.write_text(json.dumps(corpus, indent=1) + "\n")
+        return corpus
+    try:
+        corpus = json.loads(index.read_text())
+    except (OSError, UnicodeDecodeError, ValueError) as e:
+        raise InputError(f"{index} is not a fuzz corpus index: {e}") from None
+    if not isinstance(corpus, dict) or not isinstance(corpus.get("small_logs"), list):
+        raise InputError(f"{index} is not a fuzz corpus index (no small_logs list)")
+    files = [f for v in corpus.values() if isinstance(v, list) for f in v]
+    for f in [*files, corpus.get("sidecar", "")]:  # the other entries are not paths
+        if not Path(str(f)).is_file():
+                raise InputError(f"{index} names {f}, which is not a file")
+    return corpus
