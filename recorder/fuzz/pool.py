@@ -20,6 +20,11 @@ from recorder.fuzz.cases import _RESTART_GROWTH_MB, CATEGORIES, Case
 from recorder.fuzz.execute import _proc_kb, _reset_peak, run_case, run_step, save_failure
 from recorder.fuzz.generate import generate
 
+#: The seed of the warm-up cases (case ``i`` of it in category ``i``). Their inputs are
+#: small and each ends ``ok`` or ``error`` within seconds; a warm-up case that hung or
+#: crashed would stop the worker from starting.
+_WARM_UP_SEED = 0
+
 
 def _warm_up(corpus: dict[str, Any], tmp: Path) -> None:
     """Import and JIT-compile everything once, so that per-case memory and time are the
@@ -31,7 +36,9 @@ def _warm_up(corpus: dict[str, Any], tmp: Path) -> None:
     from recorder.commands import log_info
 
     for i, cat in enumerate(CATEGORIES):
-        case = Case(-1 - i, cat, 0)
+        # A non-negative index: numpy refuses negative seed entropy, and the warm-up cases
+        # once had negative indexes, so that every one of them failed before it ran.
+        case = Case(i, cat, _WARM_UP_SEED)
         with contextlib.suppress(Exception):
             job = generate(case, corpus, tmp / "warm")
             for _, fn in job.steps:
