@@ -47,10 +47,14 @@ Each case ends as one of
   per case from ``VmHWM``, reset through ``/proc/self/clear_refs``; workers also run under
   an address-space limit, so a runaway allocation fails instead of exhausting the machine).
 
-Cases run in worker processes; each case is generated from ``(seed, case index)`` alone, so
-a run is reproducible and a case can be regenerated. The input of every failing case is
-saved under ``workdir/failures/case-NNNNN/`` with ``case.json`` (what failed, the
-traceback); ``python -m recorder.fuzz --case DIR`` runs it again in-process.
+Cases run in worker processes; each case is generated from ``(seed, case index)`` and the
+corpus alone, byte for byte: not from ``PYTHONHASHSEED``, the clock, or the cases its worker
+ran before. So a case can be regenerated; the corpus itself is built per run (its logs hold
+wall-clock timings), and ``python -m recorder.fuzz --write-cases DIR --corpus C`` writes
+the inputs of a run's cases from a shared corpus without running them, to compare two runs.
+The input of every failing case is saved under ``workdir/failures/case-NNNNN/`` with
+``case.json`` (what failed, the traceback); ``python -m recorder.fuzz --case DIR`` runs it
+again in-process.
 
 Registered as the ``fuzz`` section of ``boxloc bench`` (entry-point group ``boxloc.bench``);
 ``boxloc bench --fuzz N`` runs only it, with N cases.
