@@ -81,7 +81,10 @@ def replay(logs: tuple[str, ...], out: str, rev: str | None, jobs: int | None,
     input logs are never modified. Then prints the diff of each new log against its input.
 
     --box-sizes FILE replaces the carton list (like --set box_sizes=..., applied last); the
-    diff then shows what the sizes changed.
+    diff then shows what the sizes changed. With --rev the revision runs with the same
+    carton list (the log's, or --box-sizes), and the new logs keep the file; a revision
+    that predates carton lists runs without them, which a warning says and the new log
+    records.
 
     Exit code: 0 same or within tolerances, 1 regression, 2 error.
     """

@@ -21,6 +21,12 @@ Guarantees
 - A log that cannot be read (not MCAP, truncated, damaged, unknown schema) becomes the
   outcome's ``error``, naming the log; nothing is published for it. A log with no scans
   is skipped with a warning.
+- Nothing recorded is lost at another revision either: the run there gets the same carton
+  list (``box_sizes``: the log's, or ``--box-sizes``), and the new log keeps the carton
+  file (``box_sizes.csv``) even when that revision's recorder does not write it (this code
+  adds it, :func:`recorder.mcap.sink.copy_log_adding`). A revision that predates a config
+  key the replay needs (see :mod:`replay.versions`) runs without it; a one-line warning
+  says so, and the new log records it (:data:`REPLAY_CARRIED_METADATA`).
 """
 
 from __future__ import annotations
@@ -32,10 +38,11 @@ import json
 import math
 import os
 import secrets
+import shutil
 import time
 import traceback
 from collections.abc import Iterable, Iterator, Sequence
-from dataclasses import asdict, dataclass, field, fields
+from dataclasses import asdict, dataclass, field, fields, replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -51,6 +58,14 @@ if TYPE_CHECKING:
 REPLAY_METADATA = "boxloc.replay"
 #: Suffix of the temporary files new logs are written to before they are published.
 PARTIAL_SUFFIX = ".partial.mcap"
+#: Suffix of the private directories a revision's replay writes into, when this code
+#: completes its log before publishing it (removed after; leftovers by remove_partials).
+STAGING_SUFFIX = ".staging"
+#: Metadata record of a log another revision wrote that this code completed: what it added
+#: (``attachments``, JSON list), what that revision could not apply (``not_applied``, JSON
+#: object of config keys and values), the ``warnings`` (JSON list) and this code
+#: (``by``, JSON).
+REPLAY_CARRIED_METADATA = "boxloc.replay.carried"
 
 
 # --- outcome ---------------------------------------------------------------------------------
@@ -376,9 +391,9 @@ def replay_log(
         Attachments for the new log, ``{name: (media type, bytes)}``: the ``--box-sizes``
         file (:func:`recorder.mcap.sink.box_sizes_attachment`), whose sizes come in
         ``overrides`` (:func:`box_sizes_override`). Without one, the input log's carton
-        file is carried over when the replay runs with the sizes it recorded. Written by
-        this code's recorder only: a replay of another revision (``version``) gets the
-        sizes through ``overrides``, its log has the config but not the file.
+        file is carried over when the replay runs with the sizes it recorded. At another
+        revision (``version``) the sizes go through the config or ``overrides`` and this
+        code adds the file to the revision's log if its recorder did not.
 
     Returns
     -------
@@ -397,11 +412,11 @@ def replay_log(
     v = CURRENT if version is None else version
     if isinstance(v, GitRevision):  # prepared for this call, removed after
         with v.prepare() as wt:
-            return wt.replay(Path(path), out_dir=Path(out_dir), config=config,
-                             overrides=tuple(overrides), out_name=out_name)
+            return _replay_at_revision(wt, Path(path), Path(out_dir), config,
+                                       tuple(overrides), out_name, attachments)
     if not isinstance(v, CurrentVersion):
-        return v.replay(Path(path), out_dir=Path(out_dir), config=config,
-                        overrides=tuple(overrides), out_name=out_name)
+        return _replay_at_revision(v, Path(path), Path(out_dir), config, tuple(overrides),
+                                   out_name, attachments)
     return _replay_here(Path(path), Path(out_dir), config, tuple(overrides), out_name,
                         attachments)
 
@@ -504,9 +519,9 @@ def _carried_attachments(
     try:
         recorded = log.config
         data = log.attachment(C.BOX_SIZES_ATTACHMENT)
-    except LogError:
-        return {}  # a damaged attachment is not worth failing the replay for
-    if recorded is None or recorded.box_sizes != cfg.box_sizes:
+    except Exception:  # noqa: BLE001 - damaged, or (compat layout) an older Config that
+        return {}  # cannot read it: not worth failing the replay for
+    if recorded is None or getattr(recorded, "box_sizes", ()) != getattr(cfg, "box_sizes", ()):
         return {}
     return {C.BOX_SIZES_ATTACHMENT: (C.BOX_SIZES_MEDIA_TYPE, data)}
 
@@ -613,6 +628,149 @@ def _replay_here(path: Path, out_dir: Path, config: Config | None,
                          **took())
 
 
+# --- another revision ------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class _RevisionPlan:
+    """How one log goes to another revision: what it is sent, what its log must hold.
+
+    Attributes
+    ----------
+    config : Config, dict or None
+        As :meth:`replay.versions.Worktree.replay` takes it.
+    overrides : tuple of str
+    attachments : dict
+        ``{name: (media type, bytes)}`` the new log must hold.
+    not_applied : dict
+        Config keys the revision lacks, with the values it runs without.
+    warnings : tuple of str
+    """
+
+    config: Any
+    overrides: tuple[str, ...]
+    attachments: dict[str, tuple[str, bytes]]
+    not_applied: dict[str, Any]
+    warnings: tuple[str, ...]
+
+    @property
+    def completes(self) -> bool:
+        """This code may have to add to the revision's log."""
+        return bool(self.attachments or self.not_applied)
+
+
+def _plan_for_revision(wt: Any, path: Path, config: Config | None,
+                       overrides: tuple[str, ...],
+                       attachments: dict[str, tuple[str, bytes]] | None) -> _RevisionPlan:
+    """Read the input's config and carton file with this code and decide what the revision
+    gets. Anything this code cannot read goes to the revision as it is (it reports the
+    problem in its own words)."""
+    from boxloc.io.rosbag import is_rosbag
+    from recorder.mcap.log import open_log
+
+    as_given = _RevisionPlan(config, overrides, dict(attachments or {}), {}, ())
+    try:
+        if is_rosbag(path):
+            log: Any = None
+            no_log: Any = _NoLog()
+            cfg, source = resolve_config(no_log, config, overrides)
+        else:
+            log = open_log(path)
+            check_schema(log)
+            cfg, source = resolve_config(log, config, overrides)
+        carried = _carried_attachments(log, cfg, attachments) if log is not None \
+            else dict(attachments or {})
+    except Exception:  # noqa: BLE001 - a bad log or override: the revision says what
+        return as_given
+    adapted = wt.adapt_config(cfg, overrides, send_config=source != "default")
+    if adapted is None:
+        return _RevisionPlan(config, overrides, carried, {}, ())
+    warnings: tuple[str, ...] = ()
+    if adapted.not_applied:
+        what = ", ".join(f"{k}={_short(v)}" for k, v in adapted.not_applied.items())
+        warnings = (f"{path}: --rev {wt.ref} ({wt.commit[:12]}) predates "
+                    f"{', '.join(adapted.not_applied)}: replayed without {what} (recorded in "
+                    "the new log)",)
+    return _RevisionPlan(adapted.config, adapted.overrides, carried, adapted.not_applied,
+                         warnings)
+
+
+class _NoLog:
+    """The config source of a bag: nothing recorded."""
+
+    config = None
+
+
+def _short(v: Any, n: int = 60) -> str:
+    text = json.dumps(v, separators=(",", ":"))
+    return text if len(text) <= n else text[: n - 3] + "..."
+
+
+def _replay_at_revision(wt: Any, path: Path, out_dir: Path, config: Config | None,
+                        overrides: tuple[str, ...], out_name: str | None,
+                        attachments: dict[str, tuple[str, bytes]] | None) -> ReplayOutcome:
+    """:func:`replay_log` with a prepared :class:`replay.versions.Worktree`.
+
+    When the new log may need completing (a carton file to keep, a config key the revision
+    could not apply), the revision writes it into a private staging directory beside the
+    output and this code publishes it, completed, under its name.
+    """
+    plan = _plan_for_revision(wt, path, config, overrides, attachments)
+    if not plan.completes:
+        out: ReplayOutcome = wt.replay(path, out_dir=out_dir, config=plan.config,
+                                       overrides=plan.overrides, out_name=out_name)
+        return out
+    name = out_name or f"{path.stem}.mcap"
+    final = out_dir / name
+    staging = out_dir / f".{final.stem}.{os.getpid()}-{secrets.token_hex(4)}{STAGING_SUFFIX}"
+    staging.mkdir(parents=True)
+    try:
+        o = wt.replay(path, out_dir=staging, config=plan.config, overrides=plan.overrides,
+                      out_name=name)
+        warnings = (*plan.warnings, *o.warnings)
+        if o.output is None:  # an error or no scans: nothing to complete
+            return replace(o, warnings=warnings)
+        try:
+            _complete_and_publish(Path(o.output), final, plan)
+        except InputError as e:
+            return replace(o, output=None, error=str(e), warnings=warnings)
+        except Exception as e:  # noqa: BLE001 - e.g. the disk filled up while copying
+            return replace(
+                o, output=None, warnings=warnings,
+                error=f"{path}: cannot complete the new log: {_one_line(e)}")
+        return replace(o, output=str(final), warnings=warnings)
+    finally:
+        shutil.rmtree(staging, ignore_errors=True)
+
+
+def _complete_and_publish(staged: Path, final: Path, plan: _RevisionPlan) -> None:
+    """Publish ``staged`` as ``final``, first adding the attachments it lacks (or holds
+    with other bytes) and, if anything was added or not applied, the
+    :data:`REPLAY_CARRIED_METADATA` record."""
+    from recorder.mcap.log import open_log
+    from recorder.mcap.sink import copy_log_adding
+
+    log = open_log(staged)
+    have = {a.name for a in log.attachments()}
+    add = {n: (m, d) for n, (m, d) in plan.attachments.items()
+           if n not in have or log.attachment(n) != d}
+    if not add and not plan.not_applied:
+        _publish(staged, final)
+        return
+    record = {"attachments": json.dumps(sorted(add)),
+              "not_applied": json.dumps(plan.not_applied, sort_keys=True),
+              "warnings": json.dumps(list(plan.warnings)),
+              "by": json.dumps(_current_version(), sort_keys=True)}
+    tmp = final.parent / f".{final.stem}.{os.getpid()}-{secrets.token_hex(4)}{PARTIAL_SUFFIX}"
+    try:
+        copy_log_adding(staged, tmp, attachments=add,
+                        metadata={REPLAY_CARRIED_METADATA: record})
+        _publish(tmp, final)
+    finally:
+        with contextlib.suppress(OSError):
+            tmp.unlink()
+
+
 def _publish(tmp: Path, final: Path) -> None:
     """Give the finished temporary log its name, never replacing an existing file."""
     try:
@@ -640,6 +798,10 @@ def remove_partials(out_dir: Path, names: Iterable[str]) -> int:
         for p in Path(out_dir).glob(f".{glob.escape(stem)}.*{PARTIAL_SUFFIX}"):
             with contextlib.suppress(OSError):
                 p.unlink()
+                n += 1
+        for p in Path(out_dir).glob(f".{glob.escape(stem)}.*{STAGING_SUFFIX}"):
+            if p.is_dir() and not p.is_symlink():  # a revision's staging directory
+                shutil.rmtree(p, ignore_errors=True)
                 n += 1
     return n
 

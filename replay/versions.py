@@ -28,6 +28,17 @@ Two layouts, decided by what the revision contains:
 In both, the new log's ``boxloc.run`` metadata records the revision's commit (the recorder
 asks git in the worktree), and ``boxloc.replay`` says how it was made.
 
+Config keys the revision does not know
+--------------------------------------
+A log records every config key of the code that wrote it, and a revision's ``Config``
+refuses keys it does not know. The start-up check therefore asks the revision for its
+config keys (:attr:`Worktree.config_keys`), and :meth:`Worktree.adapt_config` gives it the
+config without the keys it predates. A key at its value in
+:data:`boxloc.config.UNRECORDED_KEYS` (what runs did before the key existed) is dropped
+silently: the revision runs exactly that. Any other value (a carton list for a revision
+before ``box_sizes``) cannot be honoured: it is dropped, named in a one-line warning, and
+recorded in the new log by :func:`replay.replay.replay_log`.
+
 Notes
 -----
 numba caches compiled kernels next to the sources, so a fresh worktree compiles them once
@@ -61,6 +72,20 @@ if TYPE_CHECKING:
 
 #: Version of the JSON-lines protocol between this module and ``replay.worker``.
 PROTOCOL = 1
+#: Run in the revision's environment by the start-up check: its config keys (``noise.*``
+#: for the noise model's), as one JSON line. Only ``dataclasses.fields`` of its
+#: ``boxloc.config.Config``: that has held for every revision that has a ``replay`` worker.
+_CONFIG_KEYS_PROBE = """
+import dataclasses, json, sys
+from boxloc.config import Config
+keys = [f.name for f in dataclasses.fields(Config)]
+try:
+    noise = ["noise." + f.name for f in dataclasses.fields(Config().noise)]
+    keys = [k for k in keys if k != "noise"] + noise
+except Exception:  # no default config or no noise model: the top-level keys say enough
+    pass
+sys.stdout.write(json.dumps(keys) + "\\n")
+"""
 #: Seconds allowed for the start-up check of a revision (imports only, no JIT).
 CHECK_TIMEOUT_S = 300.0
 _GIT_TIMEOUT_S = 120.0
@@ -212,6 +237,55 @@ class Worktree:
     def version_info(self) -> dict[str, Any]:
         return {"kind": "git", "ref": self.ref, "commit": self.commit, "mode": self.mode}
 
+    @property
+    def config_keys(self) -> frozenset[str] | None:
+        """The revision's config keys (``noise.*`` for the noise model's), or None when its
+        start-up check could not tell."""
+        keys = self.info.get("config_keys")
+        return frozenset(keys) if isinstance(keys, list) else None
+
+    def adapt_config(self, cfg: Config, overrides: Sequence[str], *,
+                     send_config: bool) -> AdaptedConfig | None:
+        """The config for this revision when it lacks keys of ``cfg``, else None (send the
+        config and overrides as they are).
+
+        Parameters
+        ----------
+        cfg : Config
+            The config to replay with, as this code resolves it (the log's or the given
+            one, plus ``overrides``).
+        overrides : sequence of str
+            ``key=value`` overrides; those of keys the revision lacks are left out.
+        send_config : bool
+            Send ``cfg`` itself (without the keys the revision lacks). False when ``cfg``
+            is this code's defaults (a bag, a log without provenance): the revision then
+            runs with its own defaults, as it would have.
+        """
+        known = self.config_keys
+        if known is None:
+            return None
+        from boxloc.config import EXECUTION_FIELDS, UNRECORDED_KEYS
+
+        flat = _flatten(cfg.to_dict())
+        lacking = [k for k in flat if k not in known]
+        keys_of_overrides = [o.partition("=")[0].strip() for o in overrides]
+        if not lacking and all(k in known for k in keys_of_overrides):
+            return None
+        not_applied = {k: flat[k] for k in lacking if k not in EXECUTION_FIELDS
+                       and not (k in UNRECORDED_KEYS and _same(flat[k], UNRECORDED_KEYS[k]))}
+        kept = tuple(o for o, k in zip(overrides, keys_of_overrides) if k in known)
+        for o, k in zip(overrides, keys_of_overrides):
+            if k not in known and k not in flat:  # not even this code knows it
+                not_applied[k] = o.partition("=")[2].strip()
+        config = None
+        if send_config:
+            d = cfg.to_dict()
+            for k in lacking:
+                head, _, tail = k.partition(".")
+                (d[head] if tail else d).pop(tail or head, None)
+            config = d
+        return AdaptedConfig(config, kept, not_applied)
+
     def env(self) -> dict[str, str]:
         env = dict(os.environ)
         old = env.get("PYTHONPATH")
@@ -222,14 +296,18 @@ class Worktree:
         # -P: never put the working directory first on sys.path (it may hold a boxloc/).
         return [sys.executable, "-P", "-m", "replay.worker", *args]
 
-    def replay(self, path: Path, *, out_dir: Path, config: Config | None,
+    def replay(self, path: Path, *, out_dir: Path, config: Config | dict[str, Any] | None,
                overrides: Sequence[str], out_name: str | None) -> ReplayOutcome:
-        """Replay one log with this revision (see :func:`replay.replay.replay_log`)."""
+        """Replay one log with this revision (see :func:`replay.replay.replay_log`).
+
+        ``config`` may be a dict already in the revision's keys
+        (:attr:`AdaptedConfig.config`)."""
         from replay.replay import ReplayOutcome
 
         req = {"protocol": PROTOCOL, "path": str(Path(path).resolve()),
                "out_dir": str(Path(out_dir).resolve()),
-               "config": None if config is None else config.to_dict(),
+               "config": config if config is None or isinstance(config, dict)
+               else config.to_dict(),
                "overrides": list(overrides), "out_name": out_name}
         try:
             resp = _worker_for(self).request(req)
@@ -249,6 +327,42 @@ class Worktree:
 
 #: Any version :func:`replay.replay.replay_log` accepts.
 Version = CurrentVersion | GitRevision | Worktree
+
+
+@dataclass(frozen=True)
+class AdaptedConfig:
+    """A config in the keys of a revision that lacks some (:meth:`Worktree.adapt_config`).
+
+    Attributes
+    ----------
+    config : dict or None
+        The config to send (``Config.to_dict`` without the lacking keys), or None: the
+        revision resolves its own (its defaults).
+    overrides : tuple of str
+        The overrides of keys the revision knows.
+    not_applied : dict
+        The keys the revision lacks whose value it cannot reproduce (not their
+        :data:`boxloc.config.UNRECORDED_KEYS` value), ``noise.*`` dotted, with the value it
+        runs without (JSON-able): the replay differs from the request by these.
+    """
+
+    config: dict[str, Any] | None
+    overrides: tuple[str, ...]
+    not_applied: dict[str, Any]
+
+
+def _flatten(d: dict[str, Any]) -> dict[str, Any]:
+    """``Config.to_dict`` with the noise model's keys dotted (``noise.k2``)."""
+    out = {k: v for k, v in d.items() if k != "noise"}
+    out.update({f"noise.{k}": v for k, v in dict(d.get("noise") or {}).items()})
+    return out
+
+
+def _same(a: Any, b: Any) -> bool:
+    """Config values equal as recorded (lists and tuples alike)."""
+    if isinstance(a, list | tuple) and isinstance(b, list | tuple):
+        return len(a) == len(b) and all(_same(x, y) for x, y in zip(a, b))
+    return bool(a == b)
 
 
 def _layout(ref: str, sha: str, src: Path, tmp: Path) -> Worktree:
@@ -297,7 +411,24 @@ def _check(wt: Worktree) -> Worktree:
     if not any(got.is_relative_to(r) for r in roots):
         raise InputError(f"{what} cannot run: boxloc was imported from {got}, not from the "
                          "worktree")
+    info["config_keys"] = _config_keys(wt)
     return Worktree(wt.ref, wt.commit, wt.root, wt.pythonpath, wt.mode, info, wt.tmp)
+
+
+def _config_keys(wt: Worktree) -> list[str] | None:
+    """The revision's config keys (:data:`_CONFIG_KEYS_PROBE`), or None if it cannot say
+    (then every config goes to it as it is, as before the probe existed)."""
+    try:
+        r = subprocess.run([sys.executable, "-P", "-c", _CONFIG_KEYS_PROBE],
+                           capture_output=True, text=True, env=wt.env(), cwd=wt.tmp or None,
+                           timeout=CHECK_TIMEOUT_S)
+        lines = r.stdout.strip().splitlines()  # (_last_line cuts at 500 characters)
+        keys = json.loads(lines[-1]) if r.returncode == 0 and lines else None
+    except (subprocess.TimeoutExpired, ValueError, OSError):
+        return None
+    if not isinstance(keys, list) or not all(isinstance(k, str) for k in keys):
+        return None
+    return keys
 
 
 # --- the worker subprocesses -----------------------------------------------------------------

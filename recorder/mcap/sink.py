@@ -184,6 +184,121 @@ def box_sizes_attachment(path: str | os.PathLike[str]) -> dict[str, tuple[str, b
     return {C.BOX_SIZES_ATTACHMENT: (C.BOX_SIZES_MEDIA_TYPE, data)}
 
 
+def copy_log_adding(
+    src: str | os.PathLike[str],
+    dst: str | os.PathLike[str],
+    *,
+    attachments: dict[str, tuple[str, bytes]] | None = None,
+    metadata: dict[str, dict[str, str]] | None = None,
+) -> None:
+    """Copy the finished log ``src`` to the new file ``dst``, adding attachments and
+    metadata records.
+
+    Everything recorded is kept: every message, bit for bit, in a chunk of its own as in
+    ``src`` (one per scan), with its log time, publish time and sequence; every metadata
+    record and attachment of ``src``, except those named again in ``attachments`` /
+    ``metadata``, which the new ones replace (a name is one record in a boxloc log). The
+    new records follow the copied ones. ``replay --rev`` uses it to give a log that another
+    revision wrote what that revision could not write (the ``--box-sizes`` file).
+
+    Parameters
+    ----------
+    src : path
+        A complete MCAP log (its CRCs are checked); only read.
+    dst : path
+        The new file; it must not exist.
+    attachments : dict, optional
+        ``{name: (media type, bytes)}``, logged at the time of ``src``'s first attachment
+        (the recorder logs its attachments at the first scan's time), else 0.
+    metadata : dict, optional
+        ``{name: {key: value}}`` (strings).
+
+    Raises
+    ------
+    FileExistsError
+        ``dst`` exists.
+    OSError, mcap.exceptions.McapError
+        ``src`` cannot be read or is not a complete MCAP file (``dst`` is then removed).
+    """
+    from mcap.records import Attachment, Channel, Chunk, DataEnd, Header, Message, Metadata
+    from mcap.records import Schema as McapSchema
+    from mcap.stream_reader import StreamReader, breakup_chunk
+
+    add = {str(k): (str(m), bytes(d)) for k, (m, d) in (attachments or {}).items()}
+    meta = {str(k): {str(a): str(b) for a, b in v.items()} for k, v in (metadata or {}).items()}
+    dst = Path(dst)
+    out: McapFile | None = None
+    schemas: dict[int, McapSchema] = {}
+    channels: dict[int, Channel] = {}
+    t_attach: int | None = None
+
+    def write(m: Message) -> None:
+        assert out is not None
+        ch = channels[m.channel_id]
+        sc = schemas.get(ch.schema_id)
+        cid = out.channel(ch.topic, schema_name=sc.name if sc else "",
+                          schema_encoding=sc.encoding if sc else "",
+                          schema_data=bytes(sc.data) if sc else b"",
+                          message_encoding=ch.message_encoding, metadata=dict(ch.metadata))
+        out.add(cid, m.log_time, bytes(m.data), publish_time=m.publish_time,
+                sequence=m.sequence)
+
+    with open(src, "rb") as fin:
+        stream = open(dst, "xb")
+        try:
+            for rec in StreamReader(fin, emit_chunks=True, validate_crcs=True).records:
+                if isinstance(rec, Header):
+                    out = McapFile(dst, stream, library=rec.library, fsync=False,
+                                   profile=rec.profile)
+                    continue
+                if out is None:
+                    raise ValueError(f"{src}: no MCAP header")
+                if isinstance(rec, Metadata):
+                    if rec.name not in meta:
+                        out.writer.add_metadata(rec.name, dict(rec.metadata))
+                elif isinstance(rec, Attachment):
+                    t_attach = rec.log_time if t_attach is None else t_attach
+                    if rec.name not in add:
+                        out.writer.add_attachment(rec.create_time, rec.log_time, rec.name,
+                                                  rec.media_type, bytes(rec.data))
+                elif isinstance(rec, McapSchema):
+                    schemas[rec.id] = rec
+                elif isinstance(rec, Channel):
+                    channels[rec.id] = rec
+                elif isinstance(rec, Message):
+                    write(rec)
+                elif isinstance(rec, Chunk):
+                    for r in breakup_chunk(rec, validate_crc=True):
+                        if isinstance(r, McapSchema):
+                            schemas[r.id] = r
+                        elif isinstance(r, Channel):
+                            channels[r.id] = r
+                        elif isinstance(r, Message):
+                            write(r)
+                    out.writer.flush()  # the source's chunk boundaries: one chunk per scan
+                elif isinstance(rec, DataEnd):
+                    break
+            else:
+                raise ValueError(f"{src}: the data section does not end (a truncated log)")
+            if out is None:
+                raise ValueError(f"{src}: not an MCAP file")
+            out.writer.flush()
+            t = t_attach or 0
+            for name, (media, data) in add.items():
+                out.writer.add_attachment(t, t, name, media, data)
+            for name, md in meta.items():
+                out.writer.add_metadata(name, md)
+            out.fsync = True
+            out.finish()
+        except BaseException:
+            if out is not None:
+                out.abandon()
+            stream.close()
+            with contextlib.suppress(OSError):
+                dst.unlink()
+            raise
+
+
 # --- signals ---------------------------------------------------------------------------------
 
 
