@@ -640,8 +640,9 @@ class _RevisionPlan:
     config : Config, dict or None
         As :meth:`replay.versions.Worktree.replay` takes it.
     overrides : tuple of str
-    attachments : dict
-        ``{name: (media type, bytes)}`` the new log must hold.
+    attachments : dict or None
+        ``{name: (media type, bytes)}`` the new log must hold; None when this code could
+        not read the input (the revision decides).
     not_applied : dict
         Config keys the revision lacks, with the values it runs without.
     warnings : tuple of str
@@ -649,7 +650,7 @@ class _RevisionPlan:
 
     config: Any
     overrides: tuple[str, ...]
-    attachments: dict[str, tuple[str, bytes]]
+    attachments: dict[str, tuple[str, bytes]] | None
     not_applied: dict[str, Any]
     warnings: tuple[str, ...]
 
@@ -668,7 +669,7 @@ def _plan_for_revision(wt: Any, path: Path, config: Config | None,
     from boxloc.io.rosbag import is_rosbag
     from recorder.mcap.log import open_log
 
-    as_given = _RevisionPlan(config, overrides, dict(attachments or {}), {}, ())
+    as_given = _RevisionPlan(config, overrides, attachments, {}, ())
     try:
         if is_rosbag(path):
             log: Any = None
@@ -718,7 +719,8 @@ def _replay_at_revision(wt: Any, path: Path, out_dir: Path, config: Config | Non
     plan = _plan_for_revision(wt, path, config, overrides, attachments)
     if not plan.completes:
         out: ReplayOutcome = wt.replay(path, out_dir=out_dir, config=plan.config,
-                                       overrides=plan.overrides, out_name=out_name)
+                                       overrides=plan.overrides, out_name=out_name,
+                                       attachments=plan.attachments)
         return out
     name = out_name or f"{path.stem}.mcap"
     final = out_dir / name
@@ -726,7 +728,7 @@ def _replay_at_revision(wt: Any, path: Path, out_dir: Path, config: Config | Non
     staging.mkdir(parents=True)
     try:
         o = wt.replay(path, out_dir=staging, config=plan.config, overrides=plan.overrides,
-                      out_name=name)
+                      out_name=name, attachments=plan.attachments)
         warnings = (*plan.warnings, *o.warnings)
         if o.output is None:  # an error or no scans: nothing to complete
             return replace(o, warnings=warnings)
@@ -752,7 +754,7 @@ def _complete_and_publish(staged: Path, final: Path, plan: _RevisionPlan) -> Non
 
     log = open_log(staged)
     have = {a.name for a in log.attachments()}
-    add = {n: (m, d) for n, (m, d) in plan.attachments.items()
+    add = {n: (m, d) for n, (m, d) in (plan.attachments or {}).items()
            if n not in have or log.attachment(n) != d}
     if not add and not plan.not_applied:
         _publish(staged, final)

@@ -51,6 +51,7 @@ at the same paths (a shared file system, or a ``LocalCluster``).
 from __future__ import annotations
 
 import atexit
+import base64
 import contextlib
 import json
 import os
@@ -297,18 +298,25 @@ class Worktree:
         return [sys.executable, "-P", "-m", "replay.worker", *args]
 
     def replay(self, path: Path, *, out_dir: Path, config: Config | dict[str, Any] | None,
-               overrides: Sequence[str], out_name: str | None) -> ReplayOutcome:
+               overrides: Sequence[str], out_name: str | None,
+               attachments: dict[str, tuple[str, bytes]] | None = None) -> ReplayOutcome:
         """Replay one log with this revision (see :func:`replay.replay.replay_log`).
 
         ``config`` may be a dict already in the revision's keys
-        (:attr:`AdaptedConfig.config`)."""
+        (:attr:`AdaptedConfig.config`). ``attachments`` (base64 in the request) are
+        written by revisions whose worker reads them; older workers ignore the key, and
+        :func:`replay.replay.replay_log` adds what their logs lack."""
         from replay.replay import ReplayOutcome
 
-        req = {"protocol": PROTOCOL, "path": str(Path(path).resolve()),
-               "out_dir": str(Path(out_dir).resolve()),
-               "config": config if config is None or isinstance(config, dict)
-               else config.to_dict(),
-               "overrides": list(overrides), "out_name": out_name}
+        req: dict[str, Any] = {
+            "protocol": PROTOCOL, "path": str(Path(path).resolve()),
+            "out_dir": str(Path(out_dir).resolve()),
+            "config": config if config is None or isinstance(config, dict)
+            else config.to_dict(),
+            "overrides": list(overrides), "out_name": out_name}
+        if attachments is not None:
+            req["attachments"] = {n: [m, base64.b64encode(d).decode("ascii")]
+                                  for n, (m, d) in attachments.items()}
         try:
             resp = _worker_for(self).request(req)
         except _WorkerDied as e:

@@ -9,7 +9,9 @@
     failure print the error on stderr and exit 1.
 ``--serve``
     Read one request per line on stdin, ``{"protocol", "path", "out_dir", "config",
-    "overrides", "out_name"}``, replay that log with *this* code and answer one line
+    "overrides", "out_name"}`` and optionally ``"attachments"`` (``{name: [media type,
+    base64]}``, for the new log; older workers ignore the key), replay that log with
+    *this* code and answer one line
     ``{"ok": true, "outcome": {...}}`` (a :class:`replay.replay.ReplayOutcome` dict) or
     ``{"ok": false, "error": "..."}``. Ends at end of input.
 
@@ -18,6 +20,7 @@ Anything the code prints goes to stderr: the protocol has stdout to itself.
 
 from __future__ import annotations
 
+import base64
 import json
 import os
 import sys
@@ -55,9 +58,16 @@ def handle(req: dict[str, Any]) -> dict[str, Any]:
         cfg = Config.from_dict(req["config"]) if req.get("config") is not None else None
     except Exception as e:  # noqa: BLE001 - e.g. a key this revision's Config does not have
         return {"ok": False, "error": f"config: {e}"}
+    attachments = None
+    if req.get("attachments") is not None:
+        try:
+            attachments = {str(n): (str(m), base64.b64decode(d, validate=True))
+                           for n, (m, d) in dict(req["attachments"]).items()}
+        except Exception as e:  # noqa: BLE001 - a malformed request is its answer
+            return {"ok": False, "error": f"attachments: {type(e).__name__}: {e}"}
     outcome = replay_log(req["path"], out_dir=req["out_dir"], config=cfg,
                          overrides=tuple(req.get("overrides") or ()),
-                         out_name=req.get("out_name"))
+                         out_name=req.get("out_name"), attachments=attachments)
     return {"ok": True, "outcome": outcome.to_dict()}
 
 

@@ -102,7 +102,8 @@ class _InProcess(Worktree):
     revision without them), and its recorder writes no carton file."""
 
     def replay(self, path: Path, *, out_dir: Path, config: Any, overrides: Any,
-               out_name: str | None) -> ReplayOutcome:
+               out_name: str | None, attachments: Any = None) -> ReplayOutcome:
+        # like a worker from before the "attachments" key: it ignores them
         if isinstance(config, dict):
             assert set(config) | {f"noise.{k}" for k in config.get("noise", {})} \
                 <= set(self.info["config_keys"]) | {"noise"}
@@ -173,6 +174,28 @@ def test_an_existing_output_is_never_replaced(logs: dict[str, Path], tmp_path: P
     assert o.status == "error" and "exists; refusing to overwrite it" in str(o.error)
     assert (tmp_path / "sizes.mcap").read_bytes() == b"mine"
     assert sorted(p.name for p in tmp_path.iterdir()) == ["sizes.mcap"]
+
+
+def test_the_worker_writes_the_attachments_it_is_sent(logs: dict[str, Path],
+                                                     tmp_path: Path) -> None:
+    import base64
+
+    from replay.worker import PROTOCOL, handle
+
+    data = SIZES_CSV.encode()
+    req = {"protocol": PROTOCOL, "path": str(logs["plain"]), "out_dir": str(tmp_path),
+           "config": None, "overrides": [box_sizes_override(read_box_sizes(logs["csv"]))],
+           "out_name": None,
+           "attachments": {C.BOX_SIZES_ATTACHMENT: ["text/csv", base64.b64encode(data)
+                                                    .decode()]}}
+    resp = handle(json.loads(json.dumps(req)))
+    assert resp["ok"], resp
+    new = Path(resp["outcome"]["output"])
+    assert _attachments(new)[C.BOX_SIZES_ATTACHMENT] == data and _surfaces(new) == (2, 0)
+    bad = handle({**req, "out_name": "bad.mcap",
+                  "attachments": {"x": ["text/plain", "not base64!"]}})
+    assert not bad["ok"] and bad["error"].startswith("attachments: ")
+    assert not (tmp_path / "bad.mcap").exists()
 
 
 # --- adapting a config to a revision's keys --------------------------------------------------
