@@ -732,14 +732,21 @@ def _replay_at_revision(wt: Any, path: Path, out_dir: Path, config: Config | Non
         warnings = (*plan.warnings, *o.warnings)
         if o.output is None:  # an error or no scans: nothing to complete
             return replace(o, warnings=warnings)
+        staged = Path(o.output)
         try:
-            _complete_and_publish(Path(o.output), final, plan)
-        except InputError as e:
+            _complete_and_publish(staged, final, plan)
+        except InputError as e:  # the name is taken
             return replace(o, output=None, error=str(e), warnings=warnings)
         except Exception as e:  # noqa: BLE001 - e.g. the disk filled up while copying
-            return replace(
-                o, output=None, warnings=warnings,
-                error=f"{path}: cannot complete the new log: {_one_line(e)}")
+            # the replay itself is not lost: published as the revision wrote it, and said
+            warnings = (*warnings, f"{path}: the new log is as --rev {wt.ref} wrote it, "
+                                   f"without {', '.join(sorted(plan.attachments or {}))}"
+                                   f" or the record of what it did not apply: "
+                                   f"{type(e).__name__}: {_one_line(e)}")
+            try:
+                _publish(staged, final)
+            except InputError as e2:
+                return replace(o, output=None, error=str(e2), warnings=warnings)
         return replace(o, output=str(final), warnings=warnings)
     finally:
         shutil.rmtree(staging, ignore_errors=True)

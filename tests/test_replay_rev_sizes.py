@@ -198,6 +198,21 @@ def test_the_worker_writes_the_attachments_it_is_sent(logs: dict[str, Path],
     assert not (tmp_path / "bad.mcap").exists()
 
 
+def test_a_log_that_cannot_be_completed_is_published_as_written_with_a_warning(
+        logs: dict[str, Path], tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    import recorder.mcap.sink
+
+    def full_disk(*args: Any, **kwargs: Any) -> None:
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(recorder.mcap.sink, "copy_log_adding", full_disk)
+    o = replay_log(logs["sizes"], out_dir=tmp_path, version=_rev(KEYS))
+    assert o.status == "ok" and len(o.warnings) == 1
+    assert "without box_sizes.csv" in o.warnings[0] and "No space left" in o.warnings[0]
+    assert _surfaces(Path(str(o.output))) == (2, 0)  # the revision's replay is kept
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["sizes.mcap"]
+
+
 # --- adapting a config to a revision's keys --------------------------------------------------
 
 
