@@ -50,14 +50,18 @@ are millimetres where named ``*_mm``, times milliseconds where named ``*_ms``):
   ``phase``, ``error``) of scans that crashed (localizer, simulator, worker process)
 - ``timing``: ``stages_ms`` (median, p95 per stage over the scans that finished),
   ``total_ms`` (median, p95 over all scans), ``per_scan_ms`` (in the order of ``scenes``; a
-  timed-out scan's is the limit, so a maximum or ratio over it is a lower bound), ``run_s``
+  timed-out scan's is the limit, so a maximum or ratio over it is a lower bound), ``run_s``,
+  ``funnel_ms`` (``median``, ``max``, ``total`` of the loss funnel's time per scan, computed
+  after the timed run, and its ``share`` of those scans' localizer time)
 - ``memory``: the workers' peak RSS per scan (median and max, MB) and this process's
 - ``scenes``: one deterministic row per scan (scene and draw, in suite order): ``index``,
   ``trial_seed``, ``sensor``, ``kind``, ``held_out``, ``spec``, ``spec_text``,
   ``n_faces``, ``n_exposed``, ``pixels``, ``status`` (``ok``, ``error``, ``timeout``),
   ``error``, ``match`` (:meth:`boxloc.evaluate.metrics.Match.to_dict`), ``edges``
-  (:func:`boxloc.evaluate.metrics.edge_report`, null without an edge map); no durations, so two
-  runs' rows compare equal
+  (:func:`boxloc.evaluate.metrics.edge_report`, null without an edge map), ``funnel``
+  (:meth:`boxloc.evaluate.funnel.FaceLosses.to_dict`: per exposed face the stage that lost
+  it, its evidence and ``separable``; ``{"error": ...}`` if the diagnostic failed, null
+  without stage products); no durations, so two runs' rows compare equal
 
 Figures of a group (:func:`group_figures`): ``n_scenes``, ``n_scans``, every key of
 :func:`boxloc.evaluate.metrics.aggregate_matches` (``n_exposed`` exposed tops, ``tp``, ``fp``,
@@ -70,7 +74,20 @@ scan of a no-box kind):
 (the scans with an edge map), ``pixels`` (their image pixels), ``edge_points`` (pixels
 labelled an edge in ``result.edges``), ``false_edge_points`` (those farther than 1 px from
 a true edge: the bare pallet of ``empty`` has real edges), ``edge_points_per_pixel``,
-``false_edge_points_per_pixel``.
+``false_edge_points_per_pixel``; ``funnel``: where the exposed tops were lost
+(:func:`boxloc.evaluate.funnel.funnel_figures`): ``faces``, ``stages`` (tops per stage that
+lost them: ``edges``, ``lines``, ``vertex``, ``hyp``, ``verify``, ``select``, ``found`` = the
+true positives, and ``none`` for a miss on a scan without stage products: timed out,
+crashed), ``verify_reasons`` (the :class:`boxloc.products.VerifyReason` of the best attempt
+of each ``verify`` loss), ``separable`` (tops whose every side shows in the noise-free
+render: :func:`boxloc.evaluate.funnel.separable_faces`, flush seams showing when the scene's
+lids have a bevel or a bulge), ``separable_tp``, ``separable_recall`` and
+``inseparable_misses`` (missed tops that no method could separate without a list of box
+sizes), ``funnel_errors`` (scans whose diagnostic failed).
+
+The funnel (:func:`boxloc.evaluate.funnel.loss_stages`) runs in the worker on every scan
+that finished, after its timed localizer run, so it changes no time figure; printed, it is
+one loss line per sensor under the per-sensor table.
 """
 
 from __future__ import annotations
@@ -92,6 +109,13 @@ import numpy as np
 from boxloc import __version__
 from boxloc.config import Config
 from boxloc.errors import InputError
+from boxloc.evaluate.funnel import (
+    NO_PRODUCTS,
+    STAGE_NAMES,
+    funnel_figures,
+    loss_stages,
+    separable_faces,
+)
 from boxloc.evaluate.metrics import Match, aggregate_matches, prf
 from boxloc.evaluate.scene_bench import (
     _default_localizer,
@@ -222,6 +246,10 @@ class _Outcome:
     match: Match | None = None
     meta: dict[str, Any] = field(default_factory=dict)
     wall_ms: float | None = None
+    #: :meth:`boxloc.evaluate.funnel.FaceLosses.to_dict`, ``{"error": ...}`` if the funnel
+    #: failed, None without stage products (timed out, crashed, surfaces-only localizer)
+    funnel: dict[str, Any] | None = None
+    funnel_ms: float | None = None
 
     @property
     def group(self) -> str:  # for draw_figures: the draws per sensor
@@ -239,15 +267,41 @@ def _nothing_found(truth: Any) -> Match:
     return _empty_match(truth)
 
 
+def _flush_seams_show(spec: Any) -> bool:
+    """Whether the scene's lids give a flush seam relief: a bevel (a groove) or a bulge (a
+    valley); see :func:`boxloc.evaluate.funnel.separable_faces`."""
+    return bool(getattr(spec, "bevel", 0.0) > 0 or getattr(spec, "bulge", 0.0) > 0)
+
+
 def _meta(sim: Any) -> dict[str, Any]:
     truth = sim.truth
     h, w = sim.scan.range.shape[:2]
     t = truth if len(truth) else None
-    return {"n_faces": int(len(truth)), "n_exposed": int(np.asarray(truth.fully_exposed).sum()),
+    exposed = np.flatnonzero(np.asarray(truth.fully_exposed, dtype=bool))
+    separable = separable_faces(truth, sim.scan.sensor, exposed,
+                                flush_seams_show=_flush_seams_show(sim.spec))
+    return {"n_faces": int(len(truth)), "n_exposed": int(exposed.size),
             "pixels": int(h * w), "spec": _spec_dict(sim.spec), "spec_text": _spec_text(sim.spec),
             "edge_min": float(np.min(t.width)) if t is not None else None,
             "edge_max": float(np.max(t.length)) if t is not None else None,
-            "nothing": _nothing_found(truth)}
+            "nothing": _nothing_found(truth),
+            "exposed_faces": [int(f) for f in exposed],
+            "separable": [bool(v) for v in separable]}
+
+
+def _funnel(result: Any, sim: Any, match: Match | None) -> tuple[dict[str, Any] | None,
+                                                                  float | None]:
+    """The scan's loss funnel (:func:`boxloc.evaluate.funnel.loss_stages`) as JSON and its
+    time in ms; None without stage products. Computed after the timed localizer run."""
+    if result is None or match is None or getattr(result, "verification", None) is None:
+        return None, None
+    t0 = time.perf_counter()
+    try:
+        fl = loss_stages(result, sim.truth, sim.scan.sensor, match=match,
+                         flush_seams_show=_flush_seams_show(sim.spec)).to_dict()
+    except Exception as e:  # noqa: BLE001 - a diagnostic's crash must not lose the scan
+        return {"error": _err(e)}, None
+    return fl, (time.perf_counter() - t0) * 1e3
 
 
 def _scan_task(conn: Connection | None, task: int, spec: Any, config: Config,
@@ -262,12 +316,19 @@ def _scan_task(conn: Connection | None, task: int, spec: Any, config: Config,
         return {"status": "error", "phase": "simulate", "error": _err(e)}
     if conn is not None:
         conn.send(("started", task, meta))
-    run = _run_boxloc(localizer, sim.scan, sim.truth, config)
+    results: list[Any] = []
+
+    def keep(scan: Any, cfg: Config) -> Any:  # the Result, for the funnel after the timing
+        results.append(localizer(scan, cfg))
+        return results[-1]
+
+    run = _run_boxloc(keep, sim.scan, sim.truth, config)
     if run.error is not None:
         run.match = meta["nothing"]
         return {"status": "error", "phase": "localize", "error": run.error, "run": run,
                 "meta": meta}
-    return {"status": "ok", "run": run, "meta": meta}
+    funnel, funnel_ms = _funnel(results[-1] if results else None, sim, run.match)
+    return {"status": "ok", "run": run, "meta": meta, "funnel": funnel, "funnel_ms": funnel_ms}
 
 
 def _warmup_spec(specs: Sequence[Any]) -> Any:
@@ -486,13 +547,34 @@ def _no_box_figures(outs: Sequence[_Outcome]) -> dict[str, Any] | None:
             "false_edge_points_per_pixel": false_pts / pixels if pixels else None}
 
 
+def _scan_funnel(o: _Outcome) -> tuple[list[str], list[bool], list[bool], dict[str, int]]:
+    """One scan's exposed faces for :func:`boxloc.evaluate.funnel.funnel_figures`: stage
+    names, separable, true positive, and the reasons of its ``verify`` losses. Without a
+    funnel a face is ``found`` if it is a true positive, else ``none``."""
+    faces = [int(f) for f in o.meta.get("exposed_faces", [])]
+    separable = [bool(v) for v in o.meta.get("separable", [])]
+    tp = set() if o.match is None else {int(f) for f in np.asarray(o.match.tp_pairs)[:, 1]}
+    found = [f in tp for f in faces]
+    fl = o.funnel
+    if fl is not None and "stage" in fl and list(fl["face"]) == faces:
+        names = [str(s) for s in fl["stage"]]
+        why: dict[str, int] = {}
+        for name, r in zip(names, fl["best_reason"], strict=True):
+            if name == "verify":
+                why[str(r)] = why.get(str(r), 0) + 1
+        return names, separable, found, why
+    return ["found" if f else NO_PRODUCTS for f in found], separable, found, {}
+
+
 def group_figures(outs: Sequence[_Outcome]) -> dict[str, Any]:
     """The figures of a group of scans (see the module docstring)."""
     agg = aggregate_matches(o.match for o in outs if o.match is not None)
+    funnel = funnel_figures(_scan_funnel(o) for o in outs)
+    funnel["funnel_errors"] = sum(o.funnel is not None and "error" in o.funnel for o in outs)
     return {"n_scenes": len({o.index for o in outs}), **agg,
             "errors": sum(o.status == "error" for o in outs),
             "timeouts": sum(o.status == "timeout" for o in outs),
-            "time": _time_figures(outs), "no_box": _no_box_figures(outs)}
+            "time": _time_figures(outs), "no_box": _no_box_figures(outs), "funnel": funnel}
 
 
 def _groups(outs: Sequence[_Outcome], sensors: Sequence[str], kinds: Sequence[str],
@@ -639,7 +721,8 @@ def run_matrix_bench(
         i, spec, d = tasks[t]
         o = _Outcome(index=i, trial_seed=d.trial_seed, sensor=str(spec.sensor),
                      kind=str(spec.kind), status=res["status"], phase=res.get("phase"),
-                     error=res.get("error"), run=res.get("run"))
+                     error=res.get("error"), run=res.get("run"), funnel=res.get("funnel"),
+                     funnel_ms=res.get("funnel_ms"))
         meta = res.get("meta")
         if meta is None:  # killed or crashed before the scene existed: make it here
             meta = _parent_meta(spec)
@@ -745,7 +828,7 @@ def _report(outs: list[_Outcome], specs: Sequence[Any], cfg: Config, site: dict[
                      "n_exposed": m.get("n_exposed"), "pixels": m.get("pixels"),
                      "status": o.status, "error": o.error,
                      "match": o.match.to_dict() if o.match is not None else None,
-                     "edges": o.edges})
+                     "edges": o.edges, "funnel": o.funnel})
     if info.get("warmup_timeouts"):
         timeouts.append({"scene": None, "trial_seed": None, "sensor": None, "kind": None,
                          "spec_text": None, "phase": "warmup", "limit_s": scan_timeout,
@@ -757,6 +840,8 @@ def _report(outs: list[_Outcome], specs: Sequence[Any], cfg: Config, site: dict[
     runs = [o.run if o.run is not None else _MethodRun(wall_ms=o.wall_ms) for o in outs]
     timing = _timing(runs)
     peaks = np.asarray([o.run.peak_mb for o in outs if o.run and o.run.peak_mb], np.float64)
+    f_ms = np.asarray([o.funnel_ms for o in outs if o.funnel_ms is not None], np.float64)
+    walls = sum(o.wall_ms for o in outs if o.funnel_ms is not None and o.wall_ms is not None)
     report: dict[str, Any] = {
         "schema": SCHEMA, "version": __version__, "mode": "matrix", "n": n, "seed": seed,
         "jobs": jobs, "scan_timeout_s": scan_timeout, "warmup": warmup,
@@ -774,7 +859,10 @@ def _report(outs: list[_Outcome], specs: Sequence[Any], cfg: Config, site: dict[
         "timing": {"stages_ms": timing["stages_ms"], "total_ms": timing["total_ms"],
                    "per_scan_ms": [None if o.wall_ms is None else round(o.wall_ms, 3)
                                    for o in outs],
-                   "run_s": round(run_s, 3)},
+                   "run_s": round(run_s, 3),
+                   "funnel_ms": {"median": _pct(f_ms, 50), "max": _pct(f_ms, 100),
+                                 "total": float(f_ms.sum()),
+                                 "share": float(f_ms.sum()) / walls if walls else None}},
         "memory": {"worker_peak_rss_mb_median": _pct(peaks, 50),
                    "worker_peak_rss_mb_max": float(peaks.max()) if peaks.size else None,
                    "process_max_rss_mb": process_max_rss_mb()},
@@ -827,6 +915,45 @@ def _table(title: str) -> Any:
     return t
 
 
+def funnel_line(fig: dict[str, Any]) -> str:
+    """One group's loss funnel in one line: exposed tops per stage that lost them (pipeline
+    order, empty stages left out), the verify losses' reasons, the separable tops' recall."""
+    f = fig.get("funnel")
+    if not f or not f["faces"]:
+        return "no exposed tops"
+    parts = []
+    for name in (*STAGE_NAMES, NO_PRODUCTS):
+        n = f["stages"].get(name, 0)
+        if not n:
+            continue
+        txt = f"{name} {n}"
+        if name == "verify" and f["verify_reasons"]:
+            top = sorted(f["verify_reasons"].items(), key=lambda kv: (-kv[1], kv[0]))
+            txt += " (" + ", ".join(f"{k} {v}" for k, v in top) + ")"
+        parts.append(txt)
+    rec = f["separable_recall"]
+    return (f"{f['faces']} tops: " + ", ".join(parts)
+            + f"; separable {f['separable']}: recall "
+            + ("-" if rec is None else f"{rec:.3f}")
+            + f", misses not separable {f['inseparable_misses']}"
+            + (f", funnel errors {f['funnel_errors']}" if f.get("funnel_errors") else ""))
+
+
+def print_funnel(report: dict[str, Any], console: Any) -> None:
+    """The loss line of every sensor and of both overall scopes."""
+    from rich.markup import escape
+
+    g, ho = report["groups"], report["held_out"]["sensor"]
+    console.print("where the exposed tops were lost (boxloc.evaluate.funnel; found = TP):")
+    rows = [(s + (" (held out)" if fig["held_out"] else ""), fig)
+            for s, fig in g["sensors"].items()]
+    rows += [(f"all but {ho}", g["overall"]["development"]),
+             (f"all, {ho} included", g["overall"]["all"])]
+    width = max(len(name) for name, _ in rows)
+    for name, fig in rows:
+        console.print(escape(f"  {name:<{width}}  {funnel_line(fig)}"), soft_wrap=True)
+
+
 def print_matrix_report(report: dict[str, Any], console: Any) -> None:
     """Print the report: targets (PASS/FAIL), per sensor, per kind, the cells, timeouts."""
     from rich.markup import escape
@@ -864,6 +991,7 @@ def print_matrix_report(report: dict[str, Any], console: Any) -> None:
     st.add_row(*_row(f"all but {ho}", g["overall"]["development"]))
     st.add_row(*_row(f"all, {ho} included", g["overall"]["all"]))
     console.print(st)
+    print_funnel(report, console)
 
     kt = _table(f"per scene kind, without {ho} (the held-out sensor)")
     for k, fig in g["kinds"].items():

@@ -1,0 +1,633 @@
+"""The loss funnel: at which stage of the pipeline each exposed box top was lost.
+
+:func:`loss_stages` takes one scan's :class:`boxloc.products.Result` and its ground truth
+and follows every fully exposed face down the pipeline (edges, lines, vertices, hypotheses,
+verification, selection), each stage's product tested against the face's true rectangle:
+
+======== ==================================================================================
+stage    the face is lost there when
+======== ==================================================================================
+edges    fewer than :data:`MIN_SIDES` of its sides show edge points (``result.edges``
+         labels within :data:`EDGE_TOL_PX` of the projected side along at least
+         :data:`SIDE_SHOWN` of it)
+lines    edges are there, but fewer than :data:`MIN_SIDES` sides have a 3D line along them
+         (within :data:`LINE_ANGLE_DEG` and :data:`LINE_DIST` m, overlapping
+         :data:`LINE_OVERLAP` of the side)
+vertex   lines are there, but no vertex lies within :data:`VERTEX_DIST` m of a corner
+hyp      a vertex is there, but no dimension attempt (a row of ``HypothesisSet.att_*``)
+         has IoU >= :data:`IOU_MIN` with the face
+verify   such an attempt exists, but none passed verification (the
+         :class:`~boxloc.products.VerifyReason` of the best one says why)
+select   a verified attempt has IoU >= :data:`IOU_MIN`, but no surface is a true positive
+         on the face (MDL chose another, or the match paired it elsewhere)
+found    a surface is a true positive on the face (:func:`~boxloc.evaluate.metrics.match_surfaces`)
+======== ==================================================================================
+
+The stage is decided from the end: a face found is ``found`` whatever its edges looked
+like; otherwise the latest stage whose product still holds the face names the stage after
+it as the one that lost it (a face with a neighbour's corner as its vertex but no lines of
+its own is a ``hyp`` loss, not a ``lines`` loss).
+
+Each face is also tested for being *separable*: every one of its four sides shows in the
+noise-free render's edge labels (``truth.edge_labels``, the same side test as above). A face
+with a side that no noise-free edge marks (two equal-height boxes touching with zero gap and
+no bevel) cannot be told from its neighbour by any method without a list of box sizes.
+
+Frames and units: the sensor frame, metres; pixels are (column u, row v) as
+``scan.sensor.project`` returns them.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass
+from enum import IntEnum
+from typing import Any
+
+import numpy as np
+
+from boxloc.evaluate.metrics import Match, match_surfaces
+from boxloc.products import DimensionSource, VerifyReason
+
+__all__ = [
+    "EDGE_TOL_PX", "SIDE_SHOWN", "SIDE_SAMPLES", "SIDE_SPAN", "MIN_SIDES", "LINE_ANGLE_DEG",
+    "LINE_DIST", "LINE_OVERLAP", "VERTEX_DIST", "FLUSH_ANGLE_DEG", "FLUSH_STEP", "IOU_MIN",
+    "MAX_PLANE_OFFSET", "LossStage",
+    "STAGE_NAMES", "NO_PRODUCTS", "FaceLosses", "loss_stages", "sides_shown",
+    "separable_faces", "funnel_figures",
+]
+
+#: Edge pixels within this many pixels (a square window) of the projected side count as
+#: the side's: a jump is labelled on its nearer surface (up to 1 px off the true outline)
+#: and the sensors' edge blur (``noise.edge_px``) moves a detected edge by about 1 px more.
+EDGE_TOL_PX = 2
+#: A side shows when at least this fraction of its samples have an edge pixel near: half
+#: a side is enough for a line to be found along it (the Hough stage needs support, not
+#: completeness), and an occluder or a mixed-pixel gap may hide the rest.
+SIDE_SHOWN = 0.5
+#: Samples along each side, evenly spaced over :data:`SIDE_SPAN` of its length.
+SIDE_SAMPLES = 25
+#: The part of a side that is sampled (fractions of its length): its middle 80 %, so that
+#: the edges of the two sides meeting it at the corners do not count for it.
+SIDE_SPAN = (0.1, 0.9)
+#: Sides a face needs at a stage: a vertex is two sides meeting (an L), so a face with
+#: fewer than two sides with edges (lines) cannot get a vertex of its own.
+MIN_SIDES = 2
+#: Largest angle between a line and a side it lies along, degrees: a few times the angular
+#: uncertainty of a 3D line fitted to a box side at the matrix scenes' ranges.
+LINE_ANGLE_DEG = 6.0
+#: Largest distance from the side's midpoint to the line, metres: about 5 sigma of the
+#: range noise at the scenes' farthest distance, and far below the smallest box (0.15 m).
+LINE_DIST = 0.02
+#: Smallest overlap of a line's segment with the side, as a fraction of the side's length.
+LINE_OVERLAP = 0.3
+#: Largest distance from a true corner to a vertex that counts as that corner's, metres
+#: (1.5 x :data:`LINE_DIST`: a vertex is where two such lines meet).
+VERTEX_DIST = 0.03
+#: Two tops are flush (one plane) when their normals agree within this angle, degrees, ...
+FLUSH_ANGLE_DEG = 0.5
+#: ... and their planes are this close along the normal, metres: far above the rounding of
+#: boxes drawn to one height (``touching`` and ``layered`` tops share theirs exactly) and
+#: below the range noise of every sensor model here, so such a step is no step to them.
+FLUSH_STEP = 0.0005
+#: Smallest IoU of an attempt (or a verified attempt) with the face: the bench's true
+#: positive IoU (:func:`boxloc.evaluate.metrics.match_surfaces`).
+IOU_MIN = 0.5
+#: An attempt whose centre lies farther than this from the face's plane is not the face's,
+#: metres: the same gate as the bench's match.
+MAX_PLANE_OFFSET = 0.03
+
+
+class LossStage(IntEnum):
+    """The stage that lost an exposed face (``FOUND``: none did)."""
+
+    EDGES = 0
+    LINES = 1
+    VERTEX = 2
+    HYP = 3
+    VERIFY = 4
+    SELECT = 5
+    FOUND = 6
+
+
+#: The stages' names in the report, in pipeline order (``LossStage(i)`` is ``STAGE_NAMES[i]``).
+STAGE_NAMES: tuple[str, ...] = tuple(s.name.lower() for s in LossStage)
+#: The bench's name for a missed face of a scan without stage products (timed out, crashed,
+#: or a localizer that returns surfaces only).
+NO_PRODUCTS = "none"
+
+
+@dataclass(frozen=True, eq=False)
+class FaceLosses:
+    """Where each fully exposed face of one scan was lost (:func:`loss_stages`).
+
+    Attributes
+    ----------
+    face : (n,) int64
+        The face (row of the ground truth) of each entry: the fully exposed ones, in order.
+    stage : (n,) uint8
+        :class:`LossStage`.
+    edge_sides, line_sides : (n,) int8
+        Sides (0-4) that show edge points of ``result.edges``; sides with a 3D line along.
+    vertices : (n,) int8
+        Corners (0-4) with a vertex within :data:`VERTEX_DIST`.
+    best_iou : (n,) float64
+        The largest IoU of any dimension attempt with the face (0 if none overlaps).
+    best_reason : (n,) int16
+        :class:`~boxloc.products.VerifyReason` of that attempt's verification; -1 if no
+        attempt overlaps the face or the attempt was not verified.
+    best_source : (n,) int16
+        :class:`~boxloc.products.DimensionSource` of that attempt; -1 if none overlaps.
+    separable : (n,) bool
+        Every side shows in the noise-free render's edge labels (:func:`separable_faces`).
+    """
+
+    face: np.ndarray
+    stage: np.ndarray
+    edge_sides: np.ndarray
+    line_sides: np.ndarray
+    vertices: np.ndarray
+    best_iou: np.ndarray
+    best_reason: np.ndarray
+    best_source: np.ndarray
+    separable: np.ndarray
+
+    def __len__(self) -> int:
+        return int(self.face.shape[0])
+
+    def stage_names(self) -> list[str]:
+        """The stage of each face by name (:data:`STAGE_NAMES`)."""
+        return [STAGE_NAMES[int(s)] for s in self.stage]
+
+    def counts(self) -> dict[str, int]:
+        """Faces per stage, every stage of :data:`STAGE_NAMES` present (0 if none)."""
+        n = np.bincount(self.stage.astype(np.int64), minlength=len(STAGE_NAMES))
+        return {name: int(n[i]) for i, name in enumerate(STAGE_NAMES)}
+
+    def verify_reasons(self) -> dict[str, int]:
+        """The :class:`~boxloc.products.VerifyReason` of the ``verify`` losses, by name."""
+        sel = self.best_reason[self.stage == LossStage.VERIFY]
+        out: dict[str, int] = {}
+        for r in sel:
+            name = _enum_name(VerifyReason, int(r))
+            out[name] = out.get(name, 0) + 1
+        return dict(sorted(out.items()))
+
+    def to_dict(self, *, digits: int = 4) -> dict[str, Any]:
+        """JSON-ready, one list per attribute; enums by name (null for -1)."""
+        return {
+            "face": [int(f) for f in self.face],
+            "stage": self.stage_names(),
+            "edge_sides": [int(v) for v in self.edge_sides],
+            "line_sides": [int(v) for v in self.line_sides],
+            "vertices": [int(v) for v in self.vertices],
+            "best_iou": [round(float(v), digits) for v in self.best_iou],
+            "best_reason": [None if r < 0 else _enum_name(VerifyReason, int(r))
+                            for r in self.best_reason],
+            "best_source": [None if s < 0 else _enum_name(DimensionSource, int(s))
+                            for s in self.best_source],
+            "separable": [bool(v) for v in self.separable],
+        }
+
+
+def _enum_name(enum: Any, value: int) -> str:
+    try:
+        return str(enum(value).name)
+    except ValueError:  # a value from a newer log than this code
+        return str(value)
+
+
+# --- the side tests ------------------------------------------------------------------------
+
+
+def _side_pixels(corners: np.ndarray, sensor: Any, shape: tuple[int, int]
+                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The samples along every side, projected: their 3D points (F, 4, S, 3), pixel columns
+    and rows (F, 4, S) int64, and whether each lies in the image (F, 4, S) bool."""
+    a, b = corners, np.roll(corners, -1, axis=1)  # side k: corner k -> k + 1
+    t = np.linspace(SIDE_SPAN[0], SIDE_SPAN[1], SIDE_SAMPLES)[:, None]
+    pts = a[:, :, None] * (1.0 - t) + b[:, :, None] * t  # (F, 4, S, 3)
+    u, v, inside = _pixels(np.asarray(sensor.project(pts), dtype=np.float64), shape)
+    return pts, u, v, inside
+
+
+def _pixels(uv: np.ndarray, shape: tuple[int, int]) -> tuple[np.ndarray, np.ndarray,
+                                                             np.ndarray]:
+    """Nearest pixel (column, row) of projected points (..., 2), and whether it is in the
+    image (a NaN projection is not)."""
+    H, W = shape
+    ok = np.isfinite(uv).all(axis=-1)
+    with np.errstate(invalid="ignore"):
+        ok &= (np.abs(uv) < 1e9).all(axis=-1)
+    u = np.where(ok, np.rint(np.where(ok, uv[..., 0], 0.0)), -1).astype(np.int64)
+    v = np.where(ok, np.rint(np.where(ok, uv[..., 1], 0.0)), -1).astype(np.int64)
+    return u, v, (u >= 0) & (u < W) & (v >= 0) & (v < H)
+
+
+def _near(mask: np.ndarray, u: np.ndarray, v: np.ndarray, inside: np.ndarray) -> np.ndarray:
+    """Whether ``mask`` (H, W) is set within :data:`EDGE_TOL_PX` (a square window, clipped
+    to the image) of each pixel; False outside the image. Cheaper than dilating the image:
+    a few hundred samples against a megapixel."""
+    H, W = mask.shape
+    off = np.arange(-EDGE_TOL_PX, EDGE_TOL_PX + 1)
+    uu = np.clip(u[inside][:, None, None] + off[None, None, :], 0, W - 1)
+    vv = np.clip(v[inside][:, None, None] + off[None, :, None], 0, H - 1)
+    hit = np.zeros(inside.shape, dtype=bool)
+    hit[inside] = mask[vv, uu].any(axis=(1, 2))
+    return hit
+
+
+def _shown(hit: np.ndarray, inside: np.ndarray) -> np.ndarray:
+    """(F, 4) bool: at least :data:`SIDE_SHOWN` of a side's samples in the image hit."""
+    n = inside.sum(axis=-1)
+    frac = hit.sum(axis=-1) / np.maximum(n, 1)
+    return np.asarray((n > 0) & (frac >= SIDE_SHOWN), dtype=bool)
+
+
+def _check_corners(corners: Any) -> np.ndarray:
+    c = np.asarray(corners, dtype=np.float64)
+    if c.ndim != 3 or c.shape[1:] != (4, 3):
+        raise ValueError(f"corners must have shape (F, 4, 3), got {c.shape}")
+    return c
+
+
+def sides_shown(labels: np.ndarray, corners: np.ndarray, sensor: Any) -> np.ndarray:
+    """Which sides of each rectangle show edge pixels in a label image.
+
+    Parameters
+    ----------
+    labels : ndarray, shape (H, W)
+        Edge labels; any non-zero pixel is an edge.
+    corners : ndarray, shape (F, 4, 3), float, metres, sensor frame
+        Each rectangle's corners in order around it; side k runs from corner k to k + 1.
+    sensor : PinholeModel or RayTableModel
+        The scan's sensor model (its ``project``).
+
+    Returns
+    -------
+    ndarray, shape (F, 4), bool
+        Side k shows: at least :data:`SIDE_SHOWN` of its :data:`SIDE_SAMPLES` samples that
+        project into the image have an edge pixel within :data:`EDGE_TOL_PX`. A side with
+        no sample in the image does not show.
+
+    Raises
+    ------
+    ValueError
+        If ``labels`` is not 2-D or ``corners`` not (F, 4, 3).
+
+    Examples
+    --------
+    >>> from boxloc.scan import PinholeModel
+    >>> cam = PinholeModel(fx=100.0, fy=100.0, cx=50.0, cy=50.0, width=100, height=100)
+    >>> labels = np.zeros((100, 100), np.uint8)
+    >>> labels[30, 30:71] = 1  # the top side of the square below, and nothing else
+    >>> sq = np.array([[[-0.2, -0.2, 1.0], [0.2, -0.2, 1.0], [0.2, 0.2, 1.0], [-0.2, 0.2, 1.0]]])
+    >>> sides_shown(labels, sq, cam)
+    array([[ True, False, False, False]])
+    """
+    lab = np.asarray(labels)
+    if lab.ndim != 2:
+        raise ValueError(f"labels must have shape (H, W), got {lab.shape}")
+    c = _check_corners(corners)
+    if c.shape[0] == 0:
+        return np.zeros((0, 4), dtype=bool)
+    _, u, v, inside = _side_pixels(c, sensor, lab.shape)
+    return _shown(_near(lab != 0, u, v, inside), inside)
+
+
+def _flush(truth: Any, faces: np.ndarray, pts: np.ndarray, sensor: Any,
+           shape: tuple[int, int]) -> np.ndarray:
+    """(F, 4, S) bool: just beyond the side sample (:data:`EDGE_TOL_PX` + 1 px outward in
+    the image) the noise-free render sees another top face in the same plane (within
+    :data:`FLUSH_ANGLE_DEG` and :data:`FLUSH_STEP`)."""
+    c = np.asarray(truth.centers, dtype=np.float64).reshape(-1, 3)
+    nrm = np.asarray(truth.normals, dtype=np.float64).reshape(-1, 3)
+    corners = np.asarray(truth.corners, dtype=np.float64).reshape(-1, 4, 3)[faces]
+    side = np.roll(corners, -1, axis=1) - corners  # (F, 4, 3)
+    out = np.cross(side, nrm[faces][:, None, :])
+    mid = 0.5 * (corners + np.roll(corners, -1, axis=1))
+    sign = np.sign(np.einsum("fkc,fkc->fk", mid - c[faces][:, None], out))
+    out *= (sign / np.maximum(np.linalg.norm(out, axis=-1), 1e-12))[..., None]
+    # the outward direction in the image, from the projection of a point 1 cm beyond
+    uv0 = np.asarray(sensor.project(pts), dtype=np.float64)
+    uv1 = np.asarray(sensor.project(pts + 0.01 * out[:, :, None, :]), dtype=np.float64)
+    step = uv1 - uv0
+    with np.errstate(invalid="ignore", divide="ignore"):
+        step /= np.linalg.norm(step, axis=-1, keepdims=True)
+    u, v, inside = _pixels(uv0 + (EDGE_TOL_PX + 1) * step, shape)
+    ids = np.asarray(truth.face_ids)
+    other = np.full(inside.shape, -1, dtype=np.int64)
+    other[inside] = ids[v[inside], u[inside]]
+    me = faces[:, None, None]
+    cand = (other >= 0) & (other != me)
+    o = np.where(cand, other, 0)
+    same_dir = np.einsum("fksc,fc->fks", nrm[o], nrm[faces]) >= math.cos(
+        math.radians(FLUSH_ANGLE_DEG))
+    step_m = np.abs(np.einsum("fksc,fc->fks", c[o] - c[faces][:, None, None], nrm[faces]))
+    return np.asarray(cand & same_dir & (step_m <= FLUSH_STEP), dtype=bool)
+
+
+def separable_faces(truth: Any, sensor: Any, faces: Sequence[int] | np.ndarray | None = None,
+                    *, flush_seams_show: bool = False) -> np.ndarray:
+    """Whether every side of each face shows in the noise-free render.
+
+    Parameters
+    ----------
+    truth : GroundTruth-like
+        ``corners (F, 4, 3)``, ``centers``, ``normals (F, 3)`` metres, and the noise-free
+        render's ``edge_labels`` and ``face_ids (H, W)``.
+    sensor : PinholeModel or RayTableModel
+    faces : sequence of int, optional
+        The faces to test; default the fully exposed ones, in order.
+    flush_seams_show : bool
+        Whether a seam between two flush tops (neighbours in the same plane) has relief in
+        the noise-free scene: True when the lids have a bevel (a groove along the seam) or
+        a bulge (a valley); False for sharp, flat lids (``SceneSpec.bevel == 0`` and
+        ``bulge == 0``), whose flush seams show only where a ray falls through a gap.
+
+    Returns
+    -------
+    ndarray, shape (len(faces),), bool
+
+    Notes
+    -----
+    A side shows as in :func:`sides_shown`, on ``truth.edge_labels``, except that the
+    render labels every boundary between two objects, so a flush seam between sharp flat
+    lids carries a crease label although its range image is one smooth plane: such a
+    sample counts only if a jump label (a ray through a gap) is near it. A face with a side
+    that does not show cannot be told from its neighbour by any method without a list of
+    box sizes (``Config.box_sizes``).
+    """
+    if faces is None:
+        faces = np.flatnonzero(np.asarray(truth.fully_exposed, dtype=bool))
+    idx = np.asarray(faces, dtype=np.int64).reshape(-1)
+    corners = np.asarray(truth.corners, dtype=np.float64).reshape(-1, 4, 3)[idx]
+    if idx.size == 0:
+        return np.zeros(0, dtype=bool)
+    lab = np.asarray(truth.edge_labels)
+    pts, u, v, inside = _side_pixels(corners, sensor, lab.shape)
+    hit = _near(lab != 0, u, v, inside)
+    if not flush_seams_show:
+        flush = _flush(truth, idx, pts, sensor, lab.shape)
+        hit &= ~flush | _near(lab == 1, u, v, inside)
+    return np.asarray(_shown(hit, inside).all(axis=1), dtype=bool)
+
+
+def _lines_along(lines: Any, corners: np.ndarray) -> np.ndarray:
+    """(F, 4) bool: side k of face f has a 3D line along it (see the module docstring)."""
+    F = corners.shape[0]
+    dirs = np.asarray(lines.directions, dtype=np.float64).reshape(-1, 3)
+    if F == 0 or dirs.shape[0] == 0:
+        return np.zeros((F, 4), dtype=bool)
+    a = corners.reshape(-1, 3)
+    b = np.roll(corners, -1, axis=1).reshape(-1, 3)
+    length = np.linalg.norm(b - a, axis=1)  # (K,)
+    d = (b - a) / np.maximum(length, 1e-12)[:, None]
+    mid = 0.5 * (a + b)
+    lp = np.asarray(lines.points, dtype=np.float64).reshape(-1, 3)
+    ls = np.asarray(lines.starts, dtype=np.float64).reshape(-1, 3)
+    le = np.asarray(lines.ends, dtype=np.float64).reshape(-1, 3)
+    parallel = np.abs(dirs @ d.T) >= math.cos(math.radians(LINE_ANGLE_DEG))  # (L, K)
+    r = mid[None, :, :] - lp[:, None, :]  # (L, K, 3)
+    along = np.einsum("lkc,lc->lk", r, dirs)
+    perp = np.linalg.norm(r - along[..., None] * dirs[:, None, :], axis=-1)
+    s = np.einsum("lkc,kc->lk", ls[:, None, :] - a[None], d)
+    e = np.einsum("lkc,kc->lk", le[:, None, :] - a[None], d)
+    lo, hi = np.minimum(s, e), np.maximum(s, e)
+    overlap = np.minimum(hi, length[None]) - np.maximum(lo, 0.0)
+    ok = parallel & (perp <= LINE_DIST) & (overlap > LINE_OVERLAP * length[None])
+    return ok.any(axis=0).reshape(F, 4)
+
+
+def _attempt_corners(hyps: Any) -> tuple[np.ndarray, np.ndarray]:
+    """Every dimension attempt's rectangle, (k, 4, 3) metres (origin, + x w, + x w + y l,
+    + y l in its hypothesis's frame), and its hypothesis's normal, (k, 3)."""
+    h = np.asarray(hyps.att_hypothesis, dtype=np.int64)
+    o = np.asarray(hyps.origins, dtype=np.float64).reshape(-1, 3)[h]
+    x = np.asarray(hyps.x_axis, dtype=np.float64).reshape(-1, 3)[h]
+    y = np.asarray(hyps.y_axis, dtype=np.float64).reshape(-1, 3)[h]
+    w = np.asarray(hyps.att_width, dtype=np.float64)[:, None]
+    ln = np.asarray(hyps.att_length, dtype=np.float64)[:, None]
+    c = np.stack([o, o + x * w, o + x * w + y * ln, o + y * ln], axis=1)
+    return c, np.asarray(hyps.normals, dtype=np.float64).reshape(-1, 3)[h]
+
+
+Poly = list[tuple[float, float]]
+
+
+def _clip(poly: Poly, axis: int, bound: float, below: bool) -> Poly:
+    """One Sutherland-Hodgman step on plain floats (see ``metrics._clip_halfplane``)."""
+    sign = 1.0 if below else -1.0
+    out: Poly = []
+    k = len(poly)
+    for i in range(k):
+        p, q = poly[i], poly[(i + 1) % k]
+        dp, dq = sign * (p[axis] - bound), sign * (q[axis] - bound)
+        if dp <= 0:
+            out.append(p)
+        if (dp < 0 < dq) or (dq < 0 < dp):
+            t = dp / (dp - dq)
+            out.append((p[0] + t * (q[0] - p[0]), p[1] + t * (q[1] - p[1])))
+    return out
+
+
+def _shoelace(poly: Poly) -> float:
+    k = len(poly)
+    if k < 3:
+        return 0.0
+    return 0.5 * abs(sum(poly[i][0] * poly[(i + 1) % k][1] - poly[(i + 1) % k][0] * poly[i][1]
+                         for i in range(k)))
+
+
+def _attempt_iou(corners: np.ndarray, normals: np.ndarray, truth: Any,
+                 faces: np.ndarray) -> np.ndarray:
+    """IoU of every attempt with every face in ``faces``, (k, len(faces)).
+
+    The same figure as :func:`boxloc.evaluate.metrics.iou_matrix` with ``max_plane_offset``
+    :data:`MAX_PLANE_OFFSET` (its bounding-sphere and plane gates, the rectangle projected
+    into the face's plane and clipped against it), on plain floats: an attempt's rectangle
+    projects to a parallelogram, convex and in order, so no hull is needed, and the
+    per-pair NumPy overhead of the general function would cost more than the pipeline's
+    later stages on a scan with many attempts.
+    """
+    K, n = corners.shape[0], faces.size
+    M = np.zeros((K, n))
+    if K == 0 or n == 0:
+        return M
+    gc = np.asarray(truth.centers, dtype=np.float64).reshape(-1, 3)[faces]
+    gn = np.asarray(truth.normals, dtype=np.float64).reshape(-1, 3)[faces]
+    gx = np.asarray(truth.x_axis, dtype=np.float64).reshape(-1, 3)[faces]
+    gy = np.asarray(truth.y_axis, dtype=np.float64).reshape(-1, 3)[faces]
+    gw = np.asarray(truth.width, dtype=np.float64).reshape(-1)[faces]
+    gl = np.asarray(truth.length, dtype=np.float64).reshape(-1)[faces]
+    with np.errstate(invalid="ignore"):
+        pc = corners.mean(axis=1)
+        pr = np.max(np.linalg.norm(corners - pc[:, None], axis=2), axis=1)  # NaN: never near
+        dist = np.linalg.norm(pc[:, None] - gc[None], axis=-1)
+        near = dist <= (pr[:, None] + 0.5 * np.hypot(gw, gl)[None]) * 1.001
+        near &= np.abs(np.einsum("kfc,fc->kf", pc[:, None] - gc[None], gn)) <= MAX_PLANE_OFFSET
+        near &= np.isfinite(corners).all(axis=(1, 2))[:, None]
+        near &= np.isfinite(normals).all(axis=1)[:, None] & ((gw > 0) & (gl > 0))[None]
+    ki, fi = np.nonzero(near)
+    if ki.size == 0:
+        return M
+    # the face axes re-orthonormalized, as in rect_overlap_in_plane
+    ex = gx / np.maximum(np.linalg.norm(gx, axis=1), 1e-300)[:, None]
+    ey = gy - ex * np.einsum("fc,fc->f", gy, ex)[:, None]
+    ny = np.linalg.norm(ey, axis=1)
+    ey = ey / np.maximum(ny, 1e-300)[:, None]
+    rel = corners[ki] - gc[fi][:, None]  # (m, 4, 3)
+    qx = np.einsum("mjc,mc->mj", rel, ex[fi]).tolist()
+    qy = np.einsum("mjc,mc->mj", rel, ey[fi]).tolist()
+    for m, (k, f) in enumerate(zip(ki.tolist(), fi.tolist(), strict=True)):
+        if ny[f] < 1e-9:
+            continue
+        w, ln = float(gw[f]), float(gl[f])
+        poly: Poly = list(zip(qx[m], qy[m], strict=True))
+        a_pred, a_gt = _shoelace(poly), w * ln
+        if a_pred <= 1e-9 * a_gt:
+            continue
+        for axis, bound, below in ((0, 0.5 * w, True), (0, -0.5 * w, False),
+                                   (1, 0.5 * ln, True), (1, -0.5 * ln, False)):
+            poly = _clip(poly, axis, bound, below)
+        inter = min(_shoelace(poly), a_pred, a_gt)
+        union = a_pred + a_gt - inter
+        if union > 0:
+            M[k, f] = min(max(inter / union, 0.0), 1.0)
+    return M
+
+
+# --- the funnel ---------------------------------------------------------------------------
+
+
+def loss_stages(result: Any, truth: Any, sensor: Any, *, match: Match | None = None,
+                flush_seams_show: bool = False) -> FaceLosses:
+    """Follow every fully exposed face of one scan down the pipeline's products.
+
+    Parameters
+    ----------
+    result : Result
+        :func:`boxloc.find_graspable_surfaces`' result: ``edges``, ``lines``, ``vertices``,
+        ``hypotheses``, ``verification`` and ``surfaces`` are read.
+    truth : GroundTruth-like
+        The faces (``centers``, ``normals``, ``x_axis``, ``y_axis``, ``width``, ``length``,
+        ``corners``, ``fully_exposed``) and the noise-free ``edge_labels (H, W)``.
+    sensor : PinholeModel or RayTableModel
+        The scan's sensor model (``scan.sensor``), for projecting the faces' sides.
+    match : Match, optional
+        ``match_surfaces(result.surfaces, truth)``, if already computed (the bench's).
+    flush_seams_show : bool
+        The lids have a bevel or a bulge (see :func:`separable_faces`).
+
+    Returns
+    -------
+    FaceLosses
+        One entry per fully exposed face, in face order.
+
+    Notes
+    -----
+    The stages, their tests and thresholds are in the module docstring. The tests are
+    diagnostics, not the pipeline's own statistical tests: a face counted as having lines
+    along two sides may still have failed the vertex stage's tests for a good reason.
+
+    Examples
+    --------
+    >>> import boxloc, boxloc.simulate as sim
+    >>> s = sim.simulate(sim.SceneSpec(kind="single", seed=2, width=320, height=240, f=262.5))
+    >>> res = boxloc.find_graspable_surfaces(s.scan, boxloc.Config(min_edge=0.15, max_edge=0.6))
+    >>> loss_stages(res, s.truth, s.scan.sensor).stage_names()
+    ['found']
+    """
+    exposed = np.flatnonzero(np.asarray(truth.fully_exposed, dtype=bool))
+    n = exposed.size
+    corners = np.asarray(truth.corners, dtype=np.float64).reshape(-1, 4, 3)[exposed]
+    if match is None:
+        match = match_surfaces(result.surfaces, truth)
+    found = np.isin(exposed, np.asarray(match.tp_pairs, dtype=np.int64).reshape(-1, 2)[:, 1])
+
+    edge_sides = sides_shown(np.asarray(result.edges.labels), corners, sensor).sum(axis=1)
+    line_sides = _lines_along(result.lines, corners).sum(axis=1)
+    vpts = np.asarray(result.vertices.points, dtype=np.float64).reshape(-1, 3)
+    if vpts.shape[0] and n:
+        dist = np.linalg.norm(vpts[:, None, None, :] - corners[None], axis=-1)  # (V, n, 4)
+        vertices = (dist.min(axis=0) <= VERTEX_DIST).sum(axis=1)
+    else:
+        vertices = np.zeros(n, dtype=np.int64)
+
+    hyps, ver = result.hypotheses, result.verification
+    n_att = int(np.asarray(hyps.att_hypothesis).shape[0])
+    best_iou = np.zeros(n)
+    best_reason = np.full(n, -1, dtype=np.int16)
+    best_source = np.full(n, -1, dtype=np.int16)
+    verified = np.zeros(n, dtype=bool)
+    if n_att and n:
+        M = _attempt_iou(*_attempt_corners(hyps), truth, exposed)  # (n_att, n)
+        # the verification of each attempt (rows are by attempt id; -1: not verified)
+        reason = np.full(n_att, -1, dtype=np.int16)
+        accepted = np.zeros(n_att, dtype=bool)
+        att = np.asarray(ver.attempt, dtype=np.int64)
+        keep = (att >= 0) & (att < n_att)
+        reason[att[keep]] = np.asarray(ver.reason)[keep]
+        accepted[att[keep]] = np.asarray(ver.accepted, dtype=bool)[keep]
+        best = np.argmax(M, axis=0)
+        best_iou = M[best, np.arange(n)]
+        some = best_iou > 0
+        best_reason = np.where(some, reason[best], -1).astype(np.int16)
+        src = np.asarray(hyps.att_source).astype(np.int16)
+        best_source = np.where(some, src[best], -1).astype(np.int16)
+        verified = np.asarray(((M >= IOU_MIN) & accepted[:, None]).any(axis=0), dtype=bool)
+
+    stage = np.select(
+        [found, verified, best_iou >= IOU_MIN, vertices >= 1, line_sides >= MIN_SIDES,
+         edge_sides >= MIN_SIDES],
+        [LossStage.FOUND, LossStage.SELECT, LossStage.VERIFY, LossStage.HYP,
+         LossStage.VERTEX, LossStage.LINES],
+        default=LossStage.EDGES).astype(np.uint8)
+    return FaceLosses(
+        face=exposed.astype(np.int64), stage=stage,
+        edge_sides=edge_sides.astype(np.int8), line_sides=line_sides.astype(np.int8),
+        vertices=vertices.astype(np.int8), best_iou=best_iou.astype(np.float64),
+        best_reason=best_reason, best_source=best_source,
+        separable=separable_faces(truth, sensor, exposed, flush_seams_show=flush_seams_show))
+
+
+# --- pooled over scans ----------------------------------------------------------------------
+
+
+def funnel_figures(scans: Iterable[tuple[Sequence[str], Sequence[bool], Sequence[bool],
+                                         dict[str, int]]]) -> dict[str, Any]:
+    """Pool the funnels of many scans into a group's figures.
+
+    Parameters
+    ----------
+    scans : iterable of (stages, separable, found, verify_reasons)
+        Per scan, per exposed face: its stage name (:data:`STAGE_NAMES` or
+        :data:`NO_PRODUCTS`), whether it is separable, whether it is a true positive; and
+        the scan's verify reasons (:meth:`FaceLosses.verify_reasons`).
+
+    Returns
+    -------
+    dict
+        ``faces`` (exposed faces), ``stages`` (faces per stage name, pipeline order,
+        :data:`NO_PRODUCTS` last), ``verify_reasons`` (the reasons of the ``verify``
+        losses, by name), ``separable`` (separable faces), ``separable_tp`` (true positives
+        among them), ``separable_recall`` (their ratio; null without a separable face) and
+        ``inseparable_misses`` (missed faces that are not separable).
+    """
+    stages = {name: 0 for name in (*STAGE_NAMES, NO_PRODUCTS)}
+    reasons: dict[str, int] = {}
+    faces = sep = sep_tp = insep_miss = 0
+    for names, separable, found, why in scans:
+        for name, s, f in zip(names, separable, found, strict=True):
+            faces += 1
+            stages[name] += 1
+            sep += bool(s)
+            sep_tp += bool(s) and bool(f)
+            insep_miss += (not s) and (not f)
+        for k, v in why.items():
+            reasons[k] = reasons.get(k, 0) + int(v)
+    return {"faces": faces, "stages": stages, "verify_reasons": dict(sorted(reasons.items())),
+            "separable": sep, "separable_tp": sep_tp,
+            "separable_recall": sep_tp / sep if sep else None,
+            "inseparable_misses": insep_miss}
