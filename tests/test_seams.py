@@ -240,6 +240,7 @@ def _row_term_pairs(coord: np.ndarray, row: np.ndarray, centres: np.ndarray, h: 
 
 
 def test_row_term_kernel_bit_for_bit_the_pair_expansion() -> None:
+    # the kernel takes the points sorted; the pair expansion sums them in their own order
     from boxloc.stages.seams import _row_term, _windows
 
     rng = np.random.default_rng(7)
@@ -250,9 +251,86 @@ def test_row_term_kernel_bit_for_bit_the_pair_expansion() -> None:
         row = rng.integers(3, 300, n)
         centres = np.arange(rng.uniform(0.0, 0.3), rng.uniform(0.4, 1.0), 0.5 * h)
         ni, _, nl, _, nr, _ = _windows(coord, np.zeros(n), centres, h)
-        got = _row_term(coord, row, centres, h, ni, nl, nr)
+        order = np.argsort(coord)
+        got = _row_term(coord[order], row[order], centres, h, ni, nl, nr)
         want = _row_term_pairs(coord, row, centres, h, ni, nl, nr)
         assert got.tobytes() == want.tobytes()
+
+
+def _seam_stats_before(coord: np.ndarray, w: np.ndarray, scale: float, centres: np.ndarray,
+                       h: float, row: np.ndarray | None, row_corr: float
+                       ) -> tuple[np.ndarray, np.ndarray]:
+    """The seam statistic as it was computed before the sorted-strip kernels (the points
+    in reach, np.argsort in _windows, the row term by the pair expansion): their
+    reference."""
+    from boxloc.stages.seams import _in_reach, _windows
+
+    near = _in_reach(coord, centres, h)
+    coord, w = coord[near], w[near]
+    row = None if row is None else row[near]
+    ni, si, nl, sl, nr, sr = _windows(coord, w, centres, h)
+    ok = (ni > 0) & (nl > 0) & (nr > 0)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        mi = si / ni
+        d = 0.5 * (sl / nl + sr / nr) - mi
+        var = 1.0 / ni + 0.25 / nl + 0.25 / nr
+        if row_corr > 0 and row is not None and len(coord):
+            var = (1.0 - row_corr) * var + row_corr * _row_term_pairs(coord, row, centres, h,
+                                                                      ni, nl, nr)
+        sd = scale * np.sqrt(var)
+        both = ok & (sl / nl > mi) & (sr / nr > mi)
+        z = np.where(ok, d / sd, np.nan)
+    return z, both
+
+
+@pytest.mark.parametrize("layout", ["spread", "bunched", "ties", "quantized", "few"])
+def test_seam_statistic_bit_for_bit_as_before_the_sorted_strip(layout: str) -> None:
+    # the bucket sort (insertion, and mergesort for a crowded bucket) and the windows over
+    # the sorted strip give the statistic of np.argsort and np.searchsorted bit for bit;
+    # tied coordinates fall back to np.argsort's order among them
+    from boxloc.stages.seams import _seam_stats
+
+    rng = np.random.default_rng(["spread", "bunched", "ties", "quantized", "few"].index(layout))
+    for trial in range(25):
+        n = int(rng.integers(1, 12)) if layout == "few" else int(rng.integers(50, 6000))
+        h = float(rng.uniform(0.002, 0.01))
+        coord = rng.uniform(-0.05, 0.4, n)
+        if layout == "bunched":  # most points within a few buckets' width
+            coord[: n // 2] = 0.1 + rng.normal(0.0, 1e-7, n // 2)
+        elif layout == "ties":
+            coord[rng.integers(0, n, n // 3)] = coord[rng.integers(0, n, n // 3)]
+        elif layout == "quantized":  # a millimetre grid: ties everywhere
+            coord = np.round(coord, 3)
+        w = rng.normal(0.0, 1e-3, n)
+        row = rng.integers(0, 480, n)
+        if trial % 3 == 0:
+            centres = np.arange(0.0, 0.3, 0.5 * h)
+        else:
+            centres = float(rng.uniform(0.0, 0.3)) + np.arange(-h, 1.25 * h, h)
+        for rw, rc in ((None, 0.0), (row, 0.0), (row, 0.3)):
+            got = _seam_stats(coord, w, 1e-3, centres, h, rw, rc)
+            want = _seam_stats_before(coord, w, 1e-3, centres, h, rw, rc)
+            assert got[0].tobytes() == want[0].tobytes()
+            assert got[1].tobytes() == want[1].tobytes()
+
+
+def test_strip_sorted_is_the_argsort_order_and_flags_ties() -> None:
+    from boxloc.stages.seams import _strip_sorted
+
+    rng = np.random.default_rng(3)
+    coord = np.r_[rng.uniform(0.0, 1.0, 5000), rng.normal(0.5, 1e-9, 500)]
+    w = rng.normal(size=coord.size)
+    row = np.arange(coord.size)
+    cs, ws, rs, distinct = _strip_sorted(coord, w, row, 0.2, 0.9)
+    near = (coord >= 0.2) & (coord <= 0.9)
+    order = np.argsort(coord[near])
+    assert distinct
+    assert cs.tobytes() == coord[near][order].tobytes()
+    assert ws.tobytes() == w[near][order].tobytes()
+    assert np.array_equal(rs, row[near][order])
+    coord[7] = coord[8] = 0.5
+    assert not _strip_sorted(coord, w, row, 0.2, 0.9)[3]
+    assert len(_strip_sorted(coord, w, row, 2.0, 3.0)[0]) == 0
 
 
 def test_norm_isf_is_scipy_bit_for_bit() -> None:

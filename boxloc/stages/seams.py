@@ -34,6 +34,7 @@ offsets cancel between the groove and its flanks, only the rest).
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import NamedTuple
@@ -203,39 +204,174 @@ def _windows(coord: np.ndarray, w: np.ndarray, centres: np.ndarray, h: float
     return tuple(out)
 
 
+#: Largest bucket :func:`_near_sorted` sorts by insertion; a bigger one (points bunched in
+#: one bucket) is sorted by mergesort.
+_BUCKET_INSERTION = 32
+
+
 @nb.njit(cache=True)
-def _row_sums(coord: np.ndarray, r: np.ndarray, centres: np.ndarray, los: np.ndarray,
-              his: np.ndarray, coefs: np.ndarray, R: int) -> np.ndarray:
-    """Per (centre, row) sums of the statistic's weights, (m * R,) float64.
+def _strip_sorted(coord: np.ndarray, w: np.ndarray, row: np.ndarray, lo: float, hi: float
+                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray, bool]:
+    """The points with ``lo <= coord <= hi``, sorted by ``coord``, with their ``w`` and
+    ``row``; and whether their coordinates are all distinct.
+
+    A bucket sort (buckets of equal width over the points' span; a point's bucket is a
+    monotonic function of its coordinate), then insertion sort within each bucket: O(n)
+    for points spread over a face. Distinct coordinates have one sorted order, np.argsort's
+    too; where two tie, np.argsort's order among them decides the rounding of the window
+    sums, and the caller sorts with it instead.
+    """
+    n = coord.shape[0]
+    idx = np.empty(n, np.int64)
+    k = 0
+    for i in range(n):
+        if coord[i] >= lo and coord[i] <= hi:
+            idx[k] = i
+            k += 1
+    cs = np.empty(k)
+    ws = np.empty(k)
+    rs = np.empty(k, row.dtype)
+    if k == 0:
+        return cs, ws, rs, True
+    cmin = cmax = coord[idx[0]]
+    for q in range(1, k):
+        c = coord[idx[q]]
+        cmin = min(cmin, c)
+        cmax = max(cmax, c)
+    scale = k / (cmax - cmin) if cmax > cmin else 0.0
+    if not math.isfinite(scale):  # a span below ~1e-308: everything in one bucket
+        scale = 0.0
+    # counting sort into the buckets (stable), then each bucket sorted in place
+    bucket = np.empty(k, np.int64)
+    start = np.zeros(k + 1, np.int64)
+    for q in range(k):
+        b = min(int((coord[idx[q]] - cmin) * scale), k - 1)
+        bucket[q] = b
+        start[b + 1] += 1
+    for b in range(k):
+        start[b + 1] += start[b]
+    fill = start[:k].copy()
+    srt = np.empty(k, np.int64)
+    for q in range(k):
+        srt[fill[bucket[q]]] = idx[q]
+        fill[bucket[q]] += 1
+    for b in range(k):
+        a, e = start[b], start[b + 1]
+        if e - a > _BUCKET_INSERTION:
+            keys = np.empty(e - a)
+            for q in range(a, e):
+                keys[q - a] = coord[srt[q]]
+            o = np.argsort(keys, kind="mergesort")
+            part = srt[a:e].copy()
+            for q in range(e - a):
+                srt[a + q] = part[o[q]]
+            continue
+        for q in range(a + 1, e):
+            v = srt[q]
+            c = coord[v]
+            p = q - 1
+            while p >= a and coord[srt[p]] > c:
+                srt[p + 1] = srt[p]
+                p -= 1
+            srt[p + 1] = v
+    distinct = True
+    for q in range(k):
+        cs[q] = coord[srt[q]]
+        ws[q] = w[srt[q]]
+        rs[q] = row[srt[q]]
+        if q and cs[q] == cs[q - 1]:
+            distinct = False
+    return cs, ws, rs, distinct
+
+
+def _near_sorted(coord: np.ndarray, w: np.ndarray, row: np.ndarray, centres: np.ndarray,
+                 h: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The points some window around the centres reaches (:func:`_in_reach`), in the order
+    ``np.argsort`` of their coordinates puts them: coord, w and row, each (k,).
+
+    ``coord`` and ``w`` are float64 and ``centres`` is not empty.
+    """
+    r = SEAM_FLANK[1] * h
+    lo, hi = centres.min() - r, centres.max() + r
+    cs, ws, rs, distinct = _strip_sorted(coord, w, row, float(lo), float(hi))
+    if not distinct:  # ties: np.argsort's order among them, as _windows sorts
+        near = (coord >= lo) & (coord <= hi)
+        order = np.argsort(coord[near])
+        cs, ws, rs = coord[near][order], w[near][order], row[near][order]
+    return cs, ws, rs
+
+
+@nb.njit(cache=True)
+def _sorted_window_sums(cs: np.ndarray, ws: np.ndarray, centres: np.ndarray, los: np.ndarray,
+                        his: np.ndarray) -> np.ndarray:
+    """:func:`_windows` of points already sorted by their coordinate ``cs``, bit for bit.
+
+    Returns
+    -------
+    (2 K, m) float64
+        Per window k (``los[k]``, ``his[k]`` from a centre): the count and the sum of ``ws``,
+        the sum as a difference of np.cumsum's running sums (sequential, the first term
+        itself) at np.searchsorted's "left" and "right" indices.
+    """
+    n = cs.shape[0]
+    cum = np.zeros(n + 1)
+    if n:
+        cum[1] = ws[0]
+        for i in range(1, n):
+            cum[i + 1] = cum[i] + ws[i]
+    m = centres.shape[0]
+    out = np.empty((2 * los.shape[0], m))
+    for k in range(los.shape[0]):
+        for j in range(m):
+            q = centres[j] + los[k]  # first point >= q
+            a, b = 0, n
+            while a < b:
+                mid = (a + b) >> 1
+                if cs[mid] < q:
+                    a = mid + 1
+                else:
+                    b = mid
+            i0 = a
+            q = centres[j] + his[k]  # first point > q
+            a, b = 0, n
+            while a < b:
+                mid = (a + b) >> 1
+                if cs[mid] <= q:
+                    a = mid + 1
+                else:
+                    b = mid
+            out[2 * k, j] = float(a - i0)
+            out[2 * k + 1, j] = cum[a] - cum[i0]
+    return out
+
+
+@nb.njit(cache=True)
+def _sorted_row_sums(cs: np.ndarray, r: np.ndarray, centres: np.ndarray, los: np.ndarray,
+                     his: np.ndarray, coefs: np.ndarray, R: int) -> np.ndarray:
+    """Per (centre, row) sums of the statistic's weights, (m * R,) float64, of points
+    sorted by their coordinate ``cs``.
 
     For each window k, point i and centre j whose window k holds the point (j from the
-    first centre >= coord[i] - his[k] to the last <= coord[i] - los[k]: np.searchsorted's
-    "left" and "right"), coefs[k, j] is added to S[j * R + r[i]], in that order: the order
-    np.bincount summed the expanded (point, centre) pairs in, so S is bit for bit the same.
+    first centre >= cs[i] - his[k] to the last <= cs[i] - los[k]), coefs[k, j] is added to
+    S[j * R + r[i]]. Bit for bit the expansion of every (point, centre) pair summed by
+    np.bincount: within one window every term added to S[j * R + row] is the same
+    coefs[k, j], so the order of the points does not change the sums, only that of the
+    windows. Along sorted points the centres' range only moves forward (no searches).
     """
     m = centres.shape[0]
     S = np.zeros(m * R)
     for k in range(los.shape[0]):
-        for i in range(coord.shape[0]):
-            a = coord[i] - his[k]
-            b = coord[i] - los[k]
-            lo_j, hi_j = 0, m  # first centre >= a
-            while lo_j < hi_j:
-                mid = (lo_j + hi_j) >> 1
-                if centres[mid] < a:
-                    lo_j = mid + 1
-                else:
-                    hi_j = mid
-            j0 = lo_j
-            hi_j = m  # first centre > b
-            while lo_j < hi_j:
-                mid = (lo_j + hi_j) >> 1
-                if centres[mid] <= b:
-                    lo_j = mid + 1
-                else:
-                    hi_j = mid
+        j0 = 0
+        j1 = 0
+        for i in range(cs.shape[0]):
+            a = cs[i] - his[k]
+            b = cs[i] - los[k]
+            while j0 < m and centres[j0] < a:  # first centre >= a
+                j0 += 1
+            while j1 < m and centres[j1] <= b:  # first centre > b
+                j1 += 1
             ri = r[i]
-            for j in range(j0, lo_j):
+            for j in range(j0, j1):
                 S[j * R + ri] += coefs[k, j]
     return S
 
@@ -247,20 +383,19 @@ def _row_term(coord: np.ndarray, row: np.ndarray, centres: np.ndarray, h: float,
     The statistic is sum_i c_i w_i with c = -1/ni in the groove window and 1/(2 nl), 1/(2 nr)
     in the flanks; a noise offset shared by one row's points adds row_corr * scale^2 *
     (sum of that row's c_i)^2 to its variance. Each point lies in the windows of a few
-    centres only: the sums run over those (point, centre) pairs (a numba kernel: O(n log m
-    + pairs), no expanded pair arrays). ``centres`` ascend.
+    centres only: the sums run over those (point, centre) pairs (a numba kernel: O(n + m
+    + pairs), no expanded pair arrays). ``coord`` and ``centres`` ascend.
     """
     r = (row - row.min()).astype(np.int64)  # image rows: small integers, no need to sort
     R = int(r.max()) + 1
-    m = len(centres)
     with np.errstate(divide="ignore"):
         coefs = np.stack((-1.0 / ni, 0.5 / nl, 0.5 / nr)).astype(np.float64)
     # x lies in the window [c + lo, c + hi] of the centres c in [x - hi, x - lo]
     offs = np.array(_window_offsets(h), np.float64)
-    S = _row_sums(np.ascontiguousarray(coord, np.float64), r,
-                  np.ascontiguousarray(centres, np.float64), offs[:, 0].copy(),
-                  offs[:, 1].copy(), coefs, R)
-    return (S * S).reshape(m, R).sum(1)
+    S = _sorted_row_sums(np.ascontiguousarray(coord, np.float64), r,
+                         np.ascontiguousarray(centres, np.float64), offs[:, 0].copy(),
+                         offs[:, 1].copy(), coefs, R)
+    return (S * S).reshape(len(centres), R).sum(1)
 
 
 def _seam_stats(coord: np.ndarray, w: np.ndarray, scale: float, centres: np.ndarray,
@@ -268,10 +403,22 @@ def _seam_stats(coord: np.ndarray, w: np.ndarray, scale: float, centres: np.ndar
                 ) -> tuple[np.ndarray, np.ndarray]:
     """Flanks minus groove over its standard deviation (NaN where a window is empty), and
     whether the groove lies behind each flank on its own."""
-    near = _in_reach(coord, centres, h)
-    coord, w = coord[near], w[near]
-    row = None if row is None else row[near]
-    ni, si, nl, sl, nr, sr = _windows(coord, w, centres, h)
+    if len(centres) and coord.dtype == np.float64 and w.dtype == np.float64:
+        # the points in reach, sorted once for the windows and the row term (kernels)
+        rows = np.zeros(len(coord), np.int64) if row is None else np.asarray(row, np.int64)
+        coord, w, rows = _near_sorted(coord, w, rows, centres, h)
+        row = None if row is None else rows
+        offs = np.array(_window_offsets(h), np.float64)
+        ni, si, nl, sl, nr, sr = _sorted_window_sums(
+            coord, w, np.ascontiguousarray(centres, np.float64), offs[:, 0].copy(),
+            offs[:, 1].copy())
+    else:
+        near = _in_reach(coord, centres, h)
+        coord, w = coord[near], w[near]
+        ni, si, nl, sl, nr, sr = _windows(coord, w, centres, h)
+        if row is not None:  # the row term takes the points sorted
+            order = np.argsort(coord, kind="stable")
+            coord, row = coord[order], row[near][order]
     ok = (ni > 0) & (nl > 0) & (nr > 0)
     with np.errstate(invalid="ignore", divide="ignore"):
         mi = si / ni
