@@ -28,10 +28,10 @@ like; otherwise the latest stage whose product still holds the face names the st
 it as the one that lost it (a face with a neighbour's corner as its vertex but no lines of
 its own is a ``hyp`` loss, not a ``lines`` loss).
 
-Each face is also tested for being *separable*: every one of its four sides shows in the
-noise-free render's edge labels (``truth.edge_labels``, the same side test as above). A face
-with a side that no noise-free edge marks (two equal-height boxes touching with zero gap and
-no bevel) cannot be told from its neighbour by any method without a list of box sizes.
+Each face is also tested for being *separable* (:func:`separable_faces`): no side of it
+is a flush seam that the noise-free render cannot show. Two equal-height boxes touching with
+no gap and sharp, flat lids make one smooth plane in the range image, and no method can
+split it without a list of box sizes.
 
 Frames and units: the sensor frame, metres; pixels are (column u, row v) as
 ``scan.sensor.project`` returns them.
@@ -140,7 +140,7 @@ class FaceLosses:
     best_source : (n,) int16
         :class:`~boxloc.products.DimensionSource` of that attempt; -1 if none overlaps.
     separable : (n,) bool
-        Every side shows in the noise-free render's edge labels (:func:`separable_faces`).
+        No side is a flush seam the noise-free render cannot show (:func:`separable_faces`).
     """
 
     face: np.ndarray
@@ -330,7 +330,8 @@ def _flush(truth: Any, faces: np.ndarray, pts: np.ndarray, sensor: Any,
 
 def separable_faces(truth: Any, sensor: Any, faces: Sequence[int] | np.ndarray | None = None,
                     *, flush_seams_show: bool = False) -> np.ndarray:
-    """Whether every side of each face shows in the noise-free render.
+    """Whether each face can be told from its neighbours in the noise-free render: no
+    side of it is a flush seam that the render cannot show.
 
     Parameters
     ----------
@@ -343,8 +344,8 @@ def separable_faces(truth: Any, sensor: Any, faces: Sequence[int] | np.ndarray |
     flush_seams_show : bool
         Whether a seam between two flush tops (neighbours in the same plane) has relief in
         the noise-free scene: True when the lids have a bevel (a groove along the seam) or
-        a bulge (a valley); False for sharp, flat lids (``SceneSpec.bevel == 0`` and
-        ``bulge == 0``), whose flush seams show only where a ray falls through a gap.
+        a bulge (a valley), and then every face is separable; False for sharp, flat lids
+        (``SceneSpec.bevel == 0`` and ``bulge == 0``).
 
     Returns
     -------
@@ -352,26 +353,31 @@ def separable_faces(truth: Any, sensor: Any, faces: Sequence[int] | np.ndarray |
 
     Notes
     -----
-    A side shows as in :func:`sides_shown`, on ``truth.edge_labels``, except that the
-    render labels every boundary between two objects, so a flush seam between sharp flat
-    lids carries a crease label although its range image is one smooth plane: such a
-    sample counts only if a jump label (a ray through a gap) is near it. A face with a side
-    that does not show cannot be told from its neighbour by any method without a list of
-    box sizes (``Config.box_sizes``).
+    A side sample (as in :func:`sides_shown`) is *hidden* when just beyond it (
+    :data:`EDGE_TOL_PX` + 1 px outward in the image) the render sees another top face in
+    the same plane and no jump label (a ray through a gap) lies within
+    :data:`EDGE_TOL_PX` of it. A side is a hidden seam when more than 1 - :data:`SIDE_SHOWN`
+    of its samples in the image are hidden; a face with a hidden seam is not separable: two
+    equal-height boxes touching with no gap (or one narrower than the rays' spacing) and no
+    bevel make one smooth plane in the range image, and no method can split it without a
+    list of box sizes (``Config.box_sizes``).
+
+    ``truth.edge_labels != 0`` alone cannot say this: the render labels every boundary
+    between two objects, a flush seam included (as a crease). A side that is occluded or
+    out of the image is not a seam and does not make a face inseparable.
     """
     if faces is None:
         faces = np.flatnonzero(np.asarray(truth.fully_exposed, dtype=bool))
     idx = np.asarray(faces, dtype=np.int64).reshape(-1)
+    if idx.size == 0 or flush_seams_show:
+        return np.ones(idx.size, dtype=bool)
     corners = np.asarray(truth.corners, dtype=np.float64).reshape(-1, 4, 3)[idx]
-    if idx.size == 0:
-        return np.zeros(0, dtype=bool)
     lab = np.asarray(truth.edge_labels)
     pts, u, v, inside = _side_pixels(corners, sensor, lab.shape)
-    hit = _near(lab != 0, u, v, inside)
-    if not flush_seams_show:
-        flush = _flush(truth, idx, pts, sensor, lab.shape)
-        hit &= ~flush | _near(lab == 1, u, v, inside)
-    return np.asarray(_shown(hit, inside).all(axis=1), dtype=bool)
+    hidden = _flush(truth, idx, pts, sensor, lab.shape) & inside & ~_near(lab == 1, u, v, inside)
+    n = inside.sum(axis=-1)
+    seam = hidden.sum(axis=-1) > (1.0 - SIDE_SHOWN) * n
+    return np.asarray(~seam.any(axis=1), dtype=bool)
 
 
 def _lines_along(lines: Any, corners: np.ndarray) -> np.ndarray:

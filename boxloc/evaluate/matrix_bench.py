@@ -79,9 +79,9 @@ a true edge: the bare pallet of ``empty`` has real edges), ``edge_points_per_pix
 lost them: ``edges``, ``lines``, ``vertex``, ``hyp``, ``verify``, ``select``, ``found`` = the
 true positives, and ``none`` for a miss on a scan without stage products: timed out,
 crashed), ``verify_reasons`` (the :class:`boxloc.products.VerifyReason` of the best attempt
-of each ``verify`` loss), ``separable`` (tops whose every side shows in the noise-free
-render: :func:`boxloc.evaluate.funnel.separable_faces`, flush seams showing when the scene's
-lids have a bevel or a bulge), ``separable_tp``, ``separable_recall`` and
+of each ``verify`` loss), ``separable`` (tops with no side that is a flush seam the
+noise-free render cannot show: :func:`boxloc.evaluate.funnel.separable_faces`; a scene whose
+lids have a bevel or a bulge has none), ``separable_tp``, ``separable_recall`` and
 ``inseparable_misses`` (missed tops that no method could separate without a list of box
 sizes), ``funnel_errors`` (scans whose diagnostic failed).
 
