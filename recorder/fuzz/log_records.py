@@ -68,17 +68,16 @@ def write_log_model(m: LogModel, path: Path) -> None:
     The bytes are a function of ``m`` alone: the chunks are compressed at the recorder's
     zstd level (:data:`recorder.mcap.sink.ZSTD_LEVEL`), whatever this process did before.
     """
-    from mcap.writer import CompressionType, Writer
+    from mcap.writer import CompressionType
 
-    # Importing the recorder sets the zstd level of every mcap Writer in the process
-    # (recorder.mcap.sink replaces mcap.writer's zstandard). Without this import the level
-    # was the library's (3) in a fresh worker and the recorder's (1) once an earlier case of
-    # the same worker had recovered a log (recorder.mcap.recover imports the sink): the same
-    # case, content for content, gave other bytes depending on which worker ran it after what.
-    import recorder.mcap.sink  # noqa: F401
+    # The recorder's writer, explicitly: mcap's own Writer compresses at the library's level
+    # (3). Before, this relied on importing recorder.mcap.sink setting the level of every
+    # mcap Writer in the process, and before that, a fresh worker wrote level 3 and one that
+    # had recovered a log level 1: the same case gave other bytes depending on its history.
+    from recorder.mcap.sink import ZstdLevelWriter
 
     with open(path, "wb") as f:
-        w = Writer(f, compression=CompressionType.ZSTD)
+        w = ZstdLevelWriter(f, compression=CompressionType.ZSTD)
         w.start(library=m.library)
         for name, md in m.metadata:
             w.add_metadata(name, md)

@@ -39,6 +39,7 @@ import socket
 import subprocess
 import threading
 import time
+import types
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from datetime import UTC, datetime
@@ -66,8 +67,9 @@ ZSTD_LEVEL = 1
 
 
 class _ZstdAtLevel:
-    """Stands in for the ``zstandard`` module inside ``mcap.writer``: same ``compress``,
-    our level. Still standard zstd frames, so every reader is unaffected."""
+    """Stands in for the ``zstandard`` module inside :class:`ZstdLevelWriter`'s chunk
+    finalizer: same ``compress``, our level. Still standard zstd frames, so every reader is
+    unaffected."""
 
     def __init__(self, level: int) -> None:
         self._c = zstandard.ZstdCompressor(level=level)
@@ -78,8 +80,42 @@ class _ZstdAtLevel:
             return self._c.compress(data)
 
 
-# a module attribute replaced by a stand-in object (mcap offers no compression level)
-_mcap_writer.zstandard = _ZstdAtLevel(ZSTD_LEVEL)  # type: ignore[assignment]
+def _with_zstandard(f: Callable[..., Any], zstd: object) -> Callable[..., Any]:
+    """A copy of ``f``, a function of ``mcap.writer``, that sees ``zstd`` as ``zstandard``.
+
+    The copy runs the library's own code (so its chunks are laid out exactly as the
+    library's), against a copy of the module's namespace: ``mcap.writer`` itself, and so
+    every other Writer in the process, is untouched.
+    """
+    namespace = {**vars(_mcap_writer), "zstandard": zstd}
+    g = types.FunctionType(f.__code__, namespace, f.__name__, f.__defaults__, f.__closure__)
+    g.__qualname__ = f.__qualname__
+    return g
+
+
+# The library's chunk finalizer (private: name-mangled ``Writer.__finalize_chunk``), where the
+# only zstd call is. None when an mcap release no longer has it or compresses elsewhere; the
+# writer then compresses at the library's level (valid logs, other bytes), which
+# tests/test_zstd_level.py reports.
+_FINALIZE = getattr(Writer, "_Writer__finalize_chunk", None)
+if _FINALIZE is not None and "zstandard" not in _FINALIZE.__code__.co_names:
+    _FINALIZE = None
+
+
+class ZstdLevelWriter(Writer):
+    """mcap's :class:`~mcap.writer.Writer` with its zstd chunks compressed at
+    :data:`ZSTD_LEVEL`; every other argument and method is the library's.
+
+    mcap takes no compression level. Before, importing this module replaced
+    ``mcap.writer.zstandard`` for the whole process, so every mcap writer in it (the
+    fuzzer's, a user's) wrote other bytes depending on whether the recorder had been
+    imported. Now only this class compresses at the recorder's level.
+    """
+
+    if _FINALIZE is not None:
+        # mcap's Writer calls self._Writer__finalize_chunk (mangled): this copy is found first
+        _Writer__finalize_chunk = _with_zstandard(_FINALIZE, _ZstdAtLevel(ZSTD_LEVEL))
+
 
 #: A chunk is closed by the recorder at the end of each scan, never by size.
 _NO_AUTO_CHUNK = 1 << 62
@@ -357,7 +393,8 @@ class McapFile:
         self.path = path
         self.stream = stream
         self.fsync = fsync
-        self.writer = Writer(stream, chunk_size=_NO_AUTO_CHUNK, compression=CompressionType.ZSTD)
+        self.writer = ZstdLevelWriter(stream, chunk_size=_NO_AUTO_CHUNK,
+                                      compression=CompressionType.ZSTD)
         self.schema_ids: dict[tuple[str, str, bytes], int] = {}
         self.channel_ids: dict[str, int] = {}
         self.channel_schemas: dict[str, str] = {}
