@@ -65,7 +65,7 @@ def test_a_found_box_is_found_with_all_its_evidence(single: tuple[Any, Any]) -> 
     assert fl.best_source[0] in {int(v) for v in DimensionSource}
     assert fl.separable.tolist() == [True]
     assert fl.counts() == {**{n: 0 for n in fn.STAGE_NAMES}, "found": 1}
-    assert fl.verify_reasons() == {}
+    assert fl.verify_reasons() == {} and fl.hyp_sources() == {}
     d = fl.to_dict()
     assert d["stage"] == ["found"] and d["best_reason"] == ["ACCEPTED"]
     # the bench's match gives the same answer as the one loss_stages makes
@@ -206,17 +206,19 @@ def test_attempt_iou_is_the_bench_iou() -> None:
 
 def test_funnel_figures_pool_the_scans() -> None:
     scans = [(["found", "verify", "edges"], [True, True, False], [True, False, False],
-              {"BOUNDARY": 1}),
-             (["none", "verify"], [False, True], [False, False], {"CONTINUES": 1}),
+              {"verify": {"BOUNDARY": 1}, "hyp": {}}),
+             (["none", "verify", "hyp"], [False, True, True], [False, False, False],
+              {"verify": {"CONTINUES": 1}, "hyp": {"REGION": 1}}),
              ([], [], [], {})]
     f = fn.funnel_figures(scans)
-    assert f["faces"] == 5
+    assert f["faces"] == 6
     assert f["stages"] == {**{n: 0 for n in fn.STAGE_NAMES}, "found": 1, "verify": 2,
-                           "edges": 1, "none": 1}
+                           "edges": 1, "hyp": 1, "none": 1}
     assert list(f["stages"]) == [*fn.STAGE_NAMES, fn.NO_PRODUCTS]
     assert f["verify_reasons"] == {"BOUNDARY": 1, "CONTINUES": 1}
-    assert (f["separable"], f["separable_tp"]) == (3, 1)
-    assert f["separable_recall"] == pytest.approx(1 / 3)
+    assert f["hyp_sources"] == {"REGION": 1}
+    assert (f["separable"], f["separable_tp"]) == (4, 1)
+    assert f["separable_recall"] == pytest.approx(1 / 4)
     assert f["inseparable_misses"] == 2
     assert fn.funnel_figures([])["separable_recall"] is None
 
@@ -250,6 +252,7 @@ def test_the_matrix_bench_reports_the_funnel() -> None:
         assert f["faces"] == g["n_exposed"] == sum(f["stages"].values())
         assert f["stages"]["found"] == g["tp"] and f["stages"]["none"] == 0
         assert sum(f["verify_reasons"].values()) == f["stages"]["verify"]
+        assert sum(f["hyp_sources"].values()) == f["stages"]["hyp"]
         assert f["separable_tp"] <= min(f["separable"], g["tp"])
         assert f["inseparable_misses"] == g["fn"] - (f["separable"] - f["separable_tp"])
         assert f["funnel_errors"] == 0

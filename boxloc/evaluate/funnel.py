@@ -174,6 +174,20 @@ class FaceLosses:
             out[name] = out.get(name, 0) + 1
         return dict(sorted(out.items()))
 
+    def hyp_sources(self) -> dict[str, int]:
+        """The :class:`~boxloc.products.DimensionSource` of the best overlapping attempt of
+        each ``hyp`` loss, by name (``none``: no attempt overlaps the face). ``REGION``: the
+        face's plane was followed as one flat region over several tops."""
+        out: dict[str, int] = {}
+        for r in self.best_source[self.stage == LossStage.HYP]:
+            name = NO_PRODUCTS if r < 0 else _enum_name(DimensionSource, int(r))
+            out[name] = out.get(name, 0) + 1
+        return dict(sorted(out.items()))
+
+    def why(self) -> dict[str, dict[str, int]]:
+        """:meth:`verify_reasons` and :meth:`hyp_sources`, for :func:`funnel_figures`."""
+        return {"verify": self.verify_reasons(), "hyp": self.hyp_sources()}
+
     def to_dict(self, *, digits: int = 4) -> dict[str, Any]:
         """JSON-ready, one list per attribute; enums by name (null for -1)."""
         return {
@@ -602,27 +616,29 @@ def loss_stages(result: Any, truth: Any, sensor: Any, *, match: Match | None = N
 
 
 def funnel_figures(scans: Iterable[tuple[Sequence[str], Sequence[bool], Sequence[bool],
-                                         dict[str, int]]]) -> dict[str, Any]:
+                                         dict[str, dict[str, int]]]]) -> dict[str, Any]:
     """Pool the funnels of many scans into a group's figures.
 
     Parameters
     ----------
-    scans : iterable of (stages, separable, found, verify_reasons)
+    scans : iterable of (stages, separable, found, why)
         Per scan, per exposed face: its stage name (:data:`STAGE_NAMES` or
         :data:`NO_PRODUCTS`), whether it is separable, whether it is a true positive; and
-        the scan's verify reasons (:meth:`FaceLosses.verify_reasons`).
+        the scan's :meth:`FaceLosses.why` (``verify`` reasons and ``hyp`` sources).
 
     Returns
     -------
     dict
         ``faces`` (exposed faces), ``stages`` (faces per stage name, pipeline order,
         :data:`NO_PRODUCTS` last), ``verify_reasons`` (the reasons of the ``verify``
-        losses, by name), ``separable`` (separable faces), ``separable_tp`` (true positives
-        among them), ``separable_recall`` (their ratio; null without a separable face) and
-        ``inseparable_misses`` (missed faces that are not separable).
+        losses, by name), ``hyp_sources`` (the dimension source of the best overlapping
+        attempt of the ``hyp`` losses, ``none`` without one), ``separable`` (separable
+        faces), ``separable_tp`` (true positives among them), ``separable_recall`` (their
+        ratio; null without a separable face) and ``inseparable_misses`` (missed faces that
+        are not separable).
     """
     stages = {name: 0 for name in (*STAGE_NAMES, NO_PRODUCTS)}
-    reasons: dict[str, int] = {}
+    why_all: dict[str, dict[str, int]] = {"verify": {}, "hyp": {}}
     faces = sep = sep_tp = insep_miss = 0
     for names, separable, found, why in scans:
         for name, s, f in zip(names, separable, found, strict=True):
@@ -631,9 +647,13 @@ def funnel_figures(scans: Iterable[tuple[Sequence[str], Sequence[bool], Sequence
             sep += bool(s)
             sep_tp += bool(s) and bool(f)
             insep_miss += (not s) and (not f)
-        for k, v in why.items():
-            reasons[k] = reasons.get(k, 0) + int(v)
-    return {"faces": faces, "stages": stages, "verify_reasons": dict(sorted(reasons.items())),
+        for stage, counts in why.items():
+            pooled = why_all[stage]
+            for k, v in counts.items():
+                pooled[k] = pooled.get(k, 0) + int(v)
+    return {"faces": faces, "stages": stages,
+            "verify_reasons": dict(sorted(why_all["verify"].items())),
+            "hyp_sources": dict(sorted(why_all["hyp"].items())),
             "separable": sep, "separable_tp": sep_tp,
             "separable_recall": sep_tp / sep if sep else None,
             "inseparable_misses": insep_miss}

@@ -79,7 +79,10 @@ a true edge: the bare pallet of ``empty`` has real edges), ``edge_points_per_pix
 lost them: ``edges``, ``lines``, ``vertex``, ``hyp``, ``verify``, ``select``, ``found`` = the
 true positives, and ``none`` for a miss on a scan without stage products: timed out,
 crashed), ``verify_reasons`` (the :class:`boxloc.products.VerifyReason` of the best attempt
-of each ``verify`` loss), ``separable`` (tops with no side that is a flush seam the
+of each ``verify`` loss), ``hyp_sources`` (the
+:class:`boxloc.products.DimensionSource` of the best overlapping attempt of each ``hyp``
+loss; ``none``: no attempt overlaps; ``REGION``: one flat region over several tops),
+``separable`` (tops with no side that is a flush seam the
 noise-free render cannot show: :func:`boxloc.evaluate.funnel.separable_faces`; a scene whose
 lids have a bevel or a bulge has none), ``separable_tp``, ``separable_recall`` and
 ``inseparable_misses`` (missed tops that no method could separate without a list of box
@@ -547,10 +550,12 @@ def _no_box_figures(outs: Sequence[_Outcome]) -> dict[str, Any] | None:
             "false_edge_points_per_pixel": false_pts / pixels if pixels else None}
 
 
-def _scan_funnel(o: _Outcome) -> tuple[list[str], list[bool], list[bool], dict[str, int]]:
+def _scan_funnel(o: _Outcome) -> tuple[list[str], list[bool], list[bool],
+                                        dict[str, dict[str, int]]]:
     """One scan's exposed faces for :func:`boxloc.evaluate.funnel.funnel_figures`: stage
-    names, separable, true positive, and the reasons of its ``verify`` losses. Without a
-    funnel a face is ``found`` if it is a true positive, else ``none``."""
+    names, separable, true positive, and the reasons of its ``verify`` losses and sources of
+    its ``hyp`` losses. Without a funnel a face is ``found`` if it is a true positive, else
+    ``none``."""
     faces = [int(f) for f in o.meta.get("exposed_faces", [])]
     separable = [bool(v) for v in o.meta.get("separable", [])]
     tp = set() if o.match is None else {int(f) for f in np.asarray(o.match.tp_pairs)[:, 1]}
@@ -558,10 +563,12 @@ def _scan_funnel(o: _Outcome) -> tuple[list[str], list[bool], list[bool], dict[s
     fl = o.funnel
     if fl is not None and "stage" in fl and list(fl["face"]) == faces:
         names = [str(s) for s in fl["stage"]]
-        why: dict[str, int] = {}
-        for name, r in zip(names, fl["best_reason"], strict=True):
-            if name == "verify":
-                why[str(r)] = why.get(str(r), 0) + 1
+        why: dict[str, dict[str, int]] = {"verify": {}, "hyp": {}}
+        for name, r, src in zip(names, fl["best_reason"], fl["best_source"], strict=True):
+            label = {"verify": r, "hyp": src}.get(name, "")
+            if name in why:
+                key = NO_PRODUCTS if label is None else str(label)
+                why[name][key] = why[name].get(key, 0) + 1
         return names, separable, found, why
     return ["found" if f else NO_PRODUCTS for f in found], separable, found, {}
 
@@ -927,8 +934,9 @@ def funnel_line(fig: dict[str, Any]) -> str:
         if not n:
             continue
         txt = f"{name} {n}"
-        if name == "verify" and f["verify_reasons"]:
-            top = sorted(f["verify_reasons"].items(), key=lambda kv: (-kv[1], kv[0]))
+        detail = {"verify": f["verify_reasons"], "hyp": f.get("hyp_sources")}.get(name)
+        if detail:
+            top = sorted(detail.items(), key=lambda kv: (-kv[1], kv[0]))
             txt += " (" + ", ".join(f"{k} {v}" for k, v in top) + ")"
         parts.append(txt)
     rec = f["separable_recall"]
