@@ -13,7 +13,8 @@ The packages, in the order the data flows:
   (:class:`McapRecorder`, the observer that writes logs), :mod:`~recorder.mcap.log`
   (:func:`open_log`), :mod:`~recorder.mcap.recover` (:func:`recover_log`),
   :mod:`~recorder.mcap.footprint` (bytes per scan by channel) and
-  :mod:`~recorder.mcap.ros2_publish` (the surfaces as a ROS 2 bag).
+  :mod:`~recorder.mcap.ros2_publish` (the surfaces and ambiguous regions as a ROS 2
+  bag).
 - :mod:`recorder.rerun`: the Rerun view (:mod:`~recorder.rerun.sink`, one ``log_*`` per
   product; the blueprint; ``boxloc view``; the headless screenshot).
 - :mod:`recorder.fuzz`: fuzzing every reader of untrusted data.

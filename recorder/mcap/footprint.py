@@ -5,10 +5,15 @@ chunk's (compressed, with its message index). A channel's share is measured by c
 its messages of each scan alone, at the recorder's zstd level: the chunk compresses them
 together, so the channels' figures add up to about the chunk, not exactly.
 
-Command (the footprint table of the README)::
+This module gives the per-channel footprint of a log or a suite of scenes::
 
     python -m recorder.mcap.footprint --suite scene --n 8      # boxloc.simulate.scene_suite
     python -m recorder.mcap.footprint --suite matrix --n 32    # matrix_suite, every cell at 640x480
+
+The README's footprint table is not made by this command: it comes from ``boxloc bench
+--section recording`` (which measures its logs with :func:`log_footprint`, through
+:mod:`recorder.overhead`), written into the README and docs/benchmarks.md by
+``scripts/bench_tables.py --footprint OUT/bench.json``.
 """
 
 from __future__ import annotations
