@@ -2,10 +2,12 @@
 bytes whatever ``PYTHONHASHSEED`` is, whatever the process did before it and whenever it is
 written.
 
-The log-records cases used to differ: their logs were written by ``mcap``'s Writer, whose
-zstd level ``recorder.mcap.sink`` changes for the whole process when it is imported. A fresh
-fuzz worker wrote them at level 3; one that had run a log case before (``recover_log``
-imports the sink) at level 1. Which worker ran which case after what changed from run to run.
+The log-records cases used to differ: their logs were written by ``mcap``'s Writer at
+whatever zstd level the process had, and importing ``recorder.mcap.sink`` used to set it for
+the whole process (it no longer does; ``write_log_model`` uses the recorder's
+``ZstdLevelWriter``). A fresh fuzz worker wrote them at level 3; one that had run a log case
+before (``recover_log`` imports the sink) at level 1. Which worker ran which case after what
+changed from run to run.
 """
 
 from __future__ import annotations
