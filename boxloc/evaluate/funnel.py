@@ -74,13 +74,14 @@ SIDE_SPAN = (0.1, 0.9)
 #: Sides a face needs at a stage: a vertex is two sides meeting (an L), so a face with
 #: fewer than two sides with edges (lines) cannot get a vertex of its own.
 MIN_SIDES = 2
-#: Largest angle between a line and a side it lies along, degrees: a few times the angular
-#: uncertainty of a 3D line fitted to a box side at the matrix scenes' ranges.
+#: A line lies along a side when its direction is within this angle of the side's, degrees,
+#: ... (the line tests are generous on purpose: they ask whether the Hough stage found the
+#: side at all, not how well; these are the thresholds of the first hand-run funnel)
 LINE_ANGLE_DEG = 6.0
-#: Largest distance from the side's midpoint to the line, metres: about 5 sigma of the
-#: range noise at the scenes' farthest distance, and far below the smallest box (0.15 m).
+#: ... the side's midpoint is within this distance of the line, metres (far below the
+#: smallest box side, 0.15 m, so a line never counts for the parallel side across) ...
 LINE_DIST = 0.02
-#: Smallest overlap of a line's segment with the side, as a fraction of the side's length.
+#: ... and its segment overlaps at least this fraction of the side's length.
 LINE_OVERLAP = 0.3
 #: Largest distance from a true corner to a vertex that counts as that corner's, metres
 #: (1.5 x :data:`LINE_DIST`: a vertex is where two such lines meet).
@@ -89,7 +90,8 @@ VERTEX_DIST = 0.03
 FLUSH_ANGLE_DEG = 0.5
 #: ... and their planes are this close along the normal, metres: far above the rounding of
 #: boxes drawn to one height (``touching`` and ``layered`` tops share theirs exactly) and
-#: below the range noise of every sensor model here, so such a step is no step to them.
+#: no more than the smallest range-noise floor of the simulator's sensor models (the ToF's
+#: ``TOF_SIGMA0``, 0.5 mm), so no sensor here resolves such a step.
 FLUSH_STEP = 0.0005
 #: Smallest IoU of an attempt (or a verified attempt) with the face: the bench's true
 #: positive IoU (:func:`boxloc.evaluate.metrics.match_surfaces`).
@@ -166,11 +168,12 @@ class FaceLosses:
         return {name: int(n[i]) for i, name in enumerate(STAGE_NAMES)}
 
     def verify_reasons(self) -> dict[str, int]:
-        """The :class:`~boxloc.products.VerifyReason` of the ``verify`` losses, by name."""
+        """The :class:`~boxloc.products.VerifyReason` of the ``verify`` losses, by name
+        (``none``: the best attempt has no verification row)."""
         sel = self.best_reason[self.stage == LossStage.VERIFY]
         out: dict[str, int] = {}
         for r in sel:
-            name = _enum_name(VerifyReason, int(r))
+            name = NO_PRODUCTS if r < 0 else _enum_name(VerifyReason, int(r))
             out[name] = out.get(name, 0) + 1
         return dict(sorted(out.items()))
 
@@ -532,7 +535,8 @@ def loss_stages(result: Any, truth: Any, sensor: Any, *, match: Match | None = N
         ``hypotheses``, ``verification`` and ``surfaces`` are read.
     truth : GroundTruth-like
         The faces (``centers``, ``normals``, ``x_axis``, ``y_axis``, ``width``, ``length``,
-        ``corners``, ``fully_exposed``) and the noise-free ``edge_labels (H, W)``.
+        ``corners``, ``fully_exposed``) and the noise-free render's ``edge_labels`` and
+        ``face_ids (H, W)`` (for :func:`separable_faces`).
     sensor : PinholeModel or RayTableModel
         The scan's sensor model (``scan.sensor``), for projecting the faces' sides.
     match : Match, optional
