@@ -339,3 +339,31 @@ def test_norm_isf_is_scipy_bit_for_bit() -> None:
     q = np.r_[np.geomspace(1e-300, 1.0, 2000), 0.5, 0.0, 1e-3 / 7]
     assert norm_isf(q).tobytes() == np.asarray(st.norm.isf(q)).tobytes()
     assert float(norm_isf(0.5)) == 0.0 and not np.signbit(norm_isf(0.5))
+
+
+@pytest.mark.parametrize("layout", ["normal", "ties", "zeros", "abs", "one_bucket", "cauchy"])
+def test_median_kernel_is_numpy_bit_for_bit(layout: str) -> None:
+    # face_points' medians: a histogram finds the middle bucket, a partition the value;
+    # np.median's result bit for bit (odd and even counts, ties, signed zeros, values
+    # bunched in one bucket, heavy tails), NaN when a value is NaN
+    from boxloc.stages.seams import _median
+
+    rng = np.random.default_rng(["normal", "ties", "zeros", "abs", "one_bucket",
+                                 "cauchy"].index(layout))
+    for trial in range(300):
+        n = int(rng.integers(1, 50000)) if trial % 10 == 0 else int(rng.integers(1, 400))
+        x = rng.normal(size=n)
+        if layout == "ties":
+            x = np.round(x, 1)
+        elif layout == "zeros":
+            x[: n // 2] = 0.0
+            x[n // 2: n // 2 + n // 4] = -0.0
+        elif layout == "abs":
+            x = np.abs(x - np.median(x))
+        elif layout == "one_bucket":
+            x[:] = 1.5
+            x[0] = 1e300
+        elif layout == "cauchy":
+            x = rng.standard_cauchy(n)
+        assert np.float64(_median(x)).tobytes() == np.float64(np.median(x)).tobytes()
+    assert np.isnan(_median(np.array([1.0, np.nan, 2.0])))

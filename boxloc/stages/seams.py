@@ -138,32 +138,172 @@ def face_points(
     flat = rr * valid.shape[1] + cc
     if len(flat) < 3:
         return empty
-    P = points.reshape(-1, 3)[flat]
-    s = sigma.reshape(-1)[flat]
-    D = P - origin
+    # the element-wise work, gathers and medians in kernels; the products stay NumPy's
+    # (BLAS: their rounding is theirs)
+    P, s, D = _gather(np.ascontiguousarray(points, np.float64).reshape(-1, 3),
+                      np.ascontiguousarray(sigma, np.float64).reshape(-1), flat,
+                      np.asarray(origin, np.float64))
     w = D @ normal
     zc = float(norm_isf(alpha / (2.0 * len(flat))))
     # the face's own points first (relative to the given plane, tilt allowed for by the
     # median), then the plane refitted to them
-    dw = np.abs(w - np.median(w))
-    on = dw <= zc * s + 3.0 * 1.4826 * np.median(dw)
-    if on.sum() < 3:
+    on, n_on = _near_plane(w, s, zc)
+    if n_on < 3:
         return empty
-    Q = P[on]
-    c = Q.mean(0)
-    _, V = np.linalg.eigh((Q - c).T @ (Q - c))
+    c, X1, X2 = _centred(P, on)
+    _, V = np.linalg.eigh(X1.T @ X2)
     nf = V[:, 0] if V[:, 0] @ normal > 0 else -V[:, 0]
     wf = (P - c) @ nf
-    on = np.abs(wf) <= zc * s
-    if on.sum() < 3:
+    n_on, wf, mad, s_med, Don, r_on = _kept(wf, s, zc, D, rr)
+    if n_on < 3:
         return empty
-    wf = wf[on]
     # the points' own scatter, but never below the noise model (a noise-free or quantized
     # surface would otherwise make seams of rounding)
-    scale = max(float(1.4826 * np.median(np.abs(wf - np.median(wf)))),
-                float(np.median(s[on])), 1e-9)
-    Don = D[on]  # once (the two products are gemv each, as before)
-    return FacePoints(Don @ x_axis, Don @ y_axis, wf, scale, spacing, rr[on], row_corr)
+    scale = max(float(1.4826 * mad), float(s_med), 1e-9)
+    return FacePoints(Don @ x_axis, Don @ y_axis, wf, scale, spacing, r_on, row_corr)
+
+
+# --- face_points' kernels: each NumPy expression it replaces, bit for bit --------------------
+
+
+#: Buckets of :func:`_middle`'s histogram: the middle one holds about n / 1024 values.
+_MEDIAN_BUCKETS = 1024
+
+
+@nb.njit(cache=True)
+def _middle(x: np.ndarray) -> tuple[float, float]:
+    """The order statistics x_(m - 1) and x_(m), m = n // 2, of finite x (n >= 2).
+
+    A histogram of the values (buckets of equal width: a value's bucket is a monotonic
+    function of it) finds the bucket holding rank m; only that bucket's values are
+    partitioned. O(n) in three passes; values bunched in one bucket cost a partition of
+    them, as np.median's own.
+    """
+    n = x.shape[0]
+    m = n // 2
+    lo = hi = x[0]
+    for i in range(1, n):
+        lo = min(lo, x[i])
+        hi = max(hi, x[i])
+    if not hi > lo:
+        return lo, lo
+    nb = _MEDIAN_BUCKETS
+    scale = nb / (hi - lo)
+    if not math.isfinite(scale):
+        scale = 0.0
+    count = np.zeros(nb, np.int64)
+    for i in range(n):
+        count[min(int((x[i] - lo) * scale), nb - 1)] += 1
+    below = 0  # values in the buckets before the one holding rank m
+    bm = 0
+    while below + count[bm] <= m:
+        below += count[bm]
+        bm += 1
+    y = np.empty(count[bm])
+    k = 0
+    for i in range(n):
+        if min(int((x[i] - lo) * scale), nb - 1) == bm:
+            y[k] = x[i]
+            k += 1
+    y = np.partition(y, m - below)
+    xm = y[m - below]
+    if m - below == 0:  # rank m - 1: the largest value of the earlier buckets
+        prev = -math.inf
+        for i in range(n):
+            if min(int((x[i] - lo) * scale), nb - 1) < bm:
+                prev = max(prev, x[i])
+        return prev, xm
+    xm1 = y[0]  # rank m - 1: the largest value below rank m in the bucket
+    for i in range(1, m - below):
+        xm1 = max(xm1, y[i])
+    return xm1, xm
+
+
+@nb.njit(cache=True)
+def _median(x: np.ndarray) -> float:
+    """``np.median(x)`` bit for bit: NaN if any is NaN (or x is empty); else the middle
+    order statistic, or the two, through np.mean's sum and count: (0.0 + a) / 1 or
+    ((0.0 + a) + b) / 2 (the 0.0 turns a -0.0 into +0.0, as NumPy's sum does)."""
+    n = x.shape[0]
+    if n == 0:
+        return math.nan
+    for i in range(n):
+        if math.isnan(x[i]):
+            return math.nan
+    if n == 1:
+        return (0.0 + x[0]) / 1.0
+    a, b = _middle(x)
+    if n % 2:
+        return (0.0 + b) / 1.0
+    return ((0.0 + a) + b) / 2.0
+
+
+@nb.njit(cache=True)
+def _gather(points: np.ndarray, sigma: np.ndarray, flat: np.ndarray, origin: np.ndarray
+            ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``P = points[flat]``, ``s = sigma[flat]`` and ``D = P - origin`` in one pass;
+    points (N, 3), sigma (N,), flat (n,) int64; P, D (n, 3), s (n,)."""
+    n = flat.shape[0]
+    P = np.empty((n, 3))
+    D = np.empty((n, 3))
+    s = np.empty(n)
+    for q in range(n):
+        i = flat[q]
+        s[q] = sigma[i]
+        for a in range(3):
+            P[q, a] = points[i, a]
+            D[q, a] = points[i, a] - origin[a]
+    return P, s, D
+
+
+@nb.njit(cache=True)
+def _near_plane(w: np.ndarray, s: np.ndarray, zc: float) -> tuple[np.ndarray, int]:
+    """The points near the given plane, ``|w - median(w)| <= zc s + 3 x 1.4826 x
+    median(|w - median(w)|)`` (bool (n,)), and their number."""
+    dw = np.abs(w - _median(w))
+    t = 3.0 * 1.4826 * _median(dw)
+    on = np.empty(w.shape[0], np.bool_)
+    k = 0
+    for i in range(w.shape[0]):
+        on[i] = dw[i] <= zc * s[i] + t
+        k += on[i]
+    return on, k
+
+
+@nb.njit(cache=True)
+def _centred(P: np.ndarray, on: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``Q = P[on]``, its mean c (np.mean's column sums: sequential, from 0.0) and ``Q - c``
+    twice: the scatter matrix's two operands as before (one array for both would make
+    NumPy's matmul take another BLAS routine, syrk)."""
+    k = 0
+    c = np.zeros(3)
+    for i in range(P.shape[0]):
+        if on[i]:
+            for a in range(3):
+                c[a] += P[i, a]
+            k += 1
+    for a in range(3):
+        c[a] = c[a] / k
+    X1 = np.empty((k, 3))
+    X2 = np.empty((k, 3))
+    q = 0
+    for i in range(P.shape[0]):
+        if on[i]:
+            for a in range(3):
+                X1[q, a] = X2[q, a] = P[i, a] - c[a]
+            q += 1
+    return c, X1, X2
+
+
+@nb.njit(cache=True)
+def _kept(wf: np.ndarray, s: np.ndarray, zc: float, D: np.ndarray, rr: np.ndarray
+          ) -> tuple[int, np.ndarray, float, float, np.ndarray, np.ndarray]:
+    """The points on the refitted plane, ``|wf| <= zc s``: their number, residuals, the
+    median absolute deviation of those, the median of their ``s``, their D and rows."""
+    on = np.abs(wf) <= zc * s
+    w_on = wf[on]
+    mad = _median(np.abs(w_on - _median(w_on)))
+    return w_on.shape[0], w_on, mad, _median(s[on]), D[on], rr[on]
 
 
 def _window_offsets(h: float) -> tuple[tuple[float, float], ...]:
