@@ -367,3 +367,31 @@ def test_median_kernel_is_numpy_bit_for_bit(layout: str) -> None:
             x = rng.standard_cauchy(n)
         assert np.float64(_median(x)).tobytes() == np.float64(np.median(x)).tobytes()
     assert np.isnan(_median(np.array([1.0, np.nan, 2.0])))
+
+
+def test_rectangle_pixels_are_the_valid_ones_of_the_filled_polygon() -> None:
+    # face_points' raster: masking the polygon's box with the valid pixels before
+    # np.nonzero gives fill_polygon's pixels filtered by validity, in the same order; the
+    # inside fraction counts every pixel of the polygon in the image
+    from boxloc.scan import PinholeModel
+    from boxloc.stages.raster import fill_polygon, polygon_area, rectangle_pixels
+
+    sensor = PinholeModel(525.0, 525.0, 319.5, 239.5, 640, 480)
+    rng = np.random.default_rng(11)
+    valid = rng.random((480, 640)) < 0.8
+    for _ in range(60):
+        origin = np.array([rng.uniform(-1.5, 1.5), rng.uniform(-1.2, 1.2), rng.uniform(1.0, 3.0)])
+        a = rng.uniform(0.0, np.pi)
+        x_axis = np.array([np.cos(a), np.sin(a), 0.0])
+        y_axis = np.array([-np.sin(a), np.cos(a), 0.0])
+        ur, vr = (0.0, rng.uniform(0.05, 1.0)), (0.0, rng.uniform(0.05, 1.0))
+        got = rectangle_pixels(sensor.project, valid, origin, x_axis, y_axis, ur, vr)
+        corners = np.array([origin + u * x_axis + v * y_axis
+                            for u, v in ((ur[0], vr[0]), (ur[1], vr[0]), (ur[1], vr[1]),
+                                         (ur[0], vr[1]))])
+        uv = sensor.project(corners)
+        rr, cc = fill_polygon(uv, valid.shape)
+        keep = valid[rr, cc]
+        assert got is not None
+        assert got[0].tobytes() == rr[keep].tobytes() and got[1].tobytes() == cc[keep].tobytes()
+        assert got[2] == min(len(rr) / max(polygon_area(uv), 1.0), 1.0)

@@ -11,6 +11,24 @@ import numpy as np
 SHIFT = 4
 
 
+def _polygon_mask(uv: np.ndarray, shape: tuple[int, int]
+                  ) -> tuple[np.ndarray, int, int] | None:
+    """The polygon's pixels as a uint8 mask over its bounding box clipped to the image,
+    and the box's first column and row; None when the box misses the image."""
+    H, W = shape
+    # keep cv2's fixed-point coordinates in range for vertices far outside the image
+    uv = np.clip(uv, -4.0 * max(H, W), 4.0 * max(H, W))
+    x0, y0 = np.floor(uv.min(0)).astype(int)
+    x1, y1 = np.ceil(uv.max(0)).astype(int)
+    x0, y0, x1, y1 = max(x0, 0), max(y0, 0), min(x1, W - 1), min(y1, H - 1)
+    if x1 < x0 or y1 < y0:
+        return None
+    mask = np.zeros((y1 - y0 + 1, x1 - x0 + 1), np.uint8)
+    pts = np.round((uv - [x0, y0]) * (1 << SHIFT)).astype(np.int32)
+    cv2.fillPoly(mask, [pts], 1, lineType=cv2.LINE_8, shift=SHIFT)
+    return mask, int(x0), int(y0)
+
+
 def fill_polygon(uv: np.ndarray, shape: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
     """Pixels inside a polygon given in image coordinates, clipped to the image.
 
@@ -24,17 +42,10 @@ def fill_polygon(uv: np.ndarray, shape: tuple[int, int]) -> tuple[np.ndarray, np
     -------
     rows, cols : (n,) int64
     """
-    H, W = shape
-    # keep cv2's fixed-point coordinates in range for vertices far outside the image
-    uv = np.clip(uv, -4.0 * max(H, W), 4.0 * max(H, W))
-    x0, y0 = np.floor(uv.min(0)).astype(int)
-    x1, y1 = np.ceil(uv.max(0)).astype(int)
-    x0, y0, x1, y1 = max(x0, 0), max(y0, 0), min(x1, W - 1), min(y1, H - 1)
-    if x1 < x0 or y1 < y0:
+    box = _polygon_mask(uv, shape)
+    if box is None:
         return np.zeros(0, np.int64), np.zeros(0, np.int64)
-    mask = np.zeros((y1 - y0 + 1, x1 - x0 + 1), np.uint8)
-    pts = np.round((uv - [x0, y0]) * (1 << SHIFT)).astype(np.int32)
-    cv2.fillPoly(mask, [pts], 1, lineType=cv2.LINE_8, shift=SHIFT)
+    mask, x0, y0 = box
     rr, cc = np.nonzero(mask)
     return rr + y0, cc + x0
 
@@ -60,7 +71,7 @@ def rectangle_pixels(
     Returns
     -------
     rows, cols : (n,) int64
-        Its valid pixels.
+        Its valid pixels, row by row.
     inside : float
         Fraction of its projected area inside the image.
 
@@ -72,9 +83,18 @@ def rectangle_pixels(
     uv = project(corners)
     if not np.isfinite(uv).all():
         return None
-    rr, cc = fill_polygon(uv, valid.shape)
-    keep = valid[rr, cc]
-    return rr[keep], cc[keep], min(len(rr) / max(polygon_area(uv), 1.0), 1.0)
+    box = _polygon_mask(uv, valid.shape)
+    if box is None:
+        rr = cc = np.zeros(0, np.int64)
+        n_in = 0
+    else:
+        # the valid ones of the polygon's pixels, by masking the box before np.nonzero
+        mask, x0, y0 = box
+        h, w = mask.shape
+        n_in = int(np.count_nonzero(mask))
+        rr, cc = np.nonzero(mask.view(np.bool_) & valid[y0:y0 + h, x0:x0 + w])
+        rr, cc = rr + y0, cc + x0
+    return rr, cc, min(n_in / max(polygon_area(uv), 1.0), 1.0)
 
 
 def polygon_area(uv: np.ndarray) -> float:
