@@ -133,3 +133,23 @@ def test_the_line_stage_stops_at_its_work_budget():
     # no budget: never hit
     free = find_lines(_scan(), _edge_map(P, s), config=Config(max_line_work=0), rng=rng(0))
     assert len(free.tests.of_kind(TestKind.BUDGET)) == 0 and free.n_trials == full.n_trials
+
+
+def test_trial_kernels_match_their_numpy_expressions() -> None:
+    # the live neighbours and the voters: the NumPy expressions they replaced, exactly
+    from boxloc.stages.lines import MAX_VOTE_RADIUS, _live_neighbours, _vote_inputs
+
+    rng = np.random.default_rng(5)
+    P = rng.normal(0.0, 0.2, (400, 3)) + [0.0, 0.0, 1.5]
+    # covariances from sharp to broad: some error regions exceed MAX_VOTE_RADIUS
+    C = np.diag([1e-6, 1e-6, 4e-6]) * 10.0 ** rng.uniform(0.0, 4.0, 400)[:, None, None]
+    P[7] = P[3]  # a duplicate of p0: no direction, dropped
+    alive = rng.random(400) < 0.7
+    nb = rng.permutation(400).astype(np.int64)
+    got = _live_neighbours(nb, alive, 3)
+    assert np.array_equal(got, nb[alive[nb] & (nb != 3)])
+    keep, d, rad, use, vi = _vote_inputs(P, C, nb, 3, 3.0, MAX_VOTE_RADIUS)
+    assert 3 not in keep and 7 not in keep and len(keep) == 398
+    np.testing.assert_allclose(np.linalg.norm(d, axis=1), 1.0)
+    assert np.array_equal(use, rad <= MAX_VOTE_RADIUS)
+    assert np.array_equal(vi, np.flatnonzero(use)) and 0 < len(vi) < len(keep)

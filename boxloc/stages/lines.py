@@ -361,7 +361,8 @@ def find_lines(scan: Scan, edges: EdgeMap, *, config: Config, rng: np.random.Gen
             return 1
         return int(math.ceil(math.log(1.0 - config.p_success) / math.log(1.0 - eps)))
 
-    while n_alive >= m_min and fails < needed_trials(n_alive):
+    needed = needed_trials(n_alive)  # changes only with n_alive
+    while n_alive >= m_min and fails < needed:
         if budget and work >= budget:
             exhausted = True
             break
@@ -370,7 +371,7 @@ def find_lines(scan: Scan, edges: EdgeMap, *, config: Config, rng: np.random.Gen
         nb = near.get(i0)
         if nb is None:  # a point is drawn again and again when the trials run long
             nb = near[i0] = np.asarray(ptree.query_ball_point(P[i0], radius), dtype=np.int64)
-        nb = nb[alive[nb] & (nb != i0)]
+        nb = _live_neighbours(nb, alive, i0)
         work += len(nb)
         found = _trial(fixed, i0, nb, alive_idx, rng) if len(nb) >= m_min else []
         for seg in found:
@@ -380,6 +381,7 @@ def find_lines(scan: Scan, edges: EdgeMap, *, config: Config, rng: np.random.Gen
         if found:
             alive_idx = np.flatnonzero(alive)  # changes only here
             n_alive = int(alive.sum())
+            needed = needed_trials(n_alive)
             fails = 0
         else:
             fails += 1
@@ -445,11 +447,9 @@ def _trial(fixed: _TrialInputs, i0: int, nb: np.ndarray, live: np.ndarray,
         none.
     """
     P, C, m_min = fixed.points, fixed.covariances, fixed.m_min
-    nb, d, rad = _vote_inputs(P, C, nb, i0, fixed.k2)
-    use = rad <= MAX_VOTE_RADIUS
-    if use.sum() < m_min:
+    nb, d, rad, use, vi = _vote_inputs(P, C, nb, i0, fixed.k2, MAX_VOTE_RADIUS)
+    if len(vi) < m_min:
         return []
-    vi = np.flatnonzero(use)
     if len(vi) > MAX_VOTERS:
         vi = np.sort(rng.choice(vi, MAX_VOTERS, replace=False))
     ok, b, anchor, dir_votes, pos_votes = _hough(
@@ -485,8 +485,22 @@ def _trial(fixed: _TrialInputs, i0: int, nb: np.ndarray, live: np.ndarray,
 
 
 @nb.njit(cache=True)
-def _vote_inputs(P: np.ndarray, C: np.ndarray, nb: np.ndarray, i0: int,
-                 k2: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def _live_neighbours(nb: np.ndarray, alive: np.ndarray, i0: int) -> np.ndarray:
+    """``nb[alive[nb] & (nb != i0)]``, in one pass: the neighbours no segment took."""
+    out = np.empty(nb.shape[0], np.int64)
+    k = 0
+    for j in range(nb.shape[0]):
+        i = nb[j]
+        if alive[i] and i != i0:
+            out[k] = i
+            k += 1
+    return out[:k]
+
+
+@nb.njit(cache=True)
+def _vote_inputs(P: np.ndarray, C: np.ndarray, nb: np.ndarray, i0: int, k2: float,
+                 max_radius: float
+                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """The voters' directions from p0 and the radii of their error regions.
 
     Parameters
@@ -499,11 +513,15 @@ def _vote_inputs(P: np.ndarray, C: np.ndarray, nb: np.ndarray, i0: int,
     k2 : float
         The regions' radius in standard deviations, sqrt(chi2_2).
 
+    max_radius : float
+        The largest error region that votes, radians (``MAX_VOTE_RADIUS``).
+
     Returns
     -------
     nb : (m,) the neighbours apart from p0 (distance > 0); d : (m, 3) unit directions
     p_i - p0; rad : (m,) k2 x the propagated angular error, radians: J (S_i + S_0) J^T with
-    J = (I - d d^T) / l, half its trace, as a standard deviation.
+    J = (I - d d^T) / l, half its trace, as a standard deviation; use : (m,) bool,
+    ``rad <= max_radius``; vi : the indices where ``use`` is true, ascending.
     """
     n = nb.shape[0]
     keep = np.empty(n, np.int64)
@@ -531,7 +549,8 @@ def _vote_inputs(P: np.ndarray, C: np.ndarray, nb: np.ndarray, i0: int,
         d[m, 0], d[m, 1], d[m, 2] = u0, u1, u2
         rad[m] = k2 * math.sqrt(max(tr - quad, 0.0) / 2.0) / ell
         m += 1
-    return keep[:m], d[:m], rad[:m]
+    use = rad[:m] <= max_radius
+    return keep[:m], d[:m], rad[:m], use, np.flatnonzero(use)
 
 
 @nb.njit(cache=True)
