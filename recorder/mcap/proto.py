@@ -69,7 +69,7 @@ def file_descriptor_proto() -> descriptor_pb2.FileDescriptorProto:
     fdp = descriptor_pb2.FileDescriptorProto(name=FILE_NAME, package=PACKAGE, syntax="proto3")
     _enum(fdp, "Filter", [("FILTER_NONE", 0), ("FILTER_BYTE_SHUFFLE", 1),
                            ("FILTER_DELTA_SHUFFLE", 2), ("FILTER_SYMMETRIC_SHUFFLE", 3),
-                           ("FILTER_IMAGE_DELTA_SHUFFLE", 4)])
+                           ("FILTER_IMAGE_DELTA_SHUFFLE", 4), ("FILTER_IMAGE_SPLIT", 5)])
     # Enum values are package-scoped in protobuf, hence the TEST_ prefix.
     _enum(fdp, "TestKind", [("TEST_UNSPECIFIED", 0)]
           + [(f"TEST_{k.name}", int(k)) for k in TestKind])
