@@ -36,6 +36,7 @@ UNRECORDED_KEYS: dict[str, Any] = {
     "noise.corr_px_cols": 0.0,
     "max_line_work": 0,
     "max_vertices": 0,
+    "max_hypothesis_work": 0,
     # logs before issue #21 knew no carton list; their tolerance was never used
     "box_sizes": (),
     "size_tolerance": 0.01,
@@ -150,6 +151,16 @@ class Config:
         Budget of the hypothesis stage: vertices whose rectangles are searched and
         verified (~20-50 ms each), the highest first; ordinary scans have up to ~25. 0: no
         budget.
+    max_hypothesis_work : int
+        Budget of the hypothesis stage's work: pixels its rectangle searches may read in
+        all (each verified attempt its rectangle's, each extent its strip's, each seam
+        search its region's, as projected into the image; reading range points is what
+        takes its time, about 0.25-0.5 us a pixel). Under it the work is done most valuable
+        first: each round's search for box tops, the highest vertices first, then the
+        flat regions (never surfaces); a vertex's search is done whole or not at all. At
+        the budget the stage stops with what it found and records a BUDGET row. Ordinary
+        scans read up to ~5e6 (99th percentile of a matrix draw, 1280x960 piles); one of
+        160 read 1.1e7 (4 s). 0: no budget.
     trial_seed : int
         Which stream of random trials to draw (the Hough trials' distinguished points and
         voters, the up estimate's and the baseline's RANSAC): 0, the default, seeds them
@@ -194,6 +205,7 @@ class Config:
     direction_granularity: int = 4
     max_line_work: int = 1_000_000
     max_vertices: int = 500
+    max_hypothesis_work: int = 6_000_000
     trial_seed: int = 0
     box_sizes: tuple[tuple[float, float, float], ...] = ()
     size_tolerance: float = 0.01
@@ -218,7 +230,7 @@ class Config:
             check(k, math.isfinite(getattr(self, k)) and getattr(self, k) >= 0, "finite and >= 0")
         check("workers", isinstance(self.workers, int) and self.workers >= 1, "an integer >= 1")
         check("max_pixels", isinstance(self.max_pixels, int) and self.max_pixels > 0, "> 0")
-        for k in ("max_line_work", "max_vertices"):
+        for k in ("max_line_work", "max_vertices", "max_hypothesis_work"):
             v = getattr(self, k)
             check(k, isinstance(v, int) and not isinstance(v, bool) and v >= 0,
                   "an integer >= 0 (0: no budget)")

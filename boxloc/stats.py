@@ -154,6 +154,8 @@ class TestKind(IntEnum):
 #: ``TestKind.BUDGET`` rows' ``a``: the stage whose budget it is.
 BUDGET_LINES = 1
 BUDGET_HYPOTHESES = 2
+#: the hypothesis stage's pixels read (``Config.max_hypothesis_work``)
+BUDGET_HYPOTHESIS_WORK = 3
 
 
 @lru_cache(maxsize=256)

@@ -278,3 +278,15 @@ def test_interior_line_measures_scatter_over_the_interior_only():
     ve = np.r_[v, np.full(9, 0.1)]
     k, p_line = _interior_line(ue, ve, w, l_, spacing, mi)
     assert k >= 9 and p_line < 1e-3
+
+
+def test_pixels_in_counts_a_rectangle_as_the_image_sees_it(single_box):
+    # the unit of the hypothesis stage's work budget: a 40 x 30 px rectangle is 1200
+    # pixels, one far larger than the image is the image
+    sim, _, ctx, _ = single_box
+    c = _pixel_square(sim.scan.sensor, 100.0, 100.0, 40.0)
+    x, y = c[1] - c[0], c[3] - c[0]
+    wx, wy = float(np.linalg.norm(x)), float(np.linalg.norm(y))
+    o, ux, uy = c[0], x / wx, y / wy
+    assert ctx.pixels_in(o, ux, uy, (0.0, wx), (0.0, 0.75 * wy)) == pytest.approx(1200, rel=1e-6)
+    assert ctx.pixels_in(o, ux, uy, (-50 * wx, 50 * wx), (-50 * wy, 50 * wy)) == ctx.valid.size

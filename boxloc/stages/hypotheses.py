@@ -32,8 +32,11 @@ from __future__ import annotations
 
 import dataclasses
 import math
+from collections.abc import Callable
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass, field
+from itertools import repeat
+from typing import Any
 
 import numpy as np
 from scipy import special
@@ -67,7 +70,13 @@ from boxloc.stages.verify import (
     verify,
 )
 from boxloc.stages.vertices import _skew, append_vertices, normal_covariance
-from boxloc.stats import BUDGET_HYPOTHESES, TestKind, TestTable, chi2_critical
+from boxloc.stats import (
+    BUDGET_HYPOTHESES,
+    BUDGET_HYPOTHESIS_WORK,
+    TestKind,
+    TestTable,
+    chi2_critical,
+)
 
 #: Most dimension candidates verified per vertex (bounds the work on cluttered scenes).
 MAX_ATTEMPTS = 6
@@ -127,6 +136,9 @@ class _VertexWork:
     peaks_x: np.ndarray = field(default_factory=lambda: np.zeros(0))
     peaks_y: np.ndarray = field(default_factory=lambda: np.zeros(0))
     n_candidates: int = 0
+    #: pixels its rectangle searches read (:meth:`VerifyContext.pixels_in`): its share of
+    #: ``Config.max_hypothesis_work``
+    pixels: float = 0.0
 
 
 @dataclass
@@ -336,6 +348,8 @@ def dimensions_from_extent(R: Rectangle, ctx: _Context, work: _VertexWork) -> li
     strip = (BOUNDARY_BAND * cfg.min_edge, lo)
     ext, gaps = [], []
     for along, across in ((R.x_axis, R.y_axis), (R.y_axis, R.x_axis)):
+        work.pixels += ctx.verify_ctx.pixels_in(R.origin, along, across, (0.0, cfg.max_edge),
+                                                strip)
         e, g = face_extent(ctx.verify_ctx, R.origin, along, across, R.normal, R.plane_cov,
                            strip, cfg.max_edge, k, cfg.flatness)
         ext.append(e)
@@ -378,6 +392,7 @@ def dimensions_from_region(R: Rectangle, ctx: _Context, work: _VertexWork) -> li
     reach = REGION_REACH * cfg.max_edge
     ext, gaps = [], []
     for along, across in ((R.x_axis, R.y_axis), (R.y_axis, R.x_axis)):
+        work.pixels += ctx.verify_ctx.pixels_in(R.origin, along, across, (0.0, reach), strip)
         e, g = face_extent(ctx.verify_ctx, R.origin, along, across, R.normal, R.plane_cov,
                            strip, reach, k, cfg.flatness)
         ext.append(e)
@@ -409,6 +424,7 @@ def _seam_peaks(R: Rectangle, ctx: _Context, work: _VertexWork, px: np.ndarray,
     U = float(px.max()) if len(px) else cfg.max_edge
     V = float(py.max()) if len(py) else cfg.max_edge
     vc = ctx.verify_ctx
+    work.pixels += vc.pixels_in(R.origin, R.x_axis, R.y_axis, (0.0, U), (0.0, V))
     fp = face_points(vc.points, vc.valid, vc.sigma, vc.project, R.origin, R.x_axis, R.y_axis,
                      R.normal, (0.0, U), (0.0, V), spacing, cfg.alpha, cfg.noise.row_corr)
     lo = 0.9 * cfg.min_edge
@@ -485,8 +501,22 @@ def _pinv_quad(e: np.ndarray, S: np.ndarray, rank: int) -> float:
     return float((y**2 / np.maximum(w, 1e-30)).sum())
 
 
+#: What one piece of the stage's work returns: the vertex's work (or, for its region, what
+#: to add to it), its rectangle, and whether a box top was verified.
+_Piece = tuple[_VertexWork, Rectangle, bool]
+
+
 def _work_on_vertex(i: int, ctx: _Context) -> _VertexWork:
     """Lines 3-8 of findgraspablesurfaces for one vertex."""
+    work, R, ok = _search_vertex(i, ctx)
+    if not ok:
+        _add_region(work, _search_region((i, R), ctx)[0])
+    return work
+
+
+def _search_vertex(i: int, ctx: _Context) -> _Piece:
+    """The search for a box top at vertex i: dimensions from the diagonal vertices, the
+    edges and seams, then the face's extent, until one verifies."""
     work = _VertexWork(vertex=i)
     R = align(ctx.vertices, i, ctx.normal_cov)
     ok, tried = _try_in_turn(R, ctx, work, dimensions_from_vertices(R, ctx, work), MAX_ATTEMPTS)
@@ -498,17 +528,34 @@ def _work_on_vertex(i: int, ctx: _Context) -> _VertexWork:
         tol = work.acc_bin if np.isfinite(work.acc_bin) else 0.0
         ok, _ = _try_in_turn(R, ctx, work, dimensions_from_extent(R, ctx, work),
                              MAX_EXTENT_ATTEMPTS, tol)
-    if not ok:
-        for att in dimensions_from_region(R, ctx, work):
-            _verify(R, att, ctx)
-            out = att.outcome
-            assert out is not None
-            if out.accepted:  # a verified region larger than a box is never a surface
-                att.outcome = dataclasses.replace(out, accepted=False,
-                                                  reason=VerifyReason.AMBIGUOUS)
-                att.threshold = float(AmbiguityReason.LARGER_THAN_MAX_BOX)
-            work.attempts.append(att)
-    return work
+    return work, R, ok
+
+
+def _search_region(item: tuple[int, Rectangle], ctx: _Context) -> _Piece:
+    """The flat region at a vertex where no box top verified (what the vertex's work gains:
+    :func:`_add_region`). It is never a surface, so no neighbour's corner comes from it,
+    and it can wait until every vertex has been searched for a box top."""
+    i, R = item
+    work = _VertexWork(vertex=i)
+    for att in dimensions_from_region(R, ctx, work):
+        _verify(R, att, ctx)
+        work.pixels += _verified_pixels(R, att, ctx)
+        out = att.outcome
+        assert out is not None
+        if out.accepted:  # a verified region larger than a box is never a surface
+            att.outcome = dataclasses.replace(out, accepted=False,
+                                              reason=VerifyReason.AMBIGUOUS)
+            att.threshold = float(AmbiguityReason.LARGER_THAN_MAX_BOX)
+        work.attempts.append(att)
+    return work, R, False
+
+
+def _add_region(work: _VertexWork, region: _VertexWork) -> None:
+    """The region's tests and attempts after the vertex's own (where a search without a
+    budget puts them)."""
+    work.tests += region.tests
+    work.attempts += region.attempts
+    work.pixels += region.pixels
 
 
 def _try_in_turn(R: Rectangle, ctx: _Context, work: _VertexWork, cands: list[_Attempt],
@@ -525,6 +572,7 @@ def _try_in_turn(R: Rectangle, ctx: _Context, work: _VertexWork, cands: list[_At
             continue
         tried += 1
         _verify(R, att, ctx)
+        work.pixels += _verified_pixels(R, att, ctx)
         work.attempts.append(att)
         if att.outcome is not None and att.outcome.accepted:
             return True, tried
@@ -542,6 +590,16 @@ def _verify(R: Rectangle, att: _Attempt, ctx: _Context,
                          region=att.source == DimensionSource.REGION, region_sides=outline)
 
 
+def _verified_pixels(R: Rectangle, att: _Attempt, ctx: _Context) -> float:
+    """Pixels the verification of ``att`` read: its rectangle's, unless it stopped before
+    reading any range point (tilted, or an edge line inside)."""
+    out = att.outcome
+    if out is None or out.reason in (VerifyReason.TILTED, VerifyReason.INTERIOR_EDGES):
+        return 0.0
+    return ctx.verify_ctx.pixels_in(R.origin, R.x_axis, R.y_axis, (0.0, att.width),
+                                    (0.0, att.length))
+
+
 _WORKER_CTX: list[_Context] = []
 
 
@@ -552,6 +610,10 @@ def _init_worker(ctx: _Context) -> None:
 def _work_chunk(ids: list[int]) -> list[_VertexWork]:
     ctx = _WORKER_CTX[0]
     return [_work_on_vertex(i, ctx) for i in ids]
+
+
+def _in_worker(fn: Callable[[Any, _Context], _Piece], item: Any) -> _Piece:
+    return fn(item, _WORKER_CTX[0])
 
 
 def generate_hypotheses(
@@ -585,8 +647,10 @@ def generate_hypotheses(
     up = scan.up if up is None else np.asarray(up, dtype=np.float64)
     ctx = _Context.build(scan, edges, vertices, config, up)
     budget = _VertexBudget(config.max_vertices)
+    pixels = _PixelBudget(config.max_hypothesis_work)
     ids = range(len(vertices))
-    works = _work_on(ids, budget.take(ids, ctx.vertices, up), ctx)
+    works = _work_on(ids, pixels.order(budget.take(ids, ctx.vertices, up), ctx.vertices, up),
+                     ctx, pixels)
     new_from = 0
     for _ in range(MAX_NEIGHBOUR_ROUNDS):
         V = neighbour_vertices(ctx.vertices, works, new_from, config)
@@ -596,12 +660,15 @@ def generate_hypotheses(
             break
         ctx = dataclasses.replace(ctx, vertices=V, normal_cov=normal_covariance(V))
         ids = range(new_from, len(V))
-        works += _work_on(ids, budget.take(ids, V, up), ctx)
+        works += _work_on(ids, pixels.order(budget.take(ids, V, up), V, up), ctx, pixels)
+    pixels.regions(works, ctx)
     ctx, works = _split_regions(ctx, works)
     hyps, ver = _assemble(works, ctx.vertices, config, up)
-    row = TestTable.budget(BUDGET_HYPOTHESES, budget.needed, budget.budget, budget.exhausted,
-                           config.alpha)
-    hyps = dataclasses.replace(hyps, tests=TestTable.concat([hyps.tests, row], config.alpha))
+    rows = [TestTable.budget(BUDGET_HYPOTHESES, budget.needed, budget.budget, budget.exhausted,
+                             config.alpha),
+            TestTable.budget(BUDGET_HYPOTHESIS_WORK, pixels.spent, pixels.budget,
+                             pixels.exhausted, config.alpha)]
+    hyps = dataclasses.replace(hyps, tests=TestTable.concat([hyps.tests, *rows], config.alpha))
     return ctx.vertices, hyps, ver
 
 
@@ -629,10 +696,91 @@ class _VertexBudget:
         return sorted(ids_l[j] for j in np.argsort(-height, kind="stable")[:room])
 
 
-def _work_on(ids: range, todo: list[int], ctx: _Context) -> list[_VertexWork]:
-    """The work on each vertex of ``ids``, in order; those not in ``todo`` (over the
-    budget) get none."""
-    done = {w.vertex: w for w in _work_on_ids(todo, ctx)}
+@dataclass
+class _PixelBudget:
+    """``Config.max_hypothesis_work``: pixels the rectangle searches of all vertices may read
+    (0: no budget).
+
+    Under a budget the work is done in order of value, each piece whole, while the pixels
+    read so far are below the budget: in each round the search of every vertex for a box
+    top, the highest first (:meth:`order`); after the last round the flat regions of the
+    vertices where none verified (never surfaces). What is left gets no work. Each
+    vertex's work does not depend on the others', so a scan under the budget has the
+    products of a run without it.
+    """
+
+    budget: int
+    spent: int = 0
+    exhausted: bool = False
+    #: the vertices (and rectangles) whose flat region waits for :meth:`regions`
+    pending: list[tuple[int, Rectangle]] = field(default_factory=list)
+
+    def order(self, todo: list[int], vertices: VertexSet, up: np.ndarray) -> list[int]:
+        """``todo`` in the order to work on them: under a budget the highest (along ``up``)
+        first, as graspable tops are on top of the pile (ties by id)."""
+        if not self.budget or len(todo) < 2:
+            return todo
+        height = vertices.points[todo] @ up
+        return [todo[j] for j in np.argsort(-height, kind="stable")]
+
+    def search(self, ids: list[int], ctx: _Context) -> list[_VertexWork]:
+        """The work on ``ids`` (in working order) within the budget."""
+        if not self.budget:
+            return _work_on_ids(ids, ctx)
+        pieces = self._run(_search_vertex, ids, ctx)
+        self.pending += [(w.vertex, R) for w, R, ok in pieces if not ok]
+        return [w for w, _, _ in pieces]
+
+    def regions(self, works: list[_VertexWork], ctx: _Context) -> None:
+        """The pending flat regions, added to their vertices' work, within the budget."""
+        by_vertex = {w.vertex: w for w in works}
+        for region, _, _ in self._run(_search_region, self.pending, ctx):
+            _add_region(by_vertex[region.vertex], region)
+        self.pending = []
+
+    def _run(self, fn: Callable[[Any, _Context], _Piece], items: list[Any], ctx: _Context
+             ) -> list[_Piece]:
+        """``fn`` on each item in order while there is room; with ``workers`` processes
+        one batch of an item per worker at a time, keeping what a serial run would (a
+        piece started after the budget ran out is dropped)."""
+        out: list[_Piece] = []
+        nw = ctx.config.workers
+        if nw > 1 and len(items) > 1:
+            with ProcessPoolExecutor(nw, initializer=_init_worker, initargs=(ctx,)) as ex:
+                for k in range(0, len(items), nw):
+                    if not self._room:
+                        break
+                    out += self._admit(list(ex.map(_in_worker, repeat(fn),
+                                                   items[k:k + nw])))
+        else:
+            for item in items:
+                if not self._room:
+                    break
+                out += self._admit([fn(item, ctx)])
+        if len(out) < len(items):
+            self.exhausted = True
+        return out
+
+    @property
+    def _room(self) -> bool:
+        return self.spent < self.budget
+
+    def _admit(self, pieces: list[_Piece]) -> list[_Piece]:
+        """The leading ``pieces`` started while there was room, their pixels spent."""
+        out = []
+        for p in pieces:
+            if not self._room:
+                break
+            self.spent += int(round(p[0].pixels))
+            out.append(p)
+        return out
+
+
+def _work_on(ids: range, todo: list[int], ctx: _Context, pixels: _PixelBudget
+             ) -> list[_VertexWork]:
+    """The work on each vertex of ``ids``, in order; those not in ``todo`` (over the vertex
+    budget) or not reached within the pixel budget get none."""
+    done = {w.vertex: w for w in pixels.search(todo, ctx)}
     return [done.get(i) or _VertexWork(vertex=i) for i in ids]
 
 

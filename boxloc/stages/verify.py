@@ -121,6 +121,25 @@ class VerifyContext:
         cn2 = (P @ direction) ** 2 / np.einsum("ij,ij->i", P, P)
         return self.sigma[rr, cc] ** 2 * cn2 + self.lateral2[rr, cc] * (1 - cn2)
 
+    def pixels_in(self, origin: np.ndarray, x_axis: np.ndarray, y_axis: np.ndarray,
+                  u_range: tuple[float, float], v_range: tuple[float, float]) -> float:
+        """Pixels a rectangle in 3D covers in the image, at most the image's: the work of
+        reading its range points (a unit of the hypothesis stage's work budget).
+
+        The projected quadrilateral's area; a corner without a projection (a ray table
+        has no ray there) counts the rectangle's area over the pixel footprint at its
+        centre instead.
+        """
+        (u0, u1), (v0, v1) = u_range, v_range
+        c = np.array([origin + u * x_axis + v * y_axis
+                      for u, v in ((u0, v0), (u1, v0), (u1, v1), (u0, v1))])
+        uv = self.project(c)
+        if np.isfinite(uv).all():
+            area = polygon_area(uv)
+        else:
+            area = abs((u1 - u0) * (v1 - v0)) / self.spacing_at(c.mean(0)) ** 2
+        return min(area, float(self.valid.size))
+
     def samples_along(self, a: np.ndarray, b: np.ndarray) -> float:
         """Edge points expected along the 3D segment a-b: its length in the image, pixels.
 
