@@ -32,10 +32,10 @@ from __future__ import annotations
 
 import dataclasses
 import math
+from collections import deque
 from collections.abc import Callable
-from concurrent.futures import ProcessPoolExecutor
+from concurrent.futures import Future, ProcessPoolExecutor
 from dataclasses import dataclass, field
-from itertools import repeat
 from typing import Any
 
 import numpy as np
@@ -601,6 +601,8 @@ def _verified_pixels(R: Rectangle, att: _Attempt, ctx: _Context) -> float:
 
 
 _WORKER_CTX: list[_Context] = []
+#: the end of the items of :meth:`_PixelBudget._run`
+_END = object()
 
 
 def _init_worker(ctx: _Context) -> None:
@@ -740,18 +742,26 @@ class _PixelBudget:
 
     def _run(self, fn: Callable[[Any, _Context], _Piece], items: list[Any], ctx: _Context
              ) -> list[_Piece]:
-        """``fn`` on each item in order while there is room; with ``workers`` processes
-        one batch of an item per worker at a time, keeping what a serial run would (a
-        piece started after the budget ran out is dropped)."""
+        """``fn`` on each item in order while there is room. With ``workers`` processes a
+        window of two items per worker runs ahead, and the pieces are taken in order as a
+        serial run would (one started after the budget ran out is dropped)."""
         out: list[_Piece] = []
         nw = ctx.config.workers
         if nw > 1 and len(items) > 1:
             with ProcessPoolExecutor(nw, initializer=_init_worker, initargs=(ctx,)) as ex:
-                for k in range(0, len(items), nw):
-                    if not self._room:
+                ahead: deque[Future[_Piece]] = deque()
+                todo = iter(items)
+                while True:
+                    while self._room and len(ahead) < 2 * nw:
+                        item = next(todo, _END)
+                        if item is _END:
+                            break
+                        ahead.append(ex.submit(_in_worker, fn, item))
+                    if not ahead or not self._room:
                         break
-                    out += self._admit(list(ex.map(_in_worker, repeat(fn),
-                                                   items[k:k + nw])))
+                    out += self._admit([ahead.popleft().result()])
+                for f in ahead:
+                    f.cancel()
         else:
             for item in items:
                 if not self._room:
