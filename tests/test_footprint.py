@@ -409,3 +409,31 @@ def test_a_log_copied_for_older_readers_holds_the_same_scans_in_filter_4(
         assert E.decode_range(x).tobytes() == E.decode_range(y).tobytes()
     back = [r.scan.range.tobytes() for r in open_log(dst).scans()]
     assert back == [s.range.tobytes() for s in scans]
+
+
+def test_damaged_filter_5_data_is_refused_or_decodes_never_raises_otherwise() -> None:
+    """Logs are untrusted: a flipped byte or a cut anywhere in the data gives a LogError or
+    an array of the declared shape, never another exception."""
+    a = _noisy_surface("<f4", (24, 32), 1e-3, seed=9)
+    a[3, 5:12] = np.nan
+    a[9, 0] = 1e30
+    m = _split_msg(a)
+    good: bytes = m.data  # type: ignore[attr-defined]
+    rng = np.random.default_rng(11)
+    outcomes = {"refused": 0, "decoded": 0}
+    for trial in range(300):
+        data = bytearray(good)
+        if trial % 3 == 0:
+            data = data[: int(rng.integers(0, len(data)))]
+        else:
+            for _ in range(int(rng.integers(1, 4))):
+                data[int(rng.integers(0, len(data)))] ^= int(rng.integers(1, 256))
+        m.data = bytes(data)  # type: ignore[attr-defined]
+        try:
+            b = E.msg_to_array(m)
+        except LogError:
+            outcomes["refused"] += 1
+        else:
+            assert b.shape == a.shape and b.dtype == a.dtype
+            outcomes["decoded"] += 1
+    assert outcomes["refused"] > 100, outcomes
