@@ -3,7 +3,9 @@
 A log is chunked one scan per chunk (:mod:`recorder.mcap.sink`), so a scan's bytes are its
 chunk's (compressed, with its message index). A channel's share is measured by compressing
 its messages of each scan alone, at the recorder's zstd level: the chunk compresses them
-together, so the channels' figures add up to about the chunk, not exactly.
+together, so the channels' figures add up to about the chunk, not exactly. The range record
+is compressed by its own filter (schema 1.6, :data:`recorder.mcap.encode._FILTER_IMAGE_SPLIT`),
+so its raw and zstd figures are about equal.
 
 This module gives the per-channel footprint of a log or a suite of scenes::
 
