@@ -8,7 +8,7 @@ import pytest
 from boxloc.config import Config
 from boxloc.products import EdgeMap, products_equal
 from boxloc.scan import PinholeModel, Scan
-from boxloc.stages.lines import find_lines, fit_segment, hemisphere_directions
+from boxloc.stages.lines import find_lines, fit_segment, hemisphere_directions, vote_radius_cap
 from boxloc.stats import TestKind, TestTable
 
 
@@ -153,3 +153,28 @@ def test_trial_kernels_match_their_numpy_expressions() -> None:
     np.testing.assert_allclose(np.linalg.norm(d, axis=1), 1.0)
     assert np.array_equal(use, rad <= MAX_VOTE_RADIUS)
     assert np.array_equal(vi, np.flatnonzero(use)) and 0 < len(vi) < len(keep)
+
+
+def test_the_vote_cap_follows_the_edge_points_noise():
+    k2, radius = 3.03, 0.45
+    quiet = np.full(100, 3 * 0.002**2)  # 2 mm per axis: the fixed cap
+    noisy = np.full(100, 3 * 0.01**2)  # 10 mm per axis (a structured-light camera at 2.5 m)
+    wild = np.full(100, 3 * 0.2**2)
+    assert vote_radius_cap(quiet, k2, radius) == 8
+    assert 8 < vote_radius_cap(noisy, k2, radius) < 24
+    assert vote_radius_cap(wild, k2, radius) == 24
+    assert vote_radius_cap(np.zeros(0), k2, radius) == 8
+
+
+def test_a_long_edge_with_centimetre_scatter_is_a_line():
+    # 0.5 m of edge at 3 m, points 4 mm apart, 15 mm of scatter per axis: with the fixed
+    # 8 deg cap no voter within the vote radius is sharp enough, and no line is found
+    rng = np.random.default_rng(3)
+    s = 0.015
+    t = np.arange(0, 0.5, 0.004)
+    P = np.array([0.0, 0.0, 3.0]) + t[:, None] * np.array([1.0, 0, 0])
+    P = P + rng.normal(0, s, P.shape)
+    L = find_lines(_scan(), _edge_map(P, s), config=Config(), rng=np.random.default_rng(0))
+    assert len(L) >= 1
+    assert np.max(np.abs(L.directions @ np.array([1.0, 0, 0]))) > np.cos(np.radians(5.0))
+    assert L.n_support.max() > 0.7 * len(P)

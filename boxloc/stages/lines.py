@@ -35,9 +35,15 @@ from boxloc.products import EdgeMap, LineSet
 from boxloc.scan import Scan
 from boxloc.stats import BUDGET_LINES, TestKind, TestTable, chi2_critical
 
-#: Largest angular error region a direction vote may spread over; nearer points carry
-#: almost no direction information and only slow the accumulator down.
+#: Largest angular error region a direction vote may spread over on a low-noise scan;
+#: nearer points carry almost no direction information and only slow the accumulator down.
 MAX_VOTE_RADIUS = math.radians(8.0)
+#: The cap never exceeds this, however noisy the scan: wider regions make every voter
+#: vote for a sizeable part of the hemisphere, and the peak is no longer specific.
+MAX_VOTE_RADIUS_NOISY = math.radians(24.0)
+#: On a noisy scan the cap lets a typical voter this far out (a share of the vote radius)
+#: vote: see :func:`vote_radius_cap`.
+VOTE_CAP_REACH = 1.0 / 3.0
 #: The fewest points that make a line, however near the sensor.
 MIN_LINE_POINTS = 6
 #: Points voting per trial (a seeded random subset when there are more): the peak's
@@ -92,16 +98,18 @@ def hemisphere_directions(granularity: int) -> np.ndarray:
 _LUT_POLAR, _LUT_AZIMUTH = 256, 512
 
 
-@lru_cache(maxsize=8)
-def _direction_index(granularity: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Lookup structures for voting on the tessellation.
+@lru_cache(maxsize=64)
+def _direction_index(granularity: int, cap_deg: int = 8
+                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Lookup structures for voting on the tessellation, for votes of at most ``cap_deg``
+    degrees radius.
 
     Returns
     -------
     lut : (P, A) int32
         Nearest hemisphere cell of each (polar, azimuth) bin of the whole sphere.
     nbr : (C, K) int32
-        For each cell, the cells within MAX_VOTE_RADIUS plus two cell spacings (-1 pads).
+        For each cell, the cells within ``cap_deg`` plus two cell spacings (-1 pads).
     D : (C, 3) float64
         Cell directions.
     """
@@ -115,7 +123,7 @@ def _direction_index(granularity: int) -> tuple[np.ndarray, np.ndarray, np.ndarr
     q = np.stack([np.sin(T) * np.cos(F), np.sin(T) * np.sin(F), np.cos(T)], -1).reshape(-1, 3)
     lut = hemi[tree.query(q)[1]].reshape(_LUT_POLAR, _LUT_AZIMUTH).astype(np.int32)
     spacing = math.sqrt(4 * math.pi / len(both))
-    reach = 2 * math.sin((MAX_VOTE_RADIUS + 2 * spacing) / 2)
+    reach = 2 * math.sin((math.radians(cap_deg) + 2 * spacing) / 2)
     lists = tree.query_ball_point(D, reach)
     uniq = [np.unique(hemi[np.asarray(li, np.int64)]) for li in lists]
     K = max(len(u) for u in uniq)
@@ -334,14 +342,15 @@ def find_lines(scan: Scan, edges: EdgeMap, *, config: Config, rng: np.random.Gen
     m_min = max(MIN_LINE_POINTS, int(0.5 * config.min_edge / spacing))
     eps0 = min(1.0, m_min / max(N, 1))
 
-    lut, nbr, dirs = _direction_index(config.direction_granularity)
+    radius = min(config.max_edge, VOTE_RADIUS_EDGES * config.min_edge)
+    cap_deg = vote_radius_cap(np.einsum("nii->n", C), k2, radius)
+    lut, nbr, dirs = _direction_index(config.direction_granularity, cap_deg)
     fixed = _TrialInputs(
         points=P, covariances=C, cov_trace=np.einsum("nii->n", C), edge_kinds=edges.kinds,
         directions=dirs, lut=lut, neighbours=nbr, k2=k2, chi2_2=chi2_2, spacing=spacing,
-        m_min=m_min, min_edge=config.min_edge,
+        m_min=m_min, min_edge=config.min_edge, max_vote_radius=math.radians(cap_deg),
     )
     ptree = cKDTree(P)
-    radius = min(config.max_edge, VOTE_RADIUS_EDGES * config.min_edge)
     near: dict[int, np.ndarray] = {}  # each drawn point's neighbours within the radius
 
     alive = np.ones(N, bool)
@@ -406,6 +415,7 @@ class _TrialInputs:
     spacing: float  # expected edge-point spacing along an edge, metres
     m_min: int  # the fewest points that make a line
     min_edge: float  # the shortest box edge, metres
+    max_vote_radius: float  # the largest error region a vote spreads over, radians
 
 
 @dataclass(frozen=True)
@@ -447,7 +457,8 @@ def _trial(fixed: _TrialInputs, i0: int, nb: np.ndarray, live: np.ndarray,
         none.
     """
     P, C, m_min = fixed.points, fixed.covariances, fixed.m_min
-    nb, d, rad, use, vi = _vote_inputs(P, C, nb, i0, fixed.k2, MAX_VOTE_RADIUS)
+    nb, d, rad, use, vi = _vote_inputs(P, C, nb, i0, fixed.k2,
+                                          fixed.max_vote_radius)
     if len(vi) < m_min:
         return []
     if len(vi) > MAX_VOTERS:
@@ -484,6 +495,34 @@ def _trial(fixed: _TrialInputs, i0: int, nb: np.ndarray, live: np.ndarray,
 # --- the trial's kernels --------------------------------------------------------------------
 
 
+def vote_radius_cap(cov_trace: np.ndarray, k2: float, radius: float) -> int:
+    """The largest error region a direction vote may spread over, whole degrees.
+
+    ``MAX_VOTE_RADIUS`` on a low-noise scan. On a noisy one, the cap is widened so that a
+    typical voter beyond ``VOTE_CAP_REACH`` of the vote radius (two thirds of a line's
+    voters) still votes: its region, k2 x sqrt(2) x the points' typical standard deviation
+    over that distance, as :func:`_vote_inputs` propagates it. Otherwise a sensor whose
+    edge points scatter by centimetres (a structured-light camera at 3 m) gets no votes at
+    all, however long its edges. At most ``MAX_VOTE_RADIUS_NOISY``. A function of the edge
+    points' covariances and the config, so a post-mortem recomputes it from the log.
+
+    Parameters
+    ----------
+    cov_trace : (N,) float64
+        Traces of the edge points' covariances, m^2.
+    k2 : float
+        The error regions' radius in standard deviations.
+    radius : float
+        The vote radius, metres.
+    """
+    lo = round(math.degrees(MAX_VOTE_RADIUS))
+    if cov_trace.size == 0 or not radius > 0:
+        return lo
+    sd = math.sqrt(max(float(np.median(cov_trace)), 0.0) / 3.0)  # per axis
+    need = math.degrees(k2 * math.sqrt(2.0) * sd / (VOTE_CAP_REACH * radius))
+    return int(min(max(lo, math.ceil(need)), round(math.degrees(MAX_VOTE_RADIUS_NOISY))))
+
+
 @nb.njit(cache=True)
 def _live_neighbours(nb: np.ndarray, alive: np.ndarray, i0: int) -> np.ndarray:
     """``nb[alive[nb] & (nb != i0)]``, in one pass: the neighbours no segment took."""
@@ -514,7 +553,7 @@ def _vote_inputs(P: np.ndarray, C: np.ndarray, nb: np.ndarray, i0: int, k2: floa
         The regions' radius in standard deviations, sqrt(chi2_2).
 
     max_radius : float
-        The largest error region that votes, radians (``MAX_VOTE_RADIUS``).
+        The largest error region that votes, radians (:func:`vote_radius_cap`).
 
     Returns
     -------
