@@ -55,7 +55,13 @@ from boxloc.products import (
 from boxloc.scan import NoiseModel
 from boxloc.stages.hypotheses import SIZE_PART
 from boxloc.stages.vertices import THIRD_EDGE
-from boxloc.stats import BUDGET_HYPOTHESES, BUDGET_LINES, TestKind, TestTable
+from boxloc.stats import (
+    BUDGET_HYPOTHESES,
+    BUDGET_HYPOTHESIS_WORK,
+    BUDGET_LINES,
+    TestKind,
+    TestTable,
+)
 
 #: How a test's statistic is compared with its critical value when the relation holds.
 _SENSE: dict[TestKind, str] = {
@@ -775,7 +781,8 @@ def _noise(noise: Any) -> dict[str, Any] | None:
 
 #: What each stage's BUDGET row counts.
 _BUDGET_WORK = {BUDGET_LINES: ("lines", "neighbour points examined by the Hough trials"),
-                BUDGET_HYPOTHESES: ("hypotheses", "vertices needing a rectangle search")}
+                BUDGET_HYPOTHESES: ("hypotheses", "vertices needing a rectangle search"),
+                BUDGET_HYPOTHESIS_WORK: ("hypotheses", "pixels read by the rectangle searches")}
 
 
 def _budgets(products: dict[str, Any]) -> list[dict[str, Any]]:
