@@ -27,6 +27,9 @@ Guarantees
   adds it, :func:`recorder.mcap.sink.copy_log_adding`). A revision that predates a config
   key the replay needs (see :mod:`replay.versions`) runs without it; a one-line warning
   says so, and the new log records it (:data:`REPLAY_CARRIED_METADATA`).
+- A revision older than log schema 1.6 cannot read the range of a 1.6 log: it replays a
+  copy with the range as it reads it (bit for bit the same), made in a staging directory
+  beside the output and removed after; the new log records the original input.
 """
 
 from __future__ import annotations
@@ -63,8 +66,10 @@ PARTIAL_SUFFIX = ".partial.mcap"
 STAGING_SUFFIX = ".staging"
 #: Metadata record of a log another revision wrote that this code completed: what it added
 #: (``attachments``, JSON list), what that revision could not apply (``not_applied``, JSON
-#: object of config keys and values), the ``warnings`` (JSON list) and this code
-#: (``by``, JSON).
+#: object of config keys and values), the ``warnings`` (JSON list), this code (``by``,
+#: JSON) and, when the revision read a copy of the input made for older readers (it cannot
+#: read log schema 1.6), ``input_copy`` (JSON: the original ``input`` and its
+#: ``input_sha256``; the revision's :data:`REPLAY_METADATA` names the copy).
 REPLAY_CARRIED_METADATA = "boxloc.replay.carried"
 
 
@@ -646,6 +651,9 @@ class _RevisionPlan:
     not_applied : dict
         Config keys the revision lacks, with the values it runs without.
     warnings : tuple of str
+    older_copy : bool
+        The revision cannot read the input's range (log schema 1.6 on): it replays a
+        staging copy for older readers, and the new log records the original.
     """
 
     config: Any
@@ -653,11 +661,12 @@ class _RevisionPlan:
     attachments: dict[str, tuple[str, bytes]] | None
     not_applied: dict[str, Any]
     warnings: tuple[str, ...]
+    older_copy: bool = False
 
     @property
     def completes(self) -> bool:
         """This code may have to add to the revision's log."""
-        return bool(self.attachments or self.not_applied)
+        return bool(self.attachments or self.not_applied or self.older_copy)
 
 
 def _plan_for_revision(wt: Any, path: Path, config: Config | None,
@@ -665,7 +674,8 @@ def _plan_for_revision(wt: Any, path: Path, config: Config | None,
                        attachments: dict[str, tuple[str, bytes]] | None) -> _RevisionPlan:
     """Read the input's config and carton file with this code and decide what the revision
     gets. Anything this code cannot read goes to the revision as it is (it reports the
-    problem in its own words)."""
+    problem in its own words). A log whose range the revision cannot read (schema 1.6 on,
+    :meth:`replay.versions.Worktree.needs_older_log`) goes to it as a copy."""
     from boxloc.io.rosbag import is_rosbag
     from recorder.mcap.log import open_log
 
@@ -681,11 +691,12 @@ def _plan_for_revision(wt: Any, path: Path, config: Config | None,
             cfg, source = resolve_config(log, config, overrides)
         carried = _carried_attachments(log, cfg, attachments) if log is not None \
             else dict(attachments or {})
+        older = log is not None and wt.needs_older_log(log.run.get("schema_version"))
     except Exception:  # noqa: BLE001 - a bad log or override: the revision says what
         return as_given
     adapted = wt.adapt_config(cfg, overrides, send_config=source != "default")
     if adapted is None:
-        return _RevisionPlan(config, overrides, carried, {}, ())
+        return _RevisionPlan(config, overrides, carried, {}, (), older)
     warnings: tuple[str, ...] = ()
     if adapted.not_applied:
         what = ", ".join(f"{k}={_short(v)}" for k, v in adapted.not_applied.items())
@@ -693,7 +704,7 @@ def _plan_for_revision(wt: Any, path: Path, config: Config | None,
                     f"{', '.join(adapted.not_applied)}: replayed without {what} (recorded in "
                     "the new log)",)
     return _RevisionPlan(adapted.config, adapted.overrides, carried, adapted.not_applied,
-                         warnings)
+                         warnings, older)
 
 
 class _NoLog:
@@ -713,8 +724,11 @@ def _replay_at_revision(wt: Any, path: Path, out_dir: Path, config: Config | Non
     """:func:`replay_log` with a prepared :class:`replay.versions.Worktree`.
 
     When the new log may need completing (a carton file to keep, a config key the revision
-    could not apply), the revision writes it into a private staging directory beside the
-    output and this code publishes it, completed, under its name.
+    could not apply, an input it read as a copy), the revision writes it into a private
+    staging directory beside the output and this code publishes it, completed, under its
+    name. A revision that cannot read the input's range (log schema 1.6 on) replays a copy
+    for older readers (:func:`recorder.mcap.sink.copy_log_for_older_readers`) made in that
+    directory; the input itself is only read.
     """
     plan = _plan_for_revision(wt, path, config, overrides, attachments)
     if not plan.completes:
@@ -727,21 +741,39 @@ def _replay_at_revision(wt: Any, path: Path, out_dir: Path, config: Config | Non
     staging = out_dir / f".{final.stem}.{os.getpid()}-{secrets.token_hex(4)}{STAGING_SUFFIX}"
     staging.mkdir(parents=True)
     try:
-        o = wt.replay(path, out_dir=staging, config=plan.config, overrides=plan.overrides,
+        src = path
+        if plan.older_copy:
+            from recorder.mcap.sink import copy_log_for_older_readers
+
+            # same file name: the revision names its session and messages after it
+            src = staging / "input" / path.name
+            src.parent.mkdir()
+            try:
+                copy_log_for_older_readers(path, src)
+            except Exception as e:  # noqa: BLE001 - a damaged range, a full disk: the log's
+                return ReplayOutcome(  # error, as any unreadable log
+                    input=str(path), version=wt.version_info(),
+                    error=f"{path}: cannot copy it for --rev {wt.ref}, which reads log schema "
+                          f"{wt.schema_version or 'before 1.6'}: {type(e).__name__}: "
+                          f"{_one_line(e)}")
+        o = wt.replay(src, out_dir=staging, config=plan.config, overrides=plan.overrides,
                       out_name=name, attachments=plan.attachments)
+        if src != path:
+            o = _as_original(o, src, path)
         warnings = (*plan.warnings, *o.warnings)
         if o.output is None:  # an error or no scans: nothing to complete
             return replace(o, warnings=warnings)
         staged = Path(o.output)
         try:
-            _complete_and_publish(staged, final, plan)
+            _complete_and_publish(staged, final, plan, path)
         except InputError as e:  # the name is taken
             return replace(o, output=None, error=str(e), warnings=warnings)
         except Exception as e:  # noqa: BLE001 - e.g. the disk filled up while copying
             # the replay itself is not lost: published as the revision wrote it, and said
+            copied = " or of the input it read a copy of" if plan.older_copy else ""
             warnings = (*warnings, f"{path}: the new log is as --rev {wt.ref} wrote it, "
                                    f"without {', '.join(sorted(plan.attachments or {}))}"
-                                   f" or the record of what it did not apply: "
+                                   f" or the record of what it did not apply{copied}: "
                                    f"{type(e).__name__}: {_one_line(e)}")
             try:
                 _publish(staged, final)
@@ -752,10 +784,25 @@ def _replay_at_revision(wt: Any, path: Path, out_dir: Path, config: Config | Non
         shutil.rmtree(staging, ignore_errors=True)
 
 
-def _complete_and_publish(staged: Path, final: Path, plan: _RevisionPlan) -> None:
+def _as_original(o: ReplayOutcome, copy: Path, path: Path) -> ReplayOutcome:
+    """The outcome of a replay of ``copy`` as that of ``path``: its input, and its messages
+    naming the input."""
+    def named(text: str) -> str:
+        for p in {str(copy.resolve()), str(copy)}:
+            text = text.replace(p, str(path))
+        return text
+
+    return replace(o, input=str(path), error=None if o.error is None else named(o.error),
+                   warnings=tuple(named(w) for w in o.warnings),
+                   scans=tuple(replace(st, error=None if st.error is None else named(st.error))
+                               for st in o.scans))
+
+
+def _complete_and_publish(staged: Path, final: Path, plan: _RevisionPlan,
+                          path: Path) -> None:
     """Publish ``staged`` as ``final``, first adding the attachments it lacks (or holds
-    with other bytes) and, if anything was added or not applied, the
-    :data:`REPLAY_CARRIED_METADATA` record."""
+    with other bytes) and, if anything was added or not applied or the revision read a
+    copy of the input ``path``, the :data:`REPLAY_CARRIED_METADATA` record."""
     from recorder.mcap.log import open_log
     from recorder.mcap.sink import copy_log_adding
 
@@ -763,13 +810,19 @@ def _complete_and_publish(staged: Path, final: Path, plan: _RevisionPlan) -> Non
     have = {a.name for a in log.attachments()}
     add = {n: (m, d) for n, (m, d) in (plan.attachments or {}).items()
            if n not in have or log.attachment(n) != d}
-    if not add and not plan.not_applied:
+    if not add and not plan.not_applied and not plan.older_copy:
         _publish(staged, final)
         return
     record = {"attachments": json.dumps(sorted(add)),
               "not_applied": json.dumps(plan.not_applied, sort_keys=True),
               "warnings": json.dumps(list(plan.warnings)),
               "by": json.dumps(_current_version(), sort_keys=True)}
+    if plan.older_copy:  # the revision's boxloc.replay record names the copy, now gone
+        record["input_copy"] = json.dumps(
+            {"input": str(path.resolve()), "input_sha256": _sha256(path),
+             "copy": "recorder.mcap.sink.copy_log_for_older_readers: the range in image "
+                     "filter 4, the same bits, for a revision before log schema 1.6"},
+            sort_keys=True)
     tmp = final.parent / f".{final.stem}.{os.getpid()}-{secrets.token_hex(4)}{PARTIAL_SUFFIX}"
     try:
         copy_log_adding(staged, tmp, attachments=add,

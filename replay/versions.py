@@ -39,6 +39,15 @@ silently: the revision runs exactly that. Any other value (a carton list for a r
 before ``box_sizes``) cannot be honoured: it is dropped, named in a one-line warning, and
 recorded in the new log by :func:`replay.replay.replay_log`.
 
+Logs newer than the revision
+----------------------------
+From log schema 1.6 the range is stored in image filter 5, which code of schema 1.4 and
+1.5 does not read. The start-up check reports the schema the revision's recorder writes
+(``schema_version``, from 1.6 on; ``compat`` revisions run this recorder); for a revision
+that reports an older one or none, :func:`replay.replay.replay_log` gives the worker a
+copy of each 1.6 log made by :func:`recorder.mcap.sink.copy_log_for_older_readers`
+(:meth:`Worktree.needs_older_log`), never the original.
+
 Notes
 -----
 numba caches compiled kernels next to the sources, so a fresh worktree compiles them once
@@ -87,6 +96,11 @@ except Exception:  # no default config or no noise model: the top-level keys say
     pass
 sys.stdout.write(json.dumps(keys) + "\\n")
 """
+#: The first log schema whose range older code cannot read (image filter 5, commit 412d90e).
+#: A revision whose worker reports an older ``schema_version``, or none (workers report it
+#: from 1.6 on), replays a copy of such a log with the range in filter 4
+#: (:func:`recorder.mcap.sink.copy_log_for_older_readers`).
+RANGE_FILTER_5_SCHEMA = (1, 6)
 #: Seconds allowed for the start-up check of a revision (imports only, no JIT).
 CHECK_TIMEOUT_S = 300.0
 _GIT_TIMEOUT_S = 120.0
@@ -245,6 +259,24 @@ class Worktree:
         keys = self.info.get("config_keys")
         return frozenset(keys) if isinstance(keys, list) else None
 
+    @property
+    def schema_version(self) -> str | None:
+        """The log schema the revision's recorder writes (and its reader reads up to), as
+        its start-up check reported it; None when it did not (a worker before 1.6)."""
+        v = self.info.get("schema_version")
+        return v if isinstance(v, str) else None
+
+    def needs_older_log(self, log_schema: str | None) -> bool:
+        """Whether a log of schema ``log_schema`` (its ``boxloc.run`` record) must reach
+        this revision as a copy for older readers: the log stores its range in image
+        filter 5 (:data:`RANGE_FILTER_5_SCHEMA` on) and the revision reads an older schema
+        or did not say (its worker predates the report)."""
+        log_v = schema_tuple(log_schema)
+        if log_v is None or log_v < RANGE_FILTER_5_SCHEMA:
+            return False
+        own = schema_tuple(self.schema_version)
+        return own is None or own < RANGE_FILTER_5_SCHEMA
+
     def adapt_config(self, cfg: Config, overrides: Sequence[str], *,
                      send_config: bool) -> AdaptedConfig | None:
         """The config for this revision when it lacks keys of ``cfg``, else None (send the
@@ -357,6 +389,22 @@ class AdaptedConfig:
     config: dict[str, Any] | None
     overrides: tuple[str, ...]
     not_applied: dict[str, Any]
+
+
+def schema_tuple(version: Any) -> tuple[int, int] | None:
+    """A log schema version ``"MAJOR.MINOR"`` as ``(major, minor)``; None if it is not one.
+
+    >>> schema_tuple("1.10") > schema_tuple("1.6")
+    True
+    >>> schema_tuple("1.x") is None
+    True
+    """
+    if not isinstance(version, str):
+        return None
+    major, dot, minor = version.strip().partition(".")
+    if not (dot and major.isdigit() and minor.isdigit()):
+        return None
+    return int(major), int(minor)
 
 
 def _flatten(d: dict[str, Any]) -> dict[str, Any]:

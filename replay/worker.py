@@ -5,8 +5,11 @@
 
 ``--check``
     Import the pipeline and the recorder, print one JSON line (``protocol``, versions,
+    ``schema_version``: the log schema its recorder writes and its reader reads up to,
     where ``boxloc``, ``recorder`` and ``replay`` were imported from) and exit 0; on any
-    failure print the error on stderr and exit 1.
+    failure print the error on stderr and exit 1. Workers before log schema 1.6 do not
+    report ``schema_version``: the replay then gives them logs they can read
+    (:func:`recorder.mcap.sink.copy_log_for_older_readers`).
 ``--serve``
     Read one request per line on stdin, ``{"protocol", "path", "out_dir", "config",
     "overrides", "out_name"}`` and optionally ``"attachments"`` (``{name: [media type,
@@ -30,10 +33,11 @@ PROTOCOL = 1
 
 
 def check() -> dict[str, Any]:
-    """Import what a replay needs and say where it came from."""
+    """Import what a replay needs and say where it came from and which log schema it reads."""
     import boxloc
     import boxloc.pipeline  # noqa: F401 - the algorithm must import
     import recorder
+    import recorder.mcap.encode
     import recorder.mcap.log  # noqa: F401
     import recorder.mcap.sink
     import replay
@@ -42,6 +46,7 @@ def check() -> dict[str, Any]:
     commit, dirty = recorder.mcap.sink.git_info()
     return {"protocol": PROTOCOL, "boxloc_version": boxloc.__version__, "git_commit": commit,
             "git_dirty": dirty, "python": sys.version.split()[0],
+            "schema_version": recorder.mcap.encode.SCHEMA_VERSION,
             "boxloc_file": boxloc.__file__, "recorder_file": recorder.__file__,
             "replay_file": replay.__file__}
 

@@ -23,14 +23,16 @@ from typing import Any
 import pytest
 from click.testing import CliRunner
 from mcap.reader import make_reader
-from replay_support import product_differences
+from replay_support import product_differences, snapshot
 from scenes import box, scene
 
 from boxloc.config import Config
 from boxloc.io.box_sizes import read_box_sizes
 from boxloc.pipeline import find_graspable_surfaces
 from recorder.mcap import channels as C
+from recorder.mcap import encode as E
 from recorder.mcap.log import open_log
+from recorder.mcap.proto import message_class
 from recorder.mcap.sink import McapRecorder, box_sizes_attachment, copy_log_adding
 from replay.replay import (
     REPLAY_CARRIED_METADATA,
@@ -111,8 +113,13 @@ class _InProcess(Worktree):
         return _replay_here(Path(path), Path(out_dir), config, tuple(overrides), out_name, {})
 
 
-def _rev(keys: list[str]) -> _InProcess:
-    return _InProcess("old", "0" * 40, "", (), "own", {"config_keys": keys})
+def _rev(keys: list[str], schema: str | None = E.SCHEMA_VERSION) -> _InProcess:
+    """A revision with config keys ``keys`` whose worker reports log schema ``schema`` (None:
+    a worker before 1.6, which did not say)."""
+    info: dict[str, Any] = {"config_keys": keys}
+    if schema is not None:
+        info["schema_version"] = schema
+    return _InProcess("old", "0" * 40, "", (), "own", info)
 
 
 def test_a_revision_without_carton_lists_runs_without_them_says_so_and_keeps_the_file(
@@ -211,6 +218,111 @@ def test_a_log_that_cannot_be_completed_is_published_as_written_with_a_warning(
     assert "without box_sizes.csv" in o.warnings[0] and "No space left" in o.warnings[0]
     assert _surfaces(Path(str(o.output))) == (2, 0)  # the revision's replay is kept
     assert sorted(p.name for p in tmp_path.iterdir()) == ["sizes.mcap"]
+
+
+# --- a revision that cannot read the range of a 1.6 log --------------------------------------
+
+
+def _range_filters(path: Path) -> set[int]:
+    """The image filters of the ``/scan/range`` records of a log."""
+    with open(path, "rb") as f:
+        datas = [m.data for _, c, m in make_reader(f).iter_messages(log_time_order=False)
+                 if c.topic == C.SCAN_RANGE]
+    assert datas
+    filters = set()
+    for d in datas:
+        msg = message_class("Product")()
+        msg.ParseFromString(d)
+        filters |= {a.filter for a in msg.arrays}
+    return filters
+
+
+class _OldReader(_InProcess):
+    """A revision whose reader stops at log schema 1.5: a range in image filter 5 fails as
+    it does there. It notes the paths it is given in ``info['seen']``."""
+
+    def replay(self, path: Path, *, out_dir: Path, config: Any, overrides: Any,
+               out_name: str | None, attachments: Any = None) -> ReplayOutcome:
+        self.info.setdefault("seen", []).append((Path(path), _range_filters(Path(path))))
+        if 5 in _range_filters(Path(path)):
+            return ReplayOutcome(input=str(path), error=f"{path}: array 'range': 42446 bytes "
+                                                        "(76800 expected)")
+        return super().replay(path, out_dir=out_dir, config=config, overrides=overrides,
+                              out_name=out_name, attachments=attachments)
+
+
+def _old_reader(schema: str | None) -> _OldReader:
+    return _OldReader("old", "0" * 40, "", (), "own", {"config_keys": KEYS}
+                      | ({"schema_version": schema} if schema else {}))
+
+
+def test_the_worker_reports_the_log_schema_it_reads() -> None:
+    from replay.worker import check
+
+    assert check()["schema_version"] == E.SCHEMA_VERSION
+    assert _rev(KEYS).schema_version == E.SCHEMA_VERSION
+    assert _rev(KEYS, None).schema_version is None
+
+
+@pytest.mark.parametrize("schema", [None, "1.5", "1.4"])
+def test_a_revision_before_schema_1_6_replays_a_copy_it_reads_and_the_input_is_untouched(
+        logs: dict[str, Path], tmp_path: Path, schema: str | None) -> None:
+    assert _range_filters(logs["sizes"]) == {5}  # the premise: a 1.6 log
+    ins = snapshot([logs["sizes"]])
+    old = _old_reader(schema)
+    o = replay_log(logs["sizes"], out_dir=tmp_path, version=old)
+    assert o.status == "ok" and o.warnings == (), o
+    assert o.input == str(logs["sizes"]) and o.output == str(tmp_path / "sizes.mcap")
+    # it read a copy with the range in filter 4 (what 1.4 and 1.5 read), never the input
+    ((seen, filters),) = old.info["seen"]
+    assert seen != logs["sizes"] and seen.name == "sizes.mcap" and filters == {4}
+    assert snapshot([logs["sizes"]]) == ins
+    # the same range, so the same products; the carton file kept; the original recorded
+    new = Path(o.output)
+    assert product_differences(logs["sizes"], new) == []
+    assert _attachments(new)[C.BOX_SIZES_ATTACHMENT] == SIZES_CSV.encode()
+    md = open_log(new).metadata[REPLAY_CARRIED_METADATA]
+    copy = json.loads(md["input_copy"])
+    assert copy["input"] == str(logs["sizes"].resolve())
+    assert copy["input_sha256"] == ins[str(logs["sizes"])][0]
+    assert json.loads(md["not_applied"]) == {} and json.loads(md["warnings"]) == []
+    # the copy went with the staging directory
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["sizes.mcap"]
+
+
+@pytest.mark.parametrize("schema", ["1.6", "1.7", "2.0"])
+def test_a_revision_that_reads_schema_1_6_gets_the_input_itself(
+        logs: dict[str, Path], tmp_path: Path, schema: str) -> None:
+    old = _old_reader(schema)
+    o = replay_log(logs["plain"], out_dir=tmp_path, version=old)
+    # this stub cannot read filter 5: given the input, it fails as such a revision would
+    ((seen, filters),) = old.info["seen"]
+    assert seen == logs["plain"] and filters == {5}
+    assert o.status == "error" and "42446 bytes" in str(o.error)
+    assert not (tmp_path / "plain.mcap").exists()
+
+
+def test_an_error_of_a_revision_that_read_a_copy_names_the_input(
+        logs: dict[str, Path], tmp_path: Path) -> None:
+    class Failing(_OldReader):
+        def replay(self, path: Path, **kw: Any) -> ReplayOutcome:
+            self.info["seen"] = path
+            return ReplayOutcome(input=str(path), error=f"{path}: scan 0: boom",
+                                 warnings=(f"{Path(path).resolve()}: odd",))
+
+    bad = Failing("old", "0" * 40, "", (), "own", {"config_keys": KEYS})
+    o = replay_log(logs["plain"], out_dir=tmp_path, version=bad)
+    assert bad.info["seen"] != logs["plain"]
+    assert o.input == str(logs["plain"]) and o.error == f"{logs['plain']}: scan 0: boom"
+    assert o.warnings == (f"{logs['plain']}: odd",)
+    assert list(tmp_path.iterdir()) == []  # nothing published, no staging left
+
+
+def test_a_log_before_schema_1_6_goes_to_an_old_revision_as_it_is() -> None:
+    old = _old_reader(None)
+    assert not old.needs_older_log("1.5") and not old.needs_older_log(None)
+    assert not old.needs_older_log("garbage") and old.needs_older_log("1.6")
+    assert not _old_reader("1.6").needs_older_log("1.6")
 
 
 # --- adapting a config to a revision's keys --------------------------------------------------
