@@ -204,8 +204,9 @@ CHANNELS: tuple[ChannelSpec, ...] = (
                 "opens a scan", E.encode_scan_info, E.decode_scan_info),
     ChannelSpec(SCAN_RANGE, _PRODUCT, "protobuf", E.RANGE_RECORD, _S, _R,
                 "range image, (H, W) float32 metres along each ray, bit for bit; each pixel "
-                "predicted from its left neighbour, byte-shuffled (schema 1.4; up to 1.3 a "
-                "foxglove.RawImage 32FC1, still read)", E.encode_range, E.decode_range),
+                "predicted from its left neighbour, the differences split at the noise and "
+                "compressed (schema 1.6; byte-shuffled in 1.4 and 1.5, a foxglove.RawImage "
+                "32FC1 up to 1.3, all still read)", E.encode_range, E.decode_range),
     ChannelSpec(SCAN_PREVIEW, "foxglove.CompressedImage", "protobuf", None, _S, _V,
                 "the range image for viewers: JPEG, grey, at most 320 pixels wide, near "
                 "bright, stretched over the scan's range, no return black (lossy; the record "
