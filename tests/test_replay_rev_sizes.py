@@ -440,21 +440,35 @@ def test_rev_before_carton_lists_warns_records_and_keeps_the_file(
     assert added, "no commit added size_tolerance to boxloc/config.py"
     old = f"{added[0]}^"
     out = tmp_path / "out"
+    ins = snapshot([logs["sizes"], logs["plain"]])
     res = CliRunner().invoke(__import__("boxloc.cli").cli.cli,
                              ["replay", str(logs["sizes"]), str(logs["plain"]), "--out",
                               str(out), "--rev", old, "-j", "1", "-q", "--no-diff"],
                              catch_exceptions=False)
+    # it reads the 1.6 logs (a copy with the range in filter 4); the logs are untouched
     assert res.exit_code == 0, res.stderr
+    assert snapshot([logs["sizes"], logs["plain"]]) == ins
+    # One warning per log that records a key the revision predates at a value it cannot
+    # run: box_sizes for sizes.mcap only; keys added later (max_hypothesis_work, recorded
+    # at its default while the revision runs without a budget) for both.
     warn = [ln for ln in res.stderr.splitlines() if ln.startswith("warning:")]
-    assert len(warn) == 1 and "predates box_sizes: replayed without box_sizes=" in warn[0]
-    assert "sizes.mcap" in warn[0]
+    assert all("predates " in w and ": replayed without " in w for w in warn)
+    (sized,) = [w for w in warn if "box_sizes" in w]
+    assert "box_sizes=[[0.3,0.4,0.25]]" in sized and f"{logs['sizes']}:" in sized
     doc = json.loads((out / "replay.json").read_text())
-    by_name = {Path(o["input"]).name: o for o in doc["logs"]}
-    assert by_name["plain.mcap"]["warnings"] == [] and by_name["sizes.mcap"]["warnings"]
+    by_name = {Path(o["input"]): o for o in doc["logs"]}
+    assert set(by_name) == {logs["sizes"], logs["plain"]}  # the inputs, not their copies
+    assert not any("box_sizes" in w for w in by_name[logs["plain"]]["warnings"])
+    assert [w for w in by_name[logs["sizes"]]["warnings"] if "box_sizes" in w] == [
+        sized.removeprefix("warning: ")]
     new = out / "sizes.mcap"
     log = open_log(new)
     assert log.run["git_commit"] == _git(REPO, "rev-parse", old)
     assert _attachments(new)[C.BOX_SIZES_ATTACHMENT] == SIZES_CSV.encode()
     md = log.metadata[REPLAY_CARRIED_METADATA]
-    assert json.loads(md["not_applied"]) == {"box_sizes": [[0.3, 0.4, 0.25]]}
+    not_applied = json.loads(md["not_applied"])
+    assert not_applied["box_sizes"] == [[0.3, 0.4, 0.25]]
+    assert set(not_applied) <= set(KEYS)  # any others are keys of this code it predates
+    assert json.loads(md["input_copy"])["input"] == str(logs["sizes"].resolve())
     assert C.BOX_SIZES_ATTACHMENT not in _attachments(out / "plain.mcap")
+    assert sorted(p.name for p in out.iterdir()) == ["plain.mcap", "replay.json", "sizes.mcap"]
