@@ -318,6 +318,24 @@ def test_an_error_of_a_revision_that_read_a_copy_names_the_input(
     assert list(tmp_path.iterdir()) == []  # nothing published, no staging left
 
 
+def test_a_copy_that_cannot_be_made_is_the_logs_error(
+        logs: dict[str, Path], tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    import recorder.mcap.sink
+
+    def full_disk(src: Any, dst: Any) -> None:
+        Path(dst).write_bytes(b"half")
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(recorder.mcap.sink, "copy_log_for_older_readers", full_disk)
+    old = _old_reader(None)
+    o = replay_log(logs["plain"], out_dir=tmp_path, version=old)
+    assert o.status == "error" and "seen" not in old.info  # the revision never ran
+    assert str(o.error).startswith(f"{logs['plain']}: cannot copy it for --rev old, which "
+                                   "reads log schema before 1.6: OSError")
+    assert "No space left" in str(o.error) and "\n" not in str(o.error)
+    assert list(tmp_path.iterdir()) == []
+
+
 def test_a_log_before_schema_1_6_goes_to_an_old_revision_as_it_is() -> None:
     old = _old_reader(None)
     assert not old.needs_older_log("1.5") and not old.needs_older_log(None)
