@@ -8,7 +8,13 @@ import pytest
 from boxloc.config import Config
 from boxloc.products import EdgeMap, products_equal
 from boxloc.scan import PinholeModel, Scan
-from boxloc.stages.lines import find_lines, fit_segment, hemisphere_directions, vote_radius_cap
+from boxloc.stages.lines import (
+    find_lines,
+    fit_segment,
+    hemisphere_directions,
+    vote_granularity,
+    vote_radius_cap,
+)
 from boxloc.stats import TestKind, TestTable
 
 
@@ -161,8 +167,8 @@ def test_the_vote_cap_follows_the_edge_points_noise():
     noisy = np.full(100, 3 * 0.01**2)  # 10 mm per axis (a structured-light camera at 2.5 m)
     wild = np.full(100, 3 * 0.2**2)
     assert vote_radius_cap(quiet, k2, radius) == 8
-    assert 8 < vote_radius_cap(noisy, k2, radius) < 24
-    assert vote_radius_cap(wild, k2, radius) == 24
+    assert 8 < vote_radius_cap(noisy, k2, radius) <= 16
+    assert vote_radius_cap(wild, k2, radius) == 16
     assert vote_radius_cap(np.zeros(0), k2, radius) == 8
 
 
@@ -178,3 +184,10 @@ def test_a_long_edge_with_centimetre_scatter_is_a_line():
     assert len(L) >= 1
     assert np.max(np.abs(L.directions @ np.array([1.0, 0, 0]))) > np.cos(np.radians(5.0))
     assert L.n_support.max() > 0.7 * len(P)
+
+
+def test_wide_votes_use_a_coarser_tessellation():
+    assert vote_granularity(4, 8) == 4
+    assert vote_granularity(4, 15) == 4
+    assert vote_granularity(4, 16) == 3
+    assert vote_granularity(2, 16) == 2

@@ -40,7 +40,7 @@ from boxloc.stats import BUDGET_LINES, TestKind, TestTable, chi2_critical
 MAX_VOTE_RADIUS = math.radians(8.0)
 #: The cap never exceeds this, however noisy the scan: wider regions make every voter
 #: vote for a sizeable part of the hemisphere, and the peak is no longer specific.
-MAX_VOTE_RADIUS_NOISY = math.radians(24.0)
+MAX_VOTE_RADIUS_NOISY = math.radians(16.0)
 #: On a noisy scan the cap lets a typical voter this far out (a share of the vote radius)
 #: vote: see :func:`vote_radius_cap`.
 VOTE_CAP_REACH = 1.0 / 3.0
@@ -344,7 +344,8 @@ def find_lines(scan: Scan, edges: EdgeMap, *, config: Config, rng: np.random.Gen
 
     radius = min(config.max_edge, VOTE_RADIUS_EDGES * config.min_edge)
     cap_deg = vote_radius_cap(np.einsum("nii->n", C), k2, radius)
-    lut, nbr, dirs = _direction_index(config.direction_granularity, cap_deg)
+    lut, nbr, dirs = _direction_index(vote_granularity(config.direction_granularity, cap_deg),
+                                      cap_deg)
     fixed = _TrialInputs(
         points=P, covariances=C, cov_trace=np.einsum("nii->n", C), edge_kinds=edges.kinds,
         directions=dirs, lut=lut, neighbours=nbr, k2=k2, chi2_2=chi2_2, spacing=spacing,
@@ -493,6 +494,17 @@ def _trial(fixed: _TrialInputs, i0: int, nb: np.ndarray, live: np.ndarray,
 
 
 # --- the trial's kernels --------------------------------------------------------------------
+
+
+def vote_granularity(granularity: int, cap_deg: int) -> int:
+    """The tessellation a scan's direction votes use: ``granularity`` on a quiet scan, one
+    level coarser (cells twice as far apart) for each doubling of the vote cap over
+    ``MAX_VOTE_RADIUS``, but never below 2. Each vote then covers about as many cells as
+    on a quiet scan (wide error regions over fine cells cost their square and sharpen
+    nothing: the peak's direction is refined from the voters that hold it)."""
+    lo = round(math.degrees(MAX_VOTE_RADIUS))
+    steps = int(math.floor(math.log2(max(cap_deg, lo) / lo)))
+    return max(2, min(granularity, granularity - steps))
 
 
 def vote_radius_cap(cov_trace: np.ndarray, k2: float, radius: float) -> int:
