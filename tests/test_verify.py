@@ -290,3 +290,16 @@ def test_pixels_in_counts_a_rectangle_as_the_image_sees_it(single_box):
     o, ux, uy = c[0], x / wx, y / wy
     assert ctx.pixels_in(o, ux, uy, (0.0, wx), (0.0, 0.75 * wy)) == pytest.approx(1200, rel=1e-6)
     assert ctx.pixels_in(o, ux, uy, (-50 * wx, 50 * wx), (-50 * wy, 50 * wy)) == ctx.valid.size
+
+
+def test_the_poisson_tail_is_scipys_bit_for_bit() -> None:
+    from scipy import stats
+
+    from boxloc.stages.verify import _poisson_sf
+
+    rng = np.random.default_rng(0)
+    ks = rng.integers(-2, 200, 5000)
+    lams = rng.uniform(0, 100, 5000) * rng.random(5000) ** 3
+    for k, lam in zip(ks, lams):
+        assert _poisson_sf(float(k), float(lam)) == float(stats.poisson.sf(k, lam))
+    assert _poisson_sf(-1.0, 0.0) == 1.0 and _poisson_sf(0.0, 0.0) == 0.0

@@ -57,6 +57,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
+from scipy import special
 from scipy import stats as st
 
 from boxloc.config import Config
@@ -178,6 +179,16 @@ class VerifyOutcome:
     tests: TestTable
 
 
+def _poisson_sf(k: float, lam: float) -> float:
+    """``scipy.stats.poisson.sf(k, lam)`` for one count, bit for bit, without the
+    distribution's argument handling (a quarter of a millisecond a call, thousands a scan):
+    P(X > k) for X ~ Poisson(lam), 1 below 0."""
+    k = math.floor(k)
+    if k < 0:
+        return 1.0
+    return float(special.pdtrc(k, lam))
+
+
 def _interior_line(
     u: np.ndarray, v: np.ndarray, width: float, length: float, spacing: float,
     margin: float = 0.0,
@@ -233,7 +244,7 @@ def _interior_line_span(
         top = int(np.argmax(acc))
         k = float(acc[top])
         lam = n / nb
-        p = float(min(1.0, nb * st.poisson.sf(k - 1, lam)))
+        p = float(min(1.0, nb * _poisson_sf(k - 1, lam)))
         if p < best_p or (p == best_p and k > best):
             along = other[idx == top]
             best, best_p = k, p
@@ -645,7 +656,7 @@ def _test_boundary(edges: _FaceEdges, hyp: _Hypothesis, ctx: VerifyContext,
             # distinct positions along the side (one per spacing): coverage, not density
             k_s = len(np.unique(np.floor(along[sel] / spacing).astype(np.int64)))
             counts.append(k_s)
-            p_values.append(float(st.poisson.sf(k_s - 1, density * L * 2 * band))
+            p_values.append(_poisson_sf(k_s - 1, density * L * 2 * band)
                             if k_s else 1.0)
         return counts, p_values
 
