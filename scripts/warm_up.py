@@ -1,10 +1,9 @@
 """Compile boxloc's numba kernels into numba's on-disk cache; scripts/setup.sh runs it.
 
-The kernels (``@numba.njit(cache=True)`` in boxloc/stages/edges.py, lines.py, scan_noise.py,
-seams.py and boxloc/calibrate/noise.py; 18 of them) compile on their first call, about 30 s on one
-core (8 kernels, 22 s, before the stages' trials and tile fits became kernels), and are then
-written to numba's cache: beside the sources (``boxloc/stages/__pycache__/*.nbi, *.nbc`` and
-``boxloc/calibrate/__pycache__/``) for a checkout or an editable install, or under
+The kernels (``@numba.njit(cache=True)`` in boxloc/stages/edges.py, lines.py, scan_noise.py
+and seams.py) compile on their first call, about 30 s on one core, and are then written to
+numba's cache: beside the sources (``boxloc/stages/__pycache__/*.nbi, *.nbc``) for a
+checkout or an editable install, or under
 ``NUMBA_CACHE_DIR`` when that is set (then it must be set the same way when boxloc runs).
 An entry is valid until its source file changes (numba keys it on the file's time stamp and
 size), so after a ``git pull`` that touches a kernel, running set-up again rebuilds it.

@@ -759,14 +759,14 @@ class _PixelBudget:
                         ahead.append(ex.submit(_in_worker, fn, item))
                     if not ahead or not self._room:
                         break
-                    out += self._admit([ahead.popleft().result()])
+                    out += self._admit(ahead.popleft().result())
                 for f in ahead:
                     f.cancel()
         else:
             for item in items:
                 if not self._room:
                     break
-                out += self._admit([fn(item, ctx)])
+                out += self._admit(fn(item, ctx))
         if len(out) < len(items):
             self.exhausted = True
         return out
@@ -775,15 +775,12 @@ class _PixelBudget:
     def _room(self) -> bool:
         return self.spent < self.budget
 
-    def _admit(self, pieces: list[_Piece]) -> list[_Piece]:
-        """The leading ``pieces`` started while there was room, their pixels spent."""
-        out = []
-        for p in pieces:
-            if not self._room:
-                break
-            self.spent += int(round(p[0].pixels))
-            out.append(p)
-        return out
+    def _admit(self, piece: _Piece) -> list[_Piece]:
+        """``[piece]``, its pixels spent, if it started while there was room; else ``[]``."""
+        if not self._room:
+            return []
+        self.spent += int(round(piece[0].pixels))
+        return [piece]
 
 
 def _work_on(ids: range, todo: list[int], ctx: _Context, pixels: _PixelBudget

@@ -44,6 +44,9 @@ MAX_VOTE_RADIUS_NOISY = math.radians(16.0)
 #: On a noisy scan the cap lets a typical voter this far out (a share of the vote radius)
 #: vote: see :func:`vote_radius_cap`.
 VOTE_CAP_REACH = 1.0 / 3.0
+#: ``MAX_VOTE_RADIUS`` and ``MAX_VOTE_RADIUS_NOISY`` in whole degrees, as the caps are counted
+_QUIET_CAP_DEG = round(math.degrees(MAX_VOTE_RADIUS))
+_NOISY_CAP_DEG = round(math.degrees(MAX_VOTE_RADIUS_NOISY))
 #: The fewest points that make a line, however near the sensor.
 MIN_LINE_POINTS = 6
 #: Points voting per trial (a seeded random subset when there are more): the peak's
@@ -99,7 +102,7 @@ _LUT_POLAR, _LUT_AZIMUTH = 256, 512
 
 
 @lru_cache(maxsize=64)
-def _direction_index(granularity: int, cap_deg: int = 8
+def _direction_index(granularity: int, cap_deg: int = _QUIET_CAP_DEG
                      ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Lookup structures for voting on the tessellation, for votes of at most ``cap_deg``
     degrees radius.
@@ -343,11 +346,12 @@ def find_lines(scan: Scan, edges: EdgeMap, *, config: Config, rng: np.random.Gen
     eps0 = min(1.0, m_min / max(N, 1))
 
     radius = min(config.max_edge, VOTE_RADIUS_EDGES * config.min_edge)
-    cap_deg = vote_radius_cap(np.einsum("nii->n", C), k2, radius)
+    cov_trace = np.einsum("nii->n", C)
+    cap_deg = vote_radius_cap(cov_trace, k2, radius)
     lut, nbr, dirs = _direction_index(vote_granularity(config.direction_granularity, cap_deg),
                                       cap_deg)
     fixed = _TrialInputs(
-        points=P, covariances=C, cov_trace=np.einsum("nii->n", C), edge_kinds=edges.kinds,
+        points=P, covariances=C, cov_trace=cov_trace, edge_kinds=edges.kinds,
         directions=dirs, lut=lut, neighbours=nbr, k2=k2, chi2_2=chi2_2, spacing=spacing,
         m_min=m_min, min_edge=config.min_edge, max_vote_radius=math.radians(cap_deg),
     )
@@ -502,8 +506,7 @@ def vote_granularity(granularity: int, cap_deg: int) -> int:
     ``MAX_VOTE_RADIUS``, but never below 2. Each vote then covers about as many cells as
     on a quiet scan (wide error regions over fine cells cost their square and sharpen
     nothing: the peak's direction is refined from the voters that hold it)."""
-    lo = round(math.degrees(MAX_VOTE_RADIUS))
-    steps = int(math.floor(math.log2(max(cap_deg, lo) / lo)))
+    steps = int(math.floor(math.log2(max(cap_deg, _QUIET_CAP_DEG) / _QUIET_CAP_DEG)))
     return max(2, min(granularity, granularity - steps))
 
 
@@ -527,12 +530,11 @@ def vote_radius_cap(cov_trace: np.ndarray, k2: float, radius: float) -> int:
     radius : float
         The vote radius, metres.
     """
-    lo = round(math.degrees(MAX_VOTE_RADIUS))
     if cov_trace.size == 0 or not radius > 0:
-        return lo
+        return _QUIET_CAP_DEG
     sd = math.sqrt(max(float(np.median(cov_trace)), 0.0) / 3.0)  # per axis
     need = math.degrees(k2 * math.sqrt(2.0) * sd / (VOTE_CAP_REACH * radius))
-    return int(min(max(lo, math.ceil(need)), round(math.degrees(MAX_VOTE_RADIUS_NOISY))))
+    return int(min(max(_QUIET_CAP_DEG, math.ceil(need)), _NOISY_CAP_DEG))
 
 
 @nb.njit(cache=True)

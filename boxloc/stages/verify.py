@@ -656,8 +656,7 @@ def _test_boundary(edges: _FaceEdges, hyp: _Hypothesis, ctx: VerifyContext,
             # distinct positions along the side (one per spacing): coverage, not density
             k_s = len(np.unique(np.floor(along[sel] / spacing).astype(np.int64)))
             counts.append(k_s)
-            p_values.append(_poisson_sf(k_s - 1, density * L * 2 * band)
-                            if k_s else 1.0)
+            p_values.append(_poisson_sf(k_s - 1, density * L * 2 * band))
         return counts, p_values
 
     covered, side_p = side_lines(convex)
