@@ -155,7 +155,11 @@ def test_the_incidence_law_is_the_scans(spec: str, g: float) -> None:
     assert est.fits
 
 
-
+def _floor_tiles(spec: str, seed: int):  # type: ignore[no-untyped-def]
+    """The noise stage's flat tiles of a simulated bare floor (its parameters)."""
+    return tile_residuals(simulate(f"floor:{spec}", seed).scan, None, patch=16, labels=None,
+                          min_valid=0.9, max_outliers=0.05, max_curvature_ratio=1.5,
+                          min_cos=0.3)
 
 
 @pytest.mark.parametrize("seed", [1, 2, 3])
@@ -163,10 +167,8 @@ def test_a_stereo_cameras_noisy_tiles_are_not_dropped_as_curved(seed: int) -> No
     # Correlated stereo noise makes every tile's quadratic fit absorb some of it: with a
     # fixed curvature bound, a fifth to a third of a bare floor's tiles were dropped as
     # curved, the noisier ones, and the noise came out low
-    scan = simulate("floor:sensor=active-stereo,width=320,height=240,f=220,distance=2.5,"
-                    "tilt=0.3", seed).scan
-    t = tile_residuals(scan, None, patch=16, labels=None, min_valid=0.9, max_outliers=0.05,
-                       max_curvature_ratio=1.5, min_cos=0.3)
+    t = _floor_tiles("sensor=active-stereo,width=320,height=240,f=220,distance=2.5,tilt=0.3",
+                     seed)
     assert t.rejected["curved or folded"] <= 0.06 * t.n_tiles
 
 
@@ -175,9 +177,7 @@ def test_a_far_noisy_floor_facing_the_camera_is_not_grazing(seed: int) -> None:
     # A structured-light camera's floor 3.5 m away, facing it: its range noise (centimetres)
     # is comparable to a tile's width, and a total-least-squares plane turned its normal
     # across the rays, so every tile of two of these scans was rejected as grazing
-    scan = simulate("floor:sensor=structured-light,width=640,height=480,f=580,distance=3.5,"
-                    "tilt=0.0", seed).scan
-    t = tile_residuals(scan, None, patch=16, labels=None, min_valid=0.9, max_outliers=0.05,
-                       max_curvature_ratio=1.5, min_cos=0.3)
+    t = _floor_tiles("sensor=structured-light,width=640,height=480,f=580,distance=3.5,"
+                     "tilt=0.0", seed)
     assert t.rejected["grazing incidence"] == 0
     assert t.n_accepted >= 0.9 * t.n_tiles
