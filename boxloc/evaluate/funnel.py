@@ -47,7 +47,7 @@ from typing import Any
 
 import numpy as np
 
-from boxloc.evaluate.metrics import Match, match_surfaces
+from boxloc.evaluate.metrics import Match, match_surfaces, rect_iou_matrix
 from boxloc.products import DimensionSource, VerifyReason
 
 __all__ = [
@@ -436,91 +436,6 @@ def _attempt_corners(hyps: Any) -> tuple[np.ndarray, np.ndarray]:
     return c, np.asarray(hyps.normals, dtype=np.float64).reshape(-1, 3)[h]
 
 
-Poly = list[tuple[float, float]]
-
-
-def _clip(poly: Poly, axis: int, bound: float, below: bool) -> Poly:
-    """One Sutherland-Hodgman step on plain floats (see ``metrics._clip_halfplane``)."""
-    sign = 1.0 if below else -1.0
-    out: Poly = []
-    k = len(poly)
-    for i in range(k):
-        p, q = poly[i], poly[(i + 1) % k]
-        dp, dq = sign * (p[axis] - bound), sign * (q[axis] - bound)
-        if dp <= 0:
-            out.append(p)
-        if (dp < 0 < dq) or (dq < 0 < dp):
-            t = dp / (dp - dq)
-            out.append((p[0] + t * (q[0] - p[0]), p[1] + t * (q[1] - p[1])))
-    return out
-
-
-def _shoelace(poly: Poly) -> float:
-    k = len(poly)
-    if k < 3:
-        return 0.0
-    return 0.5 * abs(sum(poly[i][0] * poly[(i + 1) % k][1] - poly[(i + 1) % k][0] * poly[i][1]
-                         for i in range(k)))
-
-
-def _attempt_iou(corners: np.ndarray, normals: np.ndarray, truth: Any,
-                 faces: np.ndarray) -> np.ndarray:
-    """IoU of every attempt with every face in ``faces``, (k, len(faces)).
-
-    The same figure as :func:`boxloc.evaluate.metrics.iou_matrix` with ``max_plane_offset``
-    :data:`MAX_PLANE_OFFSET` (its bounding-sphere and plane gates, the rectangle projected
-    into the face's plane and clipped against it), on plain floats: an attempt's rectangle
-    projects to a parallelogram, convex and in order, so no hull is needed, and the
-    per-pair NumPy overhead of the general function would cost more than the pipeline's
-    later stages on a scan with many attempts.
-    """
-    K, n = corners.shape[0], faces.size
-    M = np.zeros((K, n))
-    if K == 0 or n == 0:
-        return M
-    gc = np.asarray(truth.centers, dtype=np.float64).reshape(-1, 3)[faces]
-    gn = np.asarray(truth.normals, dtype=np.float64).reshape(-1, 3)[faces]
-    gx = np.asarray(truth.x_axis, dtype=np.float64).reshape(-1, 3)[faces]
-    gy = np.asarray(truth.y_axis, dtype=np.float64).reshape(-1, 3)[faces]
-    gw = np.asarray(truth.width, dtype=np.float64).reshape(-1)[faces]
-    gl = np.asarray(truth.length, dtype=np.float64).reshape(-1)[faces]
-    with np.errstate(invalid="ignore"):
-        pc = corners.mean(axis=1)
-        pr = np.max(np.linalg.norm(corners - pc[:, None], axis=2), axis=1)  # NaN: never near
-        dist = np.linalg.norm(pc[:, None] - gc[None], axis=-1)
-        near = dist <= (pr[:, None] + 0.5 * np.hypot(gw, gl)[None]) * 1.001
-        near &= np.abs(np.einsum("kfc,fc->kf", pc[:, None] - gc[None], gn)) <= MAX_PLANE_OFFSET
-        near &= np.isfinite(corners).all(axis=(1, 2))[:, None]
-        near &= np.isfinite(normals).all(axis=1)[:, None] & ((gw > 0) & (gl > 0))[None]
-    ki, fi = np.nonzero(near)
-    if ki.size == 0:
-        return M
-    # the face axes re-orthonormalized, as in rect_overlap_in_plane
-    ex = gx / np.maximum(np.linalg.norm(gx, axis=1), 1e-300)[:, None]
-    ey = gy - ex * np.einsum("fc,fc->f", gy, ex)[:, None]
-    ny = np.linalg.norm(ey, axis=1)
-    ey = ey / np.maximum(ny, 1e-300)[:, None]
-    rel = corners[ki] - gc[fi][:, None]  # (m, 4, 3)
-    qx = np.einsum("mjc,mc->mj", rel, ex[fi]).tolist()
-    qy = np.einsum("mjc,mc->mj", rel, ey[fi]).tolist()
-    for m, (k, f) in enumerate(zip(ki.tolist(), fi.tolist(), strict=True)):
-        if ny[f] < 1e-9:
-            continue
-        w, ln = float(gw[f]), float(gl[f])
-        poly: Poly = list(zip(qx[m], qy[m], strict=True))
-        a_pred, a_gt = _shoelace(poly), w * ln
-        if a_pred <= 1e-9 * a_gt:
-            continue
-        for axis, bound, below in ((0, 0.5 * w, True), (0, -0.5 * w, False),
-                                   (1, 0.5 * ln, True), (1, -0.5 * ln, False)):
-            poly = _clip(poly, axis, bound, below)
-        inter = min(_shoelace(poly), a_pred, a_gt)
-        union = a_pred + a_gt - inter
-        if union > 0:
-            M[k, f] = min(max(inter / union, 0.0), 1.0)
-    return M
-
-
 # --- the funnel ---------------------------------------------------------------------------
 
 
@@ -586,7 +501,10 @@ def loss_stages(result: Any, truth: Any, sensor: Any, *, match: Match | None = N
     best_source = np.full(n, -1, dtype=np.int16)
     verified = np.zeros(n, dtype=bool)
     if n_att and n:
-        M = _attempt_iou(*_attempt_corners(hyps), truth, exposed)  # (n_att, n)
+        corners, normals = _attempt_corners(hyps)
+        with np.errstate(invalid="ignore"):  # an attempt without dimensions: NaN corners
+            M = rect_iou_matrix(corners.mean(axis=1), corners, normals, truth,
+                                max_plane_offset=MAX_PLANE_OFFSET)[:, exposed]  # (n_att, n)
         # the verification of each attempt (rows are by attempt id; -1: not verified)
         reason = np.full(n_att, -1, dtype=np.int16)
         accepted = np.zeros(n_att, dtype=bool)

@@ -349,7 +349,19 @@ def iou_matrix(
     With ``max_plane_offset`` (metres), a pair whose predicted centre lies farther than that
     from the face's plane scores 0: a rectangle floating above a box is not that box's top.
     """
-    P, F = len(pred), int(np.asarray(truth.centers).shape[0])
+    return rect_iou_matrix(pred.centers, pred.corners, pred.normals, truth,
+                           max_plane_offset=max_plane_offset)
+
+
+def rect_iou_matrix(
+    centers: npt.ArrayLike, corners: npt.ArrayLike, normals: npt.ArrayLike, truth: FaceTruth,
+    *, max_plane_offset: float | None = None
+) -> np.ndarray:
+    """:func:`iou_matrix` of rectangles given as arrays: centres (P, 3), corners (P, 4, 3)
+    and normals (P, 3), metres, sensor frame (a rectangle with a NaN corner scores 0)."""
+    corners = np.asarray(corners, dtype=np.float64)
+    normals = np.asarray(normals, dtype=np.float64)
+    P, F = corners.shape[0], int(np.asarray(truth.centers).shape[0])
     M = np.zeros((P, F), dtype=np.float64)
     gc = np.asarray(truth.centers, dtype=np.float64).reshape(F, 3)
     gn = np.asarray(truth.normals, dtype=np.float64).reshape(F, 3)
@@ -359,9 +371,9 @@ def iou_matrix(
     gl = np.asarray(truth.length, dtype=np.float64).reshape(F)
     if P == 0 or F == 0:
         return M
-    pc = np.asarray(pred.centers, dtype=np.float64)
+    pc = np.asarray(centers, dtype=np.float64).reshape(P, 3)
     # A cheap bounding-sphere test avoids clipping pairs that cannot overlap.
-    corners = np.asarray(pred.corners, dtype=np.float64).reshape(P, -1, 3)
+    corners = corners.reshape(P, -1, 3)
     pr = np.max(np.linalg.norm(corners - pc[:, None, :], axis=2), axis=1)  # NaN -> never near
     gr = 0.5 * np.hypot(gw, gl)
     dist = np.linalg.norm(pc[:, None, :] - gc[None, :, :], axis=-1)
@@ -370,8 +382,7 @@ def iou_matrix(
         off = np.abs(np.einsum("pfk,fk->pf", pc[:, None, :] - gc[None, :, :], gn))
         near &= off <= max_plane_offset
     for i, j in zip(*np.nonzero(near)):
-        M[i, j] = rect_iou_in_plane(pred.corners[i], pred.normals[i], gc[j], gx[j], gy[j],
-                                    gw[j], gl[j])
+        M[i, j] = rect_iou_in_plane(corners[i], normals[i], gc[j], gx[j], gy[j], gw[j], gl[j])
     return M
 
 
