@@ -440,7 +440,8 @@ def _attempt_corners(hyps: Any) -> tuple[np.ndarray, np.ndarray]:
 
 
 def loss_stages(result: Any, truth: Any, sensor: Any, *, match: Match | None = None,
-                flush_seams_show: bool = False) -> FaceLosses:
+                flush_seams_show: bool = False,
+                separable: Sequence[bool] | np.ndarray | None = None) -> FaceLosses:
     """Follow every fully exposed face of one scan down the pipeline's products.
 
     Parameters
@@ -458,6 +459,8 @@ def loss_stages(result: Any, truth: Any, sensor: Any, *, match: Match | None = N
         ``match_surfaces(result.surfaces, truth)``, if already computed (the bench's).
     flush_seams_show : bool
         The lids have a bevel or a bulge (see :func:`separable_faces`).
+    separable : (n_exposed,) bool, optional
+        :func:`separable_faces` of the exposed faces, if already computed (the bench's).
 
     Returns
     -------
@@ -531,7 +534,8 @@ def loss_stages(result: Any, truth: Any, sensor: Any, *, match: Match | None = N
         edge_sides=edge_sides.astype(np.int8), line_sides=line_sides.astype(np.int8),
         vertices=vertices.astype(np.int8), best_iou=best_iou.astype(np.float64),
         best_reason=best_reason, best_source=best_source,
-        separable=separable_faces(truth, sensor, exposed, flush_seams_show=flush_seams_show))
+        separable=(separable_faces(truth, sensor, exposed, flush_seams_show=flush_seams_show)
+                   if separable is None else np.asarray(separable, dtype=bool)))
 
 
 # --- pooled over scans ----------------------------------------------------------------------

@@ -292,8 +292,8 @@ def _meta(sim: Any) -> dict[str, Any]:
             "separable": [bool(v) for v in separable]}
 
 
-def _funnel(result: Any, sim: Any, match: Match | None) -> tuple[dict[str, Any] | None,
-                                                                  float | None]:
+def _funnel(result: Any, sim: Any, match: Match | None, separable: list[bool]
+            ) -> tuple[dict[str, Any] | None, float | None]:
     """The scan's loss funnel (:func:`boxloc.evaluate.funnel.loss_stages`) as JSON and its
     time in ms; None without stage products. Computed after the timed localizer run."""
     if result is None or match is None or getattr(result, "verification", None) is None:
@@ -301,7 +301,7 @@ def _funnel(result: Any, sim: Any, match: Match | None) -> tuple[dict[str, Any] 
     t0 = time.perf_counter()
     try:
         fl = loss_stages(result, sim.truth, sim.scan.sensor, match=match,
-                         flush_seams_show=_flush_seams_show(sim.spec)).to_dict()
+                         separable=separable).to_dict()
     except Exception as e:  # noqa: BLE001 - a diagnostic's crash must not lose the scan
         return {"error": _err(e)}, None
     return fl, (time.perf_counter() - t0) * 1e3
@@ -330,7 +330,8 @@ def _scan_task(conn: Connection | None, task: int, spec: Any, config: Config,
         run.match = meta["nothing"]
         return {"status": "error", "phase": "localize", "error": run.error, "run": run,
                 "meta": meta}
-    funnel, funnel_ms = _funnel(results[-1] if results else None, sim, run.match)
+    funnel, funnel_ms = _funnel(results[-1] if results else None, sim, run.match,
+                                meta["separable"])
     return {"status": "ok", "run": run, "meta": meta, "funnel": funnel, "funnel_ms": funnel_ms}
 
 
