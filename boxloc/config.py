@@ -40,6 +40,8 @@ UNRECORDED_KEYS: dict[str, Any] = {
     # logs before issue #21 knew no carton list; their tolerance was never used
     "box_sizes": (),
     "size_tolerance": 0.01,
+    # logs before the density-free MDL counted raw points (issue #20 part 2)
+    "mdl_face_points": 0.0,
 }
 
 #: The noise terms ``noise_auto`` estimates from each scan; giving any of them pins the model.
@@ -135,6 +137,14 @@ class Config:
     mdl_k1, mdl_k2, mdl_k3 : float
         MDL weights (Leonardis et al.): per explained point, per unit of normalized squared
         residual, per model parameter.
+    mdl_face_points : float
+        How many points a face of the smallest box (``min_edge`` square) counts as in the
+        MDL, wherever the sensor sees it: each candidate's points and residuals are
+        rescaled by this over the points such a face has at its place (its pixels per
+        square metre times ``min_edge``^2), so the selection does not depend on the
+        resolution or the distance. One parameter then costs ``mdl_k3 / mdl_face_points``
+        of the smallest face (1 % at the defaults). 0 counts raw points, as Leonardis
+        and logs before this key did.
     workers : int
         Processes for the per-vertex stage (1 = serial; results are identical).
     max_pixels : int
@@ -201,6 +211,7 @@ class Config:
     mdl_k1: float = 1.0
     mdl_k2: float = 0.5
     mdl_k3: float = 10.0
+    mdl_face_points: float = 1000.0
     workers: int = 1
     max_pixels: int = 16_777_216
     direction_granularity: int = 4
@@ -227,7 +238,7 @@ class Config:
         check("flatness", 0 <= self.flatness < 0.1, "in [0, 0.1) m")
         check("angle_tolerance", 0 <= self.angle_tolerance < 0.2, "in [0, 0.2) rad")
         check("end_tolerance", 0 <= self.end_tolerance <= 1, "in [0, 1] (of min_edge)")
-        for k in ("mdl_k1", "mdl_k2", "mdl_k3"):
+        for k in ("mdl_k1", "mdl_k2", "mdl_k3", "mdl_face_points"):
             check(k, math.isfinite(getattr(self, k)) and getattr(self, k) >= 0, "finite and >= 0")
         check("workers", isinstance(self.workers, int) and self.workers >= 1, "an integer >= 1")
         check("max_pixels", isinstance(self.max_pixels, int) and self.max_pixels > 0, "> 0")

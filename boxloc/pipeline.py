@@ -112,7 +112,7 @@ def find_graspable_surfaces(
     obs.on_vertices(scan, vertices)
     obs.on_hypotheses(scan, hyps)
     obs.on_verification(scan, verification)
-    selection = _timed(timing, "select", lambda: select(verification, config=config))
+    selection = _timed(timing, "select", lambda: select(verification, hyps, config=config))
     obs.on_selection(scan, selection)
     surfaces = _timed(
         timing, "surfaces",

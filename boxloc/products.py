@@ -541,6 +541,14 @@ class Selection:
         :class:`SelectReason`.
     k1, k2, k3 : float
         The MDL weights used.
+    unit : (c,) float64
+        Points a face of the smallest box has at each candidate's place (its rasterized
+        pixels per square metre times ``min_edge``^2); its n_i and xi_i enter Q rescaled by
+        ``face_points / unit``. NaN where raw points were counted (``face_points`` 0, and
+        logs before it).
+    face_points : float
+        ``Config.mdl_face_points``: how many points a smallest face counts as; 0 for raw
+        points.
     """
 
     candidates: np.ndarray
@@ -557,6 +565,12 @@ class Selection:
     k1: float
     k2: float
     k3: float
+    unit: np.ndarray = None  # type: ignore[assignment]
+    face_points: float = 0.0
+
+    def __post_init__(self) -> None:
+        if self.unit is None:  # a log from before the density-free MDL: raw points
+            object.__setattr__(self, "unit", np.full(len(self), np.nan))
 
     def __len__(self) -> int:
         return int(self.candidates.shape[0])

@@ -279,7 +279,9 @@ class _Ctx:
                               "surface": self.surface_of_attempt(int(S.candidates[b]))}
         if brief:
             return d
-        d.update(k1=S.k1, k2=S.k2, k3=S.k3, objective=float(S.objective))
+        d.update(k1=S.k1, k2=S.k2, k3=S.k3, objective=float(S.objective),
+                 face_points=float(S.face_points),
+                 unit=float(S.unit[k]) if np.isfinite(S.unit[k]) else None)
         comp: list[dict[str, Any]] = []
         for c in range(len(S)):
             if c == k or S.Q[k, c] == 0.0:
@@ -993,8 +995,15 @@ def _selection_lines(s: dict[str, Any] | None, ind: str) -> list[str]:
         return [f"{ind}not in the MDL selection"]
     order = s["order"]
     pos = f", added {order + 1} of {s['n_chosen']}" if order is not None else ""
+    unit = s.get("unit")
+    if s.get("face_points", 0.0) > 0 and unit is not None:
+        # points counted in smallest faces (Config.mdl_face_points), not pixels
+        scaled = (f"(F / u)(K1 n - K2 xi) - K3 N with F / u = {_num(s['face_points'])} / "
+                  f"{unit:.0f} (a smallest face's points here), ")
+    else:
+        scaled = "K1 n - K2 xi - K3 N with "
     out = [f"{ind}MDL selection: {s['reason'].lower()}, q_ii = {s['q_ii']:.1f} = "
-           f"K1 n - K2 xi - K3 N with n = {s['n_points']} points, xi = {s['error']:.1f}, "
+           f"{scaled}n = {s['n_points']} points, xi = {s['error']:.1f}, "
            f"N = {s['n_params']} (K = {_num(s['k1'])}, {_num(s['k2'])}, {_num(s['k3'])})"
            f"{pos}; objective {s['objective']:.1f}"]
     if s["n_overlapping"]:

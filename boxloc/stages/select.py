@@ -12,11 +12,23 @@ both explain and xi_ij the larger of the two models' errors on them. Hypotheses 
 same face from different vertices overlap almost fully, so one survives: the one that
 explains most points best. The search is greedy (add the best gain while it is positive).
 
-One deviation from Leonardis' q_ij: the shared points are subtracted from *both* models
-(factor 2). With tens of thousands of points per face, two rectangles of the same face a
-pixel apart would otherwise both be kept (the sliver one explains beyond the other
-outweighs the cost of a model); box faces are disjoint in space, so a point claimed twice
-is evidence against the pair, not for it.
+Two deviations from Leonardis:
+
+* The shared points of q_ij are subtracted from *both* models (factor 2). With tens of
+  thousands of points per face, two rectangles of the same face a pixel apart would
+  otherwise both be kept (the sliver one explains beyond the other outweighs the cost of a
+  model); box faces are disjoint in space, so a point claimed twice is evidence against
+  the pair, not for it.
+* Points are counted in *faces*, not pixels (``Config.mdl_face_points``). A model's cost
+  K3 N_i is a fixed number of points, but the points a box face shows grow with the
+  square of the resolution and fall with the square of the distance: with raw counts a
+  320x240 camera 3.5 m away sees a 0.15 m face as ~130 points, fewer than the 160 a model
+  costs (at the default weights), and no such face could ever be selected, while at
+  1280x960 and 1 m the same cost is nothing. So each candidate's n_i and xi_i (and each
+  pair's |R_i ∩ R_j| and xi_ij) are rescaled by F / u_i, with u_i the points a face of
+  the smallest box (``min_edge`` square) has at the candidate's place, its rasterized
+  pixels over its area times ``min_edge``^2, and F = ``mdl_face_points``: the selection
+  is the same whatever the sensor's sampling density.
 """
 
 from __future__ import annotations
@@ -25,7 +37,7 @@ import numpy as np
 from scipy import sparse
 
 from boxloc.config import Config
-from boxloc.products import Selection, SelectReason, Verification
+from boxloc.products import HypothesisSet, Selection, SelectReason, Verification
 
 #: Parameters of a 3D rectangle: 6 of pose and 2 of size (paper §2).
 RECTANGLE_PARAMETERS = 8
@@ -48,21 +60,53 @@ def overlap_counts(verification: Verification, attempts: np.ndarray) -> np.ndarr
     return (M @ M.T).toarray().astype(np.int64)
 
 
-def select(verification: Verification, *, config: Config) -> Selection:
+def face_units(verification: Verification, hypotheses: HypothesisSet, attempts: np.ndarray,
+               min_edge: float) -> np.ndarray:
+    """Points a face of the smallest box has at each attempt's place, (c,) float64.
+
+    The attempt's rasterized pixels (``n_inside``, returns or not: dropouts do not thin
+    the sampling) over its area, m^2, times ``min_edge``^2. NaN for an attempt with no
+    pixel or no area.
+
+    Parameters
+    ----------
+    verification : Verification
+    hypotheses : HypothesisSet
+        For the attempts' width and length, metres.
+    attempts : (c,) int
+        Attempt ids (rows of ``verification``).
+    min_edge : float
+        The shortest box edge, metres.
+    """
+    a = np.asarray(attempts, np.int64)
+    att = verification.attempt[a].astype(np.int64)
+    area = hypotheses.att_width[att] * hypotheses.att_length[att]
+    px = verification.n_inside[a].astype(np.float64)
+    ok = (area > 0) & (px > 0) & np.isfinite(area)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return np.where(ok, px / np.where(ok, area, 1.0) * min_edge**2, np.nan)
+
+
+def select(verification: Verification, hypotheses: HypothesisSet, *, config: Config
+           ) -> Selection:
     """Select the hypotheses that describe the scene best (MDL, greedy).
 
     Parameters
     ----------
     verification : Verification
         The verified attempts are the candidates.
+    hypotheses : HypothesisSet
+        The attempts' dimensions, for the points a face has at their place
+        (:func:`face_units`).
     config : Config
-        Uses ``mdl_k1``, ``mdl_k2``, ``mdl_k3``.
+        Uses ``mdl_k1``, ``mdl_k2``, ``mdl_k3``, ``mdl_face_points`` and ``min_edge``.
 
     Returns
     -------
     Selection
     """
     k1, k2, k3 = config.mdl_k1, config.mdl_k2, config.mdl_k3
+    face_points = float(config.mdl_face_points)
     cand = np.flatnonzero(verification.accepted).astype(np.int32)
     c = len(cand)
     n_pts = verification.n_inliers[cand].astype(np.int64)
@@ -70,11 +114,19 @@ def select(verification: Verification, *, config: Config) -> Selection:
     n_par = np.full(c, RECTANGLE_PARAMETERS, np.int32)
     inter = overlap_counts(verification, cand)
     per_pt = err / np.maximum(n_pts, 1)
+    unit = np.full(c, np.nan)
+    scale = np.ones(c)  # points -> the points of a face_points-point smallest face
+    if face_points > 0 and c:
+        unit = face_units(verification, hypotheses, cand, config.min_edge)
+        # a candidate without pixels or area (not one verification accepts) keeps raw points
+        scale = np.where(np.isfinite(unit) & (unit > 0), face_points / unit, 1.0)
     Q = np.zeros((c, c))
     if c:
         xi_ij = inter * np.maximum(per_pt[:, None], per_pt[None, :])
-        Q = 0.5 * (-2.0 * k1 * inter + k2 * xi_ij)
-        np.fill_diagonal(Q, k1 * n_pts - k2 * err - k3 * n_par)
+        # a pair's shared points lie in both faces: the geometric mean of their scales
+        pair_scale = np.sqrt(scale[:, None] * scale[None, :])
+        Q = 0.5 * pair_scale * (-2.0 * k1 * inter + k2 * xi_ij)
+        np.fill_diagonal(Q, scale * (k1 * n_pts - k2 * err) - k3 * n_par)
     chosen = np.zeros(c, bool)
     order: list[int] = []
     gain = np.diag(Q).copy() if c else np.zeros(0)
@@ -113,4 +165,6 @@ def select(verification: Verification, *, config: Config) -> Selection:
         k1=float(k1),
         k2=float(k2),
         k3=float(k3),
+        unit=unit,
+        face_points=face_points,
     )
