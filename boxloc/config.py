@@ -138,13 +138,12 @@ class Config:
         MDL weights (Leonardis et al.): per explained point, per unit of normalized squared
         residual, per model parameter.
     mdl_face_points : float
-        How many points a face of the smallest box (``min_edge`` square) counts as in the
-        MDL, wherever the sensor sees it: each candidate's points and residuals are
-        rescaled by this over the points such a face has at its place (its pixels per
-        square metre times ``min_edge``^2), so the selection does not depend on the
-        resolution or the distance. One parameter then costs ``mdl_k3 / mdl_face_points``
-        of the smallest face (1 % at the defaults). 0 counts raw points, as Leonardis
-        and logs before this key did.
+        The MDL's model cost in faces, not pixels: one parameter costs ``mdl_k3 /
+        mdl_face_points`` of the points a face of the smallest box (``min_edge`` square)
+        has at the candidate's place (its pixels per square metre times ``min_edge``^2),
+        1 % at the defaults, so the selection does not depend on the resolution or the
+        distance. 0 charges ``mdl_k3`` raw points per parameter, as Leonardis and logs
+        before this key did.
     workers : int
         Processes for the per-vertex stage (1 = serial; results are identical).
     max_pixels : int

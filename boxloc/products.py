@@ -543,9 +543,9 @@ class Selection:
         The MDL weights used.
     unit : (c,) float64
         Points a face of the smallest box has at each candidate's place (its rasterized
-        pixels per square metre times ``min_edge``^2); its n_i and xi_i enter Q rescaled by
-        ``face_points / unit``. NaN where raw points were counted (``face_points`` 0, and
-        logs before it).
+        pixels per square metre times ``min_edge``^2); its model cost K3 N_i enters Q
+        times ``unit / face_points``. NaN where the cost was raw points (``face_points``
+        0, and logs before it).
     face_points : float
         ``Config.mdl_face_points``: how many points a smallest face counts as; 0 for raw
         points.

@@ -998,8 +998,8 @@ def _selection_lines(s: dict[str, Any] | None, ind: str) -> list[str]:
     unit = s.get("unit")
     if s.get("face_points", 0.0) > 0 and unit is not None:
         # points counted in smallest faces (Config.mdl_face_points), not pixels
-        scaled = (f"(F / u)(K1 n - K2 xi) - K3 N with F / u = {_num(s['face_points'])} / "
-                  f"{unit:.0f} (a smallest face's points here), ")
+        scaled = (f"K1 n - K2 xi - K3 N u / F with u / F = {unit:.0f} / "
+                  f"{_num(s['face_points'])} (a smallest face's points here), ")
     else:
         scaled = "K1 n - K2 xi - K3 N with "
     out = [f"{ind}MDL selection: {s['reason'].lower()}, q_ii = {s['q_ii']:.1f} = "

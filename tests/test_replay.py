@@ -95,19 +95,19 @@ def test_replayed_log_carries_its_own_version_metadata(logs: list[Path],
 
 def test_config_override_changes_the_results(logs: list[Path], tmp_path: Path) -> None:
     # A huge per-model MDL cost: no surface is worth its parameters any more.
-    o = replay_log(logs[0], out_dir=tmp_path, overrides=["mdl_k3=1000.0"])
+    o = replay_log(logs[0], out_dir=tmp_path, overrides=["mdl_k3=1000000.0"])
     assert o.status == "ok"
     assert all(s.ok and s.n_surfaces == 0 for s in o.scans)
     diffs = product_differences(logs[0], Path(o.output))
     assert any("selection" in d for d in diffs) and any("surfaces" in d for d in diffs)
     assert not any("edges" in d or "lines" in d for d in diffs)  # earlier stages unchanged
     new = open_log(o.output)
-    assert new.config.mdl_k3 == 1000.0 and o.config_hash == new.config.hash
-    assert json.loads(new.metadata[REPLAY_METADATA]["overrides"]) == ["mdl_k3=1000.0"]
+    assert new.config.mdl_k3 == 1000000.0 and o.config_hash == new.config.hash
+    assert json.loads(new.metadata[REPLAY_METADATA]["overrides"]) == ["mdl_k3=1000000.0"]
 
 
 def test_given_config_replaces_the_recorded_one(logs: list[Path], tmp_path: Path) -> None:
-    cfg = Config().with_overrides(["mdl_k3=1000.0"])
+    cfg = Config().with_overrides(["mdl_k3=1000000.0"])
     o = replay_log(logs[0], out_dir=tmp_path, config=cfg)
     assert o.config_hash == cfg.hash and all(s.n_surfaces == 0 for s in o.scans)
     assert open_log(o.output).metadata[REPLAY_METADATA]["config_source"] == "given"
@@ -260,9 +260,9 @@ def test_cli_replay_same_code_exits_0(logs: list[Path], tmp_path: Path) -> None:
 def test_cli_override_regression_exits_1(logs: list[Path], tmp_path: Path) -> None:
     out = tmp_path / "out"
     res = _run("replay", str(logs[0]), "--out", str(out), "--jobs", "1", "-q",
-               "--set", "mdl_k3=1000.0")
+               "--set", "mdl_k3=1000000.0")
     assert res.exit_code == 1, res.stderr + res.stdout
-    assert open_log(out / logs[0].name).config.mdl_k3 == 1000.0
+    assert open_log(out / logs[0].name).config.mdl_k3 == 1000000.0
 
 
 @pytest.mark.parametrize(("args", "message"), [

@@ -19,16 +19,18 @@ Two deviations from Leonardis:
   otherwise both be kept (the sliver one explains beyond the other outweighs the cost of a
   model); box faces are disjoint in space, so a point claimed twice is evidence against
   the pair, not for it.
-* Points are counted in *faces*, not pixels (``Config.mdl_face_points``). A model's cost
-  K3 N_i is a fixed number of points, but the points a box face shows grow with the
-  square of the resolution and fall with the square of the distance: with raw counts a
-  320x240 camera 3.5 m away sees a 0.15 m face as ~130 points, fewer than the 160 a model
-  costs (at the default weights), and no such face could ever be selected, while at
-  1280x960 and 1 m the same cost is nothing. So each candidate's n_i and xi_i (and each
-  pair's |R_i ∩ R_j| and xi_ij) are rescaled by F / u_i, with u_i the points a face of
-  the smallest box (``min_edge`` square) has at the candidate's place, its rasterized
-  pixels over its area times ``min_edge``^2, and F = ``mdl_face_points``: the selection
-  is the same whatever the sensor's sampling density.
+* A model's cost is counted in *faces*, not pixels (``Config.mdl_face_points``).
+  Leonardis' K3 N_i is a fixed number of points, but the points a box face shows grow
+  with the square of the resolution and fall with the square of the distance: with raw
+  counts a 320x240 camera 3.5 m away sees a 0.15 m face as ~130 points, which gain less
+  than the 80 a model costs at the default weights (K1 n - K2 xi ~ 0.55 n), and no such
+  face could ever be selected, while at 1280x960 and 1 m the same cost is nothing. So
+  the cost is K3 N_i u_i / F, with u_i the points a face of the smallest box
+  (``min_edge`` square) has at the candidate's place (its rasterized pixels over its
+  area, times ``min_edge``^2) and F = ``mdl_face_points``: a parameter costs K3 / F of a
+  smallest face wherever it is seen. Every other term already counts points, so
+  sampling a scene s times more densely multiplies the whole of Q by s, and the greedy
+  search chooses the same; the duplicates of one face still compete on their points.
 """
 
 from __future__ import annotations
@@ -115,18 +117,16 @@ def select(verification: Verification, hypotheses: HypothesisSet, *, config: Con
     inter = overlap_counts(verification, cand)
     per_pt = err / np.maximum(n_pts, 1)
     unit = np.full(c, np.nan)
-    scale = np.ones(c)  # points -> the points of a face_points-point smallest face
+    cost = np.ones(c)  # K3 N is paid in points times this: a smallest face's points here / F
     if face_points > 0 and c:
         unit = face_units(verification, hypotheses, cand, config.min_edge)
-        # a candidate without pixels or area (not one verification accepts) keeps raw points
-        scale = np.where(np.isfinite(unit) & (unit > 0), face_points / unit, 1.0)
+        # a candidate without pixels or area (not one verification accepts) pays raw points
+        cost = np.where(np.isfinite(unit) & (unit > 0), unit / face_points, 1.0)
     Q = np.zeros((c, c))
     if c:
         xi_ij = inter * np.maximum(per_pt[:, None], per_pt[None, :])
-        # a pair's shared points lie in both faces: the geometric mean of their scales
-        pair_scale = np.sqrt(scale[:, None] * scale[None, :])
-        Q = 0.5 * pair_scale * (-2.0 * k1 * inter + k2 * xi_ij)
-        np.fill_diagonal(Q, scale * (k1 * n_pts - k2 * err) - k3 * n_par)
+        Q = 0.5 * (-2.0 * k1 * inter + k2 * xi_ij)
+        np.fill_diagonal(Q, k1 * n_pts - k2 * err - k3 * n_par * cost)
     chosen = np.zeros(c, bool)
     order: list[int] = []
     gain = np.diag(Q).copy() if c else np.zeros(0)
