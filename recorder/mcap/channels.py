@@ -252,7 +252,9 @@ CHANNELS: tuple[ChannelSpec, ...] = (
                 "inlier pixels", E.encode_product, E.decode_product),
     ChannelSpec(SELECTION, _PRODUCT, "protobuf", E.PRODUCT_RECORDS["selection"], _S, _R,
                 "Selection: MDL terms (n, xi, N, Q), chosen set, greedy order, objective, "
-                "reasons", E.encode_product, E.decode_product),
+                "reasons; the points a smallest face has at each candidate, which scale its "
+                "model cost (unit, face_points; older logs: NaN, 0)",
+                E.encode_product, E.decode_product),
     ChannelSpec(SURFACES, _PRODUCT, "protobuf", E.PRODUCT_RECORDS["surfaces"], _S, _R,
                 "SurfaceSet: the chosen surfaces with pose, size, covariance and pick order; "
                 "the box height, its sigma and source, the matched carton size (SKU) or the "
