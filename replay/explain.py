@@ -997,7 +997,7 @@ def _selection_lines(s: dict[str, Any] | None, ind: str) -> list[str]:
     pos = f", added {order + 1} of {s['n_chosen']}" if order is not None else ""
     unit = s.get("unit")
     if s.get("face_points", 0.0) > 0 and unit is not None:
-        # points counted in smallest faces (Config.mdl_face_points), not pixels
+        # the model cost counted in smallest faces (Config.mdl_face_points), not pixels
         scaled = (f"K1 n - K2 xi - K3 N u / F with u / F = {unit:.0f} / "
                   f"{_num(s['face_points'])} (a smallest face's points here), ")
     else:
