@@ -164,6 +164,33 @@ def chi2_critical(dof: float, alpha: float) -> float:
     return float(_scipy_stats().chi2.ppf(1.0 - alpha, dof))
 
 
+def nanmedian_last(a: np.ndarray) -> np.ndarray:
+    """``np.nanmedian(a, axis=-1)``, bit for bit, by one sort.
+
+    NumPy takes a masked-array path for a NaN median along a short axis (under 600 values),
+    about ten times slower than sorting: the noise stage's tiles and the edge stage's
+    local scale take medians over thousands of 256- and 512-value rows per scan. The
+    median is the middle order statistic of the non-NaN values, or the mean of the two
+    middle ones, ``(lo + hi) / 2`` as NumPy computes it; NaN where a row has none.
+
+    Parameters
+    ----------
+    a : (..., n) float64
+
+    Returns
+    -------
+    (...,) float64
+    """
+    a = np.asarray(a, dtype=np.float64)
+    s = np.sort(a, axis=-1)  # NaN last
+    n = np.count_nonzero(~np.isnan(a), axis=-1)
+    lo = np.take_along_axis(s, np.maximum((n - 1) // 2, 0)[..., None], -1)[..., 0]
+    hi = np.take_along_axis(s, np.maximum(n // 2, 0)[..., None], -1)[..., 0]
+    with np.errstate(invalid="ignore"):
+        mid = np.where(n % 2 == 1, lo, (lo + hi) / 2.0)
+    return np.where(n > 0, mid, np.nan)
+
+
 def half_normal_sigma(x: np.ndarray, alpha: float,
                       max_iter: int = 50) -> tuple[float, np.ndarray, float]:
     """Robust sigma of the half-normal part of magnitudes ``x`` among a broad background.

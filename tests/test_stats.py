@@ -85,3 +85,22 @@ def test_half_normal_sigma_ignores_a_broad_background():
     assert sigma == pytest.approx(0.7, rel=0.05)
     assert k == pytest.approx(2.5758, abs=1e-3)
     assert kept.sum() < len(x) and np.all(x[kept] <= k * sigma)
+
+
+@pytest.mark.parametrize("n", [1, 2, 7, 256, 512, 701])
+def test_nanmedian_last_is_numpys_nanmedian_bit_for_bit(n: int) -> None:
+    import warnings
+
+    from boxloc.stats import nanmedian_last
+
+    rng = np.random.default_rng(n)
+    for share in (0.0, 0.3, 0.9, 1.0):
+        a = rng.standard_normal((3, 11, n)) * 10.0 ** rng.uniform(-4, 2, (3, 11, 1))
+        a[rng.random(a.shape) < share] = np.nan
+        a[0, 0] = np.round(a[0, 0], 1)  # ties
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN rows
+            ref = np.nanmedian(a, axis=-1)
+        got = nanmedian_last(a)
+        assert got.shape == ref.shape
+        assert np.array_equal(got, ref, equal_nan=True)

@@ -42,6 +42,7 @@ import numpy.typing as npt
 
 from boxloc.errors import InputError
 from boxloc.scan import NoiseModel, Scan
+from boxloc.stats import nanmedian_last
 
 __all__ = ["plane_residuals", "tile_residuals", "TileResiduals", "estimate_noise", "fit_residuals",
            "noise_toml", "NOISE_TERMS"]
@@ -264,8 +265,8 @@ def _tile_scale(h: np.ndarray, w: np.ndarray) -> np.ndarray:
     """Each tile's robust residual scale (1.4826 x the median |h| of its inliers), so that
     the pooled correlation weighs every tile alike: otherwise a few tiles of large, folded
     residuals (a box's side at grazing incidence) decide it."""
-    with np.errstate(invalid="ignore"), _quiet_nan():
-        mad = np.nanmedian(np.where(w, np.abs(h), np.nan), axis=1)
+    with np.errstate(invalid="ignore"):
+        mad = nanmedian_last(np.where(w, np.abs(h), np.nan))
     return np.maximum(_MAD_TO_STD * np.nan_to_num(mad), 1e-12)
 
 
@@ -392,8 +393,8 @@ def _ray_planes(
         beta, h = fit(A3, wt)
         if it == rounds:
             break
-        with np.errstate(invalid="ignore"), _quiet_nan():
-            mad = np.nanmedian(np.where(wt > 0, np.abs(h), np.nan), axis=1)
+        with np.errstate(invalid="ignore"):
+            mad = nanmedian_last(np.where(wt > 0, np.abs(h), np.nan))
         lim = 3.5 * np.maximum(_MAD_TO_STD * np.nan_to_num(mad), 1e-9)
         nw = (ok & (np.abs(h) <= lim[:, None])).astype(np.float64)
         if np.array_equal(nw, wt):

@@ -31,7 +31,6 @@ jump if the gap between the lines fails a chi2(1) continuity test.
 from __future__ import annotations
 
 import math
-import warnings
 
 import cv2
 import numba as nb
@@ -41,7 +40,7 @@ from scipy import stats as st
 from boxloc.config import Config
 from boxloc.products import EdgeKind, EdgeMap
 from boxloc.scan import Scan
-from boxloc.stats import TestKind, TestTable, chi2_critical
+from boxloc.stats import TestKind, TestTable, chi2_critical, nanmedian_last
 
 #: A groove is a run of this many to GROOVE_MAX_RUN samples behind the line, with
 #: GROOVE_CONTEXT samples on the line on each side (a seam, not a trend such as bulge).
@@ -696,9 +695,7 @@ def local_scale(r: np.ndarray, S: np.ndarray, tile: int = SCALE_TILE_PX) -> np.n
     A = A.transpose(1, 3, 0, 2, 4).reshape(th, tw, -1)
     A[~np.isfinite(A)] = np.nan
     n = np.sum(np.isfinite(A), axis=2)
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", RuntimeWarning)  # a tile without returns
-        med = np.nanmedian(A, axis=2)
+    med = nanmedian_last(A)  # NaN for a tile without returns
     good = (n >= tile * tile // 2) & np.isfinite(med) & (med > 0)
     if good.sum() < 4:
         return out
