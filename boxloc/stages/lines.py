@@ -101,6 +101,25 @@ def hemisphere_directions(granularity: int) -> np.ndarray:
 _LUT_POLAR, _LUT_AZIMUTH = 256, 512
 
 
+@lru_cache(maxsize=8)
+def _direction_lut(granularity: int
+                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray, cKDTree, np.ndarray]:
+    """The tessellation's cells, both signs of them with their hemisphere cell and their
+    kd-tree, and the lookup table from (polar, azimuth) bins to the nearest cell: what
+    :func:`_direction_index` needs whatever the vote cap (built once per granularity; the
+    table's 131 072 nearest-cell queries are most of the work)."""
+    D = hemisphere_directions(granularity)
+    both = np.concatenate([D, -D])
+    hemi = np.concatenate([np.arange(len(D)), np.arange(len(D))])
+    tree = cKDTree(both)
+    th = (np.arange(_LUT_POLAR) + 0.5) * math.pi / _LUT_POLAR
+    ph = (np.arange(_LUT_AZIMUTH) + 0.5) * 2 * math.pi / _LUT_AZIMUTH
+    T, F = np.meshgrid(th, ph, indexing="ij")
+    q = np.stack([np.sin(T) * np.cos(F), np.sin(T) * np.sin(F), np.cos(T)], -1).reshape(-1, 3)
+    lut = hemi[tree.query(q)[1]].reshape(_LUT_POLAR, _LUT_AZIMUTH).astype(np.int32)
+    return D, both, hemi, tree, lut
+
+
 @lru_cache(maxsize=64)
 def _direction_index(granularity: int, cap_deg: int = _QUIET_CAP_DEG
                      ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -116,23 +135,22 @@ def _direction_index(granularity: int, cap_deg: int = _QUIET_CAP_DEG
     D : (C, 3) float64
         Cell directions.
     """
-    D = hemisphere_directions(granularity)
-    both = np.concatenate([D, -D])
-    hemi = np.concatenate([np.arange(len(D)), np.arange(len(D))])
-    tree = cKDTree(both)
-    th = (np.arange(_LUT_POLAR) + 0.5) * math.pi / _LUT_POLAR
-    ph = (np.arange(_LUT_AZIMUTH) + 0.5) * 2 * math.pi / _LUT_AZIMUTH
-    T, F = np.meshgrid(th, ph, indexing="ij")
-    q = np.stack([np.sin(T) * np.cos(F), np.sin(T) * np.sin(F), np.cos(T)], -1).reshape(-1, 3)
-    lut = hemi[tree.query(q)[1]].reshape(_LUT_POLAR, _LUT_AZIMUTH).astype(np.int32)
+    D, both, hemi, tree, lut = _direction_lut(granularity)
     spacing = math.sqrt(4 * math.pi / len(both))
     reach = 2 * math.sin((math.radians(cap_deg) + 2 * spacing) / 2)
     lists = tree.query_ball_point(D, reach)
-    uniq = [np.unique(hemi[np.asarray(li, np.int64)]) for li in lists]
-    K = max(len(u) for u in uniq)
-    nbr = np.full((len(D), K), -1, np.int32)
-    for i, u in enumerate(uniq):
-        nbr[i, : len(u)] = u
+    # each cell's neighbours as hemisphere cells, sorted and unique, in one pass over all
+    row = np.repeat(np.arange(len(D)), [len(li) for li in lists])
+    cell = hemi[np.concatenate([np.asarray(li, np.int64) for li in lists])]
+    order = np.lexsort((cell, row))
+    row, cell = row[order], cell[order]
+    new = np.ones(len(row), bool)
+    new[1:] = (row[1:] != row[:-1]) | (cell[1:] != cell[:-1])
+    row, cell = row[new], cell[new]
+    counts = np.bincount(row, minlength=len(D))
+    col = np.arange(len(row)) - np.repeat(np.cumsum(counts) - counts, counts)
+    nbr = np.full((len(D), int(counts.max())), -1, np.int32)
+    nbr[row, col] = cell
     return lut, nbr, D
 
 
