@@ -54,13 +54,10 @@ Run: ``python -m boxloc.evaluate.bare_bench --n 100 --seed 0 --jobs 2 --out DIR`
 from __future__ import annotations
 
 import argparse
-import contextlib
-import multiprocessing
 import sys
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from multiprocessing.connection import Connection
-from multiprocessing.connection import wait as mp_wait
 from pathlib import Path
 from typing import Any
 
@@ -69,6 +66,7 @@ import numpy as np
 from boxloc import __version__
 from boxloc.config import Config
 from boxloc.errors import InputError
+from boxloc.evaluate.workers import Localizer, bench_console, check_run_args, run_tasks
 
 SCHEMA = "boxloc.bench_bare/1"
 REPORT_NAME = "bench_bare.json"
@@ -88,8 +86,6 @@ DEFAULT_SCAN_TIMEOUT = 120.0
 NULL_KIND_NAMES: tuple[str, ...] = ("NOISE_FIT",)
 #: Kinds of the edge stage's table, which records detections only (see the docstring).
 EDGE_KIND_NAMES: tuple[str, ...] = ("JUMP", "CREASE")
-
-Localizer = Callable[[Any, Config], Any]
 
 
 def bare_suite(n: int, seed: int = 0, sensors: Sequence[str] | None = None) -> list[Any]:
@@ -177,15 +173,13 @@ def scan_figures(result: Any, truth_labels: np.ndarray,
             "noise_source": None if noise is None else int(noise.source)}
 
 
-def _default_localizer(scan: Any, config: Config) -> Any:
-    from boxloc.pipeline import find_graspable_surfaces
+def _scan_task(conn: Connection | None, task: int, spec: Any, config: Config,
+               localizer: Localizer, cache: dict[str, Any] | None = None) -> dict[str, Any]:
+    """Simulate and localize one scene; ``conn`` is told when the localizer starts.
 
-    return find_graspable_surfaces(scan, config)
-
-
-def _scan_task(spec: Any, config: Config, localizer: Localizer,
-               conn: Connection | None = None) -> dict[str, Any]:
-    """Simulate and localize one scene; ``conn`` is told when the localizer starts."""
+    The workers' task function (:data:`boxloc.evaluate.workers.TaskFn`); ``cache`` goes
+    unused: every scan runs in a process of its own.
+    """
     from boxloc.evaluate.scene_bench import _err
     from boxloc.simulate import simulate
 
@@ -194,7 +188,7 @@ def _scan_task(spec: Any, config: Config, localizer: Localizer,
     except Exception as e:  # noqa: BLE001 - a scene that cannot be made is a reported error
         return {"status": "error", "phase": "simulate", "error": _err(e)}
     if conn is not None:
-        conn.send(("started",))
+        conn.send(("started", task, None))
     try:
         t0 = time.perf_counter()
         result = localizer(sim.scan, config)
@@ -205,66 +199,6 @@ def _scan_task(spec: Any, config: Config, localizer: Localizer,
     except Exception as e:  # noqa: BLE001 - a crash on one scene is a result
         return {"status": "error", "phase": "localize", "error": _err(e)}
     return {"status": "ok", "wall_ms": wall, **figs}
-
-
-def _child(conn: Connection, spec: Any, config: Config, localizer: Localizer) -> None:
-    with contextlib.suppress(KeyboardInterrupt, BrokenPipeError, EOFError):
-        from boxloc.evaluate.scene_bench import _limit_threads
-
-        _limit_threads()
-        conn.send(("done", _scan_task(spec, config, localizer, conn)))
-
-
-def _run_all(specs: Sequence[Any], config: Config, localizer: Localizer, jobs: int,
-             limit: float | None, on_done: Callable[[int, dict[str, Any]], None]) -> None:
-    """One forked process per scan, ``jobs`` at a time, each killed at its deadline
-    (``limit`` seconds after its simulation ends; the simulation has the same limit)."""
-    methods = multiprocessing.get_all_start_methods()
-    ctx: Any = multiprocessing.get_context("fork" if "fork" in methods else "spawn")
-    queue = list(range(len(specs)))[::-1]
-    running: dict[int, tuple[Any, Connection, list[float]]] = {}
-    inf = float("inf")
-    while queue or running:
-        while queue and len(running) < jobs:
-            i = queue.pop()
-            parent, child = ctx.Pipe()
-            p = ctx.Process(target=_child, args=(child, specs[i], config, localizer),
-                            daemon=True)
-            p.start()
-            child.close()
-            running[i] = (p, parent, [time.monotonic() + limit if limit else inf])
-        soonest = min(d[0] for _, _, d in running.values())
-        wait = None if soonest == inf else max(0.0, soonest - time.monotonic())
-        mp_wait([c for _, c, _ in running.values()]
-                + [p.sentinel for p, _, _ in running.values()], wait)
-        now = time.monotonic()
-        for i in list(running):
-            p, conn, dl = running[i]
-            res = None
-            try:
-                while conn.poll():
-                    msg = conn.recv()
-                    if msg[0] == "started":
-                        dl[0] = now + limit if limit else inf
-                    else:
-                        res = msg[1]
-            except (EOFError, OSError):
-                pass
-            if res is None and p.is_alive() and dl[0] > now:
-                continue
-            if res is None:
-                if p.is_alive():
-                    res = {"status": "timeout", "error": f"no result within {limit:g} s",
-                           "wall_ms": None if limit is None else limit * 1e3}
-                else:
-                    res = {"status": "error", "phase": "worker",
-                           "error": f"the worker process died (exit code {p.exitcode})"}
-            if p.is_alive():
-                p.kill()
-            p.join(timeout=10)
-            conn.close()
-            del running[i]
-            on_done(i, res)
 
 
 # --- figures -----------------------------------------------------------------------------
@@ -365,23 +299,16 @@ def run_bare_bench(n: int = DEFAULT_N, seed: int = 0, *, out: str | Path | None 
         On n < 1, jobs < 1, a non-positive timeout or an unknown sensor.
     """
     from boxloc.evaluate.matrix_bench import matrix_config, write_report
-    from boxloc.evaluate.scene_bench import _jsonable, _spec_text
+    from boxloc.evaluate.scene_bench import _default_localizer, _jsonable, _spec_text
 
-    if isinstance(jobs, bool) or not isinstance(jobs, int) or jobs < 1:
-        raise InputError(f"--jobs must be an integer >= 1, got {jobs!r}")
-    if scan_timeout is not None and not scan_timeout > 0:
-        raise InputError(f"--scan-timeout must be > 0 seconds, got {scan_timeout!r}")
+    check_run_args(jobs, scan_timeout)
     specs = list(specs) if specs is not None else bare_suite(n, seed, sensors)
     if not specs:
         raise InputError("bench needs at least one scene")
     cfg, site = matrix_config(specs)
     import boxloc.pipeline  # noqa: F401 - imported once here, shared by the forked children
 
-    con = console
-    if con is None and progress:
-        from rich.console import Console
-
-        con = Console(stderr=True)
+    con = bench_console(console, progress)
     rows: list[dict[str, Any] | None] = [None] * len(specs)
 
     def on_done(i: int, res: dict[str, Any]) -> None:
@@ -405,7 +332,11 @@ def run_bare_bench(n: int = DEFAULT_N, seed: int = 0, *, out: str | Path | None 
                       markup=False, highlight=False)
 
     t0 = time.monotonic()
-    _run_all(specs, cfg, localizer or _default_localizer, jobs, scan_timeout, on_done)
+    # every scan in a process of its own and no warm-up: no scan sees another's state,
+    # and each one's time includes its process's first calls
+    run_tasks([(i, s, cfg) for i, s in enumerate(specs)], _scan_task,
+              localizer or _default_localizer, jobs, scan_timeout, None, on_done, fresh=True,
+              timeout_error="no result within {limit:g} s")
     run_s = time.monotonic() - t0
     done = [r for r in rows if r is not None]
     assert len(done) == len(specs)

@@ -95,15 +95,11 @@ one loss line per sensor under the per-sensor table.
 
 from __future__ import annotations
 
-import contextlib
-import dataclasses
 import json
-import multiprocessing
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from multiprocessing.connection import Connection
-from multiprocessing.connection import wait as mp_wait
 from pathlib import Path
 from typing import Any
 
@@ -125,7 +121,6 @@ from boxloc.evaluate.scene_bench import (
     _err,
     _fmt,
     _jsonable,
-    _limit_threads,
     _MethodRun,
     _run_boxloc,
     _spec_dict,
@@ -134,8 +129,14 @@ from boxloc.evaluate.scene_bench import (
     draw_figures,
     print_draws,
     process_max_rss_mb,
-    progress_bar,
     trial_configs,
+)
+from boxloc.evaluate.workers import (
+    Localizer,
+    bench_console,
+    check_run_args,
+    run_with_progress,
+    warmup_spec,
 )
 
 SCHEMA = "boxloc.bench_matrix/1"
@@ -151,8 +152,6 @@ DEFAULT_SCAN_TIMEOUT = 120.0
 SCOPES: tuple[str, ...] = ("development", "all")
 REPORT_NAME = "bench_matrix.json"
 TABLE_NAME = "bench_matrix.txt"
-
-Localizer = Callable[[Any, Config], Any]
 
 
 @dataclass(frozen=True)
@@ -308,8 +307,12 @@ def _funnel(result: Any, sim: Any, match: Match | None, separable: list[bool]
 
 
 def _scan_task(conn: Connection | None, task: int, spec: Any, config: Config,
-               localizer: Localizer) -> dict[str, Any]:
-    """Simulate one scene and run the localizer on it (``conn``: say when it starts)."""
+               localizer: Localizer, cache: dict[str, Any] | None = None) -> dict[str, Any]:
+    """Simulate one scene and run the localizer on it (``conn``: say when it starts).
+
+    The workers' task function (:data:`boxloc.evaluate.workers.TaskFn`); ``cache`` goes
+    unused: each task simulates its scene.
+    """
     from boxloc.simulate import simulate
 
     try:
@@ -333,187 +336,6 @@ def _scan_task(conn: Connection | None, task: int, spec: Any, config: Config,
     funnel, funnel_ms = _funnel(results[-1] if results else None, sim, run.match,
                                 meta["separable"])
     return {"status": "ok", "run": run, "meta": meta, "funnel": funnel, "funnel_ms": funnel_ms}
-
-
-def _warmup_spec(specs: Sequence[Any]) -> Any:
-    """The first scene at 160 x 120: loads numba's cache and lazy imports, untimed."""
-    s = specs[0]
-    return dataclasses.replace(s, width=160, height=120, f=float(s.f) * 160 / s.width)
-
-
-def _worker_main(conn: Connection, localizer: Localizer, warm: tuple[Any, Config] | None) -> None:
-    """A worker: pin threads, warm up, then run the scans it is sent until ``None``."""
-    with contextlib.suppress(KeyboardInterrupt, BrokenPipeError, EOFError):
-        threads = _limit_threads()
-        if warm is not None:
-            from boxloc.simulate import simulate
-
-            with contextlib.suppress(Exception):
-                localizer(simulate(warm[0]).scan, warm[1])
-        conn.send(("ready", threads))
-        while True:
-            msg = conn.recv()
-            if msg is None:
-                return
-            task, spec, config = msg
-            conn.send(("done", task, _scan_task(conn, task, spec, config, localizer)))
-
-
-def _context() -> Any:
-    """fork where there is one: the workers inherit the imported pipeline (and, in tests, a
-    monkeypatched localizer); the parent runs no numba and no threads of its own when they
-    start, apart from the progress bar's, which they never touch."""
-    methods = multiprocessing.get_all_start_methods()
-    return multiprocessing.get_context("fork" if "fork" in methods else "spawn")
-
-
-@dataclass
-class _Slot:
-    proc: Any
-    conn: Connection
-    ready: bool = False
-    task: int | None = None
-    started: float | None = None
-    deadline: float = float("inf")
-    meta: dict[str, Any] | None = None
-
-
-class _Workers:
-    """``jobs`` worker processes, each running one scan at a time under a deadline.
-
-    The worker's main function is :meth:`target`; another bench's workers override it (the
-    messages are the same: ``(task, spec, payload)`` in, ``ready``/``started``/``done`` out).
-    """
-
-    @staticmethod
-    def target() -> Callable[..., None]:
-        """The worker processes' main function, ``fn(conn, localizer, warm)``."""
-        return _worker_main
-
-    def __init__(self, localizer: Localizer, jobs: int, warm: tuple[Any, Config] | None,
-                 limit: float | None) -> None:
-        self.ctx = _context()
-        self.localizer, self.warm, self.limit = localizer, warm, limit
-        self.slots: list[_Slot] = []
-        self.threads: dict[str, Any] | None = None
-        self.warmup_timeouts = 0
-        for _ in range(jobs):
-            self.start()
-
-    def start(self, warm: bool = True) -> _Slot:
-        parent, child = self.ctx.Pipe()
-        w = self.warm if warm else None
-        proc = self.ctx.Process(target=self.target(), args=(child, self.localizer, w),
-                                daemon=True)
-        proc.start()
-        child.close()
-        slot = _Slot(proc, parent, deadline=self._deadline())
-        self.slots.append(slot)
-        return slot
-
-    def _deadline(self) -> float:
-        return float("inf") if self.limit is None else time.monotonic() + self.limit
-
-    def kill(self, slot: _Slot) -> None:
-        """Stop a worker now (our own child, by its handle) and forget it."""
-        self.slots.remove(slot)
-        with contextlib.suppress(OSError):
-            slot.conn.close()
-        if slot.proc.is_alive():
-            slot.proc.kill()
-        slot.proc.join(timeout=10)
-
-    def close(self) -> None:
-        for slot in list(self.slots):
-            with contextlib.suppress(OSError, ValueError):
-                slot.conn.send(None)
-        for slot in list(self.slots):
-            slot.proc.join(timeout=5)
-            self.kill(slot)
-
-    def send(self, slot: _Slot, task: int, spec: Any, payload: Any) -> None:
-        """Start ``task``: the scene ``spec`` and what the worker runs it with (a Config
-        here, another bench's job description there)."""
-        slot.task, slot.started, slot.meta = task, None, None
-        slot.deadline = self._deadline()  # the simulation has the same limit
-        slot.conn.send((task, spec, payload))
-
-    def wait(self) -> list[_Slot]:
-        """The slots with a message, a dead process or a passed deadline."""
-        soonest = min((s.deadline for s in self.slots), default=float("inf"))
-        timeout = None if soonest == float("inf") else max(0.0, soonest - time.monotonic())
-        handles = [s.conn for s in self.slots] + [s.proc.sentinel for s in self.slots]
-        hit = set(mp_wait(handles, timeout))
-        now = time.monotonic()
-        return [s for s in self.slots
-                if s.conn in hit or s.proc.sentinel in hit or s.deadline <= now]
-
-
-def _run_tasks(tasks: Sequence[tuple[int, Any, Any]], localizer: Localizer, jobs: int,
-               limit: float | None, warm: tuple[Any, Config] | None,
-               on_done: Callable[[int, dict[str, Any]], None],
-               on_start: Callable[[int], None] | None = None,
-               workers: type[_Workers] = _Workers) -> dict[str, Any]:
-    """Run every task on worker processes; ``on_done(task, result)`` as each ends.
-
-    ``tasks`` are ``(index, spec, payload)``; ``workers`` the pool's class (the packed
-    bench's runs its own task function).
-
-    A result is the worker's (:func:`_scan_task`), or ``{"status": "timeout" | "error",
-    "phase", "error", "meta", "wall_ms"}`` made here when the worker was killed at its
-    deadline or died. Returns the workers' thread pinning and the warm-up timeouts.
-    """
-    queue = list(range(len(tasks)))[::-1]
-    pool = workers(localizer, min(jobs, len(tasks)), warm, limit)
-    done = 0
-    try:
-        while done < len(tasks):
-            for s in pool.slots:
-                if s.ready and s.task is None and queue:
-                    i = queue.pop()
-                    pool.send(s, i, tasks[i][1], tasks[i][2])
-                    if on_start is not None:
-                        on_start(i)
-            for s in pool.wait():
-                try:
-                    msg = s.conn.recv() if s.conn.poll() else None
-                except (EOFError, OSError):
-                    msg = None
-                if msg is not None:
-                    if msg[0] == "ready":
-                        s.ready, s.deadline = True, float("inf")
-                        pool.threads = pool.threads or msg[1]
-                    elif msg[0] == "started":
-                        s.started, s.meta, s.deadline = time.monotonic(), msg[2], pool._deadline()
-                    else:
-                        assert s.task is not None
-                        on_done(s.task, msg[2])
-                        done += 1
-                        s.task, s.deadline = None, float("inf")
-                    continue
-                alive = s.proc.is_alive()
-                if alive and s.deadline > time.monotonic():
-                    continue  # woken by its sentinel's neighbour: nothing for this one
-                pool.kill(s)
-                if s.task is None:  # lost while warming up (or idle): a new one, cold
-                    pool.warmup_timeouts += alive
-                    pool.start(warm=False)
-                    continue
-                phase = "localize" if s.started is not None else "simulate"
-                if alive:
-                    res = {"status": "timeout", "phase": phase, "meta": s.meta,
-                           "error": f"no result within the scan limit of {limit:g} s",
-                           "wall_ms": None if limit is None else limit * 1e3}
-                else:
-                    res = {"status": "error", "phase": phase, "meta": s.meta,
-                           "error": f"the worker process died (exit code {s.proc.exitcode})"}
-                on_done(s.task, res)
-                done += 1
-                if queue:
-                    pool.start()
-    finally:
-        pool.close()
-    return {"threads": pool.threads, "warmup_timeouts": pool.warmup_timeouts}
 
 
 # --- figures -----------------------------------------------------------------------------
@@ -615,6 +437,44 @@ def _get(fig: dict[str, Any] | None, key: str) -> Any:
     return fig
 
 
+def target_scope(groups: dict[str, Any], over: str, scope: str, key: str, op: str,
+                 bound: float) -> dict[str, Any]:
+    """One target in one scope: the worst group's figure, where it is, and the verdict.
+
+    Parameters
+    ----------
+    groups : dict
+        ``overall`` (per scope), ``sensors`` and (for ``over == "cell"``) ``cells``, each
+        group with ``held_out``.
+    over : str
+        ``"overall"``, ``"sensor"`` or ``"cell"``: the groups the target must hold in.
+    scope : str
+        ``"development"`` (the held-out sensor's groups left out) or ``"all"``.
+    key : str
+        A figure of the groups, dotted into nested dicts.
+    op : str
+        ``">="`` (the worst group is the smallest value) or ``"<="`` (the largest).
+    bound : float
+
+    Returns
+    -------
+    dict
+        ``value``, ``where`` and ``pass`` (all None without a value).
+    """
+    if over == "overall":
+        cands = [("overall", groups["overall"][scope])]
+    else:
+        table = groups["cells" if over == "cell" else "sensors"]
+        cands = [(name, g) for name, g in table.items() if scope == "all" or not g["held_out"]]
+    vals = [(name, _get(g, key)) for name, g in cands]
+    vals = [(name, v) for name, v in vals if v is not None]
+    if not vals:
+        return {"value": None, "where": None, "pass": None}
+    where, v = (min if op == ">=" else max)(vals, key=lambda nv: nv[1])
+    ok = v >= bound if op == ">=" else v <= bound
+    return {"value": v, "where": where, "pass": bool(ok)}
+
+
 def evaluate_matrix_targets(groups: dict[str, Any], config: Config,
                             held_out: str) -> list[dict[str, Any]]:
     """Each of :data:`MATRIX_TARGETS` in both scopes: the worst group's value, where, pass."""
@@ -624,20 +484,7 @@ def evaluate_matrix_targets(groups: dict[str, Any], config: Config,
         row: dict[str, Any] = {"name": t.name, "key": t.key, "over": t.over, "op": t.op,
                                "bound": b, "target": t.text(config), "unit": t.unit}
         for scope in SCOPES:
-            if t.over == "overall":
-                cands = [("overall", groups["overall"][scope])]
-            else:
-                table = groups["cells" if t.over == "cell" else "sensors"]
-                cands = [(name, g) for name, g in table.items()
-                         if scope == "all" or not g["held_out"]]
-            vals = [(name, _get(g, t.key)) for name, g in cands]
-            vals = [(name, v) for name, v in vals if v is not None]
-            if not vals:
-                row[scope] = {"value": None, "where": None, "pass": None}
-                continue
-            where, v = (min if t.op == ">=" else max)(vals, key=lambda nv: nv[1])
-            ok = v >= b if t.op == ">=" else v <= b
-            row[scope] = {"value": v, "where": where, "pass": bool(ok)}
+            row[scope] = target_scope(groups, t.over, scope, t.key, t.op, b)
         rows.append(row)
     return rows
 
@@ -700,12 +547,7 @@ def run_matrix_bench(
     """
     from boxloc.simulate import MATRIX_KINDS, SENSORS, matrix_suite
 
-    if held_out not in SENSORS:
-        raise InputError(f"--held-out must be one of {', '.join(SENSORS)}, got {held_out!r}")
-    if isinstance(jobs, bool) or not isinstance(jobs, int) or jobs < 1:
-        raise InputError(f"--jobs must be an integer >= 1, got {jobs!r}")
-    if scan_timeout is not None and not scan_timeout > 0:
-        raise InputError(f"--scan-timeout must be > 0 seconds, got {scan_timeout!r}")
+    check_run_args(jobs, scan_timeout, held_out)
     if specs is None:
         if n < 1:
             raise InputError(f"bench needs n >= 1 scenes, got {n}")
@@ -719,11 +561,7 @@ def run_matrix_bench(
 
     tasks = [(i, spec, d) for i, spec in enumerate(specs) for d in draws]
     outs: list[_Outcome | None] = [None] * len(tasks)
-    con = console
-    if con is None and progress:
-        from rich.console import Console
-
-        con = Console(stderr=True)
+    con = bench_console(console, progress)
 
     def on_done(t: int, res: dict[str, Any]) -> None:
         i, spec, d = tasks[t]
@@ -742,35 +580,19 @@ def run_matrix_bench(
         if res.get("wall_ms") is not None:
             o.wall_ms = res["wall_ms"]
         outs[t] = o
-        if bar is not None:
-            bar.advance(task_id)
-            if not con.is_terminal:  # a log file sees no bar: one line per scan instead
-                m = o.match
-                con.print(f"[{sum(x is not None for x in outs)}/{len(tasks)}] scene {i} "
-                          f"({o.sensor}, {o.kind}, {spec.width}x{spec.height}): {o.status}"
-                          + (f", {o.wall_ms / 1e3:.1f} s" if o.wall_ms is not None else "")
-                          + (f", TP {m.tp} FP {m.fp} FN {m.fn}" if m is not None else ""),
-                          markup=False, highlight=False)
 
-    def on_start(t: int) -> None:
-        if bar is not None:
-            i, spec, _ = tasks[t]
-            bar.update(task_id, description=f"scene {i} ({spec.sensor}, {spec.kind}, "
-                                            f"{spec.width}x{spec.height})")
+    def summary(t: int) -> str:
+        return run_line(outs[t], "kind", tasks[t][1])
 
-    t0 = time.monotonic()
-    bar, task_id = (None, None)
-    warm = (_warmup_spec(specs), cfg) if warmup else None
-    if progress and con is not None:
-        # the workers are forked before the bar's thread starts
-        bar, task_id = progress_bar(con, "matrix", len(tasks))
-    try:
-        info = _run_tasks(tasks, localizer or _default_localizer, jobs, scan_timeout, warm,
-                          on_done, on_start)
-    finally:
-        if bar is not None:
-            bar.stop()
-    run_s = time.monotonic() - t0
+    def describe(t: int) -> str:
+        i, spec, _ = tasks[t]
+        return f"scene {i} ({spec.sensor}, {spec.kind}, {spec.width}x{spec.height})"
+
+    warm = (warmup_spec(specs), cfg) if warmup else None
+    info, run_s = run_with_progress(tasks, _scan_task, localizer or _default_localizer, jobs,
+                                    scan_timeout, warm, on_done,
+                                    console=con if progress else None, label="matrix",
+                                    describe=describe, summary=summary)
     done = [o for o in outs if o is not None]
     assert len(done) == len(tasks)
     report = _report(done, specs, cfg, site, n=len(specs), seed=seed, jobs=jobs,
@@ -801,6 +623,69 @@ def write_report(report: dict[str, Any], out: Path | str | None, report_name: st
             console.print(f"wrote {Path(out) / report_name} and {Path(out) / table_name}")
 
 
+def run_line(o: Any, axis: str, spec: Any) -> str:
+    """A finished run in one line (for a log, which sees no progress bar): its scene,
+    sensor, other axis (the attribute ``axis``: ``kind``, ``variant``), image size, status,
+    time and TP / FP / FN."""
+    m = o.match
+    return (f"scene {o.index} ({o.sensor}, {getattr(o, axis)}, {spec.width}x{spec.height}): "
+            f"{o.status}"
+            + (f", {o.wall_ms / 1e3:.1f} s" if o.wall_ms is not None else "")
+            + (f", TP {m.tp} FP {m.fp} FN {m.fn}" if m is not None else ""))
+
+
+def report_head(schema: str, mode: str, cfg: Config, site: dict[str, Any], *, n: int,
+                seed: int, jobs: int, scan_timeout: float | None, warmup: bool,
+                info: dict[str, Any]) -> dict[str, Any]:
+    """The first keys of a default-configuration bench's report (matrix, packed), in order:
+    the run's inputs and the one configuration."""
+    return {"schema": schema, "version": __version__, "mode": mode, "n": n, "seed": seed,
+            "jobs": jobs, "scan_timeout_s": scan_timeout, "warmup": warmup,
+            "threads": info.get("threads"),
+            "default_configuration": True, "config": cfg.to_dict(), "config_hash": cfg.hash,
+            "site": site}
+
+
+def failures(outs: Sequence[Any], axis: str, scan_timeout: float | None,
+             info: dict[str, Any]) -> tuple[list[dict[str, Any]], list[dict[str, Any]]]:
+    """The report's ``timeouts`` and ``errors`` lists, one entry per run that failed.
+
+    ``outs`` have ``index``, ``trial_seed``, ``sensor``, ``status``, ``phase``, ``error``,
+    ``meta`` and the attribute ``axis`` (the runs' other axis: ``kind``, ``variant``); the
+    workers lost while warming up (``info["warmup_timeouts"]``) are one more timeout entry.
+    """
+    timeouts, errors = [], []
+    for o in outs:
+        base = {"scene": o.index, "trial_seed": o.trial_seed, "sensor": o.sensor,
+                axis: getattr(o, axis)}
+        if o.status == "timeout":
+            timeouts.append({**base, "spec_text": o.meta.get("spec_text"), "phase": o.phase,
+                             "limit_s": scan_timeout})
+        elif o.status == "error":
+            errors.append({**base, "phase": o.phase, "error": o.error})
+    if info.get("warmup_timeouts"):
+        timeouts.append({"scene": None, "trial_seed": None, "sensor": None, axis: None,
+                         "spec_text": None, "phase": "warmup", "limit_s": scan_timeout,
+                         "count": info["warmup_timeouts"]})
+    return timeouts, errors
+
+
+def observed_site(site: dict[str, Any], outs: Sequence[Any]) -> dict[str, Any]:
+    """``site`` with ``observed``: the smallest and largest top edge in the scenes' truth."""
+    lo = [float(o.meta["edge_min"]) for o in outs if o.meta.get("edge_min") is not None]
+    hi = [float(o.meta["edge_max"]) for o in outs if o.meta.get("edge_max") is not None]
+    return {**site, "observed": {"min_edge": min(lo) if lo else None,
+                                 "max_edge": max(hi) if hi else None}}
+
+
+def memory_figures(outs: Sequence[Any]) -> dict[str, Any]:
+    """The report's ``memory``: the workers' peak RSS per run and this process's, MB."""
+    peaks = np.asarray([o.run.peak_mb for o in outs if o.run and o.run.peak_mb], np.float64)
+    return {"worker_peak_rss_mb_median": _pct(peaks, 50),
+            "worker_peak_rss_mb_max": float(peaks.max()) if peaks.size else None,
+            "process_max_rss_mb": process_max_rss_mb()}
+
+
 def _parent_meta(spec: Any) -> dict[str, Any]:
     """The scene's truth summary, simulated here (its worker was lost before it said)."""
     from boxloc.simulate import simulate
@@ -820,16 +705,9 @@ def _report(outs: list[_Outcome], specs: Sequence[Any], cfg: Config, site: dict[
     present_s = [s for s in sensors if any(o.sensor == s for o in outs)]
     present_k = [k for k in kinds if any(o.kind == k for o in outs)]
     groups = _groups(outs, present_s, present_k, held_out)
-    rows, timeouts, errors = [], [], []
+    rows = []
     for o in outs:
         m = o.meta
-        base = {"scene": o.index, "trial_seed": o.trial_seed, "sensor": o.sensor,
-                "kind": o.kind}
-        if o.status == "timeout":
-            timeouts.append({**base, "spec_text": m.get("spec_text"), "phase": o.phase,
-                             "limit_s": scan_timeout})
-        elif o.status == "error":
-            errors.append({**base, "phase": o.phase, "error": o.error})
         rows.append({"index": o.index, "trial_seed": o.trial_seed, "sensor": o.sensor,
                      "kind": o.kind, "held_out": o.sensor == held_out, "spec": m.get("spec"),
                      "spec_text": m.get("spec_text"), "n_faces": m.get("n_faces"),
@@ -837,25 +715,14 @@ def _report(outs: list[_Outcome], specs: Sequence[Any], cfg: Config, site: dict[
                      "status": o.status, "error": o.error,
                      "match": o.match.to_dict() if o.match is not None else None,
                      "edges": o.edges, "funnel": o.funnel})
-    if info.get("warmup_timeouts"):
-        timeouts.append({"scene": None, "trial_seed": None, "sensor": None, "kind": None,
-                         "spec_text": None, "phase": "warmup", "limit_s": scan_timeout,
-                         "count": info["warmup_timeouts"]})
-    lo = [float(o.meta["edge_min"]) for o in outs if o.meta.get("edge_min") is not None]
-    hi = [float(o.meta["edge_max"]) for o in outs if o.meta.get("edge_max") is not None]
-    site = {**site, "observed": {"min_edge": min(lo) if lo else None,
-                                 "max_edge": max(hi) if hi else None}}
+    timeouts, errors = failures(outs, "kind", scan_timeout, info)
     runs = [o.run if o.run is not None else _MethodRun(wall_ms=o.wall_ms) for o in outs]
     timing = _timing(runs)
-    peaks = np.asarray([o.run.peak_mb for o in outs if o.run and o.run.peak_mb], np.float64)
     f_ms = np.asarray([o.funnel_ms for o in outs if o.funnel_ms is not None], np.float64)
     walls = sum(o.wall_ms for o in outs if o.funnel_ms is not None and o.wall_ms is not None)
     report: dict[str, Any] = {
-        "schema": SCHEMA, "version": __version__, "mode": "matrix", "n": n, "seed": seed,
-        "jobs": jobs, "scan_timeout_s": scan_timeout, "warmup": warmup,
-        "threads": info.get("threads"),
-        "default_configuration": True, "config": cfg.to_dict(), "config_hash": cfg.hash,
-        "site": site,
+        **report_head(SCHEMA, "matrix", cfg, observed_site(site, outs), n=n, seed=seed,
+                      jobs=jobs, scan_timeout=scan_timeout, warmup=warmup, info=info),
         "held_out": {"sensor": held_out,
                      "cells": [k for k, c in groups["cells"].items() if c["held_out"]]},
         "sensors": present_s, "kinds": present_k, "no_box_kinds": list(NO_BOX_KINDS),
@@ -871,9 +738,7 @@ def _report(outs: list[_Outcome], specs: Sequence[Any], cfg: Config, site: dict[
                    "funnel_ms": {"median": _pct(f_ms, 50), "max": _pct(f_ms, 100),
                                  "total": float(f_ms.sum()),
                                  "share": float(f_ms.sum()) / walls if walls else None}},
-        "memory": {"worker_peak_rss_mb_median": _pct(peaks, 50),
-                   "worker_peak_rss_mb_max": float(peaks.max()) if peaks.size else None,
-                   "process_max_rss_mb": process_max_rss_mb()},
+        "memory": memory_figures(outs),
         "scenes": rows,
     }
     return _jsonable(report)
@@ -963,18 +828,14 @@ def print_funnel(report: dict[str, Any], console: Any) -> None:
         console.print(escape(f"  {name:<{width}}  {funnel_line(fig)}"), soft_wrap=True)
 
 
-def print_matrix_report(report: dict[str, Any], console: Any) -> None:
-    """Print the report: targets (PASS/FAIL), per sensor, per kind, the cells, timeouts."""
+def print_targets(report: dict[str, Any], console: Any, title: str) -> None:
+    """The targets table under ``title``: per scope the value (and the worst group) and
+    PASS, FAIL or n/a."""
     from rich.markup import escape
     from rich.table import Table
 
-    g, ho = report["groups"], report["held_out"]["sensor"]
-    cfg = report["config"]
-    t = Table(title=escape(
-        f"boxloc bench --matrix: {report['n']} scenes x {len(report['seeds']['trial_seeds'])} "
-        f"draw(s), seed {report['seed']}, default configuration (min_edge "
-        f"{cfg['min_edge']:g} m, max_edge {cfg['max_edge']:g} m, the site input; nothing "
-        f"else set), held out: {ho}"))
+    ho = report["held_out"]["sensor"]
+    t = Table(title=escape(title))
     t.add_column("target")
     t.add_column("bound", justify="right")
     for scope in SCOPES:
@@ -993,6 +854,38 @@ def print_matrix_report(report: dict[str, Any], console: Any) -> None:
             cells += [escape(txt), mark[s["pass"]]]
         t.add_row(*cells)
     console.print(t)
+
+
+def print_failures(report: dict[str, Any], console: Any, axis: str,
+                   timeout_seed: bool = False) -> None:
+    """One line per timed-out and per crashed run; ``axis`` names the runs' other axis
+    (``kind``, ``variant``), ``timeout_seed`` puts the draw in a timeout's line."""
+    from rich.markup import escape
+
+    for to in report["timeouts"]:
+        if to["phase"] == "warmup":
+            console.print(escape(f"[timeout] {to['count']} worker warm-up(s) over the limit"))
+        else:
+            seed = f"trial_seed {to['trial_seed']}, " if timeout_seed else ""
+            console.print(escape(f"[timeout] scene {to['scene']} ({seed}{to['sensor']}, "
+                                 f"{to[axis]}) over {to['limit_s']:g} s in {to['phase']}: "
+                                 f"{to['spec_text']}"))
+    for e in report["errors"]["list"]:
+        console.print(escape(f"[error] scene {e['scene']} ({e['sensor']}, {e[axis]}) "
+                             f"{e['phase']}: {e['error']}"))
+
+
+def print_matrix_report(report: dict[str, Any], console: Any) -> None:
+    """Print the report: targets (PASS/FAIL), per sensor, per kind, the cells, timeouts."""
+    from rich.markup import escape
+
+    g, ho = report["groups"], report["held_out"]["sensor"]
+    cfg = report["config"]
+    print_targets(report, console, (
+        f"boxloc bench --matrix: {report['n']} scenes x {len(report['seeds']['trial_seeds'])} "
+        f"draw(s), seed {report['seed']}, default configuration (min_edge "
+        f"{cfg['min_edge']:g} m, max_edge {cfg['max_edge']:g} m, the site input; nothing "
+        f"else set), held out: {ho}"))
 
     st = _table(f"per sensor ({ho}: held out)")
     for s, fig in g["sensors"].items():
@@ -1025,13 +918,4 @@ def print_matrix_report(report: dict[str, Any], console: Any) -> None:
     console.print(escape(f"peak RSS of a worker [MB]: median "
                          f"{_fmt(mem['worker_peak_rss_mb_median'], 'MB')}, max "
                          f"{_fmt(mem['worker_peak_rss_mb_max'], 'MB')}"))
-    for to in report["timeouts"]:
-        if to["phase"] == "warmup":
-            console.print(escape(f"[timeout] {to['count']} worker warm-up(s) over the limit"))
-        else:
-            console.print(escape(f"[timeout] scene {to['scene']} (trial_seed "
-                                 f"{to['trial_seed']}, {to['sensor']}, {to['kind']}) over "
-                                 f"{to['limit_s']:g} s in {to['phase']}: {to['spec_text']}"))
-    for e in report["errors"]["list"]:
-        console.print(escape(f"[error] scene {e['scene']} ({e['sensor']}, {e['kind']}) "
-                             f"{e['phase']}: {e['error']}"))
+    print_failures(report, console, "kind", timeout_seed=True)

@@ -105,13 +105,12 @@ Figures of a group (:func:`group_figures`): ``n_scenes``, ``n_scans``, every key
 from __future__ import annotations
 
 import argparse
-import contextlib
 import dataclasses
 import math
 import sys
 import tempfile
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from multiprocessing.connection import Connection
 from pathlib import Path
@@ -119,17 +118,21 @@ from typing import Any
 
 import numpy as np
 
-from boxloc import __version__
 from boxloc.config import Config
 from boxloc.errors import BoxlocError, InputError
 from boxloc.evaluate.matrix_bench import (
     HELD_OUT,
     SCOPES,
     _pct,
-    _run_tasks,
-    _warmup_spec,
-    _Workers,
+    failures,
     matrix_config,
+    memory_figures,
+    observed_site,
+    print_failures,
+    print_targets,
+    report_head,
+    run_line,
+    target_scope,
     write_report,
 )
 from boxloc.evaluate.metrics import (
@@ -151,15 +154,19 @@ from boxloc.evaluate.scene_bench import (
     _err,
     _fmt,
     _jsonable,
-    _limit_threads,
     _MethodRun,
     _spec_dict,
     _spec_text,
     _timing,
     draw_figures,
-    process_max_rss_mb,
-    progress_bar,
     trial_configs,
+)
+from boxloc.evaluate.workers import (
+    Localizer,
+    bench_console,
+    check_run_args,
+    run_with_progress,
+    warmup_spec,
 )
 from boxloc.products import AmbiguityReason, HeightSource
 
@@ -178,8 +185,6 @@ SIZE_ROUNDING = 0.001
 REGION_COVER = 0.5
 REPORT_NAME = "bench_packed.json"
 TABLE_NAME = "bench_packed.txt"
-
-Localizer = Callable[[Any, Config], Any]
 
 
 @dataclass(frozen=True)
@@ -469,7 +474,11 @@ def _run_variant(localizer: Localizer, sim: Any, config: Config) -> _Run:
 def _packed_task(conn: Connection | None, task: int, spec: Any, job: _Job,
                  localizer: Localizer, cache: dict[str, Any]) -> dict[str, Any]:
     """Simulate the scene (or take it from the worker's cache), make the variant's
-    configuration, say when the localizer starts, run and score it."""
+    configuration, say when the localizer starts, run and score it.
+
+    The workers' task function (:data:`boxloc.evaluate.workers.TaskFn`); ``cache`` holds
+    the scene the worker simulated last, which the scan's next variant needs again.
+    """
     from boxloc.simulate import simulate
 
     try:
@@ -494,34 +503,6 @@ def _packed_task(conn: Connection | None, task: int, spec: Any, job: _Job,
         return {"status": "error", "phase": "localize", "error": run.error, "run": run,
                 "meta": meta}
     return {"status": "ok", "run": run, "meta": meta}
-
-
-def _packed_worker_main(conn: Connection, localizer: Localizer,
-                        warm: tuple[Any, Config] | None) -> None:
-    """A worker: pin threads, warm up, then run the jobs it is sent until ``None``."""
-    with contextlib.suppress(KeyboardInterrupt, BrokenPipeError, EOFError):
-        threads = _limit_threads()
-        if warm is not None:
-            from boxloc.simulate import simulate
-
-            with contextlib.suppress(Exception):
-                localizer(simulate(warm[0]).scan, warm[1])
-        conn.send(("ready", threads))
-        cache: dict[str, Any] = {}
-        while True:
-            msg = conn.recv()
-            if msg is None:
-                return
-            task, spec, job = msg
-            conn.send(("done", task, _packed_task(conn, task, spec, job, localizer, cache)))
-
-
-class _PackedWorkers(_Workers):
-    """The matrix bench's workers, running :func:`_packed_task` instead of its scan task."""
-
-    @staticmethod
-    def target() -> Callable[..., None]:
-        return _packed_worker_main
 
 
 # --- figures -----------------------------------------------------------------------------
@@ -630,22 +611,8 @@ def evaluate_packed_targets(groups: dict[str, Any]) -> list[dict[str, Any]]:
                                "target": t.text(), "unit": t.unit}
         g = groups.get(t.variant)
         for scope in SCOPES:
-            if g is None:
-                row[scope] = {"value": None, "where": None, "pass": None}
-                continue
-            if t.over == "overall":
-                cands = [("overall", g["overall"][scope])]
-            else:
-                cands = [(name, x) for name, x in g["sensors"].items()
-                         if scope == "all" or not x["held_out"]]
-            vals = [(name, x.get(t.key)) for name, x in cands]
-            vals = [(name, v) for name, v in vals if v is not None]
-            if not vals:
-                row[scope] = {"value": None, "where": None, "pass": None}
-                continue
-            where, v = (min if t.op == ">=" else max)(vals, key=lambda nv: nv[1])
-            ok = v >= t.value if t.op == ">=" else v <= t.value
-            row[scope] = {"value": v, "where": where, "pass": bool(ok)}
+            row[scope] = ({"value": None, "where": None, "pass": None} if g is None else
+                          target_scope(g, t.over, scope, t.key, t.op, t.value))
         rows.append(row)
     return rows
 
@@ -712,12 +679,7 @@ def run_packed_bench(
     """
     from boxloc.simulate import SENSORS
 
-    if held_out not in SENSORS:
-        raise InputError(f"--held-out must be one of {', '.join(SENSORS)}, got {held_out!r}")
-    if isinstance(jobs, bool) or not isinstance(jobs, int) or jobs < 1:
-        raise InputError(f"--jobs must be an integer >= 1, got {jobs!r}")
-    if scan_timeout is not None and not scan_timeout > 0:
-        raise InputError(f"--scan-timeout must be > 0 seconds, got {scan_timeout!r}")
+    check_run_args(jobs, scan_timeout, held_out)
     variants = tuple(variants)
     bad = [v for v in variants if v not in VARIANTS]
     if bad or not variants or len(set(variants)) != len(variants):
@@ -738,11 +700,7 @@ def run_packed_bench(
     tasks = [(i, spec, _Job(v, d)) for i, spec in enumerate(specs) for d in draws
              for v in variants]
     outs: list[_Outcome | None] = [None] * len(tasks)
-    con = console
-    if con is None and progress:
-        from rich.console import Console
-
-        con = Console(stderr=True)
+    con = bench_console(console, progress)
 
     def on_done(t: int, res: dict[str, Any]) -> None:
         i, spec, job = tasks[t]
@@ -760,36 +718,22 @@ def run_packed_bench(
         if res.get("wall_ms") is not None:
             o.wall_ms = res["wall_ms"]
         outs[t] = o
-        if bar is not None:
-            bar.advance(task_id)
-            if not con.is_terminal:  # a log file sees no bar: one line per run instead
-                m = o.match
-                con.print(f"[{sum(x is not None for x in outs)}/{len(tasks)}] scene {i} "
-                          f"({o.sensor}, {o.variant}, {spec.width}x{spec.height}): {o.status}"
-                          + (f", {o.wall_ms / 1e3:.1f} s" if o.wall_ms is not None else "")
-                          + (f", TP {m.tp} FP {m.fp} FN {m.fn}" if m is not None else "")
-                          + (f", ambiguous {o.score.amb_area.size}" if o.score else ""),
-                          markup=False, highlight=False)
 
-    def on_start(t: int) -> None:
-        if bar is not None:
-            i, spec, job = tasks[t]
-            bar.update(task_id, description=f"scene {i} ({spec.sensor}, {job.variant}, "
-                                            f"{spec.width}x{spec.height})")
+    def summary(t: int) -> str:
+        o = outs[t]
+        assert o is not None
+        return (run_line(o, "variant", tasks[t][1])
+                + (f", ambiguous {o.score.amb_area.size}" if o.score else ""))
 
-    t0 = time.monotonic()
-    bar, task_id = (None, None)
-    warm = (_warmup_spec(specs), cfg) if warmup else None
-    if progress and con is not None:
-        # the workers are forked before the bar's thread starts
-        bar, task_id = progress_bar(con, "packed", len(tasks))
-    try:
-        info = _run_tasks(tasks, localizer or _default_localizer, jobs, scan_timeout, warm,
-                          on_done, on_start, workers=_PackedWorkers)
-    finally:
-        if bar is not None:
-            bar.stop()
-    run_s = time.monotonic() - t0
+    def describe(t: int) -> str:
+        i, spec, job = tasks[t]
+        return f"scene {i} ({spec.sensor}, {job.variant}, {spec.width}x{spec.height})"
+
+    warm = (warmup_spec(specs), cfg) if warmup else None
+    info, run_s = run_with_progress(tasks, _packed_task, localizer or _default_localizer, jobs,
+                                    scan_timeout, warm, on_done,
+                                    console=con if progress else None, label="packed",
+                                    describe=describe, summary=summary)
     done = [o for o in outs if o is not None]
     assert len(done) == len(tasks)
     report = _report(done, specs, cfg, site, n=len(specs), seed=seed, jobs=jobs,
@@ -823,16 +767,8 @@ def _report(outs: list[_Outcome], specs: Sequence[Any], cfg: Config, site: dict[
     groups = _groups(outs, present_s, variants, held_out)
     rows: list[dict[str, Any]] = []
     by_scan: dict[tuple[int, int], dict[str, Any]] = {}
-    timeouts, errors = [], []
     for o in outs:
         m = o.meta
-        base = {"scene": o.index, "trial_seed": o.trial_seed, "sensor": o.sensor,
-                "variant": o.variant}
-        if o.status == "timeout":
-            timeouts.append({**base, "spec_text": m.get("spec_text"), "phase": o.phase,
-                             "limit_s": scan_timeout})
-        elif o.status == "error":
-            errors.append({**base, "phase": o.phase, "error": o.error})
         key = (o.index, o.trial_seed)
         if key not in by_scan:
             by_scan[key] = {
@@ -846,26 +782,15 @@ def _report(outs: list[_Outcome], specs: Sequence[Any], cfg: Config, site: dict[
         by_scan[key]["runs"][o.variant] = {
             "status": o.status, "error": o.error,
             **(o.score.to_dict() if o.score is not None else {})}
-    if info.get("warmup_timeouts"):
-        timeouts.append({"scene": None, "trial_seed": None, "sensor": None, "variant": None,
-                         "spec_text": None, "phase": "warmup", "limit_s": scan_timeout,
-                         "count": info["warmup_timeouts"]})
-    lo = [float(o.meta["edge_min"]) for o in outs if o.meta.get("edge_min") is not None]
-    hi = [float(o.meta["edge_max"]) for o in outs if o.meta.get("edge_max") is not None]
-    site = {**site, "observed": {"min_edge": min(lo) if lo else None,
-                                 "max_edge": max(hi) if hi else None}}
+    timeouts, errors = failures(outs, "variant", scan_timeout, info)
     timing: dict[str, Any] = {}
     for v in variants:
         mine = [o for o in outs if o.variant == v]
         tm = _timing([o.run if o.run is not None else _Run(wall_ms=o.wall_ms) for o in mine])
         timing[v] = {"stages_ms": tm["stages_ms"], "total_ms": tm["total_ms"]}
-    peaks = np.asarray([o.run.peak_mb for o in outs if o.run and o.run.peak_mb], np.float64)
     report: dict[str, Any] = {
-        "schema": SCHEMA, "version": __version__, "mode": "packed", "n": n, "seed": seed,
-        "jobs": jobs, "scan_timeout_s": scan_timeout, "warmup": warmup,
-        "threads": info.get("threads"),
-        "default_configuration": True, "config": cfg.to_dict(), "config_hash": cfg.hash,
-        "site": site,
+        **report_head(SCHEMA, "packed", cfg, observed_site(site, outs), n=n, seed=seed,
+                      jobs=jobs, scan_timeout=scan_timeout, warmup=warmup, info=info),
         "sizes": {"source": "the scene's ground truth: its distinct carton sizes (width <= "
                             "length, height), as a CSV file read with read_box_sizes",
                   "rounding_m": SIZE_ROUNDING, "size_tolerance_m": cfg.size_tolerance,
@@ -885,9 +810,7 @@ def _report(outs: list[_Outcome], specs: Sequence[Any], cfg: Config, site: dict[
                    "per_scan_ms": {v: [None if o.wall_ms is None else round(o.wall_ms, 3)
                                        for o in outs if o.variant == v] for v in variants},
                    "run_s": round(run_s, 3)},
-        "memory": {"worker_peak_rss_mb_median": _pct(peaks, 50),
-                   "worker_peak_rss_mb_max": float(peaks.max()) if peaks.size else None,
-                   "process_max_rss_mb": process_max_rss_mb()},
+        "memory": memory_figures(outs),
         "scenes": rows,
     }
     return _jsonable(report)
@@ -932,29 +855,11 @@ def print_packed_report(report: dict[str, Any], console: Any) -> None:
 
     ho = report["held_out"]["sensor"]
     cfg = report["config"]
-    t = Table(title=escape(
+    print_targets(report, console, (
         f"boxloc bench --packed: {report['n']} zero-gap sharp-edged layered pallets x "
         f"{len(report['seeds']['trial_seeds'])} draw(s), seed {report['seed']}, default "
         f"configuration (min_edge {cfg['min_edge']:g} m, max_edge {cfg['max_edge']:g} m), "
         f"with_sizes: + the scene's carton list; held out: {ho}"))
-    t.add_column("target")
-    t.add_column("bound", justify="right")
-    for scope in SCOPES:
-        label = f"without {ho}" if scope == "development" else f"with {ho}"
-        t.add_column(escape(f"{label}: value (where)"), justify="right")
-        t.add_column("", justify="center")
-    mark = {True: "[green]PASS[/]", False: "[red]FAIL[/]", None: "[dim]n/a[/]"}
-    for row in report["targets"]:
-        cells = [escape(row["name"]), escape(row["target"])]
-        for scope in SCOPES:
-            s = row[scope]
-            v = s["value"]
-            txt = "-" if v is None else (f"{v:.4g}" if isinstance(v, float) else str(v))
-            if s["where"] is not None and row["over"] != "overall":
-                txt += f" ({s['where']})"
-            cells += [escape(txt), mark[s["pass"]]]
-        t.add_row(*cells)
-    console.print(t)
 
     for v, g in report["groups"].items():
         vt = Table(title=escape(f"{v}: per sensor ({ho}: held out) and per lid"))
@@ -981,16 +886,7 @@ def print_packed_report(report: dict[str, Any], console: Any) -> None:
         console.print(escape(f"time per scan [ms], {v}: median {_fmt(tot['median'], 'ms')}, "
                              f"p95 {_fmt(tot['p95'], 'ms')}"))
     console.print(escape(f"the run took {tm['run_s']:.0f} s on {report['jobs']} job(s)"))
-    for to in report["timeouts"]:
-        if to["phase"] == "warmup":
-            console.print(escape(f"[timeout] {to['count']} worker warm-up(s) over the limit"))
-        else:
-            console.print(escape(f"[timeout] scene {to['scene']} ({to['sensor']}, "
-                                 f"{to['variant']}) over {to['limit_s']:g} s in "
-                                 f"{to['phase']}: {to['spec_text']}"))
-    for e in report["errors"]["list"]:
-        console.print(escape(f"[error] scene {e['scene']} ({e['sensor']}, {e['variant']}) "
-                             f"{e['phase']}: {e['error']}"))
+    print_failures(report, console, "variant")
 
 
 def _print_draws(console: Any, draws: dict[str, Any], variants: Sequence[str]) -> None:
