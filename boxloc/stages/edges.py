@@ -35,9 +35,9 @@ import math
 import cv2
 import numba as nb
 import numpy as np
-from scipy import stats as st
 
 from boxloc.config import Config
+from boxloc.distributions import chi2_sf, norm_isf
 from boxloc.products import EdgeKind, EdgeMap
 from boxloc.scan import Scan
 from boxloc.stats import TestKind, TestTable, chi2_critical, nanmedian_last
@@ -624,7 +624,7 @@ def residual_thresholds(n_max: int, alpha: float) -> np.ndarray:
     """
     n = np.arange(n_max + 2, dtype=np.float64)
     n[0] = 1
-    return st.norm.isf(alpha / (2.0 * n)).astype(np.float64)
+    return np.asarray(norm_isf(alpha / (2.0 * n)), dtype=np.float64)
 
 
 def run_thresholds(n_max: int, alpha: float) -> np.ndarray:
@@ -632,7 +632,7 @@ def run_thresholds(n_max: int, alpha: float) -> np.ndarray:
     side with probability alpha: n * Phi(-t)^k = alpha (Bonferroni over the positions)."""
     n = np.arange(n_max + 2, dtype=np.float64)
     n[0] = 1
-    return st.norm.isf((alpha / n) ** (1.0 / GROOVE_MIN_RUN)).astype(np.float64)
+    return np.asarray(norm_isf((alpha / n) ** (1.0 / GROOVE_MIN_RUN)), dtype=np.float64)
 
 
 def correlation_lags(length_px: float) -> np.ndarray:
@@ -771,7 +771,7 @@ def detect_edges(scan: Scan, *, config: Config) -> EdgeMap:
     run_thr = run_thresholds(max(H, W), config.alpha)
     jump_crit = chi2_critical(1.0, config.alpha)
     # a crease is a fold significantly larger than min_crease_angle (one-sided z at alpha)
-    z_crease = float(st.norm.isf(config.alpha))
+    z_crease = float(norm_isf(config.alpha))
     parts = []
     for axis in (0, 1):
         parts.append(
@@ -822,7 +822,7 @@ def detect_edges(scan: Scan, *, config: Config) -> EdgeMap:
     # test codes of the scan-line kernel: 1 jump (and groove), 2 crease, 3 no return
     kind_col = np.select([is_jump_test, te == 3], [int(TestKind.JUMP), int(TestKind.NO_RETURN)],
                          int(TestKind.CREASE)).astype(np.uint8)
-    pval = np.where(is_jump_test, st.chi2.sf(sta, 1.0), np.nan)
+    pval = np.where(is_jump_test, chi2_sf(sta, 1.0), np.nan)
     tests = TestTable(
         kind=kind_col, a=np.arange(len(r), dtype=np.int32), b=(r * W + c).astype(np.int32),
         statistic=sta, dof=np.where(is_jump_test, 1.0, 0.0).astype(np.float32), critical=cr,

@@ -39,9 +39,9 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from scipy import stats as st
 
 from boxloc.config import Config
+from boxloc.distributions import norm_isf
 from boxloc.products import HeightSource, SurfaceSet
 from boxloc.scan import Scan
 from boxloc.stages.lines import MIN_LINE_POINTS
@@ -247,7 +247,7 @@ def box_heights(scan_ctx: VerifyContext, surfaces: SurfaceSet, config: Config,
     sigma = np.full(n, np.nan)
     source = np.full(n, HeightSource.NONE, np.int8)
     k = math.sqrt(chi2_critical(1.0, config.alpha))
-    z_a = float(st.norm.isf(config.alpha))
+    z_a = float(norm_isf(config.alpha))
     rows: list[tuple[int, int, float, float, bool]] = []
     for i in range(n):
         C = surfaces.corners[i]

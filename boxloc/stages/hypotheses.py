@@ -40,10 +40,10 @@ from typing import Any
 
 import numpy as np
 from scipy import special
-from scipy import stats as st
 from scipy.spatial import cKDTree
 
 from boxloc.config import Config
+from boxloc.distributions import poisson_isf
 from boxloc.products import (
     AmbiguityReason,
     DimensionSource,
@@ -474,7 +474,7 @@ def _peaks(acc: np.ndarray, h: float, lo: float, min_height: float, alpha: float
     s3 = np.convolve(acc, [1, 1, 1], mode="same").astype(np.float64)
     lam = 3.0 * float(acc.sum()) / acc.size
     # the smallest window sum that uniform votes exceed with probability alpha over all bins
-    k_sig = float(st.poisson.isf(alpha / acc.size, lam)) + 1.0 if lam > 0 else 1.0
+    k_sig = poisson_isf(alpha / acc.size, lam) + 1.0 if lam > 0 else 1.0
     left = np.r_[-1, s3[:-1]]
     right = np.r_[s3[1:], -1]
     pk = np.flatnonzero((s3 >= left) & (s3 > right) & (s3 >= max(min_height, k_sig)))

@@ -24,7 +24,6 @@ import math
 
 import numba as nb
 import numpy as np
-from scipy import stats as _st
 
 from boxloc.calibrate.noise import (
     CORRELATION_LAGS,
@@ -36,6 +35,7 @@ from boxloc.calibrate.noise import (
     tile_residuals,
 )
 from boxloc.config import Config
+from boxloc.distributions import chi2_isf, norm_isf, norm_sf
 from boxloc.errors import InputError
 from boxloc.products import NOISE_FIELDS, NoiseEstimate, NoiseSource
 from boxloc.scan import NoiseModel, Scan
@@ -138,7 +138,7 @@ def _auto(scan: Scan, tiles: TileResiduals, corr: np.ndarray, nominal: NoiseMode
     # seam tests' row term costs time and an estimate of 0.01 is the ANOVA's noise
     rc = report["row_corr"]
     se = rc["std_error"]
-    row_corr = fitted.row_corr if se and fitted.row_corr > _st.norm.isf(alpha) * se else 0.0
+    row_corr = fitted.row_corr if se and fitted.row_corr > norm_isf(alpha) * se else 0.0
     along_rows, along_cols = corr
     model = NoiseModel(sigma0=fitted.sigma0, k1=fitted.k1, k2=fitted.k2,
                        sigma_angle=nominal.sigma_angle, min_cos=nominal.min_cos,
@@ -223,7 +223,7 @@ def _lower_medians(x: np.ndarray, starts: np.ndarray, counts: np.ndarray) -> np.
 def scale_margin(alpha: float) -> float:
     """How far (in ln) the model's scale may be off before a 1-dof test at ``alpha`` fires
     at twice its rate: ln sqrt(chi2_{1,1-alpha} / chi2_{1,1-2 alpha}) (0.102 at 0.01)."""
-    return 0.5 * math.log(_st.chi2.isf(alpha, 1) / _st.chi2.isf(2.0 * alpha, 1))
+    return 0.5 * math.log(chi2_isf(alpha, 1) / chi2_isf(2.0 * alpha, 1))
 
 
 def _fit_tests(tiles: TileResiduals, model: NoiseModel, alpha: float
@@ -267,9 +267,9 @@ def _fit_tests(tiles: TileResiduals, model: NoiseModel, alpha: float
     bins = tuple(np.array(c, dtype=np.float64) for c in zip(*rows))
     nb = len(rows)
     z = float(bins[4].max())
-    p = min(1.0, nb * float(_st.norm.sf(z)))
+    p = min(1.0, nb * float(norm_sf(z)))
     return bins, TestTable.decision(TestKind.NOISE_FIT, -1, nb, z,
-                                    float(_st.norm.isf(alpha / nb)), z <= _st.norm.isf(alpha / nb),
+                                    float(norm_isf(alpha / nb)), z <= norm_isf(alpha / nb),
                                     alpha, p_value=p)
 
 

@@ -43,6 +43,7 @@ import numba as nb
 import numpy as np
 from scipy import special
 
+from boxloc.distributions import norm_isf
 from boxloc.stages.raster import rectangle_pixels
 
 #: Half-width of the groove window, in point spacings (the groove plus the uncertainty of
@@ -319,15 +320,6 @@ def _in_reach(coord: np.ndarray, centres: np.ndarray, h: float) -> np.ndarray:
         return np.zeros(len(coord), bool)
     r = SEAM_FLANK[1] * h  # the flanks reach farthest
     return (coord >= centres.min() - r) & (coord <= centres.max() + r)
-
-
-def norm_isf(q: float | np.ndarray) -> np.ndarray | np.float64:
-    """``scipy.stats.norm.isf(q)`` bit for bit, without its ~0.1 ms of argument handling.
-
-    scipy computes ``-ndtri(q) * 1.0 + 0.0`` (scale 1, loc 0); ``0.0 - ndtri(q)`` is the
-    same value, including +0.0 at q = 0.5. Thousands of calls per scan.
-    """
-    return 0.0 - special.ndtri(q)
 
 
 def _windows(coord: np.ndarray, w: np.ndarray, centres: np.ndarray, h: float

@@ -58,9 +58,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 from scipy import special
-from scipy import stats as st
 
 from boxloc.config import Config
+from boxloc.distributions import binom_isf, binom_sf
 from boxloc.products import EdgeKind, EdgeMap, VerifyReason
 from boxloc.scan import Scan
 from boxloc.stages.lines import MIN_LINE_POINTS
@@ -805,12 +805,12 @@ def _test_exposed(fit: _FaceFit, hyp: _Hypothesis) -> tuple[bool, TestTable]:
     alpha = hyp.alpha
     n_front, n_behind = int(fit.front.sum()), int(fit.behind.sum())
     m_out = n_front + n_behind
-    p_front = float(st.binom.sf(n_front - 1, m_out, 0.5)) if n_front else 1.0
+    p_front = float(binom_sf(n_front - 1, m_out, 0.5)) if n_front else 1.0
     # ... and more frequent than the noise model puts in front (alpha/2 of the points:
     # z > k), so that a handful of stray points, with none behind, is no occluder
     core = fit.core
     n_core = int(core.sum())
-    p_rate = float(st.binom.sf(n_front - 1, n_core, alpha / 2)) if n_front else 1.0
+    p_rate = float(binom_sf(n_front - 1, n_core, alpha / 2)) if n_front else 1.0
     # ... or, in one place (the corner of a box above, a few square centimetres), more
     # frequent than that: the busiest cell of the core (cells of four border margins),
     # Bonferroni over the cells
@@ -821,7 +821,7 @@ def _test_exposed(fit: _FaceFit, hyp: _Hypothesis) -> tuple[bool, TestTable]:
     f_cell = np.bincount(inv, weights=fit.front[core].astype(np.float64), minlength=len(ids))
     n_cells = max(len(ids), 1)
     if n_front:
-        p_cells = np.asarray(st.binom.sf(f_cell - 1, n_cell, alpha / 2))
+        p_cells = binom_sf(f_cell - 1, n_cell, alpha / 2)
         c_best = int(np.argmin(np.where(f_cell > 0, p_cells, np.inf)))
         p_local = float(min(p_cells[c_best] * n_cells, 1.0))
         f_local, n_local = int(f_cell[c_best]), int(n_cell[c_best])
@@ -831,9 +831,9 @@ def _test_exposed(fit: _FaceFit, hyp: _Hypothesis) -> tuple[bool, TestTable]:
     return exposed, TestTable.decision(
         TestKind.VERIFY_EXPOSED, hyp.attempt_id, [m_out, n_core, n_local],
         [n_front, n_front, f_local],
-        [float(st.binom.isf(alpha, m_out, 0.5)) if m_out else 0.0,
-         float(st.binom.isf(alpha, n_core, alpha / 2)),
-         float(st.binom.isf(alpha / n_cells, n_local, alpha / 2))],
+        [binom_isf(alpha, m_out, 0.5) if m_out else 0.0,
+         binom_isf(alpha, n_core, alpha / 2),
+         binom_isf(alpha / n_cells, n_local, alpha / 2)],
         [p_front >= alpha, p_rate >= alpha, p_local >= alpha], alpha,
         p_value=[p_front, p_rate, p_local])
 

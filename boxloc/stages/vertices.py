@@ -34,9 +34,9 @@ import dataclasses
 from collections.abc import Sequence
 
 import numpy as np
-from scipy import stats as st
 
 from boxloc.config import Config
+from boxloc.distributions import norm_isf
 from boxloc.products import EdgeKind, LineSet, VertexSet
 from boxloc.stats import TestKind, TestTable
 
@@ -211,7 +211,7 @@ def corner_vertices(vertices: VertexSet, lines: LineSet, config: Config,
     """
     Sn = normal_covariance(vertices)
     crease = lines.kinds == EdgeKind.CREASE_CONVEX
-    k = float(st.norm.isf(config.alpha))
+    k = float(norm_isf(config.alpha))
     cos_max = float(np.cos(config.max_tilt))
     new: list[tuple[np.ndarray, ...]] = []
     la, lb, par, seen = [], [], [], set()
