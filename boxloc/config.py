@@ -42,6 +42,8 @@ UNRECORDED_KEYS: dict[str, Any] = {
     "size_tolerance": 0.01,
     # logs before the density-free MDL counted raw points (issue #20 part 2)
     "mdl_face_points": 0.0,
+    # logs before the edge stage's budget (issue #22 part 2) ran every scan line
+    "max_edge_work": 0,
 }
 
 #: The noise terms ``noise_auto`` estimates from each scan; giving any of them pins the model.
@@ -150,6 +152,15 @@ class Config:
         Largest scan accepted, pixels; larger scans are refused before any work.
     direction_granularity : int
         Subdivision level of the icosahedral direction accumulator (4 gives 1281 cells).
+    max_edge_work : int
+        Budget of the edge stage: samples its split-and-merge may visit in all (each
+        split's chord distances, each merge's fit), half for the rows and the rest for the
+        columns. No scan line is started once it is spent: the lines after it get no
+        edges, and a BUDGET row records it. A scan needs 5-27 per pixel (seed-2 matrix
+        draw, 24 scans; the most 3.3e7, a 1280x960 active-stereo pile), pure noise under
+        a pinned model 43-45 per pixel (1.4e8 at 2048x1536, 8-9 s: 50-65 ns each, the
+        rest of the stage included). The default, 4.5x the most an ordinary scan needs,
+        holds the stage to about 10 s on the largest scan accepted. 0: no budget.
     max_line_work : int
         Budget of the line stage: neighbour points its Hough trials may examine in all
         (each trial examines the live edge points within its vote radius; about 4 us
@@ -214,6 +225,7 @@ class Config:
     workers: int = 1
     max_pixels: int = 16_777_216
     direction_granularity: int = 4
+    max_edge_work: int = 150_000_000
     max_line_work: int = 1_000_000
     max_vertices: int = 500
     max_hypothesis_work: int = 6_000_000
@@ -241,7 +253,7 @@ class Config:
             check(k, math.isfinite(getattr(self, k)) and getattr(self, k) >= 0, "finite and >= 0")
         check("workers", isinstance(self.workers, int) and self.workers >= 1, "an integer >= 1")
         check("max_pixels", isinstance(self.max_pixels, int) and self.max_pixels > 0, "> 0")
-        for k in ("max_line_work", "max_vertices", "max_hypothesis_work"):
+        for k in ("max_edge_work", "max_line_work", "max_vertices", "max_hypothesis_work"):
             v = getattr(self, k)
             check(k, isinstance(v, int) and not isinstance(v, bool) and v >= 0,
                   "an integer >= 0 (0: no budget)")

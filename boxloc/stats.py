@@ -157,6 +157,8 @@ BUDGET_LINES = 1
 BUDGET_HYPOTHESES = 2
 #: the hypothesis stage's pixels read (``Config.max_hypothesis_work``)
 BUDGET_HYPOTHESIS_WORK = 3
+#: the edge stage's samples visited by the split-and-merge (``Config.max_edge_work``)
+BUDGET_EDGES = 4
 
 
 @lru_cache(maxsize=256)

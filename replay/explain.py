@@ -56,6 +56,7 @@ from boxloc.scan import NoiseModel
 from boxloc.stages.hypotheses import SIZE_PART
 from boxloc.stages.vertices import THIRD_EDGE
 from boxloc.stats import (
+    BUDGET_EDGES,
     BUDGET_HYPOTHESES,
     BUDGET_HYPOTHESIS_WORK,
     BUDGET_LINES,
@@ -782,7 +783,8 @@ def _noise(noise: Any) -> dict[str, Any] | None:
 
 
 #: What each stage's BUDGET row counts.
-_BUDGET_WORK = {BUDGET_LINES: ("lines", "neighbour points examined by the Hough trials"),
+_BUDGET_WORK = {BUDGET_EDGES: ("edges", "samples visited by the scan lines' split-and-merge"),
+                BUDGET_LINES: ("lines", "neighbour points examined by the Hough trials"),
                 BUDGET_HYPOTHESES: ("hypotheses", "vertices needing a rectangle search"),
                 BUDGET_HYPOTHESIS_WORK: ("hypotheses", "pixels read by the rectangle searches")}
 
@@ -790,7 +792,7 @@ _BUDGET_WORK = {BUDGET_LINES: ("lines", "neighbour points examined by the Hough 
 def _budgets(products: dict[str, Any]) -> list[dict[str, Any]]:
     """The stages that stopped at their work budget on this scan."""
     out = []
-    for stage in ("lines", "hypotheses"):
+    for stage in ("edges", "lines", "hypotheses"):
         p = products.get(stage)
         if p is None:
             continue

@@ -65,7 +65,7 @@ def test_old_logs_ran_without_a_list_and_the_default_hash_is_unchanged() -> None
     del d["box_sizes"], d["size_tolerance"]
     assert Config.from_recorded(d) == Config()
     # the default list and tolerance hash as before they existed
-    assert Config(max_line_work=0, max_vertices=0, max_hypothesis_work=0,
+    assert Config(max_edge_work=0, max_line_work=0, max_vertices=0, max_hypothesis_work=0,
                   noise_auto=False, mdl_face_points=0.0).hash == "6931a5b73eb71291"
 
 

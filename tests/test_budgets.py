@@ -12,7 +12,8 @@ from boxloc.errors import InputError
 from boxloc.pipeline import find_graspable_surfaces
 from boxloc.products import products_equal
 from boxloc.simulate import simulate
-from boxloc.stats import BUDGET_HYPOTHESIS_WORK, TestKind
+from boxloc.stages.edges import detect_edges
+from boxloc.stats import BUDGET_EDGES, BUDGET_HYPOTHESIS_WORK, TestKind
 
 SCENE = "pallet:width=320,height=240,f=262.5,distance=1.5"
 
@@ -117,3 +118,52 @@ def test_flat_regions_wait_until_every_vertex_was_searched_for_a_top(
 def test_the_pixel_budget_must_be_a_count(bad) -> None:  # type: ignore[no-untyped-def]
     with pytest.raises(InputError, match="max_hypothesis_work"):
         Config(max_hypothesis_work=bad)
+
+
+# --- the edge stage (issue #22 part 2) -------------------------------------------------------
+
+
+def _edge_budget(edges) -> list[dict[str, object]]:  # type: ignore[no-untyped-def]
+    return [r for r in edges.tests.of_kind(TestKind.BUDGET).rows() if r["a"] == BUDGET_EDGES]
+
+
+def test_a_scan_under_the_edge_budget_is_unchanged(pallet) -> None:  # type: ignore[no-untyped-def]
+    r0 = find_graspable_surfaces(pallet.scan, Config(max_edge_work=0))
+    r1 = find_graspable_surfaces(pallet.scan, Config())
+    assert products_equal(r0, r1, ignore=("timing_ms", "config_hash")) == []
+    assert _edge_budget(r1.edges) == []
+
+
+def test_the_edge_budget_stops_scan_lines_and_is_recorded_and_explained(
+        tmp_path, pallet) -> None:  # type: ignore[no-untyped-def]
+    from recorder.mcap.log import open_log
+    from recorder.mcap.sink import McapRecorder
+    from replay.explain import explain, format_explanation
+
+    full = detect_edges(pallet.scan, config=Config())
+    cfg = Config(max_edge_work=200_000)
+    with McapRecorder(tmp_path / "e.mcap", config=cfg, fsync=False) as rec:
+        r = find_graspable_surfaces(pallet.scan, cfg, observer=rec)
+    (row,) = _edge_budget(r.edges)
+    assert not row["accepted"] and row["critical"] == 200_000
+    assert 200_000 <= float(row["statistic"]) < 220_000  # type: ignore[arg-type]
+    # what it has: the first rows and the first columns, each a subset of the full map's
+    assert 0 < len(r.edges) < len(full)
+    rows, cols = r.edges.pixels[:, 0], r.edges.pixels[:, 1]
+    H, W = pallet.scan.shape
+    assert ((rows < H // 2) | (cols < W // 2)).all()
+    on = full.labels[rows, cols] != 0
+    assert on.mean() > 0.9
+    # the recorded row reads back, and explain names the stage
+    back = next(iter(open_log(tmp_path / "e.mcap").scans())).products["edges"]
+    assert products_equal(back, r.edges) == []
+    assert [x["statistic"] for x in _edge_budget(back)] == [row["statistic"]]
+    d = explain(tmp_path / "e.mcap", 0)
+    assert "edges" in {b["stage"] for b in d["budgets"]}
+    assert ("budget exhausted: the edges stage stopped at 200000 samples visited"
+            in format_explanation(d).replace(",", ""))
+
+
+def test_the_edge_budget_must_be_a_count() -> None:
+    with pytest.raises(InputError, match="max_edge_work"):
+        Config(max_edge_work=-5)

@@ -90,14 +90,15 @@ def test_an_old_log_keeps_saying_what_it_ran_after_the_defaults_change(
         m.setattr(Config, "to_dict", _writer_before_full_provenance)
         # as the code of the time ran: the noise model pinned, no budgets, raw MDL points
         old = make_log(tmp_path / "old.mcap", [1, 2],
-                       config=Config(noise_auto=False, max_line_work=0, max_vertices=0,
-                                     max_hypothesis_work=0, mdl_face_points=0.0))
+                       config=Config(noise_auto=False, max_edge_work=0, max_line_work=0,
+                                     max_vertices=0, max_hypothesis_work=0,
+                                     mdl_face_points=0.0))
     # every key an old log lacks has the value its run used in the frozen table (a key
     # added to the config without its entry there fails here)
     assert _unwritten(_recorded(old)) <= set(UNRECORDED_KEYS)
     assert "end_tolerance" not in _recorded(old)  # an old log indeed
     # what the old code ran: no budgets yet
-    assert open_log(old).config == Config(max_line_work=0, max_vertices=0,
+    assert open_log(old).config == Config(max_edge_work=0, max_line_work=0, max_vertices=0,
                                           max_hypothesis_work=0, noise_auto=False,
                                           mdl_face_points=0.0)
     _set_defaults(monkeypatch, Config, end_tolerance=0.5, trial_seed=3, alpha=0.05,
@@ -145,7 +146,7 @@ def test_a_recorded_config_missing_another_key_is_refused() -> None:
 def test_the_hash_names_the_same_config_as_before_full_provenance() -> None:
     # the hash the recorder wrote for the default config before every value was recorded
     # (the budgets and the MDL's face units came later: a run without them is that config)
-    assert Config(max_line_work=0, max_vertices=0, max_hypothesis_work=0,
+    assert Config(max_edge_work=0, max_line_work=0, max_vertices=0, max_hypothesis_work=0,
                   noise_auto=False, mdl_face_points=0.0).hash == "6931a5b73eb71291"
     assert Config(trial_seed=2).hash != Config().hash
     assert Config(end_tolerance=0.5).hash != Config().hash

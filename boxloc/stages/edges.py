@@ -40,7 +40,7 @@ from boxloc.config import Config
 from boxloc.distributions import chi2_sf, norm_isf
 from boxloc.products import EdgeKind, EdgeMap
 from boxloc.scan import Scan
-from boxloc.stats import TestKind, TestTable, chi2_critical, nanmedian_last
+from boxloc.stats import BUDGET_EDGES, TestKind, TestTable, chi2_critical, nanmedian_last
 
 #: A groove is a run of this many to GROOVE_MAX_RUN samples behind the line, with
 #: GROOVE_CONTEXT samples on the line on each side (a seam, not a trend such as bulge).
@@ -122,9 +122,12 @@ def _within(P: np.ndarray, inv2: np.ndarray, s: int, e: int, c: np.ndarray, d: n
 
 
 @nb.njit(cache=True)
-def _split_merge(P: np.ndarray, S: np.ndarray, thr: np.ndarray
+def _split_merge(P: np.ndarray, S: np.ndarray, thr: np.ndarray, work: np.ndarray
                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Split-and-merge of one scan line into segments.
+
+    ``work[0]`` is increased by the samples visited (every split's chord distances, every
+    merge's fit and residuals): the unit of ``Config.max_edge_work``.
 
     Returns (m, 2) inclusive bounds, (m, 6) the centroid and direction of each segment's
     line (:func:`_fit`) and (m,) whether that is set (a segment that a merge made; the
@@ -168,6 +171,7 @@ def _split_merge(P: np.ndarray, S: np.ndarray, thr: np.ndarray
         best = 0.0
         arg = -1
         if L > 0:
+            work[0] += e - s - 1
             ux /= L
             uy /= L
             uz /= L
@@ -213,6 +217,7 @@ def _split_merge(P: np.ndarray, S: np.ndarray, thr: np.ndarray
         if nb_ > 0:
             ps = bounds[nb_ - 1, 0]
             if e - ps + 1 >= 3:
+                work[0] += 2 * (e - ps + 1)
                 c, d = _fit(P, ps, e)
                 if _within(P, inv2, ps, e, c, d, thr[e - ps + 1] * thr[e - ps + 1]):
                     bounds[nb_ - 1, 1] = e
@@ -279,6 +284,7 @@ def _scan_line_edges(
     out_crit: np.ndarray,
     out_test: np.ndarray,
     n_out: int,
+    work: np.ndarray,
 ) -> int:
     """Edge points of one scan line (valid samples only, in order).
 
@@ -290,7 +296,7 @@ def _scan_line_edges(
     n = P.shape[0]
     if n < 2 * min_pts:
         return n_out
-    B, fits, fitted = _split_merge(P, S, thr)
+    B, fits, fitted = _split_merge(P, S, thr, work)
     m = B.shape[0]
     # keep segments with enough points
     keep = np.empty(m, np.int64)
@@ -535,9 +541,15 @@ def _all_lines(
     min_pts: int,
     axis: int,
     rho: np.ndarray,
+    budget: int,
+    work: np.ndarray,
 ):
     """Run the scan-line detector over every row (axis=0) or column (axis=1); ``rho`` is
-    the noise's correlation along them at 0..K pixels."""
+    the noise's correlation along them at 0..K pixels.
+
+    With ``budget`` > 0 no line is started once ``work[0]`` (samples the split-and-merge
+    visited, :func:`_split_merge`) has reached it. The last return value is the number of
+    lines run (all of them unless the budget stopped the axis)."""
     H, W = S.shape
     nlines = H if axis == 0 else W
     L = W if axis == 0 else H
@@ -556,7 +568,11 @@ def _all_lines(
     buf = np.empty((L, 3))
     sbuf = np.empty(L)
     pbuf = np.empty(L, np.int64)
+    done = nlines
     for li in range(nlines):
+        if budget > 0 and work[0] >= budget:
+            done = li
+            break
         nv = 0
         for k in range(L):
             if axis == 0:
@@ -573,13 +589,14 @@ def _all_lines(
         if nv < 2 * min_pts:
             continue
         if n_out + L > cap:
+            done = li
             break
         n0 = n_out
         n_out = _scan_line_edges(
             buf[:nv], sbuf[:nv], pbuf[:nv], thr, run_thr, jump_crit, min_crease, z_crease,
             min_pts, rho,
             out_pix, out_pt, out_along, out_sig, out_kind, out_strength, out_stat,
-            out_crit, out_test, n_out,
+            out_crit, out_test, n_out, work,
         )
         # a surface that runs into no return out to the image border ends there
         for end in range(2):
@@ -610,7 +627,7 @@ def _all_lines(
     return (
         out_pix[:n_out], out_line[:n_out], out_pt[:n_out], out_along[:n_out],
         out_sig[:n_out], out_kind[:n_out], out_strength[:n_out], out_stat[:n_out],
-        out_crit[:n_out], out_test[:n_out],
+        out_crit[:n_out], out_test[:n_out], done,
     )
 
 
@@ -773,13 +790,19 @@ def detect_edges(scan: Scan, *, config: Config) -> EdgeMap:
     # a crease is a fold significantly larger than min_crease_angle (one-sided z at alpha)
     z_crease = float(norm_isf(config.alpha))
     parts = []
+    # the budget: half for the rows; the columns get the rest (what the rows left too)
+    budget = config.max_edge_work
+    work = np.zeros(1, np.int64)
+    stopped = False
     for axis in (0, 1):
-        parts.append(
-            _all_lines(P, S, thr, run_thr, jump_crit, config.min_crease_angle, z_crease,
-                       MIN_SEGMENT_POINTS, axis,
-                       correlation_lags(config.noise.corr_px_rows if axis == 0
-                                        else config.noise.corr_px_cols))
-        )
+        share = 0 if not budget else (budget + 1) // 2 if axis == 0 else budget
+        *part, done = _all_lines(
+            P, S, thr, run_thr, jump_crit, config.min_crease_angle, z_crease,
+            MIN_SEGMENT_POINTS, axis,
+            correlation_lags(config.noise.corr_px_rows if axis == 0
+                             else config.noise.corr_px_cols), share, work)
+        stopped |= done < (H if axis == 0 else W)
+        parts.append(part)
     rows, cols = [], []
     pts, along, sig, kinds, strength, stat, crit, test, sdir = [], [], [], [], [], [], [], [], []
     for axis, (pix, line, pt, al, sg, kd, stg, sta, cr, te) in enumerate(parts):
@@ -828,6 +851,9 @@ def detect_edges(scan: Scan, *, config: Config) -> EdgeMap:
         statistic=sta, dof=np.where(is_jump_test, 1.0, 0.0).astype(np.float32), critical=cr,
         p_value=pval, accepted=np.ones(len(r), bool), alpha=config.alpha,
     )
+    # the work of every scan line run; recorded (a BUDGET row) only where it stopped them
+    tests = TestTable.concat([tests, TestTable.budget(BUDGET_EDGES, int(work[0]), budget,
+                                                      stopped, config.alpha)], config.alpha)
 
     # keep each detection only from a scan line that crosses its edge at a fair angle
     keep = _crossing_ok(r, c, sd, (H, W))
