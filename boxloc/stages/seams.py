@@ -23,10 +23,8 @@ interior test then errs toward rejecting, never toward merging two faces.
 
 The variance comes from the points' own scatter (a robust scale of their residuals, at
 least the noise model's), so a sensor noisier than its model does not make seams out of
-noise. Where the noise is correlated (structured-light or active-stereo depth), the
-statistic spreads beyond N(0, 1) over the positions a search tries; that spread,
-measured away from the seams found (:func:`_spread`), is divided out
-(:func:`find_seams`). A sensor whose rows share part of their noise
+noise; where the noise is correlated (structured-light depth), the statistic's own spread
+over the positions is divided out as well. A sensor whose rows share part of their noise
 (``NoiseModel.row_corr``; the Kinect: about a quarter of the variance) puts a whole row a
 little behind or in front of the plane: along a row that is one groove window's worth of
 evidence, not hundreds of independent points. With the points' image rows given, the
@@ -610,41 +608,6 @@ class Seams(NamedTuple):
     z_max: float
 
 
-def _spread(zr: np.ndarray, centres: np.ndarray, crit: float, h: float) -> float:
-    """The seam statistic's spread over the positions of a face with no seam, at least 1.
-
-    Correlated noise (structured-light or active-stereo depth) spreads the statistic
-    beyond N(0, 1): its robust scale (1.4826 MAD) over the positions is divided out.
-    The positions whose windows reach a seam are not null (the groove lifts the statistic
-    at the seam and lowers it a flank's distance to each side, widening the MAD by a tenth
-    or more in a region of a few seams): those within a window's reach of a seam
-    significant at the spread so far are left out and the spread measured again, until
-    none is added (at most three times). With no seam, as on a bare top, this is the plain
-    robust spread. Fewer than 8 finite positions: 1.
-    """
-    fin = np.isfinite(zr)
-    if fin.sum() < 8:
-        return 1.0
-
-    def mad(sel: np.ndarray) -> float:
-        x = zr[sel]
-        return max(1.0, float(1.4826 * np.median(np.abs(x - np.median(x)))))
-
-    s = mad(fin)
-    reach = (SEAM_FLANK[1] + SEAM_INNER) * h
-    left_out = np.zeros_like(fin)
-    for _ in range(3):
-        strong = centres[fin & (zr > crit * s)]
-        if not len(strong):
-            break
-        near = (np.abs(centres[:, None] - strong[None, :]) <= reach).any(axis=1)
-        if (near == left_out).all() or (fin & ~near).sum() < 8:
-            break
-        left_out = near
-        s = mad(fin & ~near)
-    return s
-
-
 def find_seams(coord: np.ndarray, w: np.ndarray, scale: float, lo: float, hi: float,
                h: float, alpha: float, row: np.ndarray | None = None,
                row_corr: float = 0.0) -> Seams:
@@ -667,7 +630,10 @@ def find_seams(coord: np.ndarray, w: np.ndarray, scale: float, lo: float, hi: fl
     zr, both = _seam_stats(coord, w, scale, centres, h, row, row_corr)
     # correlated noise (e.g. structured-light depth) spreads the statistic beyond N(0, 1):
     # measure its spread over the positions (robustly: seams are few) and divide it out
-    z = np.where(both, zr / _spread(zr, centres, crit, h), -np.inf)
+    fin = zr[np.isfinite(zr)]
+    if len(fin) >= 8:
+        zr = zr / max(1.0, float(1.4826 * np.median(np.abs(fin - np.median(fin)))))
+    z = np.where(both, zr, -np.inf)
     left = np.r_[-np.inf, z[:-1]]
     right = np.r_[z[1:], -np.inf]
     pk = np.flatnonzero((z > crit) & (z >= left) & (z > right))
