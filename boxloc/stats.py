@@ -141,7 +141,8 @@ class TestKind(IntEnum):
     #: hypothesis stage: side b (0-3: v=0, v=length, u=0, u=width) of attempt a has evidence
     #: of the box's end: statistic = the evidence (0 none, 1 a line of jump or convex-crease
     #: edges, 2 a groove or seam, 3 a listed size's implied seam, 4 the outline of the
-    #: verified flat region a part of a split lies on); critical 1; accepted if any
+    #: verified flat region a part of a split lies on, 5 the face's plane dropping away
+    #: beyond it); critical 1; accepted if any
     END_EVIDENCE = 32
     #: result stage: the height of chosen attempt a's box (b = :class:`boxloc.products.
     #: HeightSource`): statistic = the height, metres; critical = its standard deviation,
@@ -150,6 +151,12 @@ class TestKind(IntEnum):
     #: against the listed height of the carton it would be split into (critical = that
     #: height less z at alpha of both uncertainties); rejected leaves it unsplit
     BOX_HEIGHT = 33
+    #: verification: side b (0-3) of hypothesis a, without a line of boundary edges or a
+    #: seam, ends where the face's refitted plane ends just beyond it: statistic = the
+    #: fraction of the valid pixels of the strip beyond the side on the plane, critical =
+    #: PLANE_END_FRACTION; accepted counts the side as a boundary (a fold or step the scan
+    #: lines did not resolve)
+    VERIFY_PLANE_END = 34
 
 
 #: ``TestKind.BUDGET`` rows' ``a``: the stage whose budget it is.

@@ -96,7 +96,9 @@ MAX_ITEMS = 12
 _END_SIDES = ("side v = 0", "side v = length", "side u = 0", "side u = width")
 #: END_EVIDENCE statistic levels
 _EVIDENCE = {0: "no evidence", 1: "a line of jump or convex-crease edges",
-             2: "a groove or seam", 3: "a listed size's implied seam"}
+             2: "a groove or seam", 3: "a listed size's implied seam",
+             4: "the verified outline of the region it lies in",
+             5: "the face's plane dropping away beyond it"}
 #: what each ambiguity reason means, for people
 _AMBIGUITY_TEXT = {
     AmbiguityReason.NO_END_EVIDENCE: "a side has no evidence of a box's end (no jump, "

@@ -303,3 +303,59 @@ def test_the_poisson_tail_is_scipys_bit_for_bit() -> None:
     for k, lam in zip(ks, lams):
         assert _poisson_sf(float(k), float(lam)) == float(stats.poisson.sf(k, lam))
     assert _poisson_sf(-1.0, 0.0) == 1.0 and _poisson_sf(0.0, 0.0) == 0.0
+
+
+# --- a side shown by the plane's end, not by edges (VERIFY_PLANE_END) -------------------------
+
+
+def _without_edges_near(ctx, frame, side_v: float, band: float):  # type: ignore[no-untyped-def]
+    """ctx with the edge points within ``band`` of the line v = side_v removed (as if the
+    scan lines missed that side: a noisy sensor's fold)."""
+    o, x, y, *_ = frame
+    v = (ctx.edge_points - o) @ y
+    keep = np.abs(v - side_v) > band
+    return dataclasses.replace(ctx, edge_points=ctx.edge_points[keep],
+                               edge_kinds=ctx.edge_kinds[keep],
+                               edge_strength=None if ctx.edge_strength is None
+                               else ctx.edge_strength[keep])
+
+
+def test_a_side_without_edges_ends_where_the_plane_drops_away(single_box):
+    sim, cfg, ctx, frame = single_box
+    o, x, y, n, w, l_ = frame
+    # the far side along y loses its edge points: only the plane's end can show it
+    bare = _without_edges_near(ctx, frame, l_, 0.03)
+    out = _verify(sim, cfg, bare, frame)
+    b = out.tests.of_kind(TestKind.VERIFY_BOUNDARY)
+    assert not b.accepted[1]  # no line of edges along side 1 any more
+    pe = out.tests.of_kind(TestKind.VERIFY_PLANE_END)
+    assert 1 in pe.b and pe.accepted[list(pe.b).index(1)]
+    assert pe.statistic[list(pe.b).index(1)] <= 0.2
+    assert out.reason == VerifyReason.ACCEPTED
+
+
+def test_a_side_cut_inside_the_top_shows_no_plane_end(single_box):
+    # the same rectangle cut short at 60 % of its length, with no edges at the cut: the
+    # top's plane runs on beyond it, so nothing shows the side and the boundary fails
+    sim, cfg, ctx, frame = single_box
+    o, x, y, n, w, l_ = frame
+    out = _verify(sim, cfg, ctx, frame, length=0.6 * l_)
+    pe = out.tests.of_kind(TestKind.VERIFY_PLANE_END)
+    assert 1 in pe.b and not pe.accepted[list(pe.b).index(1)]
+    assert out.reason != VerifyReason.ACCEPTED
+
+
+def test_a_wall_rising_beyond_a_side_is_no_end_of_a_top(single_box):
+    # the same bare side, but what lies just beyond it now rises toward the sensor (a
+    # wall: this would be a lower face's side, which a top's never is)
+    sim, cfg, ctx, frame = single_box
+    o, x, y, n, w, l_ = frame
+    bare = _without_edges_near(ctx, frame, l_, 0.03)
+    D = bare.points - o
+    du, dv = D @ x, D @ y
+    beyond = bare.valid & (du > 0) & (du < w) & (dv > l_) & (dv < l_ + 0.05)
+    # the pallet and the wall there lie a box height (0.25 m) below: lift them above the top
+    out = _verify(sim, cfg, _pull(bare, beyond, 0.30), frame)
+    pe = out.tests.of_kind(TestKind.VERIFY_PLANE_END)
+    assert 1 in pe.b and not pe.accepted[list(pe.b).index(1)]
+    assert out.reason == VerifyReason.BOUNDARY

@@ -34,17 +34,21 @@ from boxloc.stats import TestKind, TestTable
 #: its sides end, that nothing splits it, and what the carton list said.
 REGION_TEST_KINDS = (TestKind.VERIFY_INTERIOR, TestKind.VERIFY_BOUNDARY,
                      TestKind.VERIFY_SEAM_SIDE, TestKind.VERIFY_SEAM_INTERIOR,
-                     TestKind.VERIFY_CONTINUATION, TestKind.SKU_SIZE, TestKind.SKU_SPLIT_SEAM,
-                     TestKind.BOX_HEIGHT)
+                     TestKind.VERIFY_CONTINUATION, TestKind.VERIFY_PLANE_END, TestKind.SKU_SIZE,
+                     TestKind.SKU_SPLIT_SEAM, TestKind.BOX_HEIGHT)
 
 #: END_EVIDENCE's statistic: the evidence of a side's end.
 EVIDENCE_NONE, EVIDENCE_EDGES, EVIDENCE_SEAM, EVIDENCE_SIZE, EVIDENCE_REGION = 0, 1, 2, 3, 4
+#: the face's plane drops away just beyond the side (VERIFY_PLANE_END): a jump or crease
+#: the scan lines did not resolve
+EVIDENCE_PLANE_END = 5
 
 
 def end_evidence(tests: TestTable, attempt: int, part: bool = False) -> TestTable:
     """END_EVIDENCE rows of one attempt's four sides, from its verification rows: a line
     of jump or convex-crease edges (VERIFY_BOUNDARY rows 0-3), else a groove or seam
-    (VERIFY_SEAM_SIDE), else, for a ``part`` of a split region, a listed size's implied
+    (VERIFY_SEAM_SIDE), else the plane dropping away beyond it (VERIFY_PLANE_END), else,
+    for a ``part`` of a split region, a listed size's implied
     seam (its SKU_SPLIT_SEAM rows, b = side), else the region's verified outline it lies
     on; statistic the evidence, critical 1, accepted if any."""
     ev = np.zeros(4)
@@ -56,6 +60,10 @@ def end_evidence(tests: TestTable, attempt: int, part: bool = False) -> TestTabl
     for si, ok in zip(s.b, s.accepted):
         if ok and 0 <= si < 4 and ev[si] == EVIDENCE_NONE:
             ev[si] = EVIDENCE_SEAM
+    pe = tests.of_kind(TestKind.VERIFY_PLANE_END)
+    for si, ok in zip(pe.b, pe.accepted):
+        if ok and 0 <= si < 4 and ev[si] == EVIDENCE_NONE:
+            ev[si] = EVIDENCE_PLANE_END
     z = tests.of_kind(TestKind.SKU_SPLIT_SEAM) if part else tests.select(np.zeros(len(tests),
                                                                                   bool))
     for si in z.b:

@@ -77,6 +77,12 @@ EXTENT_GAP_PX = 4
 #: the side's own second edges (bevel, rounded cardboard) and the error of the estimated
 #: dimensions put boundary edges up to a centimetre or two inside.
 BOUNDARY_BAND = 0.5
+#: A side without a line of edges still shows the face's end where at most this fraction
+#: of the valid pixels just beyond it lie on the face's refitted plane (and at least half
+#: of them are off it by the noise model at alpha would be expected of a continuing face:
+#: 1 - alpha of them on it): the plane folds or steps away there, a crease or a jump the
+#: scan lines did not resolve (``VERIFY_PLANE_END``).
+PLANE_END_FRACTION = 0.2
 
 
 @dataclass
@@ -324,10 +330,24 @@ def continuation(
         At least half of the strip's area lies inside the image: only then can it show
         that the face ends (a face that runs out of the image may continue beyond it).
     """
+    frac, _, n_valid, in_image = _beyond_sides(ctx, origin, x_axis, y_axis, width, length,
+                                               plane_point, plane_normal, margin, depth, k)
+    return frac, n_valid, in_image
+
+
+def _beyond_sides(
+    ctx: VerifyContext, origin: np.ndarray, x_axis: np.ndarray, y_axis: np.ndarray,
+    width: float, length: float, plane_point: np.ndarray, plane_normal: np.ndarray,
+    margin: float, depth: float, k: float,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`continuation`'s strips: per side 0-3 the fraction of their valid pixels on
+    the plane and the fraction in front of it (toward the sensor, beyond ``k``), both NaN
+    where too few; the valid pixels; whether the strip is mostly in the image."""
     m, d = margin, depth
     strips = (((m, width - m), (-m - d, -m)), ((m, width - m), (length + m, length + m + d)),
               ((-m - d, -m), (m, length - m)), ((width + m, width + m + d), (m, length - m)))
     frac = np.full(4, np.nan)
+    front = np.full(4, np.nan)
     n_valid = np.zeros(4, np.int64)
     in_image = np.zeros(4, bool)
     for si, (u_range, v_range) in enumerate(strips):
@@ -345,7 +365,8 @@ def continuation(
         var = ctx.var_along(rr, cc, plane_normal)
         z = ((P - plane_point) @ plane_normal) / np.sqrt(var)
         frac[si] = float((np.abs(z) <= k).mean())
-    return frac, n_valid, in_image
+        front[si] = float((z > k).mean())
+    return frac, front, n_valid, in_image
 
 
 def face_sigma(config: Config, point: np.ndarray) -> float:
@@ -745,6 +766,36 @@ def _test_seam_interior(fp: FacePoints, hyp: _Hypothesis) -> tuple[bool, list[Te
     return any(z > c for z, c in zip(int_z, int_crit)), [row]
 
 
+def _test_plane_ends(ctx: VerifyContext, hyp: _Hypothesis, fit: _FaceFit, sides: _Sides
+                     ) -> list[TestTable]:
+    """VERIFY_PLANE_END: a side that is no boundary by its edges (nor a seam) is one where
+    the face's refitted plane ends just beyond it, dropping away: at most
+    ``PLANE_END_FRACTION`` of the valid pixels of the strip beyond the side (as
+    :func:`continuation` reads it, at least ``MIN_LINE_POINTS`` of them, most of the strip
+    in the image) lie on the plane, and at most as many in front of it. Such a
+    side counts as covered by the share of the strip off the plane. Returns its row (b =
+    side, statistic = the fraction on the plane, critical = ``PLANE_END_FRACTION``), if any
+    side was tried."""
+    todo = [si for si in range(4) if not sides.ok[si]]
+    if not todo:
+        return []
+    m = hyp.margin
+    frac, front, _, in_image = _beyond_sides(ctx, hyp.origin, hyp.x_axis, hyp.y_axis,
+                                             hyp.width, hyp.length, fit.centre, fit.normal, m,
+                                             hyp.flank - m, hyp.k)
+    # a top's side drops away (behind the plane); a wall rising in front of it is a lower
+    # face's side, which a top's never is (the concave creases of VERIFY_BOUNDARY)
+    ends = [bool(in_image[si] and np.isfinite(frac[si]) and frac[si] <= PLANE_END_FRACTION
+                 and front[si] <= PLANE_END_FRACTION) for si in todo]
+    for si, e in zip(todo, ends):
+        if e:
+            sides.ok[si] = True
+            sides.covered[si] = max(sides.covered[si],
+                                    int(round((1.0 - frac[si]) * sides.expected[si])))
+    return [TestTable.decision(TestKind.VERIFY_PLANE_END, hyp.attempt_id, todo, frac[todo],
+                               PLANE_END_FRACTION, ends, hyp.alpha)]
+
+
 def _test_continuation(ctx: VerifyContext, fp: FacePoints, hyp: _Hypothesis, fit: _FaceFit,
                        sides: _Sides, min_inlier_fraction: float
                        ) -> tuple[np.ndarray, np.ndarray, list[TestTable]]:
@@ -948,9 +999,11 @@ def verify(
 
     The tests run cheapest first, each stopping the verification when it fails: the tilt;
     on the edge points, the interior and the boundary (completed by seams); on the range
-    points around the rectangle, the seams inside; then, on the points inside, exposure,
-    inliers, their mean, and whether the face's plane runs on beyond its sides (which
-    needs the plane refitted to those points). Every test made is recorded.
+    points around the rectangle, the seams inside; then, on the points inside (the plane
+    refitted to them), a side still without evidence of its end gets it where the plane
+    drops away just beyond it (``VERIFY_PLANE_END``: a fold or step the scan lines missed),
+    and the boundary is decided; then exposure, inliers, their mean, and whether the
+    face's plane runs on beyond its sides. Every test made is recorded.
 
     Parameters
     ----------
@@ -1036,24 +1089,32 @@ def verify(
     tests += rows
     if crossed and not region:
         return _failed(VerifyReason.INTERIOR_SEAM, tests, alpha, n_interior_edges=n_int)
-    if not sides.bound(config.support_fraction):
-        return _failed(VerifyReason.BOUNDARY, tests, alpha, n_interior_edges=n_int)
+    bound = sides.bound(config.support_fraction)
 
     # the points inside the rectangle shrunk by the border margin
     ras = rasterize(scan, rectangle_corners(origin + m * x_axis + m * y_axis, x_axis, y_axis,
                                             width - 2 * m, length - 2 * m))
     if ras is None:
-        return _failed(VerifyReason.OUTSIDE_IMAGE, tests, alpha)
+        return _failed(VerifyReason.BOUNDARY if not bound else VerifyReason.OUTSIDE_IMAGE,
+                       tests, alpha, n_interior_edges=n_int)
     n_inside = len(ras[0])
     valid = ctx.valid[ras]
     rv, cv = ras[0][valid], ras[1][valid]
     n_valid = len(rv)
     if n_valid < 3:
-        return _failed(VerifyReason.TOO_FEW_POINTS, tests, alpha, n_inside=n_inside,
-                       n_valid=n_valid)
+        return _failed(VerifyReason.BOUNDARY if not bound else VerifyReason.TOO_FEW_POINTS,
+                       tests, alpha, n_inside=n_inside, n_valid=n_valid,
+                       n_interior_edges=n_int)
     fit = _fit_face(ctx, hyp, rv, cv, config.flatness)
     if fit is None:
-        return _failed(VerifyReason.INLIERS, tests, alpha, n_inside=n_inside, n_valid=n_valid)
+        return _failed(VerifyReason.BOUNDARY if not bound else VerifyReason.INLIERS, tests,
+                       alpha, n_inside=n_inside, n_valid=n_valid, n_interior_edges=n_int)
+    if not bound:
+        # sides without their line of edges: the face's plane may still end just beyond
+        tests += _test_plane_ends(ctx, hyp, fit, sides)
+        if not sides.bound(config.support_fraction):
+            return _failed(VerifyReason.BOUNDARY, tests, alpha, n_inside=n_inside,
+                           n_valid=n_valid, n_interior_edges=n_int)
 
     exposed, row = _test_exposed(fit, hyp)
     tests.append(row)
