@@ -766,8 +766,8 @@ def _test_seam_interior(fp: FacePoints, hyp: _Hypothesis) -> tuple[bool, list[Te
     return any(z > c for z, c in zip(int_z, int_crit)), [row]
 
 
-def _test_plane_ends(ctx: VerifyContext, hyp: _Hypothesis, fit: _FaceFit, sides: _Sides
-                     ) -> list[TestTable]:
+def _test_plane_ends(ctx: VerifyContext, hyp: _Hypothesis, fit: _FaceFit | None,
+                     sides: _Sides) -> list[TestTable]:
     """VERIFY_PLANE_END: a side that is no boundary by its edges (nor a seam) is one where
     the face's refitted plane ends just beyond it, dropping away: at most
     ``PLANE_END_FRACTION`` of the valid pixels of the strip beyond the side (as
@@ -775,13 +775,14 @@ def _test_plane_ends(ctx: VerifyContext, hyp: _Hypothesis, fit: _FaceFit, sides:
     in the image) lie on the plane, and at most as many in front of it. Such a
     side counts as covered by the share of the strip off the plane. Returns its row (b =
     side, statistic = the fraction on the plane, critical = ``PLANE_END_FRACTION``), if any
-    side was tried."""
+    side was tried. Without ``fit`` the rectangle's own plane (origin, normal) stands in."""
     todo = [si for si in range(4) if not sides.ok[si]]
     if not todo:
         return []
     m = hyp.margin
+    centre, normal = (hyp.origin, hyp.normal) if fit is None else (fit.centre, fit.normal)
     frac, front, _, in_image = _beyond_sides(ctx, hyp.origin, hyp.x_axis, hyp.y_axis,
-                                             hyp.width, hyp.length, fit.centre, fit.normal, m,
+                                             hyp.width, hyp.length, centre, normal, m,
                                              hyp.flank - m, hyp.k)
     # a top's side drops away (behind the plane); a wall rising in front of it is a lower
     # face's side, which a top's never is (the concave creases of VERIFY_BOUNDARY)
@@ -1090,6 +1091,14 @@ def verify(
     if crossed and not region:
         return _failed(VerifyReason.INTERIOR_SEAM, tests, alpha, n_interior_edges=n_int)
     bound = sides.bound(config.support_fraction)
+    if not bound:
+        # sides without their line of edges may still end where the face's plane drops
+        # away just beyond them: first against the rectangle's own plane (cheap: the strips
+        # only); only where that shows an end is the plane refitted to decide (below)
+        rows = _test_plane_ends(ctx, hyp, None, _Sides(list(sides.covered), list(sides.ok),
+                                                       list(sides.expected)))
+        if not rows or not rows[0].accepted.any():
+            return _failed(VerifyReason.BOUNDARY, tests + rows, alpha, n_interior_edges=n_int)
 
     # the points inside the rectangle shrunk by the border margin
     ras = rasterize(scan, rectangle_corners(origin + m * x_axis + m * y_axis, x_axis, y_axis,
