@@ -589,7 +589,6 @@ def _all_lines(
         if nv < 2 * min_pts:
             continue
         if n_out + L > cap:
-            done = li
             break
         n0 = n_out
         n_out = _scan_line_edges(

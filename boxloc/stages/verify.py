@@ -1091,33 +1091,38 @@ def verify(
     if crossed and not region:
         return _failed(VerifyReason.INTERIOR_SEAM, tests, alpha, n_interior_edges=n_int)
     bound = sides.bound(config.support_fraction)
+    # until the plane is refitted, a rectangle whose boundary rests on its plane's end
+    # fails as BOUNDARY, with the rows that showed that end
+    unbound: list[TestTable] = []
     if not bound:
         # sides without their line of edges may still end where the face's plane drops
         # away just beyond them: first against the rectangle's own plane (cheap: the strips
         # only); only where that shows an end is the plane refitted to decide (below)
-        rows = _test_plane_ends(ctx, hyp, None, _Sides(list(sides.covered), list(sides.ok),
-                                                       list(sides.expected)))
-        if not rows or not rows[0].accepted.any():
-            return _failed(VerifyReason.BOUNDARY, tests + rows, alpha, n_interior_edges=n_int)
+        unbound = _test_plane_ends(ctx, hyp, None, _Sides(list(sides.covered), list(sides.ok),
+                                                          list(sides.expected)))
+        if not unbound or not unbound[0].accepted.any():
+            return _failed(VerifyReason.BOUNDARY, tests + unbound, alpha,
+                           n_interior_edges=n_int)
 
     # the points inside the rectangle shrunk by the border margin
     ras = rasterize(scan, rectangle_corners(origin + m * x_axis + m * y_axis, x_axis, y_axis,
                                             width - 2 * m, length - 2 * m))
     if ras is None:
-        return _failed(VerifyReason.BOUNDARY if not bound else VerifyReason.OUTSIDE_IMAGE,
-                       tests, alpha, n_interior_edges=n_int)
+        return _failed(VerifyReason.BOUNDARY if unbound else VerifyReason.OUTSIDE_IMAGE,
+                       tests + unbound, alpha, n_interior_edges=n_int)
     n_inside = len(ras[0])
     valid = ctx.valid[ras]
     rv, cv = ras[0][valid], ras[1][valid]
     n_valid = len(rv)
     if n_valid < 3:
-        return _failed(VerifyReason.BOUNDARY if not bound else VerifyReason.TOO_FEW_POINTS,
-                       tests, alpha, n_inside=n_inside, n_valid=n_valid,
+        return _failed(VerifyReason.BOUNDARY if unbound else VerifyReason.TOO_FEW_POINTS,
+                       tests + unbound, alpha, n_inside=n_inside, n_valid=n_valid,
                        n_interior_edges=n_int)
     fit = _fit_face(ctx, hyp, rv, cv, config.flatness)
     if fit is None:
-        return _failed(VerifyReason.BOUNDARY if not bound else VerifyReason.INLIERS, tests,
-                       alpha, n_inside=n_inside, n_valid=n_valid, n_interior_edges=n_int)
+        return _failed(VerifyReason.BOUNDARY if unbound else VerifyReason.INLIERS,
+                       tests + unbound, alpha, n_inside=n_inside, n_valid=n_valid,
+                       n_interior_edges=n_int)
     if not bound:
         # sides without their line of edges: the face's plane may still end just beyond
         tests += _test_plane_ends(ctx, hyp, fit, sides)
