@@ -9,7 +9,15 @@ from boxloc.config import Config
 from boxloc.evaluate.metrics import edge_scores
 from boxloc.products import EdgeKind
 from boxloc.scan import NoiseModel, PinholeModel, Scan
-from boxloc.stages.edges import NO_RETURN_PX, detect_edges, residual_thresholds, run_thresholds
+from boxloc.stages.edges import (
+    NO_RETURN_PX,
+    STEP_RUN_MAX,
+    _split_at_steps,
+    _split_merge,
+    detect_edges,
+    residual_thresholds,
+    run_thresholds,
+)
 from boxloc.stats import TestKind
 from tests.scenes import box, scene
 
@@ -98,6 +106,61 @@ def test_a_surface_that_runs_into_no_return_out_to_the_border_ends_there():
         d = detect_edges(_cut(plane, cols), config=cfg)
         assert len(d.tests.of_kind(TestKind.NO_RETURN)) == 0
         assert len(d) <= len(base) + 0.05 * 240
+
+
+def _far_step(seed: int, sigma: float) -> Scan:
+    """A top at 3 m, 120 px wide, before a floor at 3.8 m, with 8 px of no return
+    between them (stereo holes at a jump), range noise ``sigma`` everywhere."""
+    pin = PinholeModel(525.0, 525.0, 319.5, 239.5, 640, 480)
+    rays = pin.rays()
+    r = 3.8 / rays[..., 2]
+    r[:, 100:220] = 3.0 / rays[:, 100:220, 2]
+    r[:, 92:100] = np.nan
+    r[:, 220:228] = np.nan
+    r = r + np.random.default_rng(seed).normal(size=r.shape) * sigma
+    return Scan(range=r.astype(np.float32), sensor=pin)
+
+
+def test_a_far_step_is_a_jump_on_every_row():
+    # with noise of 35 mm at 3 m and 6 mm pixels, a total least-squares line through a
+    # few of the top's samples and the floor's runs nearly along the rays and fits both:
+    # split-and-merge bridged the step on three rows in four before the lines were cut
+    # at range steps
+    cfg = Config(noise=NoiseModel(sigma0=0.035, k1=0.0, k2=0.0))
+    e = detect_edges(_far_step(0, 0.035), config=cfg)
+    for col in (100, 219):  # the top's first and last column
+        at = (e.pixels[:, 1] == col) & (e.kinds == EdgeKind.JUMP)
+        assert at.sum() >= 0.95 * 480
+    # nothing else on the two planes but the noise's false alarms (alpha per scan line)
+    assert len(e) <= 2 * 480 + 0.05 * (480 + 640)
+
+
+def _scan_line(r: np.ndarray) -> np.ndarray:
+    """Points of one row of rays (0.002 rad apart) at ranges r, (n, 3)."""
+    a = (np.arange(len(r)) - len(r) / 2) * 0.002
+    return np.stack([np.sin(a) * r, np.zeros_like(r), np.cos(a) * r], -1)
+
+
+def test_a_change_of_level_is_a_range_step_but_a_blob_or_a_steep_face_is_not():
+    rng = np.random.default_rng(1)
+    S = np.full(300, 0.002)
+    thr = residual_thresholds(300, 0.01)
+    plane = 2.0 + rng.normal(size=300) * 0.002
+    blob = plane.copy()
+    blob[100:100 + STEP_RUN_MAX - 2] += 0.05  # 25 sigma off, then back on the surface
+
+    def bounds(r: np.ndarray, f=_split_at_steps) -> list[list[int]]:
+        return f(_scan_line(r), S, thr, np.zeros(1, np.int64))[0].tolist()
+
+    assert bounds(blob) == bounds(blob, _split_merge)  # left to split-and-merge as before
+    step = plane.copy()
+    step[150:] += 0.3  # a change of level: no segment may span it
+    assert all(b[1] < 150 or b[0] >= 150 for b in bounds(step))
+    # a face so steep that every sample steps 20 sigma further is no change of level:
+    # its increments run on alike (a box side seen at grazing incidence)
+    steep = plane.copy()
+    steep[150:] += 0.04 * np.arange(150)
+    assert bounds(steep) == bounds(steep, _split_merge)
 
 
 def test_thresholds_grow_with_line_length():

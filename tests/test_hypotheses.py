@@ -58,11 +58,27 @@ def test_diagonal_vertex_tests_are_recorded(one_box):
     assert (H.att_diagonal[from_vertices] >= 0).all()
 
 
+def _without_corner(e, corner: np.ndarray, radius: float):  # type: ignore[no-untyped-def]
+    """The edge map less its points within ``radius`` of ``corner`` (an occluded corner)."""
+    keep = np.linalg.norm(e.points - corner, axis=1) > radius
+    labels = e.labels.copy()
+    labels[e.pixels[~keep, 0], e.pixels[~keep, 1]] = 0
+    return dataclasses.replace(
+        e, labels=labels, pixels=e.pixels[keep], points=e.points[keep],
+        covariances=e.covariances[keep], kinds=e.kinds[keep], strength=e.strength[keep],
+        scan_dir=e.scan_dir[keep])
+
+
 def test_dimensions_from_edges_when_no_diagonal_vertex():
-    # the far corner is outside the image: only the near corners exist, dimensions come
-    # from the edge accumulators (or the hypothesis fails as outside the image)
+    # one corner of the top lost (no edge points within 8 cm of it): the vertex diagonal to
+    # it has no diagonal vertex, so its dimensions come from the edge accumulators
     sim = scene([box(0.0, 0.0, 0.45, 0.30, 0.25)], seed=6)
-    e, L, V, H, ver = _stages(sim, Config())
+    cfg = Config()
+    top = int(np.argmax(sim.truth.fully_exposed))
+    e = _without_corner(detect_edges(sim.scan, config=cfg), sim.truth.corners[top][0], 0.08)
+    L = find_lines(sim.scan, e, config=cfg, rng=np.random.default_rng(sim.scan.seed))
+    V = find_vertices(L, config=cfg)
+    V, H, ver = generate_hypotheses(sim.scan, e, V, config=cfg)
     from_edges = np.flatnonzero(H.att_source == DimensionSource.EDGES)
     # (was skipped silently when no attempt took its dimensions from the edges)
     assert len(from_edges), "no attempt took its dimensions from the edge accumulators"
@@ -71,6 +87,9 @@ def test_dimensions_from_edges_when_no_diagonal_vertex():
         assert H.att_support[j] > H.att_threshold[j]  # |P_f| > p
         assert H.peaks_x_offsets[h + 1] > H.peaks_x_offsets[h]
     assert len(H.tests.of_kind(TestKind.EDGE_SUPPORT)) > 0
+    # and one of them is the top: its sides' edges are there
+    dims = np.sort(np.c_[H.att_width[from_edges], H.att_length[from_edges]], axis=1)
+    assert np.any(np.all(np.abs(dims - [0.30, 0.45]) < 0.02, axis=1))
 
 
 def test_verification_rejects_a_face_with_a_box_on_it():

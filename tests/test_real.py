@@ -278,7 +278,9 @@ def test_mosd_sliver_tops_are_found_from_their_crease(frame: str) -> None:
     # The Kinect sees these tops at grazing incidence, 15-25 pixels across, and rounds
     # their short sides: their only straight edges are the far jump and the crease with
     # the front face. The front face's corner at the crease is the top's corner too (a
-    # box corner vertex); without it the top had no vertex and was missed.
+    # box corner vertex); without it the top had no vertex and was missed. (On learn9 the
+    # short sides' range steps now make jump lines of their own, and the tops' own
+    # corners generate them; learn3 still needs the box corner.)
     from boxloc.pipeline import find_graspable_surfaces
     p = MOSD / f"{frame}.pcd"
     scan, L = read_scan(p), read_labels(p)
@@ -287,6 +289,8 @@ def test_mosd_sliver_tops_are_found_from_their_crease(frame: str) -> None:
     truth = top_faces(scan, L)
     m = score_real(r.surfaces, truth, scan)
     assert (m.tp, m.fp) == (truth.n_exposed, 0) == (2, 0)
+    if frame != "learn3":
+        return
     corner = r.vertices.parent_side == 4
     assert corner.any()
     # a surface's generating vertex or its diagonal is a box corner's
@@ -321,11 +325,11 @@ def test_mosd_row_offsets_make_no_seam_on_a_covered_top() -> None:
     assert not ((t.kind == seam) & t.accepted).any()
 
 
-@pytest.mark.real_data("learn9.pcd")
+@pytest.mark.real_data("learn3.pcd")
 def test_explain_names_a_box_corner_and_its_test(tmp_path: Path) -> None:
     from replay.explain import explain, format_explanation
-    log = tmp_path / "learn9.mcap"
-    res = CliRunner().invoke(cli, ["run", str(MOSD / "learn9.pcd"), "--record", str(log),
+    log = tmp_path / "learn3.mcap"
+    res = CliRunner().invoke(cli, ["run", str(MOSD / "learn3.pcd"), "--record", str(log),
                                    "-q", *[a for s in MOSD_CONFIG for a in ("--set", s)]])
     assert res.exit_code == 0, res.output
     text = format_explanation(explain(log, 0))

@@ -19,6 +19,10 @@ Every row and every column of the organized cloud is approximated by 3D line seg
   recorded as a decision on the run's length (``TestKind.NO_RETURN``). No return with a
   return beyond it is left to the jump test across the gap.
 
+No segment spans a range step (successive samples at significantly different ranges, the
+surface not resuming within a few samples): a total least-squares line through a far step
+runs along the rays and would fit both sides (:func:`_split_at_steps`).
+
 Each edge point carries a covariance: the sensor noise at the point plus the localization
 uncertainty along the scan line. Where a row scan and a column scan find an edge at the
 same pixel, the two estimates are fused (information-weighted).
@@ -51,6 +55,10 @@ GROOVE_CONTEXT = 4
 #: Segments with fewer samples are not fitted (their samples are "dropped": mixed pixels,
 #: a sliver of a steep side face). Three is the fewest that can show a line's residual.
 MIN_SEGMENT_POINTS = 4
+
+#: Samples off a surface that resumes at its level after them are at most this many
+#: (as GROOVE_MAX_RUN) and no range step (:func:`_split_at_steps`).
+STEP_RUN_MAX = 8
 
 #: No return over at least this many pixels, out to the image border, ends a surface (a
 #: no-return-border jump); shorter runs are dropouts inside a face (as
@@ -235,6 +243,93 @@ def _split_merge(P: np.ndarray, S: np.ndarray, thr: np.ndarray, work: np.ndarray
 
 
 @nb.njit(cache=True)
+def _split_at_steps(P: np.ndarray, S: np.ndarray, thr: np.ndarray, work: np.ndarray
+                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`_split_merge` of each piece of the scan line between range steps.
+
+    Split-and-merge measures residuals perpendicular to a line. A total least-squares
+    "line" through a far step runs nearly along the rays (the step's depth outweighs its
+    width), so its perpendicular residuals stay small and it bridges the jump: the top
+    and the floor behind it one segment, and no edge between them. So no line may span a
+    step, a change of level between successive samples:
+
+    * their ranges differ by more than ``thr[n]`` (the split test's Bonferroni level over
+      the line's n samples) times the sigma of the difference;
+    * that increment also differs so from the increments next to it (a steep face's
+      increments run on alike; a crease into one changes them once, and is left to
+      split-and-merge; shredding such faces into pieces found fewer tops);
+    * the surface does not resume at its level within :data:`STEP_RUN_MAX` samples
+      (outliers, a correlated blob or a narrow groove stay split-and-merge's, as before).
+
+    Returns as :func:`_split_merge`, over the whole line.
+    """
+    n = P.shape[0]
+    cut = np.empty(n + 1, np.int64)
+    nc = 0
+    cut[nc] = 0
+    nc += 1
+    t2 = thr[n] * thr[n]
+    R = np.empty(n)
+    for i in range(n):
+        R[i] = math.sqrt(P[i, 0] * P[i, 0] + P[i, 1] * P[i, 1] + P[i, 2] * P[i, 2])
+    step = np.zeros(n + 1, np.bool_)  # step[i]: between samples i - 1 and i
+    for i in range(1, n):
+        dr = R[i] - R[i - 1]
+        step[i] = dr * dr > t2 * (S[i - 1] * S[i - 1] + S[i] * S[i])
+        # a change of level, not a steep face: the increment differs significantly from
+        # its neighbours' too (a face's increments run on alike; a crease into a steep
+        # face changes them once, and is split-and-merge's to find)
+        for j in (i - 1, i + 1):
+            if step[i] and 1 <= j < n:
+                dd = dr - (R[j] - R[j - 1])
+                q = min(i, j)  # the sample both increments share: twice in dd
+                v = (S[i - 1] * S[i - 1] + S[i] * S[i] + S[j - 1] * S[j - 1]
+                     + S[j] * S[j] + 2.0 * S[q] * S[q])
+                if dd * dd <= t2 * v:
+                    step[i] = False
+    # a run of a few samples off a surface that resumes at its level after them (a heavy
+    # tail's outliers, a correlated blob, a narrow groove) is no step: split-and-merge
+    # sets it apart as before; the step test only keeps lines off a change of level
+    for i in range(1, n):
+        if not step[i]:
+            continue
+        for j in range(i + 1, min(n, i + STEP_RUN_MAX + 1)):
+            if step[j]:
+                dr = R[j] - R[i - 1]
+                if dr * dr <= t2 * (S[i - 1] * S[i - 1] + S[j] * S[j]):
+                    for k in range(i, j + 1):
+                        step[k] = False
+                    break
+    for i in range(1, n):
+        if step[i]:
+            cut[nc] = i
+            nc += 1
+    cut[nc] = n
+    if nc == 1:
+        return _split_merge(P, S, thr, work)
+    bounds = np.empty((n, 2), np.int64)
+    fits = np.empty((n, 6))
+    fitted = np.zeros(n, np.bool_)
+    m = 0
+    for k in range(nc):
+        a, b = cut[k], cut[k + 1]
+        if b - a < 3:  # too short to test: one segment (dropped later if below min_pts)
+            bounds[m, 0] = a
+            bounds[m, 1] = b - 1
+            fitted[m] = False
+            m += 1
+            continue
+        Bk, Fk, fk = _split_merge(P[a:b], S[a:b], thr, work)
+        for j in range(Bk.shape[0]):
+            bounds[m, 0] = Bk[j, 0] + a
+            bounds[m, 1] = Bk[j, 1] + a
+            fits[m] = Fk[j]
+            fitted[m] = fk[j]
+            m += 1
+    return bounds[:m], fits[:m], fitted[:m]
+
+
+@nb.njit(cache=True)
 def _range_on_line(u: np.ndarray, c: np.ndarray, d: np.ndarray) -> float:
     """Range along unit ray u of the point of line (c, d) closest to the ray."""
     # minimize |s u - c - t d|^2 over s, t
@@ -296,7 +391,7 @@ def _scan_line_edges(
     n = P.shape[0]
     if n < 2 * min_pts:
         return n_out
-    B, fits, fitted = _split_merge(P, S, thr, work)
+    B, fits, fitted = _split_at_steps(P, S, thr, work)
     m = B.shape[0]
     # keep segments with enough points
     keep = np.empty(m, np.int64)
