@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 
@@ -143,7 +145,7 @@ def test_the_line_stage_stops_at_its_work_budget():
 
 def test_trial_kernels_match_their_numpy_expressions() -> None:
     # the live neighbours and the voters: the NumPy expressions they replaced, exactly
-    from boxloc.stages.lines import MAX_VOTE_RADIUS, _live_neighbours, _vote_inputs
+    from boxloc.stages.lines import MAX_VOTE_RADIUS, _live_neighbours, _perp, _vote_inputs
 
     rng = np.random.default_rng(5)
     P = rng.normal(0.0, 0.2, (400, 3)) + [0.0, 0.0, 1.5]
@@ -154,10 +156,24 @@ def test_trial_kernels_match_their_numpy_expressions() -> None:
     nb = rng.permutation(400).astype(np.int64)
     got = _live_neighbours(nb, alive, 3)
     assert np.array_equal(got, nb[alive[nb] & (nb != 3)])
-    keep, d, rad, use, vi = _vote_inputs(P, C, nb, 3, 3.0, MAX_VOTE_RADIUS)
+    keep, d, rad, use, vi, ainv = _vote_inputs(P, C, nb, 3, 3.0, MAX_VOTE_RADIUS)
     assert 3 not in keep and 7 not in keep and len(keep) == 398
     np.testing.assert_allclose(np.linalg.norm(d, axis=1), 1.0)
-    assert np.array_equal(use, rad <= MAX_VOTE_RADIUS)
+    # the error region's ellipse: the inverse of J (C_i + C_0) J^T on the tangent plane
+    # (J = (I - d d^T) / l), in the basis _perp(d); a point votes if its minor semi-axis
+    # fits the cap, and the half-trace radius is never below it
+    minor = np.empty(len(keep))
+    for m, i in enumerate(keep):
+        v = P[i] - P[3]
+        ell = np.linalg.norm(v)
+        e1, e2 = _perp(d[m])
+        E = np.stack([e1, e2])
+        S2 = E @ (C[i] + C[3]) @ E.T / ell**2
+        A = np.linalg.inv(S2)
+        np.testing.assert_allclose(ainv[m], [A[0, 0], A[0, 1], A[1, 1]], rtol=1e-6)
+        minor[m] = 3.0 * np.sqrt(np.linalg.eigvalsh(S2)[0])
+        assert minor[m] <= rad[m] * (1 + 1e-9)
+    assert np.array_equal(use, minor <= MAX_VOTE_RADIUS)
     assert np.array_equal(vi, np.flatnonzero(use)) and 0 < len(vi) < len(keep)
 
 
@@ -184,6 +200,27 @@ def test_a_long_edge_with_centimetre_scatter_is_a_line():
     assert len(L) >= 1
     assert np.max(np.abs(L.directions @ np.array([1.0, 0, 0]))) > np.cos(np.radians(5.0))
     assert L.n_support.max() > 0.7 * len(P)
+
+
+def test_an_edge_whose_points_scatter_along_the_rays_is_a_line():
+    # active-stereo at 3 m: the edge points' errors are long along the ray (80 mm) and
+    # short across it (6 mm). A circular error region of half the trace spans 40 deg at
+    # 0.3 m and may not vote; the ellipse's short axis fixes the direction across the ray
+    rng = np.random.default_rng(4)
+    t = np.arange(0, 0.5, 0.005)
+    P = np.array([0.0, 0.0, 3.0]) + t[:, None] * np.array([1.0, 0, 0])
+    sd = np.array([0.006, 0.006, 0.08])
+    P = P + rng.normal(size=P.shape) * sd
+    # false edge points scattered over the surface around it, as noise makes them
+    clutter = rng.uniform([-0.2, -0.3, 3.0], [0.7, 0.3, 3.0], (200, 3))
+    Q = np.concatenate([P, clutter + rng.normal(size=clutter.shape) * sd])
+    e = _edge_map(Q, 0.0)
+    e = dataclasses.replace(e, covariances=np.broadcast_to(np.diag(sd**2), (len(Q), 3, 3)).copy())
+    L = find_lines(_scan(), e, config=Config(), rng=np.random.default_rng(0))
+    # (its tilt in depth is known to a few degrees only: 80 mm of depth error over 0.5 m)
+    along = np.abs(L.directions @ np.array([1.0, 0, 0])) > np.cos(np.radians(12.0))
+    assert along.any()
+    assert L.n_support[along].max() > 0.7 * len(P)
 
 
 def test_wide_votes_use_a_coarser_tessellation():

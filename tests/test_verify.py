@@ -21,11 +21,15 @@ def single_box():
     cfg = Config()
     r = find_graspable_surfaces(sim.scan, cfg)
     assert len(r.surfaces) == 1
-    a = int(r.surfaces.attempt[0])
     H = r.hypotheses
-    h = int(H.att_hypothesis[a])
-    frame = (H.origins[h], H.x_axis[h], H.y_axis[h], H.normals[h],
-             float(H.att_width[a]), float(H.att_length[a]))
+    # the top's true frame, from its corner 3 (the tests below move its sides): verify's
+    # input, whichever of the top's vertices the pipeline's surface came from
+    f = int(np.argmax(sim.truth.fully_exposed))
+    c = sim.truth.corners[f]
+    x, y = c[0] - c[3], c[2] - c[3]
+    w, l_ = float(np.linalg.norm(x)), float(np.linalg.norm(y))
+    n = sim.truth.normals[f] if sim.truth.normals[f][2] < 0 else -sim.truth.normals[f]
+    frame = (c[3], x / w, y / l_, n, w, l_)
     ctx = VerifyContext.build(sim.scan, r.edges, cfg, H.up)
     return sim, cfg, ctx, frame
 
@@ -163,14 +167,14 @@ def test_exposed_catches_the_corner_of_a_box_above(single_box):
 
 
 def test_a_strip_out_of_the_image_cannot_show_the_face_ends(single_box):
-    # the far side along y moved 2 m out: its strip lies outside the image (and so do
+    # the far side along y moved 3 m out: its strip lies outside the image (and so do
     # most of the two sides along it), the side at the vertex inside; verify then cannot
     # accept those sides (pallet seed 1 in test_pipeline is the scene where a face
     # running out of the image was accepted)
     sim, cfg, ctx, frame = single_box
     o, x, y, n, w, l_ = frame
     spacing = ctx.spacing_at(o)
-    for length, inside in ((l_, [True] * 4), (l_ + 2.0, [True, False, False, False])):
+    for length, inside in ((l_, [True] * 4), (l_ + 3.0, [True, False, False, False])):
         frac, n_valid, in_image = continuation(ctx, o, x, y, w, length, o, n, 2 * spacing,
                                                4 * spacing, 2.576)
         assert in_image.tolist() == inside

@@ -6,9 +6,10 @@ parameters; they are recovered in two 2-D Hough transforms:
 
 1. **direction** — every other edge point p_i near p0 votes for the direction
    (p_i - p0)/|p_i - p0| on an icosahedral tessellation of the hemisphere (Jeltsch, Dalitz
-   & Pohle-Fröhlich 2016), for every cell inside its propagated error region (chi2(2) at
-   alpha; bounded-error voting): far points vote sharply, near points broadly, and the
-   peak counts the points consistent with one direction;
+   & Pohle-Fröhlich 2016), for every cell inside its propagated error region (the chi2(2)
+   ellipse at alpha on the tangent plane, long toward the ray when range noise dominates;
+   bounded-error voting): far points vote sharply, near points broadly, and the peak
+   counts the points consistent with one direction;
 2. **position** — the points are projected on the plane perpendicular to the found
    direction and vote for the line's offset from p0 in a 2-D accumulator, again spread by
    their propagated error, so p0's own noise does not fix the line.
@@ -155,9 +156,10 @@ def _direction_index(granularity: int, cap_deg: int = _QUIET_CAP_DEG
 
 
 @nb.njit(cache=True)
-def _vote_directions(d: np.ndarray, rad: np.ndarray, lut: np.ndarray, nbr: np.ndarray,
-                     D: np.ndarray) -> np.ndarray:
-    """Each direction d_i votes 1 for every cell within rad_i of +-d_i.
+def _vote_directions(d: np.ndarray, ainv: np.ndarray, k22: float, cap: float,
+                     lut: np.ndarray, nbr: np.ndarray, D: np.ndarray) -> np.ndarray:
+    """Each direction d_i votes 1 for every cell of its error ellipse around +-d_i
+    (``ainv`` as :func:`_vote_inputs`, at ``k22`` = k2^2) within ``cap`` radians of it.
 
     Bounded-error voting as Olson (2001): a cell's count is the number of points whose
     error region contains it, so every point of a short line counts fully at its
@@ -177,14 +179,20 @@ def _vote_directions(d: np.ndarray, rad: np.ndarray, lut: np.ndarray, nbr: np.nd
         bi = min(int(th / math.pi * P), P - 1)
         bj = min(int(ph / (2 * math.pi) * A), A - 1)
         c0 = lut[bi, bj]
-        cr = math.cos(rad[i])
+        cr = math.cos(cap)
+        e1, e2 = _perp(d[i])
         n = 0
         for k in range(nbr.shape[1]):
             c = nbr[c0, k]
             if c < 0:
                 break
-            dot = abs(D[c, 0] * x + D[c, 1] * y + D[c, 2] * z)
-            if dot >= cr:
+            dot = D[c, 0] * x + D[c, 1] * y + D[c, 2] * z
+            sg = 1.0 if dot >= 0 else -1.0
+            if sg * dot < cr:
+                continue
+            p1 = sg * (D[c, 0] * e1[0] + D[c, 1] * e1[1] + D[c, 2] * e1[2])
+            p2 = sg * (D[c, 0] * e2[0] + D[c, 1] * e2[1] + D[c, 2] * e2[2])
+            if ainv[i, 0] * p1 * p1 + 2.0 * ainv[i, 1] * p1 * p2 + ainv[i, 2] * p2 * p2 <= k22:
                 cells[n] = c
                 n += 1
         if n == 0:
@@ -480,15 +488,15 @@ def _trial(fixed: _TrialInputs, i0: int, nb: np.ndarray, live: np.ndarray,
         none.
     """
     P, C, m_min = fixed.points, fixed.covariances, fixed.m_min
-    nb, d, rad, use, vi = _vote_inputs(P, C, nb, i0, fixed.k2,
-                                          fixed.max_vote_radius)
+    nb, d, rad, use, vi, ainv = _vote_inputs(P, C, nb, i0, fixed.k2,
+                                                fixed.max_vote_radius)
     if len(vi) < m_min:
         return []
     if len(vi) > MAX_VOTERS:
         vi = np.sort(rng.choice(vi, MAX_VOTERS, replace=False))
     ok, b, anchor, dir_votes, pos_votes = _hough(
-        P, C, nb, d, rad, use, vi, i0, fixed.lut, fixed.neighbours, fixed.directions,
-        fixed.k2, m_min)
+        P, C, nb, d, ainv, use, vi, i0, fixed.lut, fixed.neighbours, fixed.directions,
+        fixed.k2, m_min, fixed.max_vote_radius)
     if not ok:
         return []
     inl, T, t = _inliers(P, C, fixed.cov_trace, live, anchor, b, fixed.chi2_2, m_min)
@@ -571,7 +579,8 @@ def _live_neighbours(nb: np.ndarray, alive: np.ndarray, i0: int) -> np.ndarray:
 @nb.njit(cache=True)
 def _vote_inputs(P: np.ndarray, C: np.ndarray, nb: np.ndarray, i0: int, k2: float,
                  max_radius: float
-                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray,
+                            np.ndarray]:
     """The voters' directions from p0 and the radii of their error regions.
 
     Parameters
@@ -591,13 +600,20 @@ def _vote_inputs(P: np.ndarray, C: np.ndarray, nb: np.ndarray, i0: int, k2: floa
     -------
     nb : (m,) the neighbours apart from p0 (distance > 0); d : (m, 3) unit directions
     p_i - p0; rad : (m,) k2 x the propagated angular error, radians: J (S_i + S_0) J^T with
-    J = (I - d d^T) / l, half its trace, as a standard deviation; use : (m,) bool,
-    ``rad <= max_radius``; vi : the indices where ``use`` is true, ascending.
+    J = (I - d d^T) / l, half its trace, as a standard deviation; use : (m,) bool, the error
+    region's short semi-axis (k2 x the smaller sd) at most ``max_radius``; vi : the indices
+    where ``use`` is true, ascending; ainv : (m, 3) the inverse of J (S_i + S_0) J^T on the
+    tangent plane in the basis :func:`_perp` (d): entries 11, 12, 22. The region is the
+    ellipse where that quadratic form is at most k2^2: range noise makes it long toward the
+    ray and short across it, and a circle of half the trace (``rad``) would spread a
+    direction that is sharp across the ray over tens of degrees.
     """
     n = nb.shape[0]
     keep = np.empty(n, np.int64)
     d = np.empty((n, 3))
     rad = np.empty(n)
+    ainv = np.empty((n, 3))
+    minor = np.empty(n)
     m = 0
     for j in range(n):
         i = nb[j]
@@ -619,9 +635,29 @@ def _vote_inputs(P: np.ndarray, C: np.ndarray, nb: np.ndarray, i0: int, k2: floa
         keep[m] = i
         d[m, 0], d[m, 1], d[m, 2] = u0, u1, u2
         rad[m] = k2 * math.sqrt(max(tr - quad, 0.0) / 2.0) / ell
+        # the error region's ellipse on the tangent plane at d: (e1, e2) = _perp(d)
+        e1, e2 = _perp(d[m])
+        s11 = s12 = s22 = 0.0
+        for a in range(3):
+            for c in range(3):
+                cc = C[i, a, c] + C[i0, a, c]
+                s11 += e1[a] * cc * e1[c]
+                s12 += e1[a] * cc * e2[c]
+                s22 += e2[a] * cc * e2[c]
+        s11 /= ell * ell
+        s12 /= ell * ell
+        s22 /= ell * ell
+        det = max(s11 * s22 - s12 * s12, 1e-30)
+        ainv[m, 0] = s22 / det
+        ainv[m, 1] = -s12 / det
+        ainv[m, 2] = s11 / det
+        # its minor semi-axis, radians
+        half = 0.5 * (s11 + s22)
+        disc = math.sqrt(max(half * half - det, 0.0))
+        minor[m] = k2 * math.sqrt(max(half - disc, 0.0))
         m += 1
-    use = rad[:m] <= max_radius
-    return keep[:m], d[:m], rad[:m], use, np.flatnonzero(use)
+    use = minor[:m] <= max_radius
+    return keep[:m], d[:m], rad[:m], use, np.flatnonzero(use), ainv[:m]
 
 
 @nb.njit(cache=True)
@@ -639,14 +675,15 @@ def _perp(b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 
 @nb.njit(cache=True)
-def _hough(P: np.ndarray, C: np.ndarray, nb: np.ndarray, d: np.ndarray, rad: np.ndarray,
+def _hough(P: np.ndarray, C: np.ndarray, nb: np.ndarray, d: np.ndarray, ainv: np.ndarray,
            use: np.ndarray, vi: np.ndarray, i0: int, lut: np.ndarray, nbr: np.ndarray,
-           D: np.ndarray, k2: float, m_min: int
+           D: np.ndarray, k2: float, m_min: int, cap: float
            ) -> tuple[bool, np.ndarray, np.ndarray, float, float]:
     """The two Hough transforms of one trial: the line's direction, then its position.
 
-    HT-1: the voters ``vi`` vote over their error regions (:func:`_vote_directions`); the
-    points whose region holds the peak refine the direction (their mean). HT-2: p0 and
+    HT-1: the voters ``vi`` vote over their error ellipses (:func:`_vote_directions`, at
+    most ``cap`` radians out); the points whose ellipse holds the peak refine the direction
+    (their mean). HT-2: p0 and
     those points, projected on the plane perpendicular to it, vote for the line's offset
     from p0, each with a Gaussian of its projected error truncated at the chi2(2) region
     (one vote per point; the kernel is separable).
@@ -659,7 +696,7 @@ def _hough(P: np.ndarray, C: np.ndarray, nb: np.ndarray, d: np.ndarray, rad: np.
     the two peaks' heights.
     """
     z3 = np.zeros(3)
-    acc = _vote_directions(d[vi], rad[vi], lut, nbr, D)
+    acc = _vote_directions(d[vi], ainv[vi], k2 * k2, cap, lut, nbr, D)
     peak = int(np.argmax(acc))
     b0 = D[peak]
     dir_votes = acc[peak]
@@ -670,7 +707,13 @@ def _hough(P: np.ndarray, C: np.ndarray, nb: np.ndarray, d: np.ndarray, rad: np.
     s0 = s1 = s2 = 0.0
     for j in range(n):
         c = abs(d[j, 0] * b0[0] + d[j, 1] * b0[1] + d[j, 2] * b0[2])
-        if use[j] and math.acos(min(max(c, -1.0), 1.0)) <= max(rad[j], floor):
+        e1, e2 = _perp(d[j])
+        sgn = 1.0 if (d[j, 0] * b0[0] + d[j, 1] * b0[1] + d[j, 2] * b0[2]) >= 0 else -1.0
+        p1 = sgn * (b0[0] * e1[0] + b0[1] * e1[1] + b0[2] * e1[2])
+        p2 = sgn * (b0[0] * e2[0] + b0[1] * e2[1] + b0[2] * e2[2])
+        inside = (ainv[j, 0] * p1 * p1 + 2.0 * ainv[j, 1] * p1 * p2 + ainv[j, 2] * p2 * p2
+                  <= k2 * k2)
+        if use[j] and (inside or math.acos(min(max(c, -1.0), 1.0)) <= floor):
             agree[j] = True
             na += 1
             dot = d[j, 0] * b0[0] + d[j, 1] * b0[1] + d[j, 2] * b0[2]
