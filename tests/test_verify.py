@@ -25,10 +25,12 @@ def single_box():
     # the top's true frame, from its corner 3 (the tests below move its sides): verify's
     # input, whichever of the top's vertices the pipeline's surface came from
     f = int(np.argmax(sim.truth.fully_exposed))
-    c = sim.truth.corners[f]
+    c = np.array(sim.truth.corners[f])  # a writable copy: the truth's arrays are frozen, and
+    # a read-only origin would compile the kernels for a type the pipeline never passes
     x, y = c[0] - c[3], c[2] - c[3]
     w, l_ = float(np.linalg.norm(x)), float(np.linalg.norm(y))
-    n = sim.truth.normals[f] if sim.truth.normals[f][2] < 0 else -sim.truth.normals[f]
+    n = np.array(sim.truth.normals[f])
+    n = n if n[2] < 0 else -n
     frame = (c[3], x / w, y / l_, n, w, l_)
     ctx = VerifyContext.build(sim.scan, r.edges, cfg, H.up)
     return sim, cfg, ctx, frame
