@@ -51,14 +51,14 @@ from boxloc.stats import BUDGET_EDGES, TestKind, TestTable, chi2_critical, nanme
 GROOVE_MIN_RUN = 2
 GROOVE_MAX_RUN = 8
 GROOVE_CONTEXT = 4
+#: Samples off a surface that resumes at its level after them, at most this many (a groove
+#: at most), are no range step (:func:`_split_at_steps`).
+STEP_RUN_MAX = GROOVE_MAX_RUN
 
 #: Segments with fewer samples are not fitted (their samples are "dropped": mixed pixels,
 #: a sliver of a steep side face). Three is the fewest that can show a line's residual.
 MIN_SEGMENT_POINTS = 4
 
-#: Samples off a surface that resumes at its level after them are at most this many
-#: (as GROOVE_MAX_RUN) and no range step (:func:`_split_at_steps`).
-STEP_RUN_MAX = 8
 
 #: No return over at least this many pixels, out to the image border, ends a surface (a
 #: no-return-border jump); shorter runs are dropouts inside a face (as
@@ -265,9 +265,8 @@ def _split_at_steps(P: np.ndarray, S: np.ndarray, thr: np.ndarray, work: np.ndar
     """
     n = P.shape[0]
     cut = np.empty(n + 1, np.int64)
-    nc = 0
-    cut[nc] = 0
-    nc += 1
+    cut[0] = 0
+    nc = 1
     t2 = thr[n] * thr[n]
     R = np.empty(n)
     for i in range(n):

@@ -186,12 +186,11 @@ def _vote_directions(d: np.ndarray, ainv: np.ndarray, k22: float, cap: float,
             c = nbr[c0, k]
             if c < 0:
                 break
-            dot = D[c, 0] * x + D[c, 1] * y + D[c, 2] * z
-            sg = 1.0 if dot >= 0 else -1.0
-            if sg * dot < cr:
+            if abs(D[c, 0] * x + D[c, 1] * y + D[c, 2] * z) < cr:
                 continue
-            p1 = sg * (D[c, 0] * e1[0] + D[c, 1] * e1[1] + D[c, 2] * e1[2])
-            p2 = sg * (D[c, 0] * e2[0] + D[c, 1] * e2[1] + D[c, 2] * e2[2])
+            # the form is even: -D[c] (the other hemisphere's cell) reads the same
+            p1 = D[c, 0] * e1[0] + D[c, 1] * e1[1] + D[c, 2] * e1[2]
+            p2 = D[c, 0] * e2[0] + D[c, 1] * e2[1] + D[c, 2] * e2[2]
             if ainv[i, 0] * p1 * p1 + 2.0 * ainv[i, 1] * p1 * p2 + ainv[i, 2] * p2 * p2 <= k22:
                 cells[n] = c
                 n += 1
@@ -488,8 +487,7 @@ def _trial(fixed: _TrialInputs, i0: int, nb: np.ndarray, live: np.ndarray,
         none.
     """
     P, C, m_min = fixed.points, fixed.covariances, fixed.m_min
-    nb, d, rad, use, vi, ainv = _vote_inputs(P, C, nb, i0, fixed.k2,
-                                                fixed.max_vote_radius)
+    nb, d, use, vi, ainv = _vote_inputs(P, C, nb, i0, fixed.k2, fixed.max_vote_radius)
     if len(vi) < m_min:
         return []
     if len(vi) > MAX_VOTERS:
@@ -579,9 +577,8 @@ def _live_neighbours(nb: np.ndarray, alive: np.ndarray, i0: int) -> np.ndarray:
 @nb.njit(cache=True)
 def _vote_inputs(P: np.ndarray, C: np.ndarray, nb: np.ndarray, i0: int, k2: float,
                  max_radius: float
-                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray,
-                            np.ndarray]:
-    """The voters' directions from p0 and the radii of their error regions.
+                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The voters' directions from p0 and their error regions.
 
     Parameters
     ----------
@@ -599,19 +596,17 @@ def _vote_inputs(P: np.ndarray, C: np.ndarray, nb: np.ndarray, i0: int, k2: floa
     Returns
     -------
     nb : (m,) the neighbours apart from p0 (distance > 0); d : (m, 3) unit directions
-    p_i - p0; rad : (m,) k2 x the propagated angular error, radians: J (S_i + S_0) J^T with
-    J = (I - d d^T) / l, half its trace, as a standard deviation; use : (m,) bool, the error
-    region's short semi-axis (k2 x the smaller sd) at most ``max_radius``; vi : the indices
-    where ``use`` is true, ascending; ainv : (m, 3) the inverse of J (S_i + S_0) J^T on the
+    p_i - p0; use : (m,) bool, the error region's short semi-axis (k2 x the smaller sd of
+    J (S_i + S_0) J^T, J = (I - d d^T) / l) at most ``max_radius``; vi : the indices where
+    ``use`` is true, ascending; ainv : (m, 3) the inverse of J (S_i + S_0) J^T on the
     tangent plane in the basis :func:`_perp` (d): entries 11, 12, 22. The region is the
     ellipse where that quadratic form is at most k2^2: range noise makes it long toward the
-    ray and short across it, and a circle of half the trace (``rad``) would spread a
-    direction that is sharp across the ray over tens of degrees.
+    ray and short across it, and a circle of half the trace would spread a direction that
+    is sharp across the ray over tens of degrees.
     """
     n = nb.shape[0]
     keep = np.empty(n, np.int64)
     d = np.empty((n, 3))
-    rad = np.empty(n)
     ainv = np.empty((n, 3))
     minor = np.empty(n)
     m = 0
@@ -624,17 +619,8 @@ def _vote_inputs(P: np.ndarray, C: np.ndarray, nb: np.ndarray, i0: int, k2: floa
         if not ell > 0:
             continue
         u0, u1, u2 = v0 / ell, v1 / ell, v2 / ell
-        tr = 0.0
-        quad = 0.0
-        for a in range(3):
-            ua = u0 if a == 0 else (u1 if a == 1 else u2)
-            tr += C[i, a, a] + C[i0, a, a]
-            for c in range(3):
-                uc = u0 if c == 0 else (u1 if c == 1 else u2)
-                quad += ua * (C[i, a, c] + C[i0, a, c]) * uc
         keep[m] = i
         d[m, 0], d[m, 1], d[m, 2] = u0, u1, u2
-        rad[m] = k2 * math.sqrt(max(tr - quad, 0.0) / 2.0) / ell
         # the error region's ellipse on the tangent plane at d: (e1, e2) = _perp(d)
         e1, e2 = _perp(d[m])
         s11 = s12 = s22 = 0.0
@@ -657,7 +643,7 @@ def _vote_inputs(P: np.ndarray, C: np.ndarray, nb: np.ndarray, i0: int, k2: floa
         minor[m] = k2 * math.sqrt(max(half - disc, 0.0))
         m += 1
     use = minor[:m] <= max_radius
-    return keep[:m], d[:m], rad[:m], use, np.flatnonzero(use), ainv[:m]
+    return keep[:m], d[:m], use, np.flatnonzero(use), ainv[:m]
 
 
 @nb.njit(cache=True)
@@ -708,9 +694,8 @@ def _hough(P: np.ndarray, C: np.ndarray, nb: np.ndarray, d: np.ndarray, ainv: np
     for j in range(n):
         c = abs(d[j, 0] * b0[0] + d[j, 1] * b0[1] + d[j, 2] * b0[2])
         e1, e2 = _perp(d[j])
-        sgn = 1.0 if (d[j, 0] * b0[0] + d[j, 1] * b0[1] + d[j, 2] * b0[2]) >= 0 else -1.0
-        p1 = sgn * (b0[0] * e1[0] + b0[1] * e1[1] + b0[2] * e1[2])
-        p2 = sgn * (b0[0] * e2[0] + b0[1] * e2[1] + b0[2] * e2[2])
+        p1 = b0[0] * e1[0] + b0[1] * e1[1] + b0[2] * e1[2]
+        p2 = b0[0] * e2[0] + b0[1] * e2[1] + b0[2] * e2[2]
         inside = (ainv[j, 0] * p1 * p1 + 2.0 * ainv[j, 1] * p1 * p2 + ainv[j, 2] * p2 * p2
                   <= k2 * k2)
         if use[j] and (inside or math.acos(min(max(c, -1.0), 1.0)) <= floor):

@@ -78,10 +78,10 @@ EXTENT_GAP_PX = 4
 #: dimensions put boundary edges up to a centimetre or two inside.
 BOUNDARY_BAND = 0.5
 #: A side without a line of edges still shows the face's end where at most this fraction
-#: of the valid pixels just beyond it lie on the face's refitted plane (and at least half
-#: of them are off it by the noise model at alpha would be expected of a continuing face:
-#: 1 - alpha of them on it): the plane folds or steps away there, a crease or a jump the
-#: scan lines did not resolve (``VERIFY_PLANE_END``).
+#: of the valid pixels just beyond it lie on the face's refitted plane (a continuing face
+#: would have 1 - alpha of them on it), and at most as many in front of it: the plane
+#: folds or steps away there, a crease or a jump the scan lines did not resolve
+#: (``VERIFY_PLANE_END``).
 PLANE_END_FRACTION = 0.2
 
 
@@ -1107,22 +1107,22 @@ def verify(
     # the points inside the rectangle shrunk by the border margin
     ras = rasterize(scan, rectangle_corners(origin + m * x_axis + m * y_axis, x_axis, y_axis,
                                             width - 2 * m, length - 2 * m))
+    def before_fit(reason: VerifyReason, **counts: int) -> VerifyOutcome:
+        # a rectangle whose boundary rested on its plane's end fails as BOUNDARY
+        return _failed(VerifyReason.BOUNDARY if unbound else reason, tests + unbound, alpha,
+                       n_interior_edges=n_int, **counts)
+
     if ras is None:
-        return _failed(VerifyReason.BOUNDARY if unbound else VerifyReason.OUTSIDE_IMAGE,
-                       tests + unbound, alpha, n_interior_edges=n_int)
+        return before_fit(VerifyReason.OUTSIDE_IMAGE)
     n_inside = len(ras[0])
     valid = ctx.valid[ras]
     rv, cv = ras[0][valid], ras[1][valid]
     n_valid = len(rv)
     if n_valid < 3:
-        return _failed(VerifyReason.BOUNDARY if unbound else VerifyReason.TOO_FEW_POINTS,
-                       tests + unbound, alpha, n_inside=n_inside, n_valid=n_valid,
-                       n_interior_edges=n_int)
+        return before_fit(VerifyReason.TOO_FEW_POINTS, n_inside=n_inside, n_valid=n_valid)
     fit = _fit_face(ctx, hyp, rv, cv, config.flatness)
     if fit is None:
-        return _failed(VerifyReason.BOUNDARY if unbound else VerifyReason.INLIERS,
-                       tests + unbound, alpha, n_inside=n_inside, n_valid=n_valid,
-                       n_interior_edges=n_int)
+        return before_fit(VerifyReason.INLIERS, n_inside=n_inside, n_valid=n_valid)
     if not bound:
         # sides without their line of edges: the face's plane may still end just beyond
         tests += _test_plane_ends(ctx, hyp, fit, sides)
