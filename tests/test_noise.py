@@ -11,7 +11,12 @@ import pytest
 from click.testing import CliRunner
 from real_data import MOSD
 
-from boxloc.calibrate.noise import estimate_noise, noise_toml, plane_residuals
+from boxloc.calibrate.noise import (
+    estimate_noise,
+    noise_toml,
+    plane_residuals,
+    quantization_floor,
+)
 from boxloc.cli import cli
 from boxloc.config import Config
 from boxloc.errors import InputError
@@ -302,3 +307,19 @@ def test_mosd_frame_noise() -> None:
     # and its tails are heavier than normal: 5 times as many residuals beyond 4 sigma
     obs, normal = rep["tails"]["observed"], rep["tails"]["normal"]
     assert obs[1] > 3 * normal[1] and obs[2] > 30 * normal[2]
+
+
+def test_quantized_depth_has_the_noise_of_its_steps() -> None:
+    # Depth reported in 18 mm steps with 1 mm of noise under them: a flat tile spanning
+    # less than a step reads nearly one value. The bins' std, floored at step / sqrt(12)
+    # along the ray, is what a test must expect between neighbours; a continuous sensor's
+    # floor is negligible.
+    rng = np.random.default_rng(3)
+    z = 4.0 + np.linspace(-0.05, 0.05, 5000) + rng.normal(0.0, 0.001, 5000)
+    step = 0.018
+    zq = (np.round(z / step) * step).astype(np.float32).astype(np.float64)
+    ray = 1.1
+    assert quantization_floor(ray * zq, zq) == pytest.approx(ray * step / np.sqrt(12), rel=1e-3)
+    zc = 4.0 + rng.uniform(-0.05, 0.05, 1000)
+    assert quantization_floor(zc, zc) < 1e-4
+

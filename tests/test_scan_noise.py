@@ -144,15 +144,32 @@ def test_the_estimate_is_recorded_and_explained(noisy, tmp_path) -> None:  # typ
     assert "noise model: scan, sigma" in format_explanation(d)
 
 
-@pytest.mark.parametrize(("spec", "g"), [
-    # a laser's range noise does not grow with incidence; the default sensor's, as 1/cos
-    ("floor:sensor=laser,width=320,height=240,f=262.5,distance=2.56,tilt=0.45", 0.0),
-    ("floor:width=320,height=240,f=262.5,distance=1.5,tilt=0.45", 1.0),
+@pytest.mark.parametrize(("spec", "lo", "hi"), [
+    # a laser's range noise does not grow with incidence; the default sensor's, as 1/cos.
+    # A floor's incidences (cos 0.6-1) do not tell g = 1 from 1.5 (each wins on some
+    # draws), so the second asks only that the noise grows with incidence
+    ("floor:sensor=laser,width=320,height=240,f=262.5,distance=2.56,tilt=0.45", 0.0, 0.0),
+    ("floor:width=320,height=240,f=262.5,distance=1.5,tilt=0.45", 1.0, 1.5),
 ])
-def test_the_incidence_law_is_the_scans(spec: str, g: float) -> None:
-    est = estimate_scan_noise(simulate(spec, 100).scan, Config(noise_auto=True))
-    assert est.noise_model()["incidence_exponent"] == g
+@pytest.mark.parametrize("seed", [100, 101, 102])
+def test_the_incidence_law_is_the_scans(spec: str, lo: float, hi: float, seed: int) -> None:
+    est = estimate_scan_noise(simulate(spec, seed).scan, Config(noise_auto=True))
+    assert lo <= est.noise_model()["incidence_exponent"] <= hi
     assert est.fits
+
+
+def test_a_noisy_far_floor_is_not_seen_grazing() -> None:
+    # Active stereo at 5 m: ~110 mm of correlated noise over a 16 px tile of ~180 mm. The
+    # tiles' own normals scatter by tens of degrees; the incidence comes from the surface
+    # around each tile, so the floor (seen at cos 0.8-1) is not called grazing and its
+    # noise is not explained away by a 1 / cos**g law.
+    spec = ("floor:f=440.0,distance=4.5,tilt=0.05,sensor=active-stereo,noise_scale=0.9,"
+            "sensor_class=oak-d-pro")
+    scan = simulate(spec, 1).scan
+    t = tile_residuals(scan, None, patch=16, labels=None, min_valid=0.9, max_outliers=0.05,
+                       max_curvature_ratio=1.5, min_cos=0.3)
+    assert t.rejected["grazing incidence"] <= 0.01 * t.n_tiles  # was 15 %
+    assert np.median(t.cos_incidence) > 0.8  # was 0.61
 
 
 def _floor_tiles(spec: str, seed: int):  # type: ignore[no-untyped-def]

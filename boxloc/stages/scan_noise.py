@@ -32,6 +32,7 @@ from boxloc.calibrate.noise import (
     TileResiduals,
     fit_bins,
     fit_residuals,
+    quantization_floor,
     tile_residuals,
 )
 from boxloc.config import Config
@@ -246,8 +247,16 @@ def _fit_tests(tiles: TileResiduals, model: NoiseModel, alpha: float
     if r.size == 0:
         return empty, TestTable.empty(alpha)
     # ln of a MAD-based std of n normal samples is biased low by about 1.36 / (2 n)
-    d = np.log(s / model.sigma_range(r)) + 1.36 / (2.0 * n)
     b = np.floor(r / BIN_WIDTH).astype(np.int64)
+    # a tile of quantized depth that spans less than one step reads below the steps'
+    # own spread, as the fit's bins do (calibrate.noise.quantization_floor)
+    inl = tiles.inlier
+    bp = np.floor(tiles.range[inl] / BIN_WIDTH).astype(np.int64)
+    for k in np.unique(b):
+        q = bp == k
+        s[b == k] = np.maximum(s[b == k], quantization_floor(tiles.range[inl][q],
+                                                              tiles.depth[inl][q]))
+    d = np.log(s / model.sigma_range(r)) + 1.36 / (2.0 * n)
     margin = scale_margin(alpha)
     rows = []
     for k in np.unique(b):
