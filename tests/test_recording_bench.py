@@ -52,10 +52,13 @@ def test_a_run_that_fails_is_an_error_with_its_message() -> None:
 def test_run_measured_counts_the_cpu_of_processes_the_command_leaves_running() -> None:
     """A grandchild that the command does not wait for (as the workers' forkserver) is
     counted from its own CPU times."""
-    burn = ("import time; t = time.process_time()\n"
-            "while time.process_time() - t < 0.4: pass\ntime.sleep(1.0)")
-    start = ("import subprocess, sys, time; subprocess.Popen([sys.executable, '-c', "
-             f"{burn!r}]); time.sleep(0.8)")  # it leaves the burner running
+    # The burner says when it has burnt its 0.4 s of CPU, and the command exits then,
+    # leaving it asleep: a busy machine delays the burn, not what is counted.
+    burn = ("import sys, time; t = time.process_time()\n"
+            "while time.process_time() - t < 0.4: pass\n"
+            "print('burnt', flush=True); time.sleep(1.0)")
+    start = ("import subprocess, sys; p = subprocess.Popen([sys.executable, '-c', "
+             f"{burn!r}], stdout=subprocess.PIPE); p.stdout.readline()")
     r = run_measured([sys.executable, "-c", start])
     assert r["returncode"] == 0 and r["processes"] == 2
     assert r["cpu_s"] >= 0.38
