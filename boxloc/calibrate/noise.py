@@ -339,11 +339,12 @@ def _incidence_normals(scan: Scan, valid: np.ndarray, ids: np.ndarray, step: int
     A tile's own plane has 256 points. Where the range noise is large against the tile's
     width (an active-stereo floor at 5 m: 110 mm of noise over 180 mm, correlated over 4
     px), its normal's error is tens of degrees, and in every direction away from the true
-    normal: the incidence it gives is biased toward grazing (median cos 0.62 on a floor
-    seen at cos 0.95, and a sixth of the tiles rejected as grazing). The noise model's
+    normal: the incidence it gives is biased toward grazing (median cos 0.61 on a floor
+    seen at cos 0.8-1, and a seventh of the tiles rejected as grazing). The noise model's
     1 / cos**g then explains the noise away with a small sigma and a large g, and every
-    test downstream sees half the true noise. The window's plane has nine times the
-    extent: its slope errors are about 1 / 9 of the tile's. It takes only the window's
+    test downstream sees half the true noise. The window is three times as wide, sampled
+    as many times, every INCIDENCE_STRIDE-th pixel (less correlated than neighbours): its
+    slope errors are a third of the tile's or less. It takes only the window's
     points within INCIDENCE_BAND of the tile's robust sigmas of the tile's plane, then of
     its own plane, so another surface joins it only within the noise of this one (a
     precise tile's band is millimetres wide). Where the window does not fit in the image
@@ -617,7 +618,8 @@ def estimate_noise(
     model : NoiseModel
     report : dict
         ``bins`` (edges, metres), and per used bin ``range`` (median, m), ``count``,
-        ``tiles``, ``std`` (the estimator's, m), ``std_mad``, ``std_clipped``, ``mean_cos``,
+        ``tiles``, ``std`` (the estimator's, m, at least ``floor``), ``std_mad``,
+        ``std_clipped``, ``floor`` (:func:`quantization_floor`, m), ``mean_cos``,
         ``model_std`` (fitted, m, at cos = 1), ``used`` (entered the fit); ``fit_rel_rms``
         (RMS of std/model - 1 over the fitted bins), ``incidence_exponent`` (see Notes),
         ``row_corr`` (``value``, ``tiles``, ``median``, ``std_error``), ``correlation``
