@@ -493,7 +493,9 @@ class Scan:
             sensor = PinholeModel.from_K(intrinsics, W, H)
         else:
             sensor = _fit_pinhole(P, W, H) or RayTableModel(P / r[..., None])
-        return cls(range=r.astype(np.float32), sensor=sensor, **kwargs)
+        with np.errstate(over="ignore"):  # beyond float32: inf, which the range check refuses
+            r32 = r.astype(np.float32)
+        return cls(range=r32, sensor=sensor, **kwargs)
 
 
 def _fit_pinhole(P: np.ndarray, W: int, H: int) -> PinholeModel | None:
