@@ -247,19 +247,20 @@ def tile_residuals(
 
     sel = np.flatnonzero(ok)
     wi = w[sel] > 0
-    r = np.linalg.norm(P0[sel], axis=2)
+    Ps, hs = P0[sel], h[sel]
+    r = np.linalg.norm(Ps, axis=2)
     with np.errstate(invalid="ignore", divide="ignore"):
-        d = P0[sel] / r[..., None]
+        d = Ps / r[..., None]
     ndot = np.einsum("tnk,tk->tn", d, normal[sel])
     dof = np.sqrt(n_in[sel] / (n_in[sel] - 3.0))[:, None]
-    e_ray = h[sel] * dof
+    e_ray = hs * dof
     tile = np.broadcast_to(ids[sel][:, None], wi.shape)
     vi = V[sel]  # the inliers are among them (the fit's weights are zero elsewhere)
     return TileResiduals(
         range=r[vi], cos_incidence=np.abs(ndot[vi]), residual=e_ray[vi],
-        depth=P0[sel][..., 2][vi],
-        tile=tile[vi].astype(np.int64), inlier=wi[vi], row_share=_row_share(h[sel], wi, patch),
-        lag_sums=_lag_sums(h[sel] / _tile_scale(h[sel], wi)[:, None], wi, patch),
+        depth=Ps[..., 2][vi],
+        tile=tile[vi].astype(np.int64), inlier=wi[vi], row_share=_row_share(hs, wi, patch),
+        lag_sums=_lag_sums(hs / _tile_scale(hs, wi)[:, None], wi, patch),
         n_tiles=n_tiles, n_accepted=int(sel.size),
         rejected=rejected,
     )
@@ -359,7 +360,7 @@ def _incidence_normals(scan: Scan, valid: np.ndarray, ids: np.ndarray, step: int
     sel = np.flatnonzero(ok)
     if sel.size == 0 or H < side or W < side:
         return normal
-    tx = (W // patch + step - 1) // step
+    ty, tx = -(-(H // patch) // step), -(-(W // patch) // step)  # the examined tile grid
     gy, gx = np.divmod(ids[sel], tx)
     r0 = np.clip(gy * step * patch - patch * (INCIDENCE_TILES // 2), 0, H - side)
     c0 = np.clip(gx * step * patch - patch * (INCIDENCE_TILES // 2), 0, W - side)
@@ -370,9 +371,9 @@ def _incidence_normals(scan: Scan, valid: np.ndarray, ids: np.ndarray, step: int
     P = scan.points[rr, cc].reshape(T, -1, 3).astype(np.float64)
     V = valid[rr, cc].reshape(T, -1) & (P[..., 2] > 0)
     P = np.where(V[..., None], P, 0.0)
-    rng = np.linalg.norm(P, axis=2)
+    dist = np.linalg.norm(P, axis=2)
     with np.errstate(invalid="ignore", divide="ignore"):
-        u = P / rng[..., None]
+        u = P / dist[..., None]
     sig = _tile_scale(h[sel], w[sel] > 0)
     Zs = np.where(V, P[..., 2], 1.0)
     x, y, q = P[..., 0] / Zs, P[..., 1] / Zs, 1.0 / Zs
@@ -381,7 +382,7 @@ def _incidence_normals(scan: Scan, valid: np.ndarray, ids: np.ndarray, step: int
     for _ in range(2):
         with np.errstate(invalid="ignore", divide="ignore"):
             t_hit = c[:, None] / np.einsum("tnk,tk->tn", u, n)
-        inl = V & (np.abs(rng - t_hit) <= INCIDENCE_BAND * sig[:, None])
+        inl = V & (np.abs(dist - t_hit) <= INCIDENCE_BAND * sig[:, None])
         wt = inl.astype(np.float64)
         AwT = (A * wt[..., None]).transpose(0, 2, 1)
         M = AwT @ A + 1e-12 * np.eye(3)
@@ -399,7 +400,6 @@ def _incidence_normals(scan: Scan, valid: np.ndarray, ids: np.ndarray, step: int
     # The window's normal replaces the tile's only where the tile's scatter is its
     # neighbours' (the surface's noise): a tile across a step fits one plane through both
     # levels, grazing, with a scatter far above its neighbours', and stays grazing.
-    ty = -(-(H // patch) // step)
     grid = np.full((ty + 2, tx + 2), np.nan)
     grid[gy + 1, gx + 1] = sig
     nb = np.stack([grid[gy + 1 + dy, gx + 1 + dx] for dy in (-1, 0, 1) for dx in (-1, 0, 1)

@@ -251,11 +251,11 @@ def _fit_tests(tiles: TileResiduals, model: NoiseModel, alpha: float
     # a tile of quantized depth that spans less than one step reads below the steps'
     # own spread, as the fit's bins do (calibrate.noise.quantization_floor)
     inl = tiles.inlier
-    bp = np.floor(tiles.range[inl] / BIN_WIDTH).astype(np.int64)
+    rp, zp = tiles.range[inl], tiles.depth[inl]
+    bp = np.floor(rp / BIN_WIDTH).astype(np.int64)
     for k in np.unique(b):
-        q = bp == k
-        s[b == k] = np.maximum(s[b == k], quantization_floor(tiles.range[inl][q],
-                                                              tiles.depth[inl][q]))
+        q, t = bp == k, b == k
+        s[t] = np.maximum(s[t], quantization_floor(rp[q], zp[q]))
     d = np.log(s / model.sigma_range(r)) + 1.36 / (2.0 * n)
     margin = scale_margin(alpha)
     rows = []
