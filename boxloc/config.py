@@ -44,6 +44,10 @@ UNRECORDED_KEYS: dict[str, Any] = {
     "mdl_face_points": 0.0,
     # logs before the edge stage's budget (issue #22 part 2) ran every scan line
     "max_edge_work": 0,
+    # logs before hole_weight counted a face's holes as points off its plane, and needed
+    # no share of its pixels to return
+    "hole_weight": 1.0,
+    "min_return_fraction": 0.0,
 }
 
 #: The noise terms ``noise_auto`` estimates from each scan; giving any of them pins the model.
@@ -118,9 +122,20 @@ class Config:
         must cover in ``dimensions_from_edges``.
     min_inlier_fraction : float
         Prior: the fraction of the range points inside a fully exposed face that lie on its
-        plane (the rest are dropouts, bulge and mixed pixels at its border). Verification's
+        plane (the rest are noise, bulge and mixed pixels at its border). Verification's
         continuation test uses it too: a strip beyond a side with this fraction on the
-        face's plane is more of the same face.
+        face's plane is more of the same face. Counted over the pixels that returned:
+        holes (dark labels, tape, dropouts) are no evidence against a face.
+    min_return_fraction : float
+        Prior: the fraction of the pixels inside a face that must return a range for its
+        points to verify it (verification's ``VERIFY_INLIERS`` row 1). Active-stereo and
+        time-of-flight sensors return nothing from dark labels and tape: on the
+        development scenes up to two fifths of a box top's pixels were holes. 0: no such
+        requirement (logs written before this key).
+    hole_weight : float
+        How much a pixel inside a face that returned nothing counts against it in
+        ``VERIFY_INLIERS``: 0, not at all (a hole is no evidence of anything off the
+        plane); 1, as a point off the plane (logs written before this key).
     flatness : float
         Prior: how far a box top may depart from a plane (cardboard bulge), metres; added
         in quadrature to the point noise when points are tested against a face, and to
@@ -213,6 +228,8 @@ class Config:
     min_crease_angle: float = math.radians(20.0)
     support_fraction: float = 0.3
     min_inlier_fraction: float = 0.8
+    min_return_fraction: float = 0.5
+    hole_weight: float = 0.0
     flatness: float = 0.005
     angle_tolerance: float = math.radians(1.0)
     # 1/2 lost corners of the mOSD tops in some draws of the trials, 1 lost faces of the
@@ -246,6 +263,8 @@ class Config:
         check("min_crease_angle", 0 < self.min_crease_angle < math.pi / 2, "in (0, pi/2)")
         check("support_fraction", 0 < self.support_fraction <= 1, "in (0, 1]")
         check("min_inlier_fraction", 0 < self.min_inlier_fraction <= 1, "in (0, 1]")
+        check("min_return_fraction", 0 <= self.min_return_fraction <= 1, "in [0, 1]")
+        check("hole_weight", 0 <= self.hole_weight <= 1, "in [0, 1]")
         check("flatness", 0 <= self.flatness < 0.1, "in [0, 0.1) m")
         check("angle_tolerance", 0 <= self.angle_tolerance < 0.2, "in [0, 0.2) rad")
         check("end_tolerance", 0 <= self.end_tolerance <= 1, "in [0, 1] (of min_edge)")

@@ -66,7 +66,8 @@ def test_old_logs_ran_without_a_list_and_the_default_hash_is_unchanged() -> None
     assert Config.from_recorded(d) == Config()
     # the default list and tolerance hash as before they existed
     assert Config(max_edge_work=0, max_line_work=0, max_vertices=0, max_hypothesis_work=0,
-                  noise_auto=False, mdl_face_points=0.0).hash == "6931a5b73eb71291"
+                  noise_auto=False, mdl_face_points=0.0,
+                  min_return_fraction=0.0, hole_weight=1.0).hash == "6931a5b73eb71291"
 
 
 @pytest.mark.parametrize("rows", [((0.3,),), ((0.3, 0.4, -1.0),), "0.3,0.4", ((0.3, True),)])

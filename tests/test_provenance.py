@@ -92,7 +92,8 @@ def test_an_old_log_keeps_saying_what_it_ran_after_the_defaults_change(
         old = make_log(tmp_path / "old.mcap", [1, 2],
                        config=Config(noise_auto=False, max_edge_work=0, max_line_work=0,
                                      max_vertices=0, max_hypothesis_work=0,
-                                     mdl_face_points=0.0))
+                                     mdl_face_points=0.0, min_return_fraction=0.0,
+                                     hole_weight=1.0))
     # every key an old log lacks has the value its run used in the frozen table (a key
     # added to the config without its entry there fails here)
     assert _unwritten(_recorded(old)) <= set(UNRECORDED_KEYS)
@@ -100,7 +101,8 @@ def test_an_old_log_keeps_saying_what_it_ran_after_the_defaults_change(
     # what the old code ran: no budgets yet
     assert open_log(old).config == Config(max_edge_work=0, max_line_work=0, max_vertices=0,
                                           max_hypothesis_work=0, noise_auto=False,
-                                          mdl_face_points=0.0)
+                                          mdl_face_points=0.0, min_return_fraction=0.0,
+                                          hole_weight=1.0)
     _set_defaults(monkeypatch, Config, end_tolerance=0.5, trial_seed=3, alpha=0.05,
                   noise_auto=True)
     _set_defaults(monkeypatch, NoiseModel, edge_px=0.7, row_corr=0.2)
@@ -147,7 +149,8 @@ def test_the_hash_names_the_same_config_as_before_full_provenance() -> None:
     # the hash the recorder wrote for the default config before every value was recorded
     # (the budgets and the MDL's face units came later: a run without them is that config)
     assert Config(max_edge_work=0, max_line_work=0, max_vertices=0, max_hypothesis_work=0,
-                  noise_auto=False, mdl_face_points=0.0).hash == "6931a5b73eb71291"
+                  noise_auto=False, mdl_face_points=0.0,
+                  min_return_fraction=0.0, hole_weight=1.0).hash == "6931a5b73eb71291"
     assert Config(trial_seed=2).hash != Config().hash
     assert Config(end_tolerance=0.5).hash != Config().hash
     assert Config(workers=2).hash == Config().hash

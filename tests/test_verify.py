@@ -168,6 +168,45 @@ def test_exposed_catches_the_corner_of_a_box_above(single_box):
     assert not rows.accepted[0] and rows.accepted[1] and not rows.accepted[2]
 
 
+def _holes(ctx, frame, share):
+    """ctx with the middle `share` of the top's rows (along y) returning nothing."""
+    o, x, y, n, w, l_ = frame
+    D = ctx.points - o
+    dv = D @ y
+    lo, hi = 0.5 * l_ * (1 - share), 0.5 * l_ * (1 + share)
+    hole = ctx.valid & (np.abs(D @ n) < 0.005) & (dv > lo) & (dv < hi)
+    return dataclasses.replace(ctx, valid=ctx.valid & ~hole)
+
+
+@pytest.mark.parametrize("share, accepted", [(0.0, True), (0.4, True), (0.7, False)])
+def test_holes_are_no_evidence_but_a_face_must_be_mostly_seen(single_box, share, accepted):
+    # a dark label or tape returns nothing to an active-stereo sensor: the returns still all
+    # lie on the top, so a hole does not reject it; a top seen on less than
+    # min_return_fraction of its pixels is not verified by its points
+    sim, cfg, ctx, frame = single_box
+    out = _verify(sim, cfg, _holes(ctx, frame, share), frame)
+    rows = out.tests.of_kind(TestKind.VERIFY_INLIERS)
+    assert list(rows.critical) == [cfg.min_inlier_fraction, cfg.min_return_fraction]
+    assert rows.statistic[0] > 0.95  # the returns: on the plane, however many holes
+    assert list(rows.b) == [out.n_valid, out.n_inside]
+    assert rows.statistic[1] == pytest.approx(out.n_valid / out.n_inside)
+    assert abs(rows.statistic[1] - (1 - share)) < 0.1
+    assert bool(rows.accepted[1]) == accepted
+    assert out.reason == (VerifyReason.ACCEPTED if accepted else VerifyReason.INLIERS)
+
+
+def test_holes_counted_against_a_face_as_logs_before_hole_weight(single_box):
+    # hole_weight 1 and no return requirement: one row, over every pixel inside
+    sim, cfg, ctx, frame = single_box
+    old = dataclasses.replace(cfg, hole_weight=1.0, min_return_fraction=0.0)
+    out = _verify(sim, old, _holes(ctx, frame, 0.4), frame)
+    rows = out.tests.of_kind(TestKind.VERIFY_INLIERS)
+    assert list(rows.b) == [out.n_inside] and list(rows.critical) == [cfg.min_inlier_fraction]
+    assert rows.statistic[0] == pytest.approx(out.n_inliers / out.n_inside)
+    assert rows.statistic[0] < cfg.min_inlier_fraction
+    assert out.reason == VerifyReason.INLIERS
+
+
 def test_a_strip_out_of_the_image_cannot_show_the_face_ends(single_box):
     # the far side along y moved 3 m out: its strip lies outside the image (and so do
     # most of the two sides along it), the side at the vertex inside; verify then cannot
