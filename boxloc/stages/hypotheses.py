@@ -431,8 +431,8 @@ def _seam_peaks(R: Rectangle, ctx: _Context, work: _VertexWork, px: np.ndarray,
     found = []
     for b, (coord, other, ext) in enumerate(((fp.u, fp.v, U), (fp.v, fp.u, V))):
         sel = other > band
-        pos, z, crit, _ = find_seams(coord[sel], fp.w[sel], fp.scale, lo, ext - lo, spacing,
-                                     vc.seam_alpha, fp.row[sel], fp.row_corr)
+        pos, z, crit = find_seams(coord[sel], fp.w[sel], fp.scale, lo, ext - lo, spacing,
+                                  vc.seam_alpha, fp.row[sel], fp.row_corr)[:3]
         found.append(pos)
         if len(pos):
             work.tests.append(TestTable.decision(TestKind.SEAM_PEAK, R.vertex, b, z, crit,

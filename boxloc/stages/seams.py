@@ -594,6 +594,30 @@ def seam_z(coord: np.ndarray, w: np.ndarray, scale: float, centres: np.ndarray, 
     return np.where(both, z, -np.inf)
 
 
+#: Positions the statistic's spread is measured over at least (fewer: taken as 1).
+MIN_SPREAD_POSITIONS = 8
+
+
+def seam_spread(z: np.ndarray) -> float:
+    """How far the noise spreads the seam statistic beyond N(0, 1) along one face.
+
+    Correlated noise (structured-light and active-stereo depth) moves whole bands of a
+    face a few millimetres: a window's mean then varies far more than its points'
+    scatter over their number says. Measured over the statistic's values at a face's
+    positions, robustly (seams are few): 1.4826 MAD, at least 1; 1 with fewer than
+    :data:`MIN_SPREAD_POSITIONS` finite values.
+
+    Parameters
+    ----------
+    z : (m,) float64
+        :func:`seam_z`'s statistic before its sign conditions (NaN where undefined).
+    """
+    fin = z[np.isfinite(z)]
+    if len(fin) < MIN_SPREAD_POSITIONS:
+        return 1.0
+    return max(1.0, float(1.4826 * np.median(np.abs(fin - np.median(fin)))))
+
+
 class Seams(NamedTuple):
     """Result of :func:`find_seams`."""
 
@@ -606,6 +630,8 @@ class Seams(NamedTuple):
     #: The largest statistic over all positions, significant or not (-inf if none was
     #: computable): what a post-mortem reads when no seam was found.
     z_max: float
+    #: :func:`seam_spread` over the positions, which ``z`` and ``z_max`` are divided by.
+    spread: float = 1.0
 
 
 def find_seams(coord: np.ndarray, w: np.ndarray, scale: float, lo: float, hi: float,
@@ -629,11 +655,9 @@ def find_seams(coord: np.ndarray, w: np.ndarray, scale: float, lo: float, hi: fl
     crit = float(norm_isf(alpha / n_indep))
     zr, both = _seam_stats(coord, w, scale, centres, h, row, row_corr)
     # correlated noise (e.g. structured-light depth) spreads the statistic beyond N(0, 1):
-    # measure its spread over the positions (robustly: seams are few) and divide it out
-    fin = zr[np.isfinite(zr)]
-    if len(fin) >= 8:
-        zr = zr / max(1.0, float(1.4826 * np.median(np.abs(fin - np.median(fin)))))
-    z = np.where(both, zr, -np.inf)
+    # measure its spread over the positions and divide it out
+    spread = seam_spread(zr)
+    z = np.where(both, zr / spread, -np.inf)
     left = np.r_[-np.inf, z[:-1]]
     right = np.r_[z[1:], -np.inf]
     pk = np.flatnonzero((z > crit) & (z >= left) & (z > right))
@@ -644,7 +668,8 @@ def find_seams(coord: np.ndarray, w: np.ndarray, scale: float, lo: float, hi: fl
             keep.append(int(i))
     pk = np.array(sorted(keep), np.int64)
     fin_z = z[np.isfinite(z)]
-    return Seams(centres[pk], z[pk], crit, float(fin_z.max()) if len(fin_z) else -np.inf)
+    return Seams(centres[pk], z[pk], crit, float(fin_z.max()) if len(fin_z) else -np.inf,
+                 spread)
 
 
 def gap_z(coord: np.ndarray, centres: np.ndarray, h: float) -> np.ndarray:
@@ -671,7 +696,8 @@ def gap_z(coord: np.ndarray, centres: np.ndarray, h: float) -> np.ndarray:
 
 def seam_at(coord: np.ndarray, w: np.ndarray, scale: float, position: float, h: float,
             alpha: float, reach: float | None = None, gaps: bool = False,
-            row: np.ndarray | None = None, row_corr: float = 0.0) -> tuple[float, float]:
+            row: np.ndarray | None = None, row_corr: float = 0.0, spread: float = 1.0
+            ) -> tuple[float, float]:
     """The strongest seam (or gap) statistic near ``position``.
 
     Parameters
@@ -682,6 +708,10 @@ def seam_at(coord: np.ndarray, w: np.ndarray, scale: float, position: float, h: 
     gaps : bool
         Count a gap (:func:`gap_z`) as a seam. Only where the face is known to continue
         beyond ``position``: elsewhere a shadow or a dropout also thins the points out.
+    spread : float
+        :func:`seam_spread` of the statistic along the face (:attr:`Seams.spread` of its
+        interior): a few positions near one side cannot measure it. Divides the groove's
+        statistic, not the gap's (a count, which correlated depth noise does not spread).
 
     Returns
     -------
@@ -695,11 +725,11 @@ def seam_at(coord: np.ndarray, w: np.ndarray, scale: float, position: float, h: 
     r = SEAM_INNER * h if reach is None else max(float(reach), SEAM_INNER * h)
     centres = position + np.arange(-r, r + 0.25 * SEAM_INNER * h, SEAM_INNER * h)
     n_indep = max(3.0, 2.0 * r / (SEAM_INNER * h) + 1.0)
-    z = seam_z(coord, w, scale, centres, h, row, row_corr)
+    z = seam_z(coord, w, scale, centres, h, row, row_corr) / spread
     if gaps:
         z = np.maximum(z, gap_z(coord, centres, h))
     return float(z.max()), float(norm_isf(alpha / n_indep))
 
 
 __all__ = ["FacePoints", "Seams", "face_points", "find_seams", "gap_z", "norm_isf", "seam_at",
-           "seam_z", "SEAM_FLANK", "SEAM_INNER"]
+           "seam_spread", "seam_z", "MIN_SPREAD_POSITIONS", "SEAM_FLANK", "SEAM_INNER"]
