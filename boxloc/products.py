@@ -461,6 +461,8 @@ class Verification:
     n_inliers, n_front, n_behind : (k,) int32
         Points on the plane, significantly in front of it, behind it (point-on-plane, 1 dof).
     inlier_fraction : (k,) float64
+        ``n_inliers`` over the returns inside plus ``Config.hole_weight`` of the holes
+        (``VERIFY_INLIERS`` row 0).
     mean_distance, sigma_mean : (k,) float64
         Mean signed distance of the inliers to the plane and its standard deviation, metres.
     n_interior_edges : (k,) int32
