@@ -152,6 +152,35 @@ def test_exposed_ignores_edge_artefacts_but_not_an_occluder(single_box):
 
 
 
+def test_a_jump_point_on_a_mixed_pixel_still_shows_the_side(single_box):
+    # a sensor's footprint wider than a pixel blends the top with the floor at a jump: the
+    # jump's edge point lies behind the top, between it and the floor. Nearer the top than
+    # the floor, it shows where the top ends; nearer the floor, it does not
+    sim, cfg, ctx, frame = single_box
+    o, x, y, n, w, l_ = frame
+    E = ctx.edge_points - o
+    ev, ew = E @ y, E @ n
+    side = (np.abs(ev) < 0.01) & (np.abs(ew) < 0.01) & (ctx.edge_kinds == EdgeKind.JUMP)
+    assert side.sum() >= 20
+    height = np.median(ctx.edge_strength[side])  # the jump down to the floor, ~0.25 m
+    assert height > 0.1
+
+    def side0(behind: float) -> tuple[int, bool, str]:
+        P = ctx.edge_points.copy()
+        q = P[side]
+        P[side] = q * (1.0 + behind / np.linalg.norm(q, axis=1))[:, None]  # along the ray
+        out = _verify(sim, cfg, dataclasses.replace(ctx, edge_points=P), frame)
+        rows = out.tests.of_kind(TestKind.VERIFY_BOUNDARY)
+        return int(rows.statistic[0]), bool(rows.accepted[0]), out.reason.name
+
+    on_plane, ok, reason = side0(0.0)
+    assert ok and reason == "ACCEPTED"
+    blended, ok, _ = side0(0.15 * height)  # a mixed pixel: the side still counts
+    assert ok and blended >= 0.8 * on_plane
+    far, ok, _ = side0(0.7 * height)  # nearer the floor: not this top's end
+    assert far < 0.1 * on_plane and not ok
+
+
 def test_exposed_catches_the_corner_of_a_box_above(single_box):
     # a 2 cm square in one corner of the core, 2 cm nearer: too few points for the rate
     # over the whole core, plenty for one cell of it

@@ -15,7 +15,9 @@ rectangle's plane with their propagated uncertainty (point-on-plane, chi2(1) at 
 * ``VERIFY_BOUNDARY`` — each of the four sides is a real boundary of a top face: edge
   points where the face drops away (jump, convex crease) or meets an equal neighbour
   (groove) form a significant line along it (Poisson against the interior's scattered
-  edges, at alpha), and all four together cover the fraction p of the perimeter. This
+  edges, at alpha), and all four together cover the fraction p of the perimeter. The
+  points lie on the face's plane, or, for a jump, behind it but nearer to it than to the
+  jump's far side (a mixed pixel: a footprint wider than a pixel straddles the end). This
   extends the paper's |P_f| > p from the two far sides to all four, and rejects a
   sub-rectangle of a larger face, and the floor or pallet between boxes (bounded by
   concave creases where the boxes rise: a side needs more convex than concave edge
@@ -554,6 +556,11 @@ class _FaceEdges:
     kinds: np.ndarray  # (n,) EdgeKind
     near_plane: np.ndarray  # (n,) bool: on the rectangle's plane
     interior: np.ndarray  # (n,) bool: on the plane and beyond the interior margin
+    #: (n,) bool: a jump point behind the plane, nearer to it than to the jump's far side
+    #: (a mixed pixel: the sensor's footprint straddles the face's end; at 1280x960 a
+    #: laser's is 4-5 pixels, and its jump points lay 26-52 mm behind a top 35 cm above
+    #: the floor). It shows where the face ends, as a jump point on the plane does.
+    blend: np.ndarray
     #: (n,) bool: a jump no higher than the flatness prior allows within one face (tape, a
     #: label, a bulge's fold), or None where the strengths are unknown
     minor: np.ndarray | None = None
@@ -579,10 +586,12 @@ def _face_edges(ctx: VerifyContext, hyp: _Hypothesis, config: Config) -> _FaceEd
     interior = near_plane & (eu > mi) & (eu < width - mi) & (ev > mi) & (ev < length - mi)
     kinds = ctx.edge_kinds[reach]
     minor = None
+    blend = np.zeros(len(E), bool)
     if ctx.edge_strength is not None and len(ctx.edge_strength) == len(ctx.edge_points):
-        minor = (kinds == EdgeKind.JUMP) & (ctx.edge_strength[reach]
-                                            <= hyp.k * config.flatness)
-    return _FaceEdges(eu, ev, kinds, near_plane, interior, minor)
+        strength = ctx.edge_strength[reach]
+        minor = (kinds == EdgeKind.JUMP) & (strength <= hyp.k * config.flatness)
+        blend = (kinds == EdgeKind.JUMP) & ~near_plane & (ew < 0) & (-ew <= 0.5 * strength)
+    return _FaceEdges(eu, ev, kinds, near_plane, interior, blend, minor)
 
 
 @dataclass
@@ -661,8 +670,8 @@ def _test_boundary(edges: _FaceEdges, hyp: _Hypothesis, ctx: VerifyContext,
     of the perimeter (the paper's |P_f| > p, over all four sides)."""
     u, v, band = edges.u, edges.v, hyp.band
     width, length, spacing, mi = hyp.width, hyp.length, hyp.spacing, hyp.interior_margin
-    convex = edges.near_plane & np.isin(edges.kinds, (EdgeKind.JUMP, EdgeKind.CREASE_CONVEX,
-                                                      EdgeKind.GROOVE))
+    convex = (edges.near_plane | edges.blend) & np.isin(
+        edges.kinds, (EdgeKind.JUMP, EdgeKind.CREASE_CONVEX, EdgeKind.GROOVE))
     sides = (
         (np.abs(v) <= band, u, width),
         (np.abs(v - length) <= band, u, width),
