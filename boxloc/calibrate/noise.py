@@ -545,6 +545,11 @@ def quantization_floor(r: np.ndarray, z: np.ndarray) -> float:
     return step / math.sqrt(12.0) * (ray if math.isfinite(ray) else 1.0)
 
 
+def _bin_std(row: dict[str, Any], estimator: str) -> float:
+    """A range bin's std: the estimator's, at least the bin's quantization floor."""
+    return max(row["std_mad"] if estimator == "mad" else row["std_clipped"], row["floor"])
+
+
 def _robust_std(y: np.ndarray) -> float:
     return float(_MAD_TO_STD * np.median(np.abs(y - np.median(y))))
 
@@ -754,8 +759,7 @@ def fit_residuals(
             "mean_cos": float(np.mean(c[sel])),
             "floor": quantization_floor(r[sel], d[sel]),
         }
-        row["std"] = max(row["std_mad"] if estimator == "mad" else row["std_clipped"],
-                         row["floor"])
+        row["std"] = _bin_std(row, estimator)
         row["used"] = bool(row["count"] >= min_points and tiles_b >= min_tiles
                            and row["std"] > 0)
         rows.append(row)
@@ -782,8 +786,7 @@ def fit_residuals(
                 yb = y_try[members[int(round((row["lo"] - lo) / bin_width))]]
                 row["std_mad"] = _robust_std(yb)
                 row["std_clipped"] = _clipped_std(yb) if clipped else None
-                row["std"] = max(row["std_mad"] if estimator == "mad"
-                                 else row["std_clipped"], row["floor"])
+                row["std"] = _bin_std(row, estimator)
             used_try = [row for row in rows_try if row["used"] and row["std"] > 0]
             if not used_try:
                 continue

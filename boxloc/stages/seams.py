@@ -75,6 +75,10 @@ class FacePoints:
     row_corr : float
         Correlation of two points' noise in the same image row
         (:attr:`boxloc.scan.NoiseModel.row_corr`).
+    spread : (float, float)
+        :func:`seam_spread` of the statistic along u and along v, which a seam at a side
+        (tested at too few positions to measure it) is divided by; (1, 1) until the face's
+        interior has measured it (:func:`boxloc.stages.verify.verify`).
     """
 
     u: np.ndarray
@@ -84,6 +88,7 @@ class FacePoints:
     spacing: float
     row: np.ndarray
     row_corr: float = 0.0
+    spread: tuple[float, float] = (1.0, 1.0)
 
     def __len__(self) -> int:
         return int(self.u.shape[0])

@@ -263,22 +263,22 @@ def _interior_line_span(
 
 
 def _side_seam(fp: FacePoints, side: int, width: float, length: float, spacing: float,
-               alpha: float, reach: float | None = None, gaps: bool = False,
-               spread: tuple[float, float] = (1.0, 1.0)) -> tuple[float, float]:
+               alpha: float, reach: float | None = None, gaps: bool = False
+               ) -> tuple[float, float]:
     """Seam statistic along one side of a rectangle, and its critical value.
 
     ``side`` is 0-3: v=0, v=length, u=0, u=width; ``reach`` and ``gaps`` as in
-    :func:`boxloc.stages.seams.seam_at`; ``spread``, the statistic's spread over the
-    face's interior positions along u and along v (:func:`_test_seam_interior`). A seam
+    :func:`boxloc.stages.seams.seam_at`; the statistic is divided by its spread along the
+    face (``fp.spread``, from :func:`_test_seam_interior`). A seam
     runs the whole side: both halves must show a groove or gap (a local dent does not), so
     the weaker half caps the statistic.
     """
     if side < 2:
         sel = (fp.u >= 0) & (fp.u <= width)
-        coord, along, at, L, sp = fp.v, fp.u, (0.0, length)[side], width, spread[1]
+        coord, along, at, L, sp = fp.v, fp.u, (0.0, length)[side], width, fp.spread[1]
     else:
         sel = (fp.v >= 0) & (fp.v <= length)
-        coord, along, at, L, sp = fp.u, fp.v, (0.0, width)[side - 2], length, spread[0]
+        coord, along, at, L, sp = fp.u, fp.v, (0.0, width)[side - 2], length, fp.spread[0]
     zs, zc = seam_at(coord[sel], fp.w[sel], fp.scale, at, spacing, alpha, reach,
                      gaps, fp.row[sel], fp.row_corr, sp)
     for half in (sel & (along < 0.5 * L), sel & (along >= 0.5 * L)):
@@ -709,7 +709,7 @@ def _test_boundary(edges: _FaceEdges, hyp: _Hypothesis, ctx: VerifyContext,
 
 
 def _test_seam_sides(fp: FacePoints, hyp: _Hypothesis, sides: _Sides,
-                     support_fraction: float, spread: tuple[float, float]) -> list[TestTable]:
+                     support_fraction: float) -> list[TestTable]:
     """VERIFY_SEAM_SIDE: a side without its line of edges, or whose line covers too little,
     is a boundary if it is a seam between touching faces along its whole length.
 
@@ -719,7 +719,7 @@ def _test_seam_sides(fp: FacePoints, hyp: _Hypothesis, sides: _Sides,
 
     def seams_along(tried: list[int]) -> None:
         zz = np.array([_side_seam(fp, si, hyp.width, hyp.length, hyp.spacing,
-                                  hyp.seam_alpha, spread=spread) for si in tried])
+                                  hyp.seam_alpha) for si in tried])
         for si, (zs, zc) in zip(tried, zz):
             if zs > zc:
                 sides.seams.add(si)
@@ -740,7 +740,7 @@ def _test_seam_sides(fp: FacePoints, hyp: _Hypothesis, sides: _Sides,
 
 
 def _test_size_sides(fp: FacePoints, hyp: _Hypothesis, sides: _Sides,
-                     size_sides: frozenset[int], spread: tuple[float, float]) -> TestTable:
+                     size_sides: frozenset[int]) -> TestTable:
     """SKU_SPLIT_SEAM: the sides a listed size implies are boundaries on the size's
     evidence; the groove along each, however weak, is recorded (b = side, statistic z,
     critical the seam level's z, accepted where the seam is seen).
@@ -748,8 +748,7 @@ def _test_size_sides(fp: FacePoints, hyp: _Hypothesis, sides: _Sides,
     Completes ``sides`` (``ok``, ``covered``, ``seams``) with them.
     """
     tried = sorted(size_sides)
-    zz = np.array([_side_seam(fp, si, hyp.width, hyp.length, hyp.spacing, hyp.seam_alpha,
-                              spread=spread)
+    zz = np.array([_side_seam(fp, si, hyp.width, hyp.length, hyp.spacing, hyp.seam_alpha)
                    if len(fp) else (np.nan, np.nan) for si in tried])
     for si in tried:
         sides.ok[si] = True
@@ -815,8 +814,7 @@ def _test_plane_ends(ctx: VerifyContext, hyp: _Hypothesis, fit: _FaceFit | None,
 
 
 def _test_continuation(ctx: VerifyContext, fp: FacePoints, hyp: _Hypothesis, fit: _FaceFit,
-                       sides: _Sides, min_inlier_fraction: float,
-                       spread: tuple[float, float] = (1.0, 1.0)
+                       sides: _Sides, min_inlier_fraction: float
                        ) -> tuple[np.ndarray, np.ndarray, list[TestTable]]:
     """VERIFY_CONTINUATION: the face ends at each side, its plane does not run on beyond,
     unless the side is a seam or a gap between equal neighbours (a rectangle cut short
@@ -846,8 +844,7 @@ def _test_continuation(ctx: VerifyContext, fp: FacePoints, hyp: _Hypothesis, fit
             continue
         # anywhere in the band where the side's boundary edges are counted
         zs, zc = (_side_seam(fp, int(si), hyp.width, hyp.length, hyp.spacing,
-                             hyp.seam_alpha, hyp.band, True, spread)
-                  if len(fp) else (-np.inf, np.inf))
+                             hyp.seam_alpha, hyp.band, True) if len(fp) else (-np.inf, np.inf))
         extra_seam.append((int(si), zs, zc))
         ends[si] = zs > zc
         if ends[si]:
@@ -1120,16 +1117,16 @@ def verify(
     # noise a side's windows share nothing with the interior's, and what spreads the
     # interior's statistic is the face's own shape (tape, labels, a dent), not noise
     crossed, interior_rows, spread = _test_seam_interior(fp, hyp)
-    if not (config.noise.corr_px_rows > 0 or config.noise.corr_px_cols > 0):
-        spread = (1.0, 1.0)
+    if config.noise.corr_px_rows > 0 or config.noise.corr_px_cols > 0:
+        fp = dataclasses.replace(fp, spread=spread)
     if size_sides:
-        tests.append(_test_size_sides(fp, hyp, sides, size_sides, spread))
+        tests.append(_test_size_sides(fp, hyp, sides, size_sides))
     for si in sorted(region_sides):
         if not sides.ok[si]:  # on the region's evidence
             sides.ok[si] = True
             sides.covered[si] = int(sides.expected[si])
             sides.seams.add(si)
-    tests += _test_seam_sides(fp, hyp, sides, config.support_fraction, spread)
+    tests += _test_seam_sides(fp, hyp, sides, config.support_fraction)
     tests += interior_rows
     if crossed and not region:
         return _failed(VerifyReason.INTERIOR_SEAM, tests, alpha, n_interior_edges=n_int)
@@ -1180,8 +1177,7 @@ def verify(
     tests.append(row)
     mean, s2_mean, mean_t = _test_mean(fit, hyp, config.flatness)
     tests.append(mean_t)
-    ends, cut, rows = _test_continuation(ctx, fp, hyp, fit, sides, config.min_inlier_fraction,
-                                         spread)
+    ends, cut, rows = _test_continuation(ctx, fp, hyp, fit, sides, config.min_inlier_fraction)
     tests += rows
 
     reason = (VerifyReason.NOT_EXPOSED if not exposed
