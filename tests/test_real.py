@@ -314,7 +314,9 @@ def test_mosd_row_offsets_make_no_seam_on_a_covered_top() -> None:
     assert not truth.exposed[lower]
     # (Read as independent, rho = 0, the covered strip was reported until the edge stage's
     # local noise scale, 937849d, stopped its false edges too; the row term's own effect on
-    # a seam is tested on constructed rows in test_seams.)
+    # a seam is tested on constructed rows in test_seams.) The groove window two spacings
+    # wide (seams.SEAM_SCALES) found a seam across the rows here until its side statistic
+    # was divided by the interior's spread at that width whatever the noise model says.
     seam = TestKind.VERIFY_SEAM_SIDE
     r = find_graspable_surfaces(scan, Config().with_overrides(
         [*MOSD_CONFIG, "noise.row_corr=0.28"]))

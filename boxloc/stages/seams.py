@@ -19,7 +19,10 @@ tilt of the reference plane cancels): z = (flanks - groove) / sd, positive when 
 lies behind; and the groove must lie behind each flank on its own (a step or a ridge beside
 the window lifts only one flank). A ridge standing well above the noise can still lift one
 flank enough to pass both conditions a flank's distance beside it; verification's
-interior test then errs toward rejecting, never toward merging two faces.
+interior test then errs toward rejecting, never toward merging two faces. Every search and
+test takes the larger statistic of two groove widths (:data:`SEAM_SCALES`: the windows
+scaled by 1 and by 2), Bonferroni over both: the valley between two bulged lids is wider
+than a bevel's groove.
 
 The variance comes from the points' own scatter (a robust scale of their residuals, at
 least the noise model's), so a sensor noisier than its model does not make seams out of
@@ -52,6 +55,12 @@ SEAM_INNER = 1.0
 #: Inner and outer distance of each flank window from the groove, in point spacings
 #: (beyond the bevels of both boxes).
 SEAM_FLANK = (2.5, 5.0)
+#: The groove windows tried, in multiples of the point spacing (the windows above scaled):
+#: the groove of a bevel or a gap, a spacing or two wide, and the valley between two bulged
+#: lids, which falls over the lids' shoulders, several spacings wide. A narrow window sees
+#: only the valley's bottom: on a development scene of bulged lids (1.2 cm, 2 m, laser) the
+#: true seams gave z 1-4 at 1 spacing and 5-9 at 2. Tested together, Bonferroni over both.
+SEAM_SCALES = (1.0, 2.0)
 
 
 @dataclass(frozen=True)
@@ -75,10 +84,11 @@ class FacePoints:
     row_corr : float
         Correlation of two points' noise in the same image row
         (:attr:`boxloc.scan.NoiseModel.row_corr`).
-    spread : (float, float)
-        :func:`seam_spread` of the statistic along u and along v, which a seam at a side
-        (tested at too few positions to measure it) is divided by; (1, 1) until the face's
-        interior has measured it (:func:`boxloc.stages.verify.verify`).
+    spread : (tuple of float, tuple of float)
+        :func:`seam_spread` of the statistic along u and along v, at each of
+        :data:`SEAM_SCALES`, which a seam at a side (tested at too few positions to measure
+        it) is divided by; all 1 until the face's interior has measured it
+        (:func:`boxloc.stages.verify.verify`).
     """
 
     u: np.ndarray
@@ -88,7 +98,8 @@ class FacePoints:
     spacing: float
     row: np.ndarray
     row_corr: float = 0.0
-    spread: tuple[float, float] = (1.0, 1.0)
+    spread: tuple[tuple[float, ...], tuple[float, ...]] = ((1.0,) * len(SEAM_SCALES),
+                                                           (1.0,) * len(SEAM_SCALES))
 
     def __len__(self) -> int:
         return int(self.u.shape[0])
@@ -635,46 +646,53 @@ class Seams(NamedTuple):
     #: The largest statistic over all positions, significant or not (-inf if none was
     #: computable): what a post-mortem reads when no seam was found.
     z_max: float
-    #: :func:`seam_spread` over the positions, which ``z`` and ``z_max`` are divided by.
-    spread: float = 1.0
+    #: :func:`seam_spread` over the positions at each of :data:`SEAM_SCALES`, which that
+    #: scale's statistics are divided by.
+    spread: tuple[float, ...] = (1.0,) * len(SEAM_SCALES)
 
 
 def find_seams(coord: np.ndarray, w: np.ndarray, scale: float, lo: float, hi: float,
                h: float, alpha: float, row: np.ndarray | None = None,
                row_corr: float = 0.0) -> Seams:
-    """Significant seams between ``lo`` and ``hi`` (local maxima of :func:`seam_z`).
+    """Significant seams between ``lo`` and ``hi`` (local maxima of :func:`seam_z`, the
+    larger of its values at the groove widths of :data:`SEAM_SCALES`).
 
     The critical value is Bonferroni-corrected over the independent positions (one per
-    groove window) in [lo, hi].
+    groove window, at each scale) in [lo, hi].
 
     Returns
     -------
     Seams
-        positions, z, critical, z_max.
+        positions, z, critical, z_max, spread.
     """
     if hi <= lo or len(coord) == 0:
         return Seams(np.zeros(0), np.zeros(0), np.inf, -np.inf)
     step = 0.5 * h
     centres = np.arange(lo, hi + 0.5 * step, step)
-    n_indep = max((hi - lo) / (2.0 * SEAM_INNER * h), 1.0)
+    n_indep = sum(max((hi - lo) / (2.0 * SEAM_INNER * s * h), 1.0) for s in SEAM_SCALES)
     crit = float(norm_isf(alpha / n_indep))
-    zr, both = _seam_stats(coord, w, scale, centres, h, row, row_corr)
-    # correlated noise (e.g. structured-light depth) spreads the statistic beyond N(0, 1):
-    # measure its spread over the positions and divide it out
-    spread = seam_spread(zr)
-    z = np.where(both, zr / spread, -np.inf)
+    zs, spreads = [], []
+    for s in SEAM_SCALES:
+        zr, both = _seam_stats(coord, w, scale, centres, s * h, row, row_corr)
+        # correlated noise (e.g. structured-light depth) spreads the statistic beyond
+        # N(0, 1): measure its spread over the positions and divide it out
+        spreads.append(seam_spread(zr))
+        zs.append(np.where(both, zr / spreads[-1], -np.inf))
+    Z = np.vstack(zs)
+    z = Z.max(axis=0)
+    width = 2.0 * SEAM_INNER * h * np.asarray(SEAM_SCALES)[Z.argmax(axis=0)]
     left = np.r_[-np.inf, z[:-1]]
     right = np.r_[z[1:], -np.inf]
     pk = np.flatnonzero((z > crit) & (z >= left) & (z > right))
-    # one seam per groove window: the strongest of maxima closer than the window
+    # one seam per groove window: the strongest of maxima closer than the wider window
     keep: list[int] = []
     for i in pk[np.argsort(-z[pk], kind="stable")]:
-        if all(abs(centres[i] - centres[j]) > 2.0 * SEAM_INNER * h for j in keep):
+        if all(abs(centres[i] - centres[j]) > max(width[i], width[j]) for j in keep):
             keep.append(int(i))
     pk = np.array(sorted(keep), np.int64)
     fin_z = z[np.isfinite(z)]
     return Seams(centres[pk], z[pk], crit, float(fin_z.max()) if len(fin_z) else -np.inf,
-                 spread)
+                 tuple(spreads))
 
 
 def gap_z(coord: np.ndarray, centres: np.ndarray, h: float) -> np.ndarray:
@@ -701,40 +719,49 @@ def gap_z(coord: np.ndarray, centres: np.ndarray, h: float) -> np.ndarray:
 
 def seam_at(coord: np.ndarray, w: np.ndarray, scale: float, position: float, h: float,
             alpha: float, reach: float | None = None, gaps: bool = False,
-            row: np.ndarray | None = None, row_corr: float = 0.0, spread: float = 1.0
-            ) -> tuple[float, float]:
-    """The strongest seam (or gap) statistic near ``position``.
+            row: np.ndarray | None = None, row_corr: float = 0.0,
+            spread: float | tuple[float, ...] = 1.0) -> tuple[float, float]:
+    """The strongest seam (or gap) statistic near ``position``, over the groove widths of
+    :data:`SEAM_SCALES`.
 
     Parameters
     ----------
     reach : float, optional
         Search from ``position - reach`` to ``position + reach`` (metres) in groove-window
-        steps; default one groove window (``SEAM_INNER * h``).
+        steps; default one groove window (``SEAM_INNER * h`` at each scale).
     gaps : bool
-        Count a gap (:func:`gap_z`) as a seam. Only where the face is known to continue
-        beyond ``position``: elsewhere a shadow or a dropout also thins the points out.
-    spread : float
-        :func:`seam_spread` of the statistic along the face (:attr:`Seams.spread` of its
-        interior): a few positions near one side cannot measure it. Divides the groove's
-        statistic, not the gap's (a count, which correlated depth noise does not spread).
+        Count a gap (:func:`gap_z`, at the narrowest window) as a seam. Only where the face
+        is known to continue beyond ``position``: elsewhere a shadow or a dropout also thins
+        the points out.
+    spread : float or tuple of float
+        :func:`seam_spread` of the statistic along the face at each scale
+        (:attr:`Seams.spread` of its interior; one float: the same at every scale): a few
+        positions near one side cannot measure it. Divides the groove's statistic, not the
+        gap's (a count, which correlated depth noise does not spread).
 
     Returns
     -------
     z : float
-        The largest :func:`seam_z` (or :func:`gap_z`) over the positions tried; -inf
-        where the windows hold no points.
+        The largest :func:`seam_z` (or :func:`gap_z`) over the positions and scales tried;
+        -inf where the windows hold no points.
     critical : float
         Bonferroni-corrected over the positions tried (independent ones: one per groove
-        window, at least three).
+        window, at least three per scale).
     """
-    r = SEAM_INNER * h if reach is None else max(float(reach), SEAM_INNER * h)
-    centres = position + np.arange(-r, r + 0.25 * SEAM_INNER * h, SEAM_INNER * h)
-    n_indep = max(3.0, 2.0 * r / (SEAM_INNER * h) + 1.0)
-    z = seam_z(coord, w, scale, centres, h, row, row_corr) / spread
-    if gaps:
-        z = np.maximum(z, gap_z(coord, centres, h))
-    return float(z.max()), float(norm_isf(alpha / n_indep))
+    spreads = np.broadcast_to(np.asarray(spread, np.float64), (len(SEAM_SCALES),))
+    z_best, n_indep = -np.inf, 0.0
+    for s, sp in zip(SEAM_SCALES, spreads):
+        g = SEAM_INNER * s * h
+        r = g if reach is None else max(float(reach), g)
+        centres = position + np.arange(-r, r + 0.25 * g, g)
+        n_indep += max(3.0, 2.0 * r / g + 1.0)
+        z = seam_z(coord, w, scale, centres, s * h, row, row_corr) / sp
+        if gaps and s == SEAM_SCALES[0]:
+            z = np.maximum(z, gap_z(coord, centres, h))
+        z_best = max(z_best, float(z.max()))
+    return z_best, float(norm_isf(alpha / n_indep))
 
 
 __all__ = ["FacePoints", "Seams", "face_points", "find_seams", "gap_z", "norm_isf", "seam_at",
-           "seam_spread", "seam_z", "MIN_SPREAD_POSITIONS", "SEAM_FLANK", "SEAM_INNER"]
+           "seam_spread", "seam_z", "MIN_SPREAD_POSITIONS", "SEAM_FLANK", "SEAM_INNER",
+           "SEAM_SCALES"]

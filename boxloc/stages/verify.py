@@ -69,7 +69,14 @@ from boxloc.products import EdgeKind, EdgeMap, VerifyReason
 from boxloc.scan import Scan
 from boxloc.stages.lines import MIN_LINE_POINTS
 from boxloc.stages.raster import fill_polygon, polygon_area, rectangle_pixels
-from boxloc.stages.seams import SEAM_FLANK, FacePoints, face_points, find_seams, seam_at
+from boxloc.stages.seams import (
+    SEAM_FLANK,
+    SEAM_SCALES,
+    FacePoints,
+    face_points,
+    find_seams,
+    seam_at,
+)
 from boxloc.stats import TestKind, TestTable, chi2_critical
 
 #: A run of this many pixels without a point on a face's plane ends the face (a sensor's
@@ -514,7 +521,7 @@ class _Hypothesis:
     @property
     def flank(self) -> float:
         """How far beyond the rectangle the seam tests read range points, metres."""
-        return (SEAM_FLANK[1] + 1.0) * self.spacing
+        return (SEAM_FLANK[1] * max(SEAM_SCALES) + 1.0) * self.spacing
 
 
 def seam_alpha(alpha: float, n_vertices: int) -> float:
@@ -759,15 +766,16 @@ def _test_size_sides(fp: FacePoints, hyp: _Hypothesis, sides: _Sides,
 
 
 def _test_seam_interior(fp: FacePoints, hyp: _Hypothesis
-                        ) -> tuple[bool, list[TestTable], tuple[float, float]]:
+                        ) -> tuple[bool, list[TestTable],
+                                   tuple[tuple[float, ...], tuple[float, ...]]]:
     """VERIFY_SEAM_INTERIOR: no seam crosses the face (the points of the interior, binned
     along x and along y). Returns (crossed, its row, if any points, and the statistic's
     spread over the interior's positions along x and along y, which the side seams'
-    statistics are divided by too: correlated noise spreads them alike)."""
+    statistics are divided by too, scale by scale: correlated noise spreads them alike)."""
     if not len(fp):
-        return False, [], (1.0, 1.0)
+        return False, [], fp.spread
     mi, width, length = hyp.interior_margin, hyp.width, hyp.length
-    int_z, int_crit, spread = [], [], []
+    int_z, int_crit, spread = [], [], []  # spread: per axis, per scale
     for coord, other, lo_hi, ext in ((fp.u, fp.v, (mi, width - mi), length),
                                      (fp.v, fp.u, (mi, length - mi), width)):
         sel = (other >= mi) & (other <= ext - mi)
@@ -1119,6 +1127,10 @@ def verify(
     crossed, interior_rows, spread = _test_seam_interior(fp, hyp)
     if config.noise.corr_px_rows > 0 or config.noise.corr_px_cols > 0:
         fp = dataclasses.replace(fp, spread=spread)
+    else:
+        # ... and at the wider groove widths always: a window of several spacings averages
+        # the face's low-frequency shape and any correlation the model has not measured
+        fp = dataclasses.replace(fp, spread=((1.0,) + spread[0][1:], (1.0,) + spread[1][1:]))
     if size_sides:
         tests.append(_test_size_sides(fp, hyp, sides, size_sides))
     for si in sorted(region_sides):
