@@ -168,6 +168,43 @@ def test_searching_two_groove_widths_keeps_the_false_alarm_rate():
     assert crit == pytest.approx(float(st.norm.isf(0.01 / 6)))  # 3 positions at each width
 
 
+def _taped(rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+    """A face with a band of packing tape across it (u 0.30-0.36 m) as an active-stereo
+    sensor sees it: a quarter of the band returns, 4 mm in front, and the sensor's hole edge
+    leaves one spacing 2 mm behind just beyond the band."""
+    u, w = _face(rng, None)
+    band = (u >= 0.30) & (u < 0.36)
+    keep = ~band | (rng.random(u.shape) < 0.25)
+    w = w + 0.004 * band - 0.002 * ((u >= 0.36) & (u < 0.36 + H))
+    return u[keep], w[keep]
+
+
+def test_a_dip_beside_a_band_of_no_return_is_no_seam():
+    # fails without the flanks' balance (FLANK_BALANCE_Z = inf): found in 20 of 20 draws
+    from boxloc.stages import seams
+    for balance, want in ((seams.FLANK_BALANCE_Z, 0), (np.inf, 20)):
+        hits = 0
+        for i in range(20):
+            u, w = _taped(np.random.default_rng(200 + i))
+            old = seams.FLANK_BALANCE_Z
+            try:
+                seams.FLANK_BALANCE_Z = balance
+                found = find_seams(u, w, SIGMA, 0.1, 0.5, H, 0.01)
+            finally:
+                seams.FLANK_BALANCE_Z = old
+            hits += bool(np.any(np.abs(found.positions - 0.36) <= 3 * H))
+        assert hits == want
+
+
+def test_flanks_on_the_sampling_grid_keep_a_seam_where_it_is():
+    # a flank 2.5 spacings wide holds 2 or 3 columns of a regular grid: without the one-column
+    # allowance the balance test moved grid seams a window aside (0.294 for 0.300)
+    for i in range(10):
+        u, w = _face(np.random.default_rng(300 + i), 0.30)
+        found = find_seams(u, w, SIGMA, 0.1, 0.5, H, 0.01)
+        assert len(found.positions) == 1 and abs(found.positions[0] - 0.30) <= H
+
+
 def _row_face(rng: np.random.Generator, rho: float, groove_at: float | None = None,
               depth: float = 0.003) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """As _face, with image rows along u (one row per v) sharing the share rho of the noise."""
@@ -364,7 +401,7 @@ def _seam_stats_before(coord: np.ndarray, w: np.ndarray, scale: float, centres: 
     """The seam statistic as it was computed before the sorted-strip kernels (the points
     in reach, np.argsort in _windows, the row term by the pair expansion): their
     reference."""
-    from boxloc.stages.seams import _in_reach, _windows
+    from boxloc.stages.seams import FLANK_BALANCE_Z, SEAM_FLANK, _in_reach, _windows
 
     near = _in_reach(coord, centres, h)
     coord, w = coord[near], w[near]
@@ -380,6 +417,8 @@ def _seam_stats_before(coord: np.ndarray, w: np.ndarray, scale: float, centres: 
                                                                       ni, nl, nr)
         sd = scale * np.sqrt(var)
         both = ok & (sl / nl > mi) & (sr / nr > mi)
+        both &= np.abs(nl - nr) <= (FLANK_BALANCE_Z * np.sqrt(nl + nr)
+                                    + (nl + nr) / (2.0 * (SEAM_FLANK[1] - SEAM_FLANK[0])))
         z = np.where(ok, d / sd, np.nan)
     return z, both
 

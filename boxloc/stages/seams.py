@@ -61,6 +61,10 @@ SEAM_FLANK = (2.5, 5.0)
 #: only the valley's bottom: on a development scene of bulged lids (1.2 cm, 2 m, laser) the
 #: true seams gave z 1-4 at 1 spacing and 5-9 at 2. Tested together, Bonferroni over both.
 SEAM_SCALES = (1.0, 2.0)
+#: The flanks of a groove must hold their share of the points: a difference of their counts
+#: beyond this z (two-sided at the default alpha, 0.01) and one spacing's column is a band of
+#: no return beside the window, not a seam (see :func:`_seam_stats`).
+FLANK_BALANCE_Z = 2.5758293035489004
 
 
 @dataclass(frozen=True)
@@ -578,6 +582,12 @@ def _seam_stats(coord: np.ndarray, w: np.ndarray, scale: float, centres: np.ndar
                                                                  ni, nl, nr)
         sd = scale * np.sqrt(var)
         both = ok & (sl / nl > mi) & (sr / nr > mi)
+        # both flanks hold their share of the points: a groove beside a band of no return
+        # (shiny tape, a dark label) is the sensor's edge of a hole, not a seam. The counts
+        # may differ by chance and by one spacing's column of points (a flank 2.5 spacings
+        # wide holds 2 or 3 columns of the sampling grid)
+        both &= np.abs(nl - nr) <= (FLANK_BALANCE_Z * np.sqrt(nl + nr)
+                                    + (nl + nr) / (2.0 * (SEAM_FLANK[1] - SEAM_FLANK[0])))
         z = np.where(ok, d / sd, np.nan)
     return z, both
 
