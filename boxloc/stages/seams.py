@@ -61,10 +61,11 @@ SEAM_FLANK = (2.5, 5.0)
 #: only the valley's bottom: on a development scene of bulged lids (1.2 cm, 2 m, laser) the
 #: true seams gave z 1-4 at 1 spacing and 5-9 at 2. Tested together, Bonferroni over both.
 SEAM_SCALES = (1.0, 2.0)
-#: The flanks of a groove must hold their share of the points: a difference of their counts
-#: beyond this z (two-sided at the default alpha, 0.01) and one spacing's column is a band of
-#: no return beside the window, not a seam (see :func:`_seam_stats`).
-FLANK_BALANCE_Z = 2.5758293035489004
+#: Level of the flanks' balance (two-sided; the default alpha): a difference of the flanks'
+#: counts beyond its z and one spacing's column is a band of no return beside the window,
+#: not a seam (see :func:`_seam_stats`).
+FLANK_BALANCE_ALPHA = 0.01
+FLANK_BALANCE_Z = float(norm_isf(FLANK_BALANCE_ALPHA / 2.0))
 
 
 @dataclass(frozen=True)
