@@ -20,11 +20,9 @@ lies behind. The groove must also lie behind each flank on its own, by at least 
 depth (the flanks differ by less than the groove is deep): a ridge beside the window, tape
 or a label on a lid, lifts one flank by its height and makes the flat lid beside it look a
 groove half as deep, level with the other flank. (That condition does see a tilt: the
-residuals are to the face's own refitted plane.) Verification's interior test drops it
-(``level_flanks``): there a missed seam merges two faces, a false one only rejects a
-rectangle. Every search and test takes the larger statistic of two groove widths
-(:data:`SEAM_SCALES`: the windows scaled by 1 and by 2), Bonferroni over both: the valley
-between two bulged lids is wider than a bevel's groove.
+residuals are to the face's own refitted plane.) Every search and test takes the larger
+statistic of two groove widths (:data:`SEAM_SCALES`: the windows scaled by 1 and by 2),
+Bonferroni over both: the valley between two bulged lids is wider than a bevel's groove.
 
 The variance comes from the points' own scatter (a robust scale of their residuals, at
 least the noise model's), so a sensor noisier than its model does not make seams out of
@@ -555,10 +553,9 @@ def _row_term(coord: np.ndarray, row: np.ndarray, centres: np.ndarray, h: float,
 
 def _seam_stats(coord: np.ndarray, w: np.ndarray, scale: float, centres: np.ndarray,
                 h: float, row: np.ndarray | None = None, row_corr: float = 0.0,
-                level_flanks: bool = True) -> tuple[np.ndarray, np.ndarray]:
+                ) -> tuple[np.ndarray, np.ndarray]:
     """Flanks minus groove over its standard deviation (NaN where a window is empty), and
-    whether the groove lies behind each flank on its own (and, with ``level_flanks``,
-    behind the lower flank by at least half its depth)."""
+    whether the groove lies behind each flank on its own, by at least half its depth."""
     if len(centres) and coord.dtype == np.float64 and w.dtype == np.float64:
         # the points in reach, sorted once for the windows and the row term (kernels)
         rows = np.zeros(len(coord), np.int64) if row is None else np.asarray(row, np.int64)
@@ -596,8 +593,7 @@ def _seam_stats(coord: np.ndarray, w: np.ndarray, scale: float, centres: np.ndar
         # lower flank by at least half its depth): a ridge (tape or a label on a lid) lifts
         # one flank by its height h, and a window on the flat lid beside it lies h / 2
         # behind the flanks' mean, but level with the other flank
-        if level_flanks:
-            both &= np.abs(sl / nl - sr / nr) <= d
+        both &= np.abs(sl / nl - sr / nr) <= d
         z = np.where(ok, d / sd, np.nan)
     return z, both
 
@@ -673,19 +669,12 @@ class Seams(NamedTuple):
 
 def find_seams(coord: np.ndarray, w: np.ndarray, scale: float, lo: float, hi: float,
                h: float, alpha: float, row: np.ndarray | None = None,
-               row_corr: float = 0.0, level_flanks: bool = True) -> Seams:
+               row_corr: float = 0.0) -> Seams:
     """Significant seams between ``lo`` and ``hi`` (local maxima of :func:`seam_z`, the
     larger of its values at the groove widths of :data:`SEAM_SCALES`).
 
     The critical value is Bonferroni-corrected over the independent positions (one per
     groove window, at each scale) in [lo, hi].
-
-    Parameters
-    ----------
-    level_flanks : bool
-        Count a groove only where its flanks differ by less than it is deep (see
-        :func:`_seam_stats`): off for the test that no seam crosses a face, where a missed
-        seam merges two faces.
 
     Returns
     -------
@@ -700,7 +689,7 @@ def find_seams(coord: np.ndarray, w: np.ndarray, scale: float, lo: float, hi: fl
     crit = float(norm_isf(alpha / n_indep))
     zs, spreads = [], []
     for s in SEAM_SCALES:
-        zr, both = _seam_stats(coord, w, scale, centres, s * h, row, row_corr, level_flanks)
+        zr, both = _seam_stats(coord, w, scale, centres, s * h, row, row_corr)
         # correlated noise (e.g. structured-light depth) spreads the statistic beyond
         # N(0, 1): measure its spread over the positions and divide it out
         spreads.append(seam_spread(zr))

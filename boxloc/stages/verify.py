@@ -779,11 +779,8 @@ def _test_seam_interior(fp: FacePoints, hyp: _Hypothesis
     for coord, other, lo_hi, ext in ((fp.u, fp.v, (mi, width - mi), length),
                                      (fp.v, fp.u, (mi, length - mi), width)):
         sel = (other >= mi) & (other <= ext - mi)
-        # flanks at two levels allowed: a seam beside a ridge may still be one, and
-        # a missed seam merges two faces, where a false one only rejects this rectangle
         found = find_seams(coord[sel], fp.w[sel], fp.scale, lo_hi[0], lo_hi[1],
-                           hyp.spacing, hyp.interior_alpha, fp.row[sel], fp.row_corr,
-                           level_flanks=False)
+                           hyp.spacing, hyp.interior_alpha, fp.row[sel], fp.row_corr)
         # the strongest groove anywhere inside, significant or not (NaN: none measurable)
         int_z.append(found.z_max if np.isfinite(found.z_max) else np.nan)
         int_crit.append(found.critical)
