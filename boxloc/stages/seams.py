@@ -650,6 +650,20 @@ def seam_spread(z: np.ndarray) -> float:
     return max(1.0, float(1.4826 * np.median(np.abs(fin - np.median(fin)))))
 
 
+def _spread_beside(z: np.ndarray, both: np.ndarray, centres: np.ndarray, reach: float,
+                   crit: float) -> float:
+    """:func:`seam_spread` of the statistic ``z`` at ``centres`` without the positions whose
+    windows (``reach`` either side) hold its strongest groove, where that passes the
+    critical value before any spread is divided out."""
+    sp = seam_spread(z)
+    cand = np.where(both & np.isfinite(z), z, -np.inf)
+    k = int(np.argmax(cand))
+    if not cand[k] > crit:
+        return sp
+    away = np.abs(centres - centres[k]) > reach
+    return seam_spread(z[away]) if np.isfinite(z[away]).sum() >= MIN_SPREAD_POSITIONS else sp
+
+
 class Seams(NamedTuple):
     """Result of :func:`find_seams`."""
 
@@ -669,12 +683,21 @@ class Seams(NamedTuple):
 
 def find_seams(coord: np.ndarray, w: np.ndarray, scale: float, lo: float, hi: float,
                h: float, alpha: float, row: np.ndarray | None = None,
-               row_corr: float = 0.0) -> Seams:
+               row_corr: float = 0.0, mask_strongest: bool = False) -> Seams:
     """Significant seams between ``lo`` and ``hi`` (local maxima of :func:`seam_z`, the
     larger of its values at the groove widths of :data:`SEAM_SCALES`).
 
     The critical value is Bonferroni-corrected over the independent positions (one per
     groove window, at each scale) in [lo, hi].
+
+    Parameters
+    ----------
+    mask_strongest : bool
+        Measure the statistic's spread without the positions whose windows hold the
+        strongest groove, where that groove passes the critical value before any spread
+        is divided out (:func:`_spread_beside`): on a narrow face a seam's own lobes
+        inflate the spread that would hide it. Only meaningful where the noise is white:
+        with correlated noise the undivided statistic passes the critical value by chance.
 
     Returns
     -------
@@ -693,7 +716,9 @@ def find_seams(coord: np.ndarray, w: np.ndarray, scale: float, lo: float, hi: fl
         # correlated noise (e.g. structured-light depth) spreads the statistic beyond
         # N(0, 1): measure its spread over the positions and divide it out
         spreads.append(seam_spread(zr))
-        zs.append(np.where(both, zr / spreads[-1], -np.inf))
+        sp = (_spread_beside(zr, both, centres, SEAM_FLANK[1] * s * h, crit) if mask_strongest
+              else spreads[-1])
+        zs.append(np.where(both, zr / sp, -np.inf))
     Z = np.vstack(zs)
     z = Z.max(axis=0)
     width = 2.0 * SEAM_INNER * h * np.asarray(SEAM_SCALES)[Z.argmax(axis=0)]
