@@ -296,6 +296,12 @@ class NoiseModel:
         if not 0 < self.min_cos <= 1:
             raise InputError(f"noise parameter min_cos must be in (0, 1], got {self.min_cos}")
 
+    @property
+    def correlated(self) -> bool:
+        """Whether the noise is spatially correlated: a correlation length along rows or
+        columns (the seam tests then measure their statistic's spread)."""
+        return self.corr_px_rows > 0 or self.corr_px_cols > 0
+
     @overload
     def sigma_range(self, r: float, cos_incidence: float = 1.0) -> float: ...
 

@@ -434,8 +434,7 @@ def _seam_peaks(R: Rectangle, ctx: _Context, work: _VertexWork, px: np.ndarray,
         # where the noise is white, a seam's own lobes must not hide it (find_seams)
         pos, z, crit = find_seams(coord[sel], fp.w[sel], fp.scale, lo, ext - lo, spacing,
                                   vc.seam_alpha, fp.row[sel], fp.row_corr,
-                                  mask_strongest=cfg.noise.corr_px_rows <= 0
-                                  and cfg.noise.corr_px_cols <= 0)[:3]
+                                  mask_strongest=not cfg.noise.correlated)[:3]
         found.append(pos)
         if len(pos):
             work.tests.append(TestTable.decision(TestKind.SEAM_PEAK, R.vertex, b, z, crit,

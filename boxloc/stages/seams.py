@@ -552,7 +552,7 @@ def _row_term(coord: np.ndarray, row: np.ndarray, centres: np.ndarray, h: float,
 
 
 def _seam_stats(coord: np.ndarray, w: np.ndarray, scale: float, centres: np.ndarray,
-                h: float, row: np.ndarray | None = None, row_corr: float = 0.0,
+                h: float, row: np.ndarray | None = None, row_corr: float = 0.0
                 ) -> tuple[np.ndarray, np.ndarray]:
     """Flanks minus groove over its standard deviation (NaN where a window is empty), and
     whether the groove lies behind each flank on its own, by at least half its depth."""
@@ -651,11 +651,10 @@ def seam_spread(z: np.ndarray) -> float:
 
 
 def _spread_beside(z: np.ndarray, both: np.ndarray, centres: np.ndarray, reach: float,
-                   crit: float) -> float:
+                   crit: float, sp: float) -> float:
     """:func:`seam_spread` of the statistic ``z`` at ``centres`` without the positions whose
     windows (``reach`` either side) hold its strongest groove, where that passes the
-    critical value before any spread is divided out."""
-    sp = seam_spread(z)
+    critical value before any spread is divided out; else ``sp``, the spread over all."""
     cand = np.where(both & np.isfinite(z), z, -np.inf)
     k = int(np.argmax(cand))
     if not cand[k] > crit:
@@ -716,8 +715,8 @@ def find_seams(coord: np.ndarray, w: np.ndarray, scale: float, lo: float, hi: fl
         # correlated noise (e.g. structured-light depth) spreads the statistic beyond
         # N(0, 1): measure its spread over the positions and divide it out
         spreads.append(seam_spread(zr))
-        sp = (_spread_beside(zr, both, centres, SEAM_FLANK[1] * s * h, crit) if mask_strongest
-              else spreads[-1])
+        sp = (_spread_beside(zr, both, centres, SEAM_FLANK[1] * s * h, crit, spreads[-1])
+              if mask_strongest else spreads[-1])
         zs.append(np.where(both, zr / sp, -np.inf))
     Z = np.vstack(zs)
     z = Z.max(axis=0)

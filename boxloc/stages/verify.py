@@ -1125,7 +1125,7 @@ def verify(
     # noise a side's windows share nothing with the interior's, and what spreads the
     # interior's statistic is the face's own shape (tape, labels, a dent), not noise
     crossed, interior_rows, spread = _test_seam_interior(fp, hyp)
-    if config.noise.corr_px_rows > 0 or config.noise.corr_px_cols > 0:
+    if config.noise.correlated:
         fp = dataclasses.replace(fp, spread=spread)
     else:
         # ... and at the wider groove widths always: a window of several spacings averages
