@@ -59,6 +59,7 @@ import dataclasses
 import math
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 from scipy import special
@@ -66,7 +67,8 @@ from scipy import special
 from boxloc.config import Config
 from boxloc.distributions import binom_isf, binom_sf
 from boxloc.products import EdgeKind, EdgeMap, VerifyReason
-from boxloc.scan import Scan
+from boxloc.scan import NoiseModel, Scan
+from boxloc.stages.design_effect import exceedance_design_effects
 from boxloc.stages.lines import MIN_LINE_POINTS
 from boxloc.stages.raster import fill_polygon, polygon_area, rectangle_pixels
 from boxloc.stages.seams import (
@@ -874,29 +876,46 @@ def _test_continuation(ctx: VerifyContext, fp: FacePoints, hyp: _Hypothesis, fit
     return ends, cut, rows
 
 
-def _test_exposed(fit: _FaceFit, hyp: _Hypothesis) -> tuple[bool, TestTable]:
+def _test_exposed(fit: _FaceFit, hyp: _Hypothesis, noise: NoiseModel
+                  ) -> tuple[bool, TestTable]:
     """VERIFY_EXPOSED: nothing rests on the face. Covered only if the points in front of
     its plane outnumber those behind (sign test) and are more frequent than the noise
-    model puts there, over the core or in its busiest cell."""
+    model puts there, over the core or in its busiest cell.
+
+    Where the noise model has a correlation (a row offset, correlation lengths), the points
+    beyond k come in runs and every count varies more than a binomial one: a count x of n
+    is taken as x / D of n / D independent points, D its design effect under the model
+    (:mod:`boxloc.stages.design_effect`). The rows record those effective counts (the raw
+    ones for white noise, D = 1)."""
     alpha = hyp.alpha
-    n_front, n_behind = int(fit.front.sum()), int(fit.behind.sum())
-    m_out = n_front + n_behind
-    p_front = float(binom_sf(n_front - 1, m_out, 0.5)) if n_front else 1.0
-    # ... and more frequent than the noise model puts in front (alpha/2 of the points:
-    # z > k), so that a handful of stray points, with none behind, is no occluder
     core = fit.core
-    n_core = int(core.sum())
-    p_rate = float(binom_sf(n_front - 1, n_core, alpha / 2)) if n_front else 1.0
-    # ... or, in one place (the corner of a box above, a few square centimetres), more
-    # frequent than that: the busiest cell of the core (cells of four border margins),
-    # Bonferroni over the cells
+    rows = fit.rows[core]
+    # cells of four border margins: the corner of a box above is a few square centimetres
     cell = 4.0 * hyp.margin
     cid = (np.floor(fit.du[core] / cell) * 1e6 + np.floor(fit.dv[core] / cell)).astype(np.int64)
     ids, inv = np.unique(cid, return_inverse=True)
-    n_cell = np.bincount(inv, minlength=len(ids))
-    f_cell = np.bincount(inv, weights=fit.front[core].astype(np.float64), minlength=len(ids))
+    D_f, D_s = exceedance_design_effects(rows, np.zeros(len(rows), np.int64), 1, hyp.k, noise)
+    D_cell = exceedance_design_effects(rows, inv, len(ids), hyp.k, noise)[0]
+
+    def eff(x: Any, D: Any) -> np.ndarray:
+        return np.rint(np.asarray(x, np.float64) / D).astype(np.int64)
+
+    n_front, n_behind = int(fit.front.sum()), int(fit.behind.sum())
+    m_out = int(eff(n_front + n_behind, D_s[0]))
+    f_sign = int(eff(n_front, D_s[0]))
+    p_front = float(binom_sf(f_sign - 1, m_out, 0.5)) if f_sign else 1.0
+    # ... and more frequent than the noise model puts in front (alpha/2 of the points:
+    # z > k), so that a handful of stray points, with none behind, is no occluder
+    n_core = int(eff(int(core.sum()), D_f[0]))
+    f_rate = int(eff(n_front, D_f[0]))
+    p_rate = float(binom_sf(f_rate - 1, n_core, alpha / 2)) if f_rate else 1.0
+    # ... or, in one place (the corner of a box above), more frequent than that: the
+    # busiest cell of the core, Bonferroni over the cells
+    n_cell = eff(np.bincount(inv, minlength=len(ids)), D_cell)
+    f_cell = eff(np.bincount(inv, weights=fit.front[core].astype(np.float64),
+                             minlength=len(ids)), D_cell)
     n_cells = max(len(ids), 1)
-    if n_front:
+    if f_cell.any():
         p_cells = binom_sf(f_cell - 1, n_cell, alpha / 2)
         c_best = int(np.argmin(np.where(f_cell > 0, p_cells, np.inf)))
         p_local = float(min(p_cells[c_best] * n_cells, 1.0))
@@ -906,7 +925,7 @@ def _test_exposed(fit: _FaceFit, hyp: _Hypothesis) -> tuple[bool, TestTable]:
     exposed = p_front >= alpha or (p_rate >= alpha and p_local >= alpha)
     return exposed, TestTable.decision(
         TestKind.VERIFY_EXPOSED, hyp.attempt_id, [m_out, n_core, n_local],
-        [n_front, n_front, f_local],
+        [f_sign, f_rate, f_local],
         [binom_isf(alpha, m_out, 0.5) if m_out else 0.0,
          binom_isf(alpha, n_core, alpha / 2),
          binom_isf(alpha / n_cells, n_local, alpha / 2)],
@@ -1182,7 +1201,7 @@ def verify(
             return _failed(VerifyReason.BOUNDARY, tests, alpha, n_inside=n_inside,
                            n_valid=n_valid, n_interior_edges=n_int)
 
-    exposed, row = _test_exposed(fit, hyp)
+    exposed, row = _test_exposed(fit, hyp, config.noise)
     tests.append(row)
     frac, enough, row = _test_inliers(fit, n_inside, n_valid, hyp, config.min_inlier_fraction,
                                       config.min_return_fraction, config.hole_weight)
