@@ -970,6 +970,18 @@ def _dims_lines(d: dict[str, Any], ind: str) -> list[str]:
     return out
 
 
+def _exposed_note(v: dict[str, Any]) -> str:
+    """Where VERIFY_EXPOSED weighed its counts by the noise's correlation: how (its rows'
+    counts are effective ones, the raw points beyond k over the design effect D)."""
+    rows = [t for t in v.get("tests", ()) if t["kind"] == TestKind.VERIFY_EXPOSED.name]
+    raw = int(v.get("n_front", 0)) + int(v.get("n_behind", 0))
+    if not rows or not raw or int(rows[0]["b"]) in (raw, 0):
+        return ""
+    return (f"VERIFY_EXPOSED counts are effective: the noise's correlation weighs the {raw} "
+            f"points beyond k as {int(rows[0]['b'])} independent ones "
+            f"(design effect {raw / int(rows[0]['b']):.1f})")
+
+
 def _attempt_lines(a: dict[str, Any], ind: str, *, focus: int | None = None) -> list[str]:
     v = a.get("verification", {})
     mark = "  <- this surface" if focus == a["id"] else ""
@@ -984,6 +996,9 @@ def _attempt_lines(a: dict[str, Any], ind: str, *, focus: int | None = None) -> 
                    f"{v['n_front']} in front, {v['n_behind']} behind; mean distance "
                    f"{_num(v['mean_distance_mm'])} mm, rms {_num(v['rms_mm'])} mm, "
                    f"{v['n_interior_edges']} interior edge points")
+        note = _exposed_note(v)
+        if note:
+            out.append(f"{ind}  {note}")
     if v:
         out += [f"{ind}  {_test_text(t)}" for t in v["tests"]]
         if v.get("failed_test"):

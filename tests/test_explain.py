@@ -252,3 +252,19 @@ def test_a_split_parts_corner_is_named_as_such() -> None:
     seam = "\n".join(_vertex_lines({**v, "parent_side": 1}, ""))
     assert "a part's corner: vertex V2's flat region" in part and "neighbour" not in part
     assert "a neighbour's corner, on side 1 of vertex V2" in seam
+
+
+def test_exposed_says_when_its_counts_are_effective() -> None:
+    """Where the noise's correlation weighed VERIFY_EXPOSED's counts, the attempt says so and
+    by how much; with white noise (effective = raw) it says nothing."""
+    from replay.explain import _exposed_note
+
+    def v(b: int) -> dict[str, Any]:
+        rows = [{"kind": "VERIFY_EXPOSED", "a": 3, "b": b, "statistic": 19, "critical": 20,
+                 "accepted": True}]
+        return {"n_front": 205, "n_behind": 102, "tests": rows}
+
+    note = _exposed_note(v(28))
+    assert "307 points beyond k as 28 independent ones" in note and "11.0" in note
+    assert _exposed_note(v(307)) == ""
+    assert _exposed_note({"n_front": 0, "n_behind": 0, "tests": []}) == ""
