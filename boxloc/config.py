@@ -196,7 +196,13 @@ class Config:
         the budget the stage stops with what it found and records a BUDGET row. On two
         development draws of the matrix bench (160 scans each) the 99th percentile read
         5.1e6 and 6.2e6 (1280x960 piles), the most 1.1e7 (4 s); 4 of the 320 reach this
-        budget, and lose no box top found without it. 0: no budget.
+        budget, and lost no box top found without it. Measured again at 213abc7 (matrix
+        draws of seeds 1 and 2, 256 scans): 11 reach it, all 960x720 or 1280x960 at
+        about a metre, reading up to 4.3e7 without it (12.8 s, 0.3 us a pixel); two of
+        them lose tops (a structured-light pallet 8 of 12, a laser pile 1 of 2). A budget
+        of 20 reads per image pixel would have kept the pallet's (1.8e7) but let a
+        1280x960 scan read 2.5e7, about 7 s at that rate: past the matrix bench's bound
+        of ten times the median scan (issue 22). 0: no budget.
     trial_seed : int
         Which stream of random trials to draw (the Hough trials' distinguished points and
         voters, the up estimate's and the baseline's RANSAC): 0, the default, seeds them
