@@ -23,7 +23,7 @@ from scipy import special
 from scipy.special import _ufuncs
 
 __all__ = ["norm_isf", "norm_sf", "halfnorm_ppf", "chi2_sf", "chi2_isf", "chi2_ppf",
-           "poisson_isf", "binom_sf", "binom_isf", "exceedance_correlation"]
+           "poisson_isf", "binom_sf", "binom_isf"]
 
 _BINOM_SF = getattr(_ufuncs, "_binom_sf", None)
 _BINOM_ISF = getattr(_ufuncs, "_binom_isf", None)
@@ -107,43 +107,3 @@ def binom_isf(q: float, n: int, p: float) -> float:
         return float(_stats().binom.isf(q, n, p))
     return float(_BINOM_ISF(q, n, p) + 0)
 
-
-def exceedance_correlation(k: float, rho: npt.ArrayLike) -> tuple[np.ndarray, np.ndarray]:
-    """How two standard normal samples of correlation ``rho`` exceed ``k`` together.
-
-    With p = P(z > k) and U(rho) = P(z1 > k, z2 > k), from Owen's T function as
-    U(rho) = p - 2 T(k, sqrt((1 - rho) / (1 + rho))) (so U(0) = p^2, U(1) = p), and
-    P(z1 > k, z2 < -k) = U(-rho):
-
-    * ``front``: the correlation of the indicators 1[z > k], (U(rho) - p^2) / (p (1 - p));
-    * ``sign``: that of 1[z > k] - 1[z < -k] (variance 2 p, mean 0),
-      (U(rho) - U(-rho)) / p.
-
-    A count of exceedances over n samples of mean pair correlation c has n (1 + (n - 1) c)
-    times the variance of one sample's indicator; both are far below rho (at k 2.576, rho
-    0.27 gives 0.027 and 0.031), which is why they are needed: rho itself would overstate it.
-
-    Parameters
-    ----------
-    k : float
-        The level, > 0 (standard deviations).
-    rho : array_like
-        Correlations in [0, 1].
-
-    Returns
-    -------
-    front, sign : ndarray
-        Float64 of the shape of ``rho``, in [0, 1].
-    """
-    r = np.clip(np.asarray(rho, dtype=np.float64), 0.0, 1.0)
-    p = float(special.ndtr(-k))
-
-    def upper(c: np.ndarray) -> np.ndarray:
-        with np.errstate(divide="ignore"):
-            a = np.sqrt((1.0 - c) / np.maximum(1.0 + c, 1e-300))
-        return np.asarray(p - 2.0 * special.owens_t(k, a))
-
-    u, v = upper(r), upper(-r)
-    front = np.clip((u - p * p) / (p * (1.0 - p)), 0.0, 1.0)
-    sign = np.clip((u - v) / p, 0.0, 1.0)
-    return front, sign

@@ -9,9 +9,8 @@ import numpy as np
 import pytest
 from scipy.signal import lfilter
 
-from boxloc.distributions import exceedance_correlation
 from boxloc.scan import NoiseModel
-from boxloc.stages.design_effect import exceedance_design_effects
+from boxloc.stages.design_effect import exceedance_correlation, exceedance_design_effects
 from boxloc.stages.verify import _test_exposed
 
 K = 2.5758293035489004  # sqrt(chi2(1)) at alpha 0.01

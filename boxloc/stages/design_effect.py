@@ -12,7 +12,7 @@ points in front and 0.4 % behind, and the sign test called it covered.
 
 The *design effect* D of a set of n points is the variance of their count over the
 binomial's, 1 + (1/n) sum over ordered pairs i != j of c(rho_ij), with c the correlation of
-two points' exceedance indicators (:func:`boxloc.distributions.exceedance_correlation`)
+two points' exceedance indicators (:func:`exceedance_correlation`)
 and rho_ij the noise model's correlation of their ranges:
 
 * in one image row, ``dc`` pixels apart: r + (1 - r) exp(-dc / L_rows);
@@ -32,8 +32,9 @@ from __future__ import annotations
 import math
 
 import numpy as np
+import numpy.typing as npt
+from scipy import special
 
-from boxloc.distributions import exceedance_correlation
 from boxloc.scan import NoiseModel
 
 #: Correlations below this are left out of the sums (their pairs' exceedance correlation
@@ -66,6 +67,47 @@ def _pair_sum(n: np.ndarray, x: np.ndarray) -> np.ndarray:
     return n * X1[m] - X2[m]
 
 
+def exceedance_correlation(k: float, rho: npt.ArrayLike) -> tuple[np.ndarray, np.ndarray]:
+    """How two standard normal samples of correlation ``rho`` exceed ``k`` together.
+
+    With p = P(z > k) and U(rho) = P(z1 > k, z2 > k), from Owen's T function as
+    U(rho) = p - 2 T(k, sqrt((1 - rho) / (1 + rho))) (so U(0) = p^2, U(1) = p), and
+    P(z1 > k, z2 < -k) = U(-rho):
+
+    * ``front``: the correlation of the indicators 1[z > k], (U(rho) - p^2) / (p (1 - p));
+    * ``sign``: that of 1[z > k] - 1[z < -k] (variance 2 p, mean 0),
+      (U(rho) - U(-rho)) / p.
+
+    A count of exceedances over n samples of mean pair correlation c has n (1 + (n - 1) c)
+    times the variance of one sample's indicator; both are far below rho (at k 2.576, rho
+    0.27 gives 0.027 and 0.031), which is why they are needed: rho itself would overstate it.
+
+    Parameters
+    ----------
+    k : float
+        The level, > 0 (standard deviations).
+    rho : array_like
+        Correlations in [0, 1].
+
+    Returns
+    -------
+    front, sign : ndarray
+        Float64 of the shape of ``rho``, in [0, 1].
+    """
+    r = np.clip(np.asarray(rho, dtype=np.float64), 0.0, 1.0)
+    p = float(special.ndtr(-k))
+
+    def upper(c: np.ndarray) -> np.ndarray:
+        with np.errstate(divide="ignore"):
+            a = np.sqrt((1.0 - c) / np.maximum(1.0 + c, 1e-300))
+        return np.asarray(p - 2.0 * special.owens_t(k, a))
+
+    u, v = upper(r), upper(-r)
+    front = np.clip((u - p * p) / (p * (1.0 - p)), 0.0, 1.0)
+    sign = np.clip((u - v) / p, 0.0, 1.0)
+    return front, sign
+
+
 def exceedance_design_effects(rows: np.ndarray, groups: np.ndarray, n_groups: int,
                               k: float, noise: NoiseModel) -> tuple[np.ndarray, np.ndarray]:
     """The design effects of exceedance counts over groups of pixels.
@@ -91,7 +133,7 @@ def exceedance_design_effects(rows: np.ndarray, groups: np.ndarray, n_groups: in
     one = np.ones(n_groups)
     r = float(noise.row_corr)
     Lr, Lc = float(noise.corr_px_rows), float(noise.corr_px_cols)
-    if not (r > 0 or Lr > 0 or Lc > 0) or not len(rows):
+    if not (r > 0 or noise.correlated) or not len(rows):
         return one, one.copy()
     rows = np.asarray(rows, np.int64)
     groups = np.asarray(groups, np.int64)
