@@ -398,7 +398,10 @@ class HypothesisSet:
         :func:`boxloc.stages.hypotheses.dimensions_from_region`) is never verified as a
         surface: its ``att_support`` is the number of parts it was split into (0: not
         split, -1: the same region found from another vertex), its ``att_threshold`` the
-        :class:`AmbiguityReason` it was left ambiguous for (NaN: split). A SKU_SPLIT
+        :class:`AmbiguityReason` it was left ambiguous for (NaN: split). With a carton list
+        a region's split is tried from up to four of its vertices in turn; each one tried
+        records its own reason, and where a later one splits it, the first found becomes
+        the -1 (:func:`boxloc.stages.hypotheses._split_regions`). A SKU_SPLIT
         attempt's ``att_support`` is the region's hypothesis.
     up : (3,) float64
         The up direction the tilt prior and the pick order used (see :mod:`boxloc.stages.up`).

@@ -177,3 +177,40 @@ def test_every_side_of_a_reported_surface_has_evidence_of_the_box_end() -> None:
     ev = r.surfaces.tests.of_kind(TestKind.END_EVIDENCE)
     assert len(ev) == 4 and ev.accepted.all() and (ev.statistic == 1.0).all()
     assert (ev.a == r.surfaces.attempt[0]).all() and list(ev.b) == [0, 1, 2, 3]
+
+
+def test_a_split_not_trusted_from_one_corner_is_tried_from_the_next() -> None:
+    # a development scene (packed suite, seed 1): an active-stereo layer of two cartons
+    # whose smeared far jump ends the plane short when followed from the first corner
+    # found (no multiple of the size), but not from the next
+    import dataclasses
+
+    from boxloc.evaluate.matrix_bench import matrix_config
+    from boxloc.evaluate.packed_bench import box_sizes_csv, packed_suite, read_sizes_as_a_user
+    from boxloc.simulate import simulate
+    from boxloc.stages.hypotheses import MAX_REGION_CORNERS
+
+    specs = packed_suite(48, 1)
+    spec = specs[23]
+    assert spec.sensor == "active-stereo"
+    sim = simulate(spec)
+    cfg, _ = matrix_config(specs)
+    cfg = dataclasses.replace(cfg, box_sizes=read_sizes_as_a_user(box_sizes_csv(sim.truth)))
+    r = find_graspable_surfaces(sim.scan, cfg)
+    m = match_surfaces(r.surfaces, sim.truth)
+    assert m.tp == 2 and m.fp == 0
+    H = r.hypotheses
+    reg = np.flatnonzero(H.att_source == DimensionSource.REGION)
+    split = reg[H.att_support[reg] > 0]
+    assert len(split) == 1 and H.att_support[split[0]] == 2
+    # the region as first found was no multiple of the size: now another corner's outline
+    first = reg[0]
+    assert first != split[0] and H.att_support[first] == -1
+    assert H.att_threshold[first] == AmbiguityReason.NOT_A_MULTIPLE_OF_A_SIZE
+    # every corner tried says why it failed; the split's SKU_SIZE row is its own
+    tried = reg[np.isfinite(H.att_threshold[reg])
+                & (H.att_threshold[reg] != AmbiguityReason.LARGER_THAN_MAX_BOX)]
+    assert 1 <= len(tried) < MAX_REGION_CORNERS
+    T = r.verification.tests
+    assert len(T.select((T.a == split[0]) & (T.kind == TestKind.SKU_SIZE))) == 1
+    assert len(T.select((T.a == first) & (T.kind == TestKind.SKU_SIZE))) == 0

@@ -995,12 +995,12 @@ def _multiples_as_regions(works: list[_VertexWork], config: Config) -> set[int]:
 
 
 def _distinct_regions(works: list[_VertexWork], vertices: VertexSet,
-                      min_edge: float) -> list[tuple[int, _Attempt]]:
-    """The verified flat regions (``VerifyReason.AMBIGUOUS`` REGION attempts), one per
-    region: the first found; one found again from another of its corners (each centre
-    inside the other, beyond ``BOUNDARY_BAND`` ``min_edge`` of its sides) is marked a
-    duplicate (``support`` -1)."""
-    kept: list[tuple[int, _Attempt, np.ndarray]] = []
+                      min_edge: float) -> list[list[tuple[int, _Attempt]]]:
+    """The verified flat regions (``VerifyReason.AMBIGUOUS`` REGION attempts), grouped by
+    region: the first found, then the same region found again from its other corners
+    (each centre inside the other, beyond ``BOUNDARY_BAND`` ``min_edge`` of its sides),
+    which are marked duplicates (``support`` -1). Each is a (vertex, attempt) pair."""
+    groups: list[list[tuple[int, _Attempt, np.ndarray]]] = []
     mi = BOUNDARY_BAND * min_edge
 
     def inside(c: np.ndarray, i: int, a: _Attempt) -> bool:
@@ -1016,11 +1016,14 @@ def _distinct_regions(works: list[_VertexWork], vertices: VertexSet,
             i = w.vertex
             c = rectangle_corners(vertices.points[i], vertices.d1[i], vertices.d2[i],
                                   a.width, a.length).mean(0)
-            if any(inside(c, j, b) and inside(cj, i, a) for j, b, cj in kept):
+            g = next((g for g in groups if inside(c, g[0][0], g[0][1])
+                      and inside(g[0][2], i, a)), None)
+            if g is None:
+                groups.append([(i, a, c)])
+            else:
                 a.support = -1.0
-                continue
-            kept.append((i, a, c))
-    return [(i, a) for i, a, _ in kept]
+                g.append((i, a, c))
+    return [[(i, a) for i, a, _ in g] for g in groups]
 
 
 def _cut_evidence(R: Rectangle, att: _Attempt, ctx: _Context, cuts_x: list[float],
@@ -1078,6 +1081,81 @@ def _too_low(R: Rectangle, att: _Attempt, ctx: _Context, listed: float) -> TestT
                               h >= crit, cfg.alpha)
 
 
+#: Corners of one flat region its split is tried from: a rectangle has four.
+MAX_REGION_CORNERS = 4
+
+_Part = tuple[tuple[np.ndarray, ...], int, _Attempt, frozenset[int]]  # vertex, parent, plan, cut
+
+
+def _plan_split(ctx: _Context, h: int, att: _Attempt, single: set[int]) -> list[_Part]:
+    """The parts of one flat region (REGION attempt ``att`` at vertex ``h``) by the carton
+    list, measured from that vertex's corner; [] where it is not split (``att.threshold``
+    then says why). See :func:`_split_regions`."""
+    cfg = ctx.config
+    vertices = ctx.vertices
+    out = att.outcome
+    assert out is not None
+    R = align(vertices, h, ctx.normal_cov)
+    splits = distinct(region_splits(att.width, att.length, cfg.box_sizes,
+                                    cfg.size_tolerance, cfg.alpha), cfg.size_tolerance)
+    if not splits:
+        att.threshold = float(AmbiguityReason.NOT_A_MULTIPLE_OF_A_SIZE)
+        return []
+    evidence = []
+    for sp in splits:
+        ax, bx = att.width / sp.nx, att.length / sp.ny  # the measured part
+        z, zc = _cut_evidence(R, att, ctx, [ax * i for i in range(1, sp.nx)],
+                              [bx * j for j in range(1, sp.ny)])
+        evidence.append((z, zc, bool(len(z)) and bool(np.all(z > zc))))
+    seen = [i for i, e in enumerate(evidence) if e[2]]
+    if len(seen) == 1:
+        pick = seen[0]
+    elif len(splits) == 1 and id(att) not in single:
+        pick = 0
+    else:  # several ways to cut it (one box of a listed size among them), no seam shown
+        att.threshold = float(AmbiguityReason.SEVERAL_SPLITS)
+        return []
+    sp, (z, zc, _) = splits[pick], evidence[pick]
+    rows = [TestTable.chi2(TestKind.SKU_SIZE, -1, sp.sku, sp.statistic, 2.0, cfg.alpha),
+            TestTable.decision(TestKind.SKU_SPLIT_SEAM, -1, np.arange(len(z)), z, zc,
+                               z > zc, cfg.alpha)]
+    low = _too_low(R, att, ctx, cfg.box_sizes[sp.sku][2])
+    if low is not None:
+        rows.append(low)
+    att.outcome = dataclasses.replace(out, tests=TestTable.concat([out.tests, *rows],
+                                                                  cfg.alpha))
+    if low is not None and not low.accepted[0]:
+        att.threshold = float(AmbiguityReason.TOO_LOW_FOR_THE_SIZE)
+        return []
+    att.threshold = np.nan
+    pw, pl = att.width / sp.nx, att.length / sp.ny
+    C = vertices.covariances[h]
+    parts: list[_Part] = []
+    for j in range(sp.ny):
+        for i in range(sp.nx):
+            u, v = i * pw, j * pl
+            cov = np.zeros((9, 9))
+            cov[:3, :3] = _corner(C, u, v, cfg.angle_tolerance)
+            cov[3:, 3:] = C[3:, 3:]
+            inner = frozenset(si for si, ok in enumerate(
+                (j > 0, j < sp.ny - 1, i > 0, i < sp.nx - 1)) if ok)
+            parts.append(((R.origin + u * R.x_axis + v * R.y_axis, R.x_axis, R.y_axis,
+                           R.normal, cov), h,
+                          _Attempt(DimensionSource.SKU_SPLIT, -1, pw, pl, float(h), np.nan),
+                          inner))
+    return parts
+
+
+def _same_rectangle(vertices: VertexSet, a: tuple[int, _Attempt], b: tuple[int, _Attempt],
+                    tol: float) -> bool:
+    """Whether two REGION attempts outline the same rectangle (every corner of one within
+    ``tol`` of a corner of the other): the same split, not worth trying twice."""
+    ca, cb = (rectangle_corners(vertices.points[i], vertices.d1[i], vertices.d2[i], t.width,
+                                t.length) for i, t in (a, b))
+    d = np.linalg.norm(ca[:, None, :] - cb[None, :, :], axis=-1)
+    return bool((d.min(axis=1) <= tol).all())
+
+
 def _split_regions(ctx: _Context, works: list[_VertexWork]) -> tuple[_Context, list[_VertexWork]]:
     """Split each verified flat region at the seams a listed carton size implies.
 
@@ -1092,102 +1170,80 @@ def _split_regions(ctx: _Context, works: list[_VertexWork]) -> tuple[_Context, l
     Each part becomes a vertex (``parent`` the region's, ``parent_side`` ``SIZE_PART``)
     with one attempt of the part's size (``DimensionSource.SKU_SPLIT``), verified with its
     cut sides on the size's evidence (``size_sides``). If any part fails, the split is
-    not trusted: every part is set ``AMBIGUOUS`` and the region is ambiguous
-    (``NO_END_EVIDENCE``). A REGION attempt's ``support`` is the number of parts (0: not
-    split; -1: a duplicate), its ``threshold`` the :class:`AmbiguityReason` (NaN: split).
+    not trusted: every part is set ``AMBIGUOUS``.
+
+    A region is measured, and its grid laid, from the corner it was found at. Found from
+    several corners (:func:`_distinct_regions`), a split not trusted from the first is
+    tried from the next, up to ``MAX_REGION_CORNERS`` distinct outlines: each corner's
+    lines place that corner, while a sensor that smears depth across the far jumps ends
+    the plane a few centimetres short of them, so the grids differ by that much at the
+    far sides, and one may put a part across a real seam or off the layer where another
+    does not. A split is trusted only whole, every part verified, from one corner.
+
+    A REGION attempt's ``support`` is the number of parts (0: not split, the region as
+    reported ambiguous; -1: another corner's outline of a region), its ``threshold`` the
+    :class:`AmbiguityReason` (NaN: split; a corner tried whose parts failed:
+    ``NO_END_EVIDENCE``). Where a later corner splits the region, the first one found
+    becomes the duplicate.
     """
     cfg = ctx.config
-    vertices = ctx.vertices
     single = _multiples_as_regions(works, cfg)
-    regions = _distinct_regions(works, vertices, cfg.min_edge)
-    if not regions or not cfg.box_sizes:
+    groups = _distinct_regions(works, ctx.vertices, cfg.min_edge)
+    if not groups or not cfg.box_sizes:
         return ctx, works
-    new: list[tuple[np.ndarray, ...]] = []
-    parent: list[int] = []
-    plans: list[tuple[_Attempt, float, float, frozenset[int]]] = []
-    owners: list[_Attempt] = []
-    tol = cfg.angle_tolerance
-    for h, att in regions:
-        out = att.outcome
-        assert out is not None
-        R = align(vertices, h, ctx.normal_cov)
-        splits = distinct(region_splits(att.width, att.length, cfg.box_sizes,
-                                        cfg.size_tolerance, cfg.alpha), cfg.size_tolerance)
-        if not splits:
-            att.threshold = float(AmbiguityReason.NOT_A_MULTIPLE_OF_A_SIZE)
-            continue
-        evidence = []
-        for sp in splits:
-            ax, bx = att.width / sp.nx, att.length / sp.ny  # the measured part
-            z, zc = _cut_evidence(R, att, ctx, [ax * i for i in range(1, sp.nx)],
-                                  [bx * j for j in range(1, sp.ny)])
-            evidence.append((z, zc, bool(len(z)) and bool(np.all(z > zc))))
-        seen = [i for i, e in enumerate(evidence) if e[2]]
-        if len(seen) == 1:
-            pick = seen[0]
-        elif len(splits) == 1 and id(att) not in single:
-            pick = 0
-        else:  # several ways to cut it (one box of a listed size among them), no seam shown
-            att.threshold = float(AmbiguityReason.SEVERAL_SPLITS)
-            continue
-        sp, (z, zc, _) = splits[pick], evidence[pick]
-        rows = [TestTable.chi2(TestKind.SKU_SIZE, -1, sp.sku, sp.statistic, 2.0, cfg.alpha),
-                TestTable.decision(TestKind.SKU_SPLIT_SEAM, -1, np.arange(len(z)), z, zc,
-                                   z > zc, cfg.alpha)]
-        low = _too_low(R, att, ctx, cfg.box_sizes[sp.sku][2])
-        if low is not None:
-            rows.append(low)
-            if not low.accepted[0]:
-                att.outcome = dataclasses.replace(out, tests=TestTable.concat(
-                    [out.tests, *rows], cfg.alpha))
-                att.threshold = float(AmbiguityReason.TOO_LOW_FOR_THE_SIZE)
+    tried: list[list[tuple[int, _Attempt]]] = [[] for _ in groups]
+    pending = list(range(len(groups)))
+    part_works: list[_VertexWork] = []
+    while pending:
+        plans: list[_Part] = []
+        owners: list[int] = []
+        for g in pending:
+            # the next corner whose outline differs from those tried and that has a split
+            for c in groups[g]:
+                if len(tried[g]) >= MAX_REGION_CORNERS:
+                    break
+                if any(c[1] is t[1] or _same_rectangle(ctx.vertices, c, t, cfg.size_tolerance)
+                       for t in tried[g]):
+                    continue
+                tried[g].append(c)
+                parts = _plan_split(ctx, c[0], c[1], single)
+                if parts:
+                    plans += parts
+                    owners += [g] * len(parts)
+                    break
+        if not plans:
+            break
+        n0 = len(ctx.vertices)
+        V = append_vertices(ctx.vertices, [p[0] for p in plans], [-1] * len(plans),
+                            [-1] * len(plans), [p[1] for p in plans],
+                            [SIZE_PART] * len(plans), ctx.vertices.tests)
+        ctx = dataclasses.replace(ctx, vertices=V, normal_cov=normal_covariance(V))
+        n_parts = {g: owners.count(g) for g in set(owners)}
+        for k, ((_, _, att, cut), g) in enumerate(zip(plans, owners)):
+            w = _VertexWork(vertex=n0 + k)
+            # the parts of one split are tested together: their interior searches at alpha
+            # over the parts
+            _verify(align(V, n0 + k, ctx.normal_cov), att, ctx, cut, n_parts[g])
+            w.attempts.append(att)
+            part_works.append(w)
+        # a split is trusted only whole: a part that fails leaves the region to the next
+        # corner, or ambiguous
+        done = set()
+        for g in n_parts:
+            mine = [p[2] for p, o in zip(plans, owners) if o == g]
+            region = tried[g][-1][1]
+            if all(a.outcome is not None and a.outcome.accepted for a in mine):
+                region.support = float(len(mine))
+                if region is not groups[g][0][1]:
+                    groups[g][0][1].support = -1.0
+                done.add(g)
                 continue
-        att.outcome = dataclasses.replace(out, tests=TestTable.concat([out.tests, *rows],
-                                                                      cfg.alpha))
-        att.threshold = np.nan
-        att.support = float(sp.parts)
-        pw, pl = att.width / sp.nx, att.length / sp.ny
-        C = vertices.covariances[h]
-        for j in range(sp.ny):
-            for i in range(sp.nx):
-                u, v = i * pw, j * pl
-                cov = np.zeros((9, 9))
-                cov[:3, :3] = _corner(C, u, v, tol)
-                cov[3:, 3:] = C[3:, 3:]
-                new.append((R.origin + u * R.x_axis + v * R.y_axis, R.x_axis, R.y_axis,
-                            R.normal, cov))
-                parent.append(h)
-                inner = frozenset(si for si, ok in enumerate(
-                    (j > 0, j < sp.ny - 1, i > 0, i < sp.nx - 1)) if ok)
-                plans.append((_Attempt(DimensionSource.SKU_SPLIT, -1, pw, pl, float(h),
-                                       np.nan), pw, pl, inner))
-                owners.append(att)
-    if not new:
-        return ctx, works
-    n0 = len(vertices)
-    V = append_vertices(vertices, new, [-1] * len(new), [-1] * len(new), parent,
-                        [SIZE_PART] * len(new), vertices.tests)
-    ctx = dataclasses.replace(ctx, vertices=V, normal_cov=normal_covariance(V))
-    n_parts = {id(o): int(o.support) for o in owners}
-    part_works = []
-    for k, ((att, _, _, cut), region) in enumerate(zip(plans, owners)):
-        w = _VertexWork(vertex=n0 + k)
-        # the parts of one split are tested together: their interior searches at alpha
-        # over the parts
-        _verify(align(V, n0 + k, ctx.normal_cov), att, ctx, cut, n_parts[id(region)])
-        w.attempts.append(att)
-        part_works.append(w)
-    # a split is trusted only whole: a part that fails leaves the region ambiguous
-    for region in {id(o): o for o in owners}.values():
-        mine = [att for (att, _, _, _), o in zip(plans, owners) if o is region]
-        if all(a.outcome is not None and a.outcome.accepted for a in mine):
-            continue
-        for a in mine:
-            if a.outcome is not None and a.outcome.accepted:
-                a.outcome = dataclasses.replace(a.outcome, accepted=False,
-                                                reason=VerifyReason.AMBIGUOUS)
-        region.support = 0.0
-        region.threshold = float(AmbiguityReason.NO_END_EVIDENCE)
+            for a in mine:
+                if a.outcome is not None and a.outcome.accepted:
+                    a.outcome = dataclasses.replace(a.outcome, accepted=False,
+                                                    reason=VerifyReason.AMBIGUOUS)
+            region.threshold = float(AmbiguityReason.NO_END_EVIDENCE)
+        pending = [g for g in sorted(set(owners) - done) if len(tried[g]) < MAX_REGION_CORNERS]
     return ctx, works + part_works
 
 
