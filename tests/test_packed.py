@@ -88,6 +88,12 @@ def test_with_sizes_the_region_is_split_into_the_right_boxes(boxes: list[list[fl
     grid = r.verification.tests.select((r.verification.tests.a == split[0])
                                        & (r.verification.tests.kind == TestKind.SKU_SIZE))
     assert len(grid) == 1 and grid.accepted[0] and grid.b[0] == 0
+    # the parts lie in the region's refitted plane, not each in its own
+    n = r.verification.plane_normals[split[0]]
+    np.testing.assert_array_equal(s.normals, np.tile(n, (len(s), 1)))
+    p0 = r.verification.plane_centers[split[0]]
+    # on it, but for a significant bulge's shift of the centre to the rim (sub-millimetre)
+    np.testing.assert_allclose((s.centers - p0) @ n, 0.0, atol=1e-3)
 
 
 def test_two_small_touching_boxes_are_split_with_sizes() -> None:
