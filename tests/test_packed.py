@@ -18,7 +18,7 @@ from boxloc.evaluate.metrics import match_surfaces
 from boxloc.pipeline import find_graspable_surfaces
 from boxloc.products import AmbiguityReason, DimensionSource, Result
 from boxloc.simulate import SimulatedScan
-from boxloc.stages.sizes import match_size, region_splits
+from boxloc.stages.sizes import distinct, match_size, region_splits
 from boxloc.stats import TestKind
 
 #: The site's carton range: the one site input without a carton list (the largest box is
@@ -136,6 +136,16 @@ def test_size_chi2_and_grids() -> None:
     assert [(g.nx, g.ny) for g in grids] == [(2, 2)] and (grids[0].a, grids[0].b) == (0.4, 0.3)
     assert region_splits(0.9, 0.4, sizes, 0.01, 0.01)[0].nx == 3  # 3 x 1, along x
     assert region_splits(0.35, 0.4, sizes, 0.01, 0.01) == []  # no multiple
+    # a nearly square carton fits a region of two either way: one grid (2 x 1), one split,
+    # whose parts are measured, so both ways cut it at the same place
+    square = ((0.534, 0.545, 0.291),)
+    two_ways = region_splits(1.091, 0.538, square, 0.01, 0.01)
+    assert sorted((g.a, g.b) for g in two_ways) == [(0.534, 0.545), (0.545, 0.534)]
+    one = distinct(two_ways)
+    assert len(one) == 1 and one[0] == two_ways[0] and (one[0].nx, one[0].ny) == (2, 1)
+    # two grids of one size that cut differently stay two
+    assert len(distinct(region_splits(1.2, 0.8, ((0.4, 0.6, 0.3),), 0.01, 0.01))) == 1
+    assert len(distinct(region_splits(1.2, 1.2, ((0.4, 0.6, 0.3),), 0.01, 0.01))) == 2
 
 
 def test_locate_box_sizes_end_to_end(tmp_path: Path) -> None:

@@ -1097,7 +1097,7 @@ def _plan_split(ctx: _Context, h: int, att: _Attempt, single: set[int]) -> list[
     assert out is not None
     R = align(vertices, h, ctx.normal_cov)
     splits = distinct(region_splits(att.width, att.length, cfg.box_sizes,
-                                    cfg.size_tolerance, cfg.alpha), cfg.size_tolerance)
+                                    cfg.size_tolerance, cfg.alpha))
     if not splits:
         att.threshold = float(AmbiguityReason.NOT_A_MULTIPLE_OF_A_SIZE)
         return []

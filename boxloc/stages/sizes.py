@@ -18,7 +18,6 @@ are laid one way; a layer of mixed orientations is not a grid and is not split.
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -116,12 +115,18 @@ def region_splits(width: float, length: float, sizes: tuple[tuple[float, float, 
     return out
 
 
-def distinct(splits: list[Split], tolerance: float) -> list[Split]:
-    """The splits that cut a region differently (two listed sizes within the tolerance of
-    each other, laid the same way, are one split)."""
+def distinct(splits: list[Split]) -> list[Split]:
+    """The splits that cut a region differently, best first.
+
+    The parts are measured, the region's extent over the count along each axis
+    (:func:`boxloc.stages.hypotheses._split_regions`), so two splits into the same grid
+    (nx x ny) cut it at the same places, whichever listed sizes they fit: two sizes within
+    the tolerance of each other, or one nearly square carton laid either way (0.534 x 0.545
+    m, a region of two of them 1.091 x 0.538 m is 2 x 1 both ways). They are one split,
+    the better fitting one.
+    """
     out: list[Split] = []
     for s in splits:
-        if not any(s.nx == o.nx and s.ny == o.ny and math.hypot(s.a - o.a, s.b - o.b)
-                   <= tolerance for o in out):
+        if not any(s.nx == o.nx and s.ny == o.ny for o in out):
             out.append(s)
     return out
