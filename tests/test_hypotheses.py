@@ -152,13 +152,13 @@ def _one_vertex(o=(0.0, 0.0, 1.5)):
                      line_b=np.ones(1, np.int32), tests=TestTable.empty(0.01))
 
 
-def _work(vertex, width, length, seam_sides, runs_on):
+def _work(vertex, width, length, seam_sides, runs_on, on_plane=0.95, off_plane=0.0):
     from boxloc.stages.hypotheses import _Attempt, _VertexWork
     seam = TestTable.decision(TestKind.VERIFY_SEAM_SIDE, -1, sorted(seam_sides),
                               [9.0] * len(seam_sides), [3.0] * len(seam_sides),
                               [True] * len(seam_sides), 0.01)
     cont = TestTable.decision(TestKind.VERIFY_CONTINUATION, -1, [0, 1, 2, 3],
-                              [0.95 if s in runs_on else 0.0 for s in range(4)], 0.8,
+                              [on_plane if s in runs_on else off_plane for s in range(4)], 0.8,
                               [True] * 4, 0.01)
     interior = TestTable.decision(TestKind.VERIFY_SEAM_INTERIOR, -1, [0, 1], [1.0, 1.0],
                                   [3.5, 3.5], [True, True], 0.01)
@@ -187,6 +187,16 @@ def test_neighbour_vertices_are_the_corners_of_a_seam_side():
     assert len(again) == 3
     t2 = again.tests.of_kind(TestKind.NEIGHBOUR_CORNER)
     assert t2.accepted[-2:].all() and set(t2.b[-2:].tolist()) == {1, 2}
+
+
+def test_a_neighbour_with_a_bulged_lid_is_an_equal_neighbour():
+    # its middle rises off the plane: 0.65 of the strip beyond the seam on it, short of
+    # min_inlier_fraction (0.8) but half or more; a lower neighbour's strip holds a few
+    V = _one_vertex()
+    bulged = _work(0, 0.3, 0.4, {3}, {3}, on_plane=0.65)
+    assert len(neighbour_vertices(V, [bulged], 0, Config())) == 3
+    lower = _work(0, 0.3, 0.4, {3}, {3}, on_plane=0.3)
+    assert len(neighbour_vertices(V, [lower], 0, Config())) == 1
 
 
 def test_no_neighbour_corner_where_the_neighbour_is_found_already():

@@ -84,6 +84,13 @@ MAX_ATTEMPTS = 6
 MAX_EXTENT_ATTEMPTS = 3
 #: Most rounds of neighbours' corners (a row of touching boxes grows by one box a round).
 MAX_NEIGHBOUR_ROUNDS = 8
+#: A verified face's plane runs on beyond a seam side, to an equal neighbour, where at
+#: least this share of the strip beyond lies on it (VERIFY_CONTINUATION's statistic):
+#: half. A lower or taller neighbour leaves almost none on it; an equal one with a bulged
+#: lid holds only part (its rim by the seam, not its rising middle: 0.64-0.69 beside
+#: 1.2 cm lids), short of ``min_inlier_fraction``, which decides whether the face itself
+#: runs on.
+NEIGHBOUR_RUNS_ON = 0.5
 #: How far a flat region is followed along an arm, as a multiple of ``max_edge``: a pallet
 #: layer (1.2 m) of the longest cartons is twice the longest edge; a few in a row on a
 #: wider pallet or a conveyor, four.
@@ -821,7 +828,7 @@ def neighbour_vertices(vertices: VertexSet, works: list[_VertexWork], new_from: 
 
     A side of a verified rectangle that is a seam (``VERIFY_SEAM_SIDE``) as strong as the
     search for one inside the rectangle had to find, beyond which the face's plane runs on
-    (``VERIFY_CONTINUATION`` at least ``min_inlier_fraction``: a neighbour of equal
+    (``VERIFY_CONTINUATION`` at least ``NEIGHBOUR_RUNS_ON``: a neighbour of equal
     height), is a side of that neighbour too, and its two ends are two of the neighbour's
     corners: one vertex each, with its arms across the seam and along it. Those are the
     corners the line stage misses when both sides are seams (an interior box of a neat
@@ -914,8 +921,7 @@ def neighbour_vertices(vertices: VertexSet, works: list[_VertexWork], new_from: 
         crit_in = t.of_kind(TestKind.VERIFY_SEAM_INTERIOR).critical
         strong = seam.accepted & (seam.statistic >= (crit_in.max() if len(crit_in) else np.inf))
         cont = t.of_kind(TestKind.VERIFY_CONTINUATION)
-        runs_on = {int(b) for b, f in zip(cont.b, cont.statistic)
-                   if f >= config.min_inlier_fraction}
+        runs_on = {int(b) for b, f in zip(cont.b, cont.statistic) if f >= NEIGHBOUR_RUNS_ON}
         o, x, y, n = vertices.points[i], vertices.d1[i], vertices.d2[i], vertices.normals[i]
         C = vertices.covariances[i]
         W, L = att.width, att.length
