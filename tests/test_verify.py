@@ -408,6 +408,37 @@ def test_a_side_without_edges_ends_where_the_plane_drops_away(single_box):
     assert out.reason == VerifyReason.ACCEPTED
 
 
+def test_a_region_whose_edges_cover_too_little_is_bounded_by_its_plane_ends(single_box):
+    # a sensor that finds a jump at only every fifth position along each side: every side
+    # has its line of edges, but together they cover less than the paper's p of the
+    # perimeter. A flat region's outline (never a surface) is then shown by its plane
+    # dropping away beyond each side; a box's rectangle still fails (on bare active-stereo
+    # pallets that coverage made false surfaces)
+    sim, cfg, ctx, frame = single_box
+    o, x, y, n, w, l_ = frame
+    keep = np.random.default_rng(0).random(len(ctx.edge_points)) < 0.2
+    sparse = dataclasses.replace(ctx, edge_points=ctx.edge_points[keep],
+                                 edge_kinds=ctx.edge_kinds[keep],
+                                 edge_strength=None if ctx.edge_strength is None
+                                 else ctx.edge_strength[keep])
+
+    def run(region: bool, length: float = l_):  # type: ignore[no-untyped-def]
+        return verify(sim.scan, sparse, o, x, y, n, w, length, np.eye(6) * 1e-10, cfg,
+                      attempt_id=0, region=region)
+
+    box_out = run(False)
+    b = box_out.tests.of_kind(TestKind.VERIFY_BOUNDARY)
+    assert b.accepted[:4].all() and b.statistic[4] < cfg.support_fraction  # the premise
+    assert box_out.reason == VerifyReason.BOUNDARY
+    assert len(box_out.tests.of_kind(TestKind.VERIFY_PLANE_END)) == 0
+    region_out = run(True)
+    pe = region_out.tests.of_kind(TestKind.VERIFY_PLANE_END)
+    assert sorted(set(pe.b)) == [0, 1, 2, 3] and pe.accepted.all()
+    assert region_out.reason == VerifyReason.ACCEPTED
+    # cut short inside the top, the cut side's plane runs on: no outline there
+    assert run(True, 0.6 * l_).reason == VerifyReason.BOUNDARY
+
+
 def test_a_side_cut_inside_the_top_shows_no_plane_end(single_box):
     # the same rectangle cut short at 60 % of its length, with no edges at the cut: the
     # top's plane runs on beyond it, so nothing shows the side and the boundary fails

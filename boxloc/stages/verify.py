@@ -793,7 +793,7 @@ def _test_seam_interior(fp: FacePoints, hyp: _Hypothesis
 
 
 def _test_plane_ends(ctx: VerifyContext, hyp: _Hypothesis, fit: _FaceFit | None,
-                     sides: _Sides) -> list[TestTable]:
+                     sides: _Sides, support_fraction: float) -> list[TestTable]:
     """VERIFY_PLANE_END: a side that is no boundary by its edges (nor a seam) is one where
     the face's refitted plane ends just beyond it, dropping away: at most
     ``PLANE_END_FRACTION`` of the valid pixels of the strip beyond the side (as
@@ -801,8 +801,17 @@ def _test_plane_ends(ctx: VerifyContext, hyp: _Hypothesis, fit: _FaceFit | None,
     in the image) lie on the plane, and at most as many in front of it. Such a
     side counts as covered by the share of the strip off the plane. Returns its row (b =
     side, statistic = the fraction on the plane, critical = ``PLANE_END_FRACTION``), if any
-    side was tried. Without ``fit`` the rectangle's own plane (origin, normal) stands in."""
-    todo = [si for si in range(4) if not sides.ok[si]]
+    side was tried. Without ``fit`` the rectangle's own plane (origin, normal) stands in.
+
+    Where the sides together cover less than ``support_fraction`` of the perimeter, the
+    sides that are boundaries by their edges are tried too, and covered the same way: a
+    sensor that smears its depth edges finds a jump at only a quarter of the positions
+    along a side (active stereo), while the range points beyond show the drop all along
+    it, as :func:`_test_seam_sides` covers a side by its seam. :func:`verify` asks this of
+    flat regions only (``support_fraction`` 0 otherwise): a region is never a surface, and
+    on a box's rectangle it made false surfaces on bare active-stereo pallets."""
+    short = sides.fraction() < support_fraction
+    todo = [si for si in range(4) if not sides.ok[si] or (short and si not in sides.seams)]
     if not todo:
         return []
     m = hyp.margin
@@ -1170,7 +1179,9 @@ def verify(
         # away just beyond them: first against the rectangle's own plane (cheap: the strips
         # only); only where that shows an end is the plane refitted to decide (below)
         unbound = _test_plane_ends(ctx, hyp, None, _Sides(list(sides.covered), list(sides.ok),
-                                                          list(sides.expected)))
+                                                          list(sides.expected),
+                                                          set(sides.seams)),
+                                   config.support_fraction if region else 0.0)
         if not unbound or not unbound[0].accepted.any():
             return _failed(VerifyReason.BOUNDARY, tests + unbound, alpha,
                            n_interior_edges=n_int)
@@ -1196,7 +1207,8 @@ def verify(
         return before_fit(VerifyReason.INLIERS, n_inside=n_inside, n_valid=n_valid)
     if not bound:
         # sides without their line of edges: the face's plane may still end just beyond
-        tests += _test_plane_ends(ctx, hyp, fit, sides)
+        tests += _test_plane_ends(ctx, hyp, fit, sides,
+                                  config.support_fraction if region else 0.0)
         if not sides.bound(config.support_fraction):
             return _failed(VerifyReason.BOUNDARY, tests, alpha, n_inside=n_inside,
                            n_valid=n_valid, n_interior_edges=n_int)
