@@ -106,4 +106,3 @@ def binom_isf(q: float, n: int, p: float) -> float:
     if _BINOM_ISF is None:
         return float(_stats().binom.isf(q, n, p))
     return float(_BINOM_ISF(q, n, p) + 0)
-

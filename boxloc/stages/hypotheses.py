@@ -32,7 +32,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from collections import deque
+from collections import Counter, deque
 from collections.abc import Callable
 from concurrent.futures import Future, ProcessPoolExecutor
 from dataclasses import dataclass, field
@@ -1224,7 +1224,7 @@ def _split_regions(ctx: _Context, works: list[_VertexWork]) -> tuple[_Context, l
                             [-1] * len(plans), [p[1] for p in plans],
                             [SIZE_PART] * len(plans), ctx.vertices.tests)
         ctx = dataclasses.replace(ctx, vertices=V, normal_cov=normal_covariance(V))
-        n_parts = {g: owners.count(g) for g in set(owners)}
+        n_parts = Counter(owners)  # parts of each group's split, in the order planned
         for k, ((_, _, att, cut), g) in enumerate(zip(plans, owners)):
             w = _VertexWork(vertex=n0 + k)
             # the parts of one split are tested together: their interior searches at alpha

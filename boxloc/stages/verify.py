@@ -620,6 +620,10 @@ class _Sides:
         """Every side a boundary, together covering ``support_fraction`` of the perimeter."""
         return all(self.ok) and self.fraction() >= support_fraction
 
+    def copy(self) -> _Sides:
+        """A copy whose lists and set can change without changing these."""
+        return _Sides(list(self.covered), list(self.ok), list(self.expected), set(self.seams))
+
 
 @dataclass(frozen=True)
 class _FaceFit:
@@ -1171,6 +1175,9 @@ def verify(
     if crossed and not region:
         return _failed(VerifyReason.INTERIOR_SEAM, tests, alpha, n_interior_edges=n_int)
     bound = sides.bound(config.support_fraction)
+    # a region's sides short of p together may be covered by the plane's end; a box's not
+    # (on bare active-stereo pallets that made false surfaces): 0 asks for no coverage
+    end_fraction = config.support_fraction if region else 0.0
     # until the plane is refitted, a rectangle whose boundary rests on its plane's end
     # fails as BOUNDARY, with the rows that showed that end
     unbound: list[TestTable] = []
@@ -1178,10 +1185,7 @@ def verify(
         # sides without their line of edges may still end where the face's plane drops
         # away just beyond them: first against the rectangle's own plane (cheap: the strips
         # only); only where that shows an end is the plane refitted to decide (below)
-        unbound = _test_plane_ends(ctx, hyp, None, _Sides(list(sides.covered), list(sides.ok),
-                                                          list(sides.expected),
-                                                          set(sides.seams)),
-                                   config.support_fraction if region else 0.0)
+        unbound = _test_plane_ends(ctx, hyp, None, sides.copy(), end_fraction)
         if not unbound or not unbound[0].accepted.any():
             return _failed(VerifyReason.BOUNDARY, tests + unbound, alpha,
                            n_interior_edges=n_int)
@@ -1207,8 +1211,7 @@ def verify(
         return before_fit(VerifyReason.INLIERS, n_inside=n_inside, n_valid=n_valid)
     if not bound:
         # sides without their line of edges: the face's plane may still end just beyond
-        tests += _test_plane_ends(ctx, hyp, fit, sides,
-                                  config.support_fraction if region else 0.0)
+        tests += _test_plane_ends(ctx, hyp, fit, sides, end_fraction)
         if not sides.bound(config.support_fraction):
             return _failed(VerifyReason.BOUNDARY, tests, alpha, n_inside=n_inside,
                            n_valid=n_valid, n_interior_edges=n_int)
