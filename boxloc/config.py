@@ -34,6 +34,9 @@ UNRECORDED_KEYS: dict[str, Any] = {
     "noise.incidence_exponent": 1.0,
     "noise.corr_px_rows": 0.0,
     "noise.corr_px_cols": 0.0,
+    # logs before the exposure test measured its null on the scan's flat tiles
+    "noise.exceed_rate": 0.0,
+    "noise.exceed_dispersion": 1.0,
     "max_line_work": 0,
     "max_vertices": 0,
     "max_hypothesis_work": 0,
@@ -52,7 +55,8 @@ UNRECORDED_KEYS: dict[str, Any] = {
 
 #: The noise terms ``noise_auto`` estimates from each scan; giving any of them pins the model.
 ESTIMATED_NOISE_TERMS = frozenset({"sigma0", "k1", "k2", "row_corr", "incidence_exponent",
-                                   "corr_px_rows", "corr_px_cols"})
+                                   "corr_px_rows", "corr_px_cols", "exceed_rate",
+                                   "exceed_dispersion"})
 
 #: Config fields that change how a result is computed, never what it is.
 EXECUTION_FIELDS = frozenset({"workers"})

@@ -267,6 +267,16 @@ class NoiseModel:
         structured-light sensors match windows of several pixels, so neighbouring samples
         share their error and a line fitted to a few of them wobbles as a whole (the edge
         stage's crease test takes it into account). 0: white noise, as a scanner's.
+    exceed_rate : float
+        Share of a flat surface's points beyond the point test's critical value (z at
+        alpha / 2) on one side, as the scan's flat tiles show it (the median tile's, half
+        of both sides). 0: the normal's alpha / 2. Active-stereo depth has heavy tails: 1-3 %
+        of its points lie beyond 2.58 sigma on a side, not 0.5 %.
+    exceed_dispersion : float
+        How much more the count of such points varies from one 16x16 px tile to the next
+        than independent points' would (a robust variance ratio, at least 1): where the
+        noise's amplitude varies smoothly over the image, its exceedances come in patches.
+        1: as the correlation terms above say. The exposure test divides its counts by it.
     """
 
     sigma0: float = 0.0010
@@ -279,6 +289,8 @@ class NoiseModel:
     incidence_exponent: float = 1.0
     corr_px_rows: float = 0.0
     corr_px_cols: float = 0.0
+    exceed_rate: float = 0.0
+    exceed_dispersion: float = 1.0
 
     def __post_init__(self) -> None:
         for name in ("sigma0", "k1", "k2", "sigma_angle", "min_cos", "edge_px",
@@ -293,6 +305,12 @@ class NoiseModel:
         if not (np.isfinite(self.incidence_exponent) and 0 <= self.incidence_exponent <= 3):
             raise InputError("noise parameter incidence_exponent must be in [0, 3], got "
                              f"{self.incidence_exponent}")
+        if not (np.isfinite(self.exceed_rate) and 0 <= self.exceed_rate < 0.5):
+            raise InputError(f"noise parameter exceed_rate must be in [0, 0.5), got "
+                             f"{self.exceed_rate}")
+        if not (np.isfinite(self.exceed_dispersion) and self.exceed_dispersion >= 1):
+            raise InputError(f"noise parameter exceed_dispersion must be finite and >= 1, "
+                             f"got {self.exceed_dispersion}")
         if not 0 < self.min_cos <= 1:
             raise InputError(f"noise parameter min_cos must be in (0, 1], got {self.min_cos}")
 

@@ -198,3 +198,29 @@ def test_a_far_noisy_floor_facing_the_camera_is_not_grazing(seed: int) -> None:
                      "tilt=0.0", seed)
     assert t.rejected["grazing incidence"] == 0
     assert t.n_accepted >= 0.9 * t.n_tiles
+
+
+@pytest.mark.parametrize("seed", [1, 2])
+def test_the_exposure_null_is_measured_on_the_scans_flat_tiles(seed: int) -> None:
+    # Active-stereo depth has heavy tails whose amplitude varies smoothly over the image: on
+    # its bare floor several times alpha / 2 of the points lie beyond 2.58 sigma on a side,
+    # in patches (seeds 1-3: 1.6-2.3 times the rate, counts 110-127 times as variable as
+    # binomial ones). A laser's noise is normal and white: its rate is the normal's and
+    # its counts vary about as binomial ones (tiles holding a neighbour's pixels aside)
+    cfg = Config(noise_auto=True)
+    stereo = estimate_scan_noise(simulate(
+        "floor:sensor=active-stereo,width=320,height=240,f=220,distance=2.0,tilt=0.3",
+        seed).scan, cfg).noise_model()
+    assert stereo["exceed_rate"] > 1.4 * cfg.alpha / 2
+    assert stereo["exceed_dispersion"] > 30.0
+    laser = estimate_scan_noise(simulate(
+        "floor:sensor=laser,width=320,height=240,f=262.5,distance=2.0,tilt=0.3",
+        seed).scan, cfg).noise_model()
+    assert cfg.alpha / 2 <= laser["exceed_rate"] < 2.0 * cfg.alpha / 2
+    assert laser["exceed_dispersion"] < 4.0
+
+
+def test_a_pinned_model_keeps_the_normal_exposure_null(noisy) -> None:  # type: ignore[no-untyped-def]
+    est = estimate_scan_noise(noisy.scan, Config(noise_auto=False))
+    assert est.noise_model()["exceed_rate"] == 0.0
+    assert est.noise_model()["exceed_dispersion"] == 1.0

@@ -197,6 +197,34 @@ def test_exposed_catches_the_corner_of_a_box_above(single_box):
     assert not rows.accepted[0] and rows.accepted[1] and not rows.accepted[2]
 
 
+def test_exposed_against_the_scans_own_exceedances(single_box):
+    # four discs of the top, 2 cm across, 1.6 cm nearer: beyond the point test's k, and in
+    # patches. Under normal noise (alpha / 2 of the points in front, each on its own) they
+    # are something resting on the face; where the scan's flat tiles show its noise puts
+    # 1 % of the points in front, a hundred times as patchy as independent points (active
+    # stereo's heavy tails), they are its noise. A block 8 cm square in the middle stays
+    # an occluder; a 2 cm corner does not: such noise hides it
+    sim, cfg, ctx, frame = single_box
+    o, x, y, n, w, l_ = frame
+    D = ctx.points - o
+    du, dv, dw = D @ x, D @ y, D @ n
+    top = ctx.valid & (np.abs(dw) < 0.005) & (du > 0) & (du < w) & (dv > 0) & (dv < l_)
+    discs = np.zeros_like(top)
+    for cu, cv in [(0.1, 0.1), (0.25, 0.2), (0.15, 0.22), (0.3, 0.08)]:
+        discs |= top & ((du - cu) ** 2 + (dv - cv) ** 2 < 0.01**2)
+    patchy = dataclasses.replace(cfg, noise=dataclasses.replace(
+        cfg.noise, exceed_rate=0.01, exceed_dispersion=100.0))
+    assert _verify(sim, cfg, _pull(ctx, discs, 0.016), frame).reason == VerifyReason.NOT_EXPOSED
+    out = _verify(sim, patchy, _pull(ctx, discs, 0.016), frame)
+    assert out.reason == VerifyReason.ACCEPTED and out.n_front > 200
+    rows = out.tests.of_kind(TestKind.VERIFY_EXPOSED)  # the effective counts: / 100
+    assert rows.statistic[1] <= 3 and rows.accepted.all()
+    block = top & (np.abs(du - 0.5 * w) < 0.04) & (np.abs(dv - 0.5 * l_) < 0.04)
+    assert _verify(sim, patchy, _pull(ctx, block, 0.02), frame).reason == VerifyReason.NOT_EXPOSED
+    corner = top & (du > w - 0.032) & (du < w - 0.012) & (dv > 0.012) & (dv < 0.032)
+    assert _verify(sim, patchy, _pull(ctx, corner, 0.02), frame).reason == VerifyReason.ACCEPTED
+
+
 def _holes(ctx, frame, share):
     """ctx with the middle `share` of the top's rows (along y) returning nothing."""
     o, x, y, n, w, l_ = frame

@@ -893,13 +893,17 @@ def _test_exposed(fit: _FaceFit, hyp: _Hypothesis, noise: NoiseModel
                   ) -> tuple[bool, TestTable]:
     """VERIFY_EXPOSED: nothing rests on the face. Covered only if the points in front of
     its plane outnumber those behind (sign test) and are more frequent than the noise
-    model puts there, over the core or in its busiest cell.
+    puts there, over the core or in its busiest cell.
 
     Where the noise model has a correlation (a row offset, correlation lengths), the points
     beyond k come in runs and every count varies more than a binomial one: a count x of n
     is taken as x / D of n / D independent points, D its design effect under the model
-    (:mod:`boxloc.stages.design_effect`). The rows record those effective counts (the raw
-    ones for white noise, D = 1)."""
+    (:mod:`boxloc.stages.design_effect`), or the patchiness the scan's own flat tiles show
+    (``noise.exceed_dispersion``) where that is larger. How often the noise puts a point in
+    front is the scan's own rate too (``noise.exceed_rate``; alpha / 2 for normal noise):
+    active-stereo depth has heavy tails in patches, and on bulged lids, whose middles
+    stand in front of their plane, a model's normal rate called most layers covered. The
+    rows record the effective counts (the raw ones for white noise, D = 1)."""
     alpha = hyp.alpha
     core = fit.core
     rows = fit.rows[core]
@@ -909,6 +913,9 @@ def _test_exposed(fit: _FaceFit, hyp: _Hypothesis, noise: NoiseModel
     ids, inv = np.unique(cid, return_inverse=True)
     D_f, D_s = exceedance_design_effects(rows, np.zeros(len(rows), np.int64), 1, hyp.k, noise)
     D_cell = exceedance_design_effects(rows, inv, len(ids), hyp.k, noise)[0]
+    patchy = float(noise.exceed_dispersion)
+    D_f, D_s, D_cell = (np.maximum(D, patchy) for D in (D_f, D_s, D_cell))
+    rate = max(alpha / 2, float(noise.exceed_rate))  # of a point in front, under the noise
 
     def eff(x: Any, D: Any) -> np.ndarray:
         return np.rint(np.asarray(x, np.float64) / D).astype(np.int64)
@@ -917,11 +924,11 @@ def _test_exposed(fit: _FaceFit, hyp: _Hypothesis, noise: NoiseModel
     m_out = int(eff(n_front + n_behind, D_s[0]))
     f_sign = int(eff(n_front, D_s[0]))
     p_front = float(binom_sf(f_sign - 1, m_out, 0.5)) if f_sign else 1.0
-    # ... and more frequent than the noise model puts in front (alpha/2 of the points:
-    # z > k), so that a handful of stray points, with none behind, is no occluder
+    # ... and more frequent than the noise puts in front (z > k: alpha / 2 of the points
+    # for normal noise), so that a handful of stray points, with none behind, is no occluder
     n_core = int(eff(int(core.sum()), D_f[0]))
     f_rate = int(eff(n_front, D_f[0]))
-    p_rate = float(binom_sf(f_rate - 1, n_core, alpha / 2)) if f_rate else 1.0
+    p_rate = float(binom_sf(f_rate - 1, n_core, rate)) if f_rate else 1.0
     # ... or, in one place (the corner of a box above), more frequent than that: the
     # busiest cell of the core, Bonferroni over the cells
     n_cell = eff(np.bincount(inv, minlength=len(ids)), D_cell)
@@ -929,7 +936,7 @@ def _test_exposed(fit: _FaceFit, hyp: _Hypothesis, noise: NoiseModel
                              minlength=len(ids)), D_cell)
     n_cells = max(len(ids), 1)
     if f_cell.any():
-        p_cells = binom_sf(f_cell - 1, n_cell, alpha / 2)
+        p_cells = binom_sf(f_cell - 1, n_cell, rate)
         c_best = int(np.argmin(np.where(f_cell > 0, p_cells, np.inf)))
         p_local = float(min(p_cells[c_best] * n_cells, 1.0))
         f_local, n_local = int(f_cell[c_best]), int(n_cell[c_best])
@@ -940,8 +947,8 @@ def _test_exposed(fit: _FaceFit, hyp: _Hypothesis, noise: NoiseModel
         TestKind.VERIFY_EXPOSED, hyp.attempt_id, [m_out, n_core, n_local],
         [f_sign, f_rate, f_local],
         [binom_isf(alpha, m_out, 0.5) if m_out else 0.0,
-         binom_isf(alpha, n_core, alpha / 2),
-         binom_isf(alpha / n_cells, n_local, alpha / 2)],
+         binom_isf(alpha, n_core, rate),
+         binom_isf(alpha / n_cells, n_local, rate)],
         [p_front >= alpha, p_rate >= alpha, p_local >= alpha], alpha,
         p_value=[p_front, p_rate, p_local])
 
