@@ -134,12 +134,18 @@ def _pull(ctx, sel, dist):
     return dataclasses.replace(ctx, points=P)
 
 
-def test_exposed_ignores_edge_artefacts_but_not_an_occluder(single_box):
-    sim, cfg, ctx, frame = single_box
+def _top(ctx, frame):
+    """The top's pixels (on its plane, inside its rectangle) and every pixel's (u, v)."""
     o, x, y, n, w, l_ = frame
     D = ctx.points - o
     du, dv, dw = D @ x, D @ y, D @ n
-    top = ctx.valid & (np.abs(dw) < 0.005) & (du > 0) & (du < w) & (dv > 0) & (dv < l_)
+    return ctx.valid & (np.abs(dw) < 0.005) & (du > 0) & (du < w) & (dv > 0) & (dv < l_), du, dv
+
+
+def test_exposed_ignores_edge_artefacts_but_not_an_occluder(single_box):
+    sim, cfg, ctx, frame = single_box
+    o, x, y, n, w, l_ = frame
+    top, du, dv = _top(ctx, frame)
     # a structured-light sensor pulls the points next to a jump edge toward it: here
     # the three pixels along one whole side, by 1 cm
     band = top & (dv < 3 * ctx.spacing_at(o))
@@ -205,10 +211,8 @@ def test_exposed_against_the_scans_own_exceedances(single_box):
     # stereo's heavy tails), they are its noise. A block 8 cm square in the middle stays
     # an occluder; a 2 cm corner does not: such noise hides it
     sim, cfg, ctx, frame = single_box
-    o, x, y, n, w, l_ = frame
-    D = ctx.points - o
-    du, dv, dw = D @ x, D @ y, D @ n
-    top = ctx.valid & (np.abs(dw) < 0.005) & (du > 0) & (du < w) & (dv > 0) & (dv < l_)
+    w, l_ = frame[4:]
+    top, du, dv = _top(ctx, frame)
     discs = np.zeros_like(top)
     for cu, cv in [(0.1, 0.1), (0.25, 0.2), (0.15, 0.22), (0.3, 0.08)]:
         discs |= top & ((du - cu) ** 2 + (dv - cv) ** 2 < 0.01**2)
