@@ -195,24 +195,30 @@ def test_every_side_of_a_reported_surface_has_evidence_of_the_box_end() -> None:
     assert (ev.a == r.surfaces.attempt[0]).all() and list(ev.b) == [0, 1, 2, 3]
 
 
-def test_a_split_not_trusted_from_one_corner_is_tried_from_the_next() -> None:
-    # a development scene (packed suite, seed 1): an active-stereo layer of two cartons
-    # whose smeared far jump ends the plane short when followed from the first corner
-    # found (no multiple of the size), but not from the next
+def _development_layer(index: int):  # type: ignore[no-untyped-def]
+    """A development scene of the packed suite (seed 1, 48 scenes), an active-stereo layer,
+    localized with its carton list as a user gives it: (sim, result)."""
     import dataclasses
 
     from boxloc.evaluate.matrix_bench import matrix_config
     from boxloc.evaluate.packed_bench import box_sizes_csv, packed_suite, read_sizes_as_a_user
     from boxloc.simulate import simulate
-    from boxloc.stages.hypotheses import MAX_REGION_CORNERS
 
     specs = packed_suite(48, 1)
-    spec = specs[23]
-    assert spec.sensor == "active-stereo"
-    sim = simulate(spec)
+    assert specs[index].sensor == "active-stereo"
+    sim = simulate(specs[index])
     cfg, _ = matrix_config(specs)
     cfg = dataclasses.replace(cfg, box_sizes=read_sizes_as_a_user(box_sizes_csv(sim.truth)))
-    r = find_graspable_surfaces(sim.scan, cfg)
+    return sim, find_graspable_surfaces(sim.scan, cfg)
+
+
+def test_a_split_not_trusted_from_one_corner_is_tried_from_the_next() -> None:
+    # a development scene: an active-stereo layer of two cartons whose smeared far jump ends
+    # the plane short when followed from the first corner found (no multiple of the size),
+    # but not from the next
+    from boxloc.stages.hypotheses import MAX_REGION_CORNERS
+
+    sim, r = _development_layer(23)
     m = match_surfaces(r.surfaces, sim.truth)
     assert m.tp == 2 and m.fp == 0
     H = r.hypotheses
@@ -233,35 +239,21 @@ def test_a_split_not_trusted_from_one_corner_is_tried_from_the_next() -> None:
 
 
 def test_a_split_is_laid_in_the_regions_refitted_plane() -> None:
-    # a development scene (packed suite, seed 1): an active-stereo layer of four cartons at
-    # 1.8 m. Its corner's lines tilt the corner's plane off the layer, and a grid laid in
-    # that plane put the far parts off their own points (they failed, and the split with
-    # them); laid in the plane the region's points were refitted to, every part verifies
-    import dataclasses
-
-    from boxloc.evaluate.matrix_bench import matrix_config
-    from boxloc.evaluate.packed_bench import box_sizes_csv, packed_suite, read_sizes_as_a_user
-    from boxloc.simulate import simulate
-
-    specs = packed_suite(48, 1)
-    spec = specs[35]
-    assert spec.sensor == "active-stereo"
-    sim = simulate(spec)
-    cfg, _ = matrix_config(specs)
-    cfg = dataclasses.replace(cfg, box_sizes=read_sizes_as_a_user(box_sizes_csv(sim.truth)))
-    r = find_graspable_surfaces(sim.scan, cfg)
+    # a development scene: an active-stereo layer of four cartons at 1.8 m. Its corner's
+    # lines tilt the corner's plane off the layer, and a grid laid in that plane put the
+    # far parts off their own points (they failed, and the split with them); laid in the
+    # plane the region's points were refitted to, every part verifies
+    sim, r = _development_layer(35)
     m = match_surfaces(r.surfaces, sim.truth)
-    assert m.tp == 4 and m.fp == 0
-    H = r.hypotheses
-    parts = np.flatnonzero(H.att_source == DimensionSource.SKU_SPLIT)
+    assert (m.tp, m.fp) == (4, 0)
+    H, V = r.hypotheses, r.verification
     region = np.flatnonzero((H.att_source == DimensionSource.REGION) & (H.att_support == 4))
     assert len(region) == 1
-    V = r.verification
-    n = V.plane_normals[region[0]]
-    c = V.plane_centers[region[0]]
-    # every part's corner on the region's plane, and its normal the plane's
-    for a in parts[V.accepted[parts]]:
-        h = H.att_hypothesis[a]
+    n, c = V.plane_normals[region[0]], V.plane_centers[region[0]]
+    # every verified part's corner on the region's plane, and its normal the plane's
+    parts = np.flatnonzero((H.att_source == DimensionSource.SKU_SPLIT) & V.accepted)
+    assert len(parts) == 4
+    for h in H.att_hypothesis[parts]:
         assert abs(float((H.origins[h] - c) @ n)) < 1e-9
         assert float(H.normals[h] @ n) > 1 - 1e-12
 
