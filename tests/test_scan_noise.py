@@ -142,6 +142,9 @@ def test_the_estimate_is_recorded_and_explained(noisy, tmp_path) -> None:  # typ
     assert d["noise"]["sigma_mm"] == pytest.approx(1e3 * noisy.spec.noise.sigma_range(r),
                                                    rel=0.15)
     assert "noise model: scan, sigma" in format_explanation(d)
+    # the exposure test's null, as the scan's flat tiles measured it
+    assert d["noise"]["model"]["exceed_rate"] >= 0.005
+    assert "exposure null: " in format_explanation(d)
 
 
 @pytest.mark.parametrize(("spec", "lo", "hi"), [
