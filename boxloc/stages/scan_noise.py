@@ -88,8 +88,13 @@ def estimate_scan_noise(scan: Scan, config: Config) -> NoiseEstimate:
     model, source, reason = nominal, NoiseSource.CONFIG, "the config pins the noise model"
     if config.noise_auto:
         model, source, reason = _auto(scan, tiles, corr, nominal, config.alpha)
+    z = _z(tiles, model)  # the flat tiles' points in the model's sigmas (their outliers too)
+    if source == NoiseSource.SCAN:
+        rate, dispersion = exceedance(z, tiles.tile[np.isfinite(tiles.residual)],
+                                      config.alpha)
+        model = dataclasses.replace(model, exceed_rate=rate, exceed_dispersion=dispersion)
     bins, tests = _fit_tests(tiles, model, config.alpha)
-    tails = _tail_rates(tiles, model)
+    tails = _tail_rates(z)
     return NoiseEstimate(
         source=int(source), reason=reason,
         model=_as_array(model), nominal=_as_array(nominal),
@@ -148,27 +153,25 @@ def _auto(scan: Scan, tiles: TileResiduals, corr: np.ndarray, nominal: NoiseMode
                        incidence_exponent=fitted.incidence_exponent,
                        corr_px_rows=correlation_length(along_rows),
                        corr_px_cols=correlation_length(along_cols))
-    rate, dispersion = exceedance(tiles, model, alpha)
-    model = dataclasses.replace(model, exceed_rate=rate, exceed_dispersion=dispersion)
     used = sum(1 for row in report["rows"] if row["used"])
     return model, NoiseSource.SCAN, (
         f"fitted to {tiles.n_accepted} flat tiles ({report['n_points']} points, "
         f"{used} range bins)")
 
 
-def exceedance(tiles: TileResiduals, model: NoiseModel, alpha: float) -> tuple[float, float]:
+def exceedance(z: np.ndarray, tile: np.ndarray, alpha: float) -> tuple[float, float]:
     """How often a flat surface's points lie beyond the point test's critical value, and
     how patchy those points are: :attr:`NoiseModel.exceed_rate` and
     :attr:`NoiseModel.exceed_dispersion`.
 
-    Every point of the flat tiles (their plane-fit outliers too: a heavy tail is such
-    points) is a residual over the model's sigma; a point beyond ``z`` at ``alpha / 2``
-    exceeds. Robust over the tiles: a few tiles that hold a neighbouring surface's pixels
-    put many exceedances in one place on any sensor (a development laser pile: a mean
-    two-sided share of 6.4 % and a variance ratio of 180, against the median tile's 1.6 %
-    and an interquartile ratio of 2.2), so the rate is the median tile's, and the
-    dispersion the counts' interquartile range (as a normal's sigma) squared over their
-    binomial variance at that rate.
+    ``z`` (n,) are the flat tiles' points (their plane-fit outliers too: a heavy tail is
+    such points) as |residual| over the model's sigma, ``tile`` (n,) their tiles; a point
+    beyond the normal's z at ``alpha / 2`` exceeds. Robust over the tiles: a few tiles
+    that hold a neighbouring surface's pixels put many exceedances in one place on any
+    sensor (a development laser pile: a mean two-sided share of 6.4 % and a variance ratio
+    of 180, against the median tile's 1.6 % and an interquartile ratio of 2.2), so the
+    rate is the median tile's, and the dispersion the counts' interquartile range (as a
+    normal's sigma) squared over their binomial variance at that rate.
 
     Returns
     -------
@@ -177,13 +180,10 @@ def exceedance(tiles: TileResiduals, model: NoiseModel, alpha: float) -> tuple[f
     dispersion : float
         At least 1.
     """
-    e = tiles.residual
-    fin = np.isfinite(e)
-    if int(fin.sum()) < MIN_FLAT_TILES * PATCH_PX**2 // 2:
+    if z.size < MIN_FLAT_TILES * PATCH_PX**2 // 2:
         return alpha / 2.0, 1.0
     k = float(norm_isf(alpha / 2.0))
-    z = np.abs(e[fin]) / model.sigma_range(tiles.range[fin], tiles.cos_incidence[fin])
-    _, inv = np.unique(tiles.tile[fin], return_inverse=True)
+    _, inv = np.unique(tile, return_inverse=True)
     count = np.bincount(inv, weights=(z > k).astype(np.float64))
     n = np.bincount(inv).astype(np.float64)
     p = float(np.median(count / n))
@@ -331,8 +331,7 @@ def _z(tiles: TileResiduals, model: NoiseModel) -> np.ndarray:
     return np.abs(e[fin]) / model.sigma_range(tiles.range[fin], tiles.cos_incidence[fin])
 
 
-def _tail_rates(tiles: TileResiduals, model: NoiseModel) -> np.ndarray:
-    z = _z(tiles, model)
+def _tail_rates(z: np.ndarray) -> np.ndarray:
     if z.size == 0:
         return np.full(len(TAIL_SIGMAS), np.nan)
     return np.array([np.mean(z > k) for k in TAIL_SIGMAS])

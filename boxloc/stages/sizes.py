@@ -119,7 +119,7 @@ def distinct(splits: list[Split]) -> list[Split]:
     """The splits that cut a region differently, best first.
 
     The parts are measured, the region's extent over the count along each axis
-    (:func:`boxloc.stages.hypotheses._split_regions`), so two splits into the same grid
+    (:func:`boxloc.stages.hypotheses._plan_split`), so two splits into the same grid
     (nx x ny) cut it at the same places, whichever listed sizes they fit: two sizes within
     the tolerance of each other, or one nearly square carton laid either way (0.534 x 0.545
     m, a region of two of them 1.091 x 0.538 m is 2 x 1 both ways). They are one split,
