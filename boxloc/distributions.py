@@ -22,7 +22,7 @@ import numpy.typing as npt
 from scipy import special
 from scipy.special import _ufuncs
 
-__all__ = ["norm_isf", "norm_sf", "halfnorm_ppf", "chi2_sf", "chi2_isf", "chi2_ppf",
+__all__ = ["norm_isf", "norm_sf", "halfnorm_ppf", "t_sf", "chi2_sf", "chi2_isf", "chi2_ppf",
            "poisson_isf", "binom_sf", "binom_isf"]
 
 _BINOM_SF = getattr(_ufuncs, "_binom_sf", None)
@@ -53,6 +53,13 @@ def halfnorm_ppf(q: npt.ArrayLike) -> np.ndarray:
     """``scipy.stats.halfnorm.ppf(q)``: ``ndtri((1 + q) / 2)``, for q in [0, 1)."""
     q = np.asarray(q, dtype=np.float64)
     return np.asarray(special.ndtri((1.0 + q) / 2.0) * 1.0 + 0.0)
+
+
+def t_sf(x: npt.ArrayLike, df: npt.ArrayLike) -> np.ndarray:
+    """``scipy.stats.t.sf(x, df)``: ``stdtr(df, -x)``, for finite df > 0."""
+    x = np.asarray(x, dtype=np.float64)
+    df = np.asarray(df, dtype=np.float64)
+    return np.asarray(special.stdtr(df, -(x * 1.0 + 0.0)), dtype=np.float64)
 
 
 def chi2_sf(x: npt.ArrayLike, df: npt.ArrayLike) -> np.ndarray:

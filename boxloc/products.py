@@ -168,7 +168,9 @@ class NoiseEstimate:
     bin_range, bin_tiles, bin_std, bin_model_std, bin_z : (B,) float64
         Per range bin with enough tiles: median range (m), tiles, robust residual std along
         the ray at normal incidence (m), the model's (m), and the NOISE_FIT z of the bin
-        (beyond the scale margin; positive means off by more than the margin).
+        (beyond the scale margin; positive means off by more than the margin): the
+        standard normal quantile of the bin's Student t tail probability (logs before
+        ``bin_dof`` hold the t itself, taken as normal).
     correlation : (2, 4) float64
         Residual correlation along rows and along columns at 1, 2, 4, 8 pixels (NaN
         where undefined).
@@ -176,6 +178,19 @@ class NoiseEstimate:
         Share of residuals beyond 3, 4, 5 model sigmas (a normal: 2.7e-3, 6.3e-5, 5.7e-7).
     tests : TestTable
         NOISE_FIT (none when no range bin has enough flat tiles).
+    bin_design : (B,) float64
+        Per range bin, the design effect of its tiles' correlated scales: how many times
+        the variance of independent tiles' median its median has (1 in logs before it).
+    bin_dof : (B,) float64
+        Per range bin, the degrees of freedom of the t its z comes from (inf in logs before
+        it: the normal).
+    tile_correlation : (4,) float64
+        (c_r, a_r, c_c, a_c): the flat tiles' log scales correlate as ``c_r * a_r ** k``
+        between tiles k tile-grid steps apart along a row, ``c_c * a_c ** k`` along a
+        column (zeros: not at all, and in logs before it).
+    fit_all : (4,) float64
+        NOISE_FIT's test of all flat tiles together: z, tiles, design effect, dof (NaN when
+        there was no bin to test, and in logs before it).
     """
 
     source: int
@@ -193,6 +208,18 @@ class NoiseEstimate:
     correlation: np.ndarray
     tails: np.ndarray
     tests: TestTable
+    bin_design: np.ndarray = None  # type: ignore[assignment]
+    bin_dof: np.ndarray = None  # type: ignore[assignment]
+    tile_correlation: np.ndarray = None  # type: ignore[assignment]
+    fit_all: np.ndarray = None  # type: ignore[assignment]
+
+    def __post_init__(self) -> None:
+        nb = self.bin_range.shape[0]
+        for name, value in (("bin_design", np.ones(nb)), ("bin_dof", np.full(nb, np.inf)),
+                            ("tile_correlation", np.zeros(4)),
+                            ("fit_all", np.full(4, np.nan))):
+            if getattr(self, name) is None:
+                object.__setattr__(self, name, value)
 
     def noise_model(self) -> dict[str, float]:
         """The model in use as ``NoiseModel`` keyword arguments."""

@@ -776,11 +776,20 @@ def _noise(noise: Any) -> dict[str, Any] | None:
     model = dict(zip(NOISE_FIELDS, (float(v) for v in noise.model)))
     fit = noise.tests.of_kind(TestKind.NOISE_FIT)
     r = float(np.median(noise.bin_range)) if noise.bin_range.size else None
+    worst = None
+    if noise.bin_z.size:
+        i = int(np.argmax(noise.bin_z))
+        worst = {"range_m": float(noise.bin_range[i]), "tiles": int(noise.bin_tiles[i]),
+                 "ratio": float(noise.bin_std[i] / noise.bin_model_std[i]),
+                 "z": float(noise.bin_z[i]), "design_effect": float(noise.bin_design[i]),
+                 "dof": float(noise.bin_dof[i])}
     return {
         "source": _name(NoiseSource, noise.source), "reason": noise.reason, "model": model,
         "range_m": r,
         "sigma_mm": None if r is None else 1e3 * float(NoiseModel(**model).sigma_range(r)),
         "fit": _tests(fit, [TestKind.NOISE_FIT])[0] if len(fit) else None,
+        "worst_bin": worst,
+        "tile_correlation": [float(v) for v in noise.tile_correlation],
     }
 
 
@@ -1120,6 +1129,16 @@ def format_explanation(d: dict[str, Any]) -> str:
                      f"{_num(nz['model']['row_corr'])} ({nz['reason']})")
         if nz.get("fit"):
             lines.append(f"  {_test_text(nz['fit'])}")
+        wb = nz.get("worst_bin")
+        if wb:
+            dof = (f"t with {_num(wb['dof'])} dof" if math.isfinite(wb["dof"])
+                   else "normal (a log from before the t)")
+            cr, ar, cc, ac = nz.get("tile_correlation") or (0.0, 0.0, 0.0, 0.0)
+            lines.append(f"  worst range bin: {_num(wb['range_m'])} m, flat tiles scatter "
+                         f"{_num(wb['ratio'])}x the model's sigma ({wb['tiles']} tiles; design "
+                         f"effect {_num(wb['design_effect'])}, the tiles' scales correlating "
+                         f"{_num(cr)} x {_num(ar)}^k along rows, {_num(cc)} x {_num(ac)}^k "
+                         f"along columns; {dof})")
         rate = nz["model"].get("exceed_rate", 0.0)
         if rate > 0:  # measured on the scan (0: the normal's alpha / 2, a pinned model's)
             lines.append(f"  exposure null: {_num(100.0 * rate)} % of a face's points beyond "

@@ -41,6 +41,13 @@ def test_chi_square(df: float) -> None:
         assert _same(d.chi2_ppf(1.0 - a, df), st.chi2.ppf(1.0 - a, df))
 
 
+@pytest.mark.parametrize("df", [1.0, 2.5, 4.0, 37.3])
+def test_student_t_tail(df: float) -> None:
+    rng = np.random.default_rng(int(df * 10))
+    x = np.r_[rng.normal(0, 5, 3000), 0.0, -0.0, np.inf, -np.inf, np.nan, 1e3]
+    assert _same(d.t_sf(x, df), st.t.sf(x, df))
+
+
 def test_poisson_quantile() -> None:
     rng = np.random.default_rng(2)
     for _ in range(3000):

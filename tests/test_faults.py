@@ -310,7 +310,7 @@ def test_the_cli_on_a_real_full_disk_prints_one_line(small_tmpfs: Path, tmp_path
 def test_simulated_enospc_at_random_points(tmp_path: Path) -> None:
     """The disk fills at a random byte: inside the header, a chunk, or the summary."""
     rng = np.random.default_rng(7)
-    written_total = recovered_total = 0
+    written_total = recovered_total = extra_total = 0
     for t in range(ENOSPC_TRIALS):
         limit = int(rng.integers(2_000, 1_500_000))
         path = tmp_path / f"e{t}.mcap"
@@ -334,10 +334,15 @@ def test_simulated_enospc_at_random_points(tmp_path: Path) -> None:
             assert "boxloc recover" in msg
         assert rec.n_scans == len(written)
         report = recover_log(path, tmp_path / f"e{t}.recovered.mcap")
-        assert report.scan_indices == written, (limit, msg)
-        check_recovered(report.output, written)
+        # every scan written is recovered; so may be the one being written when the disk
+        # filled, if its chunk was on disk and only its message index records failed (the
+        # writer cannot tell a failed flush's parts apart; at limit 1417467 it was so)
+        assert report.scan_indices in (written, written + [len(written)]), (limit, msg)
+        check_recovered(report.output, report.scan_indices)
         written_total += len(written)
-        recovered_total += len(report.scan_indices)
+        recovered_total += len(set(written) & set(report.scan_indices))
+        extra_total += len(report.scan_indices) - len(written)
     _figure("enospc_simulated", {"trials": ENOSPC_TRIALS, "scans_written": written_total,
                                  "scans_recovered": recovered_total,
-                                 "scans_lost": written_total - recovered_total})
+                                 "scans_lost": written_total - recovered_total,
+                                 "failed_scans_recovered_too": extra_total})

@@ -13,7 +13,12 @@ from boxloc.pipeline import find_graspable_surfaces
 from boxloc.products import NoiseSource, products_equal
 from boxloc.scan import NoiseModel
 from boxloc.simulate import simulate
-from boxloc.stages.scan_noise import MIN_FLAT_TILES, estimate_scan_noise
+from boxloc.stages.scan_noise import (
+    MIN_FLAT_TILES,
+    design_effect,
+    estimate_scan_noise,
+    tile_correlation,
+)
 from boxloc.stats import TestKind
 
 SCENE = "pallet:width=320,height=240,f=262.5,distance=1.5"
@@ -142,6 +147,10 @@ def test_the_estimate_is_recorded_and_explained(noisy, tmp_path) -> None:  # typ
     assert d["noise"]["sigma_mm"] == pytest.approx(1e3 * noisy.spec.noise.sigma_range(r),
                                                    rel=0.15)
     assert "noise model: scan, sigma" in format_explanation(d)
+    # the worst range bin, with what its standard error was widened by
+    wb = d["noise"]["worst_bin"]
+    assert wb["tiles"] >= 10 and wb["design_effect"] >= 1.0 and 0 < wb["dof"] < wb["tiles"]
+    assert "worst range bin: " in format_explanation(d)
     # the exposure test's null, as the scan's flat tiles measured it
     assert d["noise"]["model"]["exceed_rate"] >= 0.005
     assert "exposure null: " in format_explanation(d)
@@ -227,3 +236,53 @@ def test_a_pinned_model_keeps_the_normal_exposure_null(noisy) -> None:  # type: 
     est = estimate_scan_noise(noisy.scan, Config(noise_auto=False))
     assert est.noise_model()["exceed_rate"] == 0.0
     assert est.noise_model()["exceed_dispersion"] == 1.0
+
+
+def test_tile_correlation_recovers_a_smooth_field_and_none_in_white_noise() -> None:
+    gy, gx = (a.ravel() for a in np.indices((30, 40)))
+    dy, dx = np.abs(gy[:, None] - gy[None]), np.abs(gx[:, None] - gx[None])
+    # a field correlating as 0.6^|dx| 0.3^|dy| (separable, each axis an AR(1))
+    L = np.linalg.cholesky(0.6**dx * 0.3**dy + 1e-9 * np.eye(gy.size))
+    for seed in range(3):
+        rng = np.random.default_rng(seed)
+        white = rng.standard_normal(gy.size)
+        c_r, a_r, c_c, a_c = tile_correlation(gy, gx, white)
+        assert c_r * a_r < 0.05 and c_c * a_c < 0.05  # the correlations at one step
+        # half the variance that field, half each tile's own
+        x = np.sqrt(0.5) * (L @ rng.standard_normal(gy.size)) + np.sqrt(0.5) * white
+        c_r, a_r, c_c, a_c = tile_correlation(gy, gx, x - np.median(x))
+        # the correlations at one step, 0.3 and 0.15, and the rows' slower decay
+        assert c_r * a_r == pytest.approx(0.3, abs=0.06) and 0.4 < a_r < 0.8
+        assert c_c * a_c == pytest.approx(0.15, abs=0.06)
+
+
+def test_design_effect() -> None:
+    gy, gx = np.zeros(10, np.int64), np.arange(10)
+    assert design_effect(gy, gx, np.zeros(4)) == 1.0
+    # fully correlated tiles: the mean of n is worth one
+    assert design_effect(gy, gx, np.array([1.0, 0.999999, 0.0, 0.0])) == pytest.approx(
+        10.0, rel=1e-4)
+    # a row of 10 with c = 1, a = 0.5: 1 + (2 / n) sum_k (n - k) 0.5^k; a column the same
+    want = 1.0 + 2.0 / 10 * sum((10 - k) * 0.5**k for k in range(1, 10))
+    assert design_effect(gy, gx, np.array([1.0, 0.5, 0.0, 0.0])) == pytest.approx(want)
+    assert design_effect(gx, gy, np.array([0.0, 0.0, 1.0, 0.5])) == pytest.approx(want)
+    # correlated along rows only: a column of tiles is independent
+    assert design_effect(gx, gy, np.array([1.0, 0.5, 0.0, 0.0])) == 1.0
+
+
+@pytest.mark.parametrize("seed", [1, 2, 3])
+def test_noise_fit_keeps_its_level_on_a_stereo_cameras_patchy_noise(seed: int) -> None:
+    # Active-stereo depth noise varies in scale over the image (its matching quality): a
+    # range bin's tiles in one patch scatter 1.5-2x the model's sigma on a bare floor. Its
+    # own model must still fit (the test's level), and a model pinned 1.5x off must not
+    cfg = Config(noise_auto=True)
+    scan = simulate("floor:sensor=active-stereo,width=320,height=240,f=220,distance=1.8,"
+                    "tilt=0.35", seed).scan
+    est = estimate_scan_noise(scan, cfg)
+    assert est.source == NoiseSource.SCAN and est.fits
+    assert est.tile_correlation[0] > 0 and np.all(est.bin_design >= 1.0)
+    assert np.all(est.bin_dof < est.bin_tiles) and est.fit_all[1] == est.n_tiles_used
+    m = NoiseModel(**est.noise_model())
+    for f in (0.5, 2.0):  # a model pinned off by a factor of 2 either way
+        off = dataclasses.replace(m, sigma0=f * m.sigma0, k1=f * m.k1, k2=f * m.k2)
+        assert not estimate_scan_noise(scan, Config(noise=off, noise_auto=False)).fits

@@ -36,7 +36,7 @@ from boxloc.calibrate.noise import (
     tile_residuals,
 )
 from boxloc.config import Config
-from boxloc.distributions import chi2_isf, norm_isf, norm_sf
+from boxloc.distributions import chi2_isf, norm_isf, t_sf
 from boxloc.errors import InputError
 from boxloc.products import NOISE_FIELDS, NoiseEstimate, NoiseSource
 from boxloc.scan import NoiseModel, Scan
@@ -93,7 +93,8 @@ def estimate_scan_noise(scan: Scan, config: Config) -> NoiseEstimate:
         rate, dispersion = exceedance(z, tiles.tile[np.isfinite(tiles.residual)],
                                       config.alpha)
         model = dataclasses.replace(model, exceed_rate=rate, exceed_dispersion=dispersion)
-    bins, tests = _fit_tests(tiles, model, config.alpha)
+    bins, tile_corr, pooled, tests = _fit_tests(tiles, model, config.alpha,
+                                                -(-(W // PATCH_PX) // step))
     tails = _tail_rates(z)
     return NoiseEstimate(
         source=int(source), reason=reason,
@@ -101,7 +102,8 @@ def estimate_scan_noise(scan: Scan, config: Config) -> NoiseEstimate:
         n_tiles=int(tiles.n_tiles), n_tiles_used=int(tiles.n_accepted),
         n_points=int(tiles.inlier.sum()),
         bin_range=bins[0], bin_tiles=bins[1], bin_std=bins[2], bin_model_std=bins[3],
-        bin_z=bins[4], correlation=corr, tails=tails, tests=tests,
+        bin_z=bins[4], correlation=corr, tails=tails, tests=tests, bin_design=bins[5],
+        bin_dof=bins[6], tile_correlation=tile_corr, fit_all=pooled,
     )
 
 
@@ -231,25 +233,25 @@ def _from_differences(scan: Scan, nominal: NoiseModel) -> NoiseModel | None:
 
 
 def _tile_stats(tiles: TileResiduals, model: NoiseModel
-                ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Per flat tile: median range (m), robust residual std at normal incidence (m), and
-    the number of inliers."""
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Per flat tile: median range (m), robust residual std at normal incidence (m), the
+    number of inliers, and the tile's id (ascending)."""
     inl = tiles.inlier
     tid = tiles.tile[inl]
     if tid.size == 0:
         z = np.zeros(0)
-        return z, z, z
+        return z, z, z, np.zeros(0, np.int64)
     # along the ray, back to normal incidence as the model's 1/max(cos, min_cos) factor
     e = np.abs(tiles.residual[inl]) * np.maximum(
         tiles.cos_incidence[inl], model.min_cos) ** model.incidence_exponent
     r = tiles.range[inl]
-    _, inv, counts = np.unique(tid, return_inverse=True, return_counts=True)
+    ids, inv, counts = np.unique(tid, return_inverse=True, return_counts=True)
     starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
     # each tile's points together (they already are, in tile order: then this is a copy)
     by_tile = np.argsort(inv, kind="stable")
     mad = _lower_medians(e[by_tile], starts, counts)  # lower median of |e| per tile
     r_med = _lower_medians(r[by_tile], starts, counts)
-    return r_med, 1.4826 * mad, counts.astype(np.float64)
+    return r_med, 1.4826 * mad, counts.astype(np.float64), ids
 
 
 @nb.njit(cache=True)
@@ -269,25 +271,45 @@ def scale_margin(alpha: float) -> float:
     return 0.5 * math.log(chi2_isf(alpha, 1) / chi2_isf(2.0 * alpha, 1))
 
 
-def _fit_tests(tiles: TileResiduals, model: NoiseModel, alpha: float
-               ) -> tuple[tuple[np.ndarray, ...], TestTable]:
+def _fit_tests(tiles: TileResiduals, model: NoiseModel, alpha: float, grid_width: int
+               ) -> tuple[tuple[np.ndarray, ...], np.ndarray, np.ndarray, TestTable]:
     """Range bins and the NOISE_FIT test of the residuals against ``model``.
 
-    Per range bin with :data:`MIN_TEST_TILES` flat tiles, ``d`` is the median over its
-    tiles of ln(tile std / model std) (a few tiles of ribbed or mixed surface that passed
-    the flatness checks do not move it), with its standard error from the tiles' own
-    spread (so correlated noise and heterogeneous surfaces are in it). A scale can never
+    Per range bin with :data:`MIN_TEST_TILES` flat tiles, ``d`` is the mean over its
+    tiles of ln(tile std / model std), winsorized at 3 robust sigmas (a few tiles of ribbed
+    or mixed surface that passed the flatness checks barely move it), with its standard
+    error from the tiles' own spread (so correlated noise and heterogeneous surfaces are in
+    it). A scale can never
     be known exactly (a tile's std carries biases of a percent or so), and only a relevant
-    error matters: the test asks whether some
-    bin's scale is off by more than :func:`scale_margin`, ``z_b = (|d_b| - margin) / se_b``
-    against the one-sided normal critical value with Bonferroni over the bins.
+    error matters: the test asks whether some bin's scale is off by more than
+    :func:`scale_margin`, ``t_b = (|d_b| - margin) / se_b``, one-sided, with Bonferroni over
+    the bins.
+
+    Two things make ``se_b`` uncertain, and the test keeps its level only with both (bare
+    active-stereo floors fired on 6 of 40 development scans without them, 0 with them):
+
+    * the tiles' scales are correlated over the image (a stereo camera's matching quality
+      varies slowly; :func:`tile_correlation`), so a bin's tiles are fewer independent
+      ones than their number: its variance takes their :func:`design_effect`;
+    * ``se_b`` is estimated from a few tiles (10 to 30), so ``t_b`` is Student's t with
+      n / design effect - 1 degrees of freedom, not normal.
+
+    Each bin's ``z`` is the normal quantile of its t tail probability. The same test of
+    all tiles together joins the bins' (a scale off at every range shows surely in all
+    tiles, barely in one bin's t of a few degrees of freedom) by a weighted Bonferroni:
+    half the level to all tiles, half shared by the B bins. The test's p is min(1, 2 p_all,
+    2 B min p_b), and its statistic the normal quantile of that p, against ``z_{1 -
+    alpha}``.
+
+    Returns the bins (range, tiles, std, model std, z, design effect, dof, p), the tiles'
+    correlation, all tiles' (z, tiles, design effect, dof), and the test.
     """
-    r, s, n = _tile_stats(tiles, model)
+    r, s, n, ids = _tile_stats(tiles, model)
     ok = s > 0
-    r, s, n = r[ok], s[ok], n[ok]
-    empty = tuple(np.zeros(0) for _ in range(5))
+    r, s, n, ids = r[ok], s[ok], n[ok], ids[ok]
+    empty = tuple(np.zeros(0) for _ in range(8))
     if r.size == 0:
-        return empty, TestTable.empty(alpha)
+        return empty, np.zeros(4), np.full(4, np.nan), TestTable.empty(alpha)
     # ln of a MAD-based std of n normal samples is biased low by about 1.36 / (2 n)
     b = np.floor(r / BIN_WIDTH).astype(np.int64)
     # a tile of quantized depth that spans less than one step reads below the steps'
@@ -295,33 +317,156 @@ def _fit_tests(tiles: TileResiduals, model: NoiseModel, alpha: float
     inl = tiles.inlier
     rp, zp = tiles.range[inl], tiles.depth[inl]
     bp = np.floor(rp / BIN_WIDTH).astype(np.int64)
+    floored = np.zeros(s.shape, bool)
     for k in np.unique(b):
         q, t = bp == k, b == k
-        s[t] = np.maximum(s[t], quantization_floor(rp[q], zp[q]))
+        floor = quantization_floor(rp[q], zp[q])
+        floored[t] = s[t] <= floor
+        s[t] = np.maximum(s[t], floor)
     d = np.log(s / model.sigma_range(r)) + 1.36 / (2.0 * n)
     margin = scale_margin(alpha)
+    gy, gx = np.divmod(ids, grid_width)
+    # the tiles' scales vary together over the image (a stereo camera's matching quality):
+    # measured around a quadratic in range, which takes out a smooth misfit of the range
+    # law (what the test is for: on a tilted floor it would read as a correlation along
+    # the columns) but not a patch (each bin's median would take out a patch that fills
+    # the bin). Tiles floored at their quantization step have no scale of their own
+    corr = tile_correlation(gy[~floored], gx[~floored], (d - _range_trend(r, d))[~floored])
     rows = []
     for k in np.unique(b):
         q = b == k
         if q.sum() < MIN_TEST_TILES:
             continue
-        dk = d[q]
-        med = float(np.median(dk))
-        # the median's standard error: 1.2533 x a robust std / sqrt(n)
-        se = max(1.2533 * 1.4826 * float(np.median(np.abs(dk - med))) / math.sqrt(dk.size),
-                 1e-12)
         rk = float(np.median(r[q]))
         rows.append((rk, float(q.sum()), float(np.exp(np.median(np.log(s[q])))),
-                     float(model.sigma_range(rk)), (abs(med) - margin) / se))
+                     float(model.sigma_range(rk)), *_scale_off(d[q], gy[q], gx[q], corr,
+                                                                margin)))
     if not rows:
-        return empty, TestTable.empty(alpha)
+        return empty, corr, np.full(4, np.nan), TestTable.empty(alpha)
     bins = tuple(np.array(c, dtype=np.float64) for c in zip(*rows))
+    # every tile together: a model off by one factor at every range shows far more
+    # surely in all of them than in any one bin's few
+    z_all, deff_all, dof_all, p_all = _scale_off(d, gy, gx, corr, margin)
+    pooled = np.array([z_all, float(d.size), deff_all, dof_all])
+    # weighted Bonferroni: half the level to all tiles, half shared by the bins
     nb = len(rows)
-    z = float(bins[4].max())
-    p = min(1.0, nb * float(norm_sf(z)))
-    return bins, TestTable.decision(TestKind.NOISE_FIT, -1, nb, z,
-                                    float(norm_isf(alpha / nb)), z <= norm_isf(alpha / nb),
-                                    alpha, p_value=p)
+    p = min(1.0, 2.0 * p_all, 2.0 * nb * float(bins[7].min()))
+    z = float(norm_isf(max(p, 1e-300)))
+    crit = float(norm_isf(alpha))
+    return bins, corr, pooled, TestTable.decision(TestKind.NOISE_FIT, -1, nb + 1, z, crit,
+                                                  p > alpha, alpha, p_value=p)
+
+
+def _range_trend(r: np.ndarray, d: np.ndarray) -> np.ndarray:
+    """A least-squares quadratic in range through the tiles' ``d`` (winsorized at 3 robust
+    sigmas), at each tile; a line or a constant where the ranges span too few bins."""
+    med = float(np.median(d))
+    scale = 1.4826 * float(np.median(np.abs(d - med)))
+    e = np.clip(d, med - 3.0 * scale, med + 3.0 * scale) if scale > 0 else d
+    deg = min(2, np.unique(np.floor(r / BIN_WIDTH)).size - 1)
+    if deg < 1:
+        return np.full(d.shape, med)
+    x = r - float(np.mean(r))
+    return np.asarray(np.polyval(np.polyfit(x, e, deg), x), dtype=np.float64)
+
+
+def _scale_off(d: np.ndarray, gy: np.ndarray, gx: np.ndarray, corr: np.ndarray,
+               margin: float) -> tuple[float, float, float, float]:
+    """Whether tiles' ln(std / model std) ``d`` are off by more than ``margin``: (z, design
+    effect, dof, p) of their winsorized mean, one-sided (see :func:`_fit_tests`)."""
+    med = float(np.median(d))
+    lim = 3.0 * 1.4826 * float(np.median(np.abs(d - med)))
+    e = np.clip(d, med - lim, med + lim)
+    # the mean's standard error from the winsorized standard deviation, times the square
+    # root of the design effect of the tiles' correlation; Student's t with as many degrees
+    # of freedom as the tiles are independent ones (less one), given as the normal z of the
+    # same tail probability
+    deff = design_effect(gy, gx, corr)
+    dof = max(1.0, d.size / deff - 1.0)
+    sd = float(np.std(e, ddof=1)) if d.size > 1 else 0.0
+    se = max(sd / math.sqrt(d.size) * math.sqrt(deff), 1e-12)
+    p = float(t_sf((abs(float(np.mean(e))) - margin) / se, dof))
+    return float(norm_isf(max(p, 1e-300))), deff, dof, p
+
+
+#: Tile pairs the tiles' correlation needs at a lag.
+MIN_TILE_PAIRS = 20
+#: Largest decay per grid step the tiles' correlation is given (a fit to noisy correlations
+#: can find no decay at all).
+MAX_TILE_RATIO = 0.95
+#: Tile-grid steps the tiles' correlation is measured at, along rows and along columns.
+TILE_LAGS = (1, 2, 3, 4)
+
+
+def tile_correlation(gy: np.ndarray, gx: np.ndarray, dev: np.ndarray) -> np.ndarray:
+    """How the flat tiles' log scale deviations correlate over the tile grid, along its rows
+    and along its columns: (c_r, a_r, c_c, a_c), the correlation ``c_r * a_r ** k`` between
+    tiles k grid steps apart in one row, ``c_c * a_c ** k`` in one column.
+
+    Per direction, ``c`` and ``a`` are the least-squares fit of ``c * a ** k`` to the
+    correlations at :data:`TILE_LAGS` steps (the deviations winsorized at 3 robust
+    sigmas; ``a`` on a grid of 0.01 up to :data:`MAX_TILE_RATIO`, ``c`` in [0, 1]): an
+    exponential decay with a nugget, since each tile's scale also carries its own sampling
+    error, which correlates with no other tile. The directions differ: a structured-light
+    camera's noise offset common to an image row is common to every tile of that row of
+    tiles, at any distance along it, and to none above or below. A direction with fewer
+    than :data:`MIN_TILE_PAIRS` pairs at one step: (0, 0).
+
+    Parameters
+    ----------
+    gy, gx : (T,) int
+        The tiles' row and column in the examined tile grid.
+    dev : (T,) float64
+        Each tile's ln(std / model std) less its smooth trend in range.
+    """
+    out = np.zeros(4)
+    if dev.size < 2:
+        return out
+    scale = 1.4826 * float(np.median(np.abs(dev)))
+    e = np.clip(dev, -3.0 * scale, 3.0 * scale) if scale > 0 else dev
+    G = np.full((int(gy.max()) + 1, int(gx.max()) + 1), np.nan)
+    G[gy, gx] = e
+    grid = np.arange(0.0, MAX_TILE_RATIO + 0.005, 0.01)
+    for axis in (0, 1):  # along rows (x steps), along columns (y steps)
+        lags, rho = [], []
+        for lag in TILE_LAGS:
+            if G.shape[1 - axis] <= lag:
+                break
+            a, b = (G[:, :-lag], G[:, lag:]) if axis == 0 else (G[:-lag], G[lag:])
+            both = np.isfinite(a) & np.isfinite(b)
+            den = math.sqrt(float(np.sum(a[both] ** 2)) * float(np.sum(b[both] ** 2)))
+            if both.sum() < MIN_TILE_PAIRS or not den > 0:
+                break
+            lags.append(lag)
+            rho.append(float(np.sum(a[both] * b[both])) / den)
+        if not lags or not rho[0] > 0:
+            continue
+        k = np.asarray(lags, np.float64)
+        y = np.asarray(rho)
+        P = grid[:, None] ** k[None, :]  # (grid, lags): a ** k
+        with np.errstate(invalid="ignore", divide="ignore"):
+            c = np.clip((P @ y) / np.sum(P * P, 1), 0.0, 1.0)
+        c[0] = 0.0  # a = 0: no correlation at any lag
+        sse = np.sum((y[None, :] - c[:, None] * P) ** 2, 1)
+        best = int(np.argmin(sse))
+        out[2 * axis:2 * axis + 2] = (float(c[best]), float(grid[best]))
+    return out
+
+
+def design_effect(gy: np.ndarray, gx: np.ndarray, corr: np.ndarray) -> float:
+    """Variance of the mean of tiles at grid positions (gy, gx) whose values correlate as
+    ``corr`` (:func:`tile_correlation`), over that of independent tiles: 1 + (1/n) times
+    the sum over pairs i != j of their correlation, ``c_r a_r^|dx|`` in one row,
+    ``c_c a_c^|dy|`` in one column, ``sqrt(c_r c_c) a_r^|dx| a_c^|dy|`` otherwise."""
+    c_r, a_r, c_c, a_c = (float(v) for v in corr)
+    n = gy.size
+    if n < 2 or not (c_r * a_r > 0 or c_c * a_c > 0):
+        return 1.0
+    dx = np.abs(gx[:, None] - gx[None, :])
+    dy = np.abs(gy[:, None] - gy[None, :])
+    c = np.where(dy == 0, c_r, np.where(dx == 0, c_c, math.sqrt(c_r * c_c)))
+    rho = c * np.power(a_r, dx) * np.power(a_c, dy)
+    return 1.0 + float(rho.sum() - np.trace(rho)) / n
 
 
 def _z(tiles: TileResiduals, model: NoiseModel) -> np.ndarray:
