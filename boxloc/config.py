@@ -37,6 +37,8 @@ UNRECORDED_KEYS: dict[str, Any] = {
     # logs before the exposure test measured its null on the scan's flat tiles
     "noise.exceed_rate": 0.0,
     "noise.exceed_dispersion": 1.0,
+    # logs before the exposure test widened a core's count by its tiles' correlation
+    "noise.exceed_corr_px": 0.0,
     "max_line_work": 0,
     "max_vertices": 0,
     "max_hypothesis_work": 0,
@@ -56,7 +58,7 @@ UNRECORDED_KEYS: dict[str, Any] = {
 #: The noise terms ``noise_auto`` estimates from each scan; giving any of them pins the model.
 ESTIMATED_NOISE_TERMS = frozenset({"sigma0", "k1", "k2", "row_corr", "incidence_exponent",
                                    "corr_px_rows", "corr_px_cols", "exceed_rate",
-                                   "exceed_dispersion"})
+                                   "exceed_dispersion", "exceed_corr_px"})
 
 #: Config fields that change how a result is computed, never what it is.
 EXECUTION_FIELDS = frozenset({"workers"})

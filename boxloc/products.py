@@ -140,7 +140,7 @@ class NoiseSource(IntEnum):
 #: Order of :attr:`NoiseEstimate.model`'s values (the fields of ``NoiseModel``).
 NOISE_FIELDS: tuple[str, ...] = (
     "sigma0", "k1", "k2", "sigma_angle", "min_cos", "edge_px", "row_corr", "incidence_exponent",
-    "corr_px_rows", "corr_px_cols", "exceed_rate", "exceed_dispersion")
+    "corr_px_rows", "corr_px_cols", "exceed_rate", "exceed_dispersion", "exceed_corr_px")
 
 
 def _f(*shape: int, dtype: Any = np.float64) -> np.ndarray:
@@ -158,10 +158,11 @@ class NoiseEstimate:
         :class:`NoiseSource`.
     reason : str
         Why that source, in words (e.g. too few flat tiles).
-    model : (12,) float64
+    model : (13,) float64
         The model every later stage used, in :data:`NOISE_FIELDS` order (metres, radians;
-        logs before the exceedance terms hold the first 10).
-    nominal : (12,) float64
+        logs before the exceedance terms hold the first 10, before their correlation the
+        first 12).
+    nominal : (13,) float64
         The config's model (the fallback, and what a pinned run uses).
     n_tiles, n_tiles_used, n_points : int
         Tiles examined, flat tiles accepted, residuals in them.

@@ -277,6 +277,13 @@ class NoiseModel:
         than independent points' would (a robust variance ratio, at least 1): where the
         noise's amplitude varies smoothly over the image, its exceedances come in patches.
         1: as the correlation terms above say. The exposure test divides its counts by it.
+    exceed_corr_px : float
+        How far those counts correlate from tile to tile: ``exp(-d / exceed_corr_px)`` for
+        tiles d pixels apart (centre to centre), from the correlation of neighbouring flat
+        tiles' counts where it is significant at alpha. A face's core spans many tiles,
+        and where the patches are larger than a tile its count varies more than
+        ``exceed_dispersion`` says: the exposure test widens it by the core's tiles' design
+        effect. 0: the tiles' counts are independent.
     """
 
     sigma0: float = 0.0010
@@ -291,6 +298,7 @@ class NoiseModel:
     corr_px_cols: float = 0.0
     exceed_rate: float = 0.0
     exceed_dispersion: float = 1.0
+    exceed_corr_px: float = 0.0
 
     def __post_init__(self) -> None:
         for name in ("sigma0", "k1", "k2", "sigma_angle", "min_cos", "edge_px",
@@ -311,6 +319,9 @@ class NoiseModel:
         if not (np.isfinite(self.exceed_dispersion) and self.exceed_dispersion >= 1):
             raise InputError(f"noise parameter exceed_dispersion must be finite and >= 1, "
                              f"got {self.exceed_dispersion}")
+        if not (np.isfinite(self.exceed_corr_px) and self.exceed_corr_px >= 0):
+            raise InputError(f"noise parameter exceed_corr_px must be finite and >= 0, got "
+                             f"{self.exceed_corr_px}")
         if not 0 < self.min_cos <= 1:
             raise InputError(f"noise parameter min_cos must be in (0, 1], got {self.min_cos}")
 

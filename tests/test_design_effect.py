@@ -10,7 +10,12 @@ import pytest
 from scipy.signal import lfilter
 
 from boxloc.scan import NoiseModel
-from boxloc.stages.design_effect import exceedance_correlation, exceedance_design_effects
+from boxloc.stages.design_effect import (
+    EXCEED_TILE_PX,
+    exceedance_correlation,
+    exceedance_design_effects,
+    patch_factor,
+)
 from boxloc.stages.verify import _test_exposed
 
 K = 2.5758293035489004  # sqrt(chi2(1)) at alpha 0.01
@@ -162,3 +167,21 @@ def test_design_effect_sums_are_the_pairs_and_holes_only_raise_them():
     exh = _exact(rows[keep], cols[keep], noise)
     assert Dh[0][0] > exh[0] and Dh[1][0] > exh[1]
     assert Dh[0][0] < 1.5 * exh[0]  # an overestimate, not a different quantity
+
+
+def test_patch_factor_sums_the_tiles_correlation() -> None:
+    rows, cols = (a.ravel() for a in np.indices((32, 48)))  # 2 x 3 whole tiles of 16 px
+    assert patch_factor(rows, cols, NoiseModel()) == 1.0  # tiles independent
+    one = (rows < 16) & (cols < 16)  # a single tile
+    assert patch_factor(rows[one], cols[one], NoiseModel(exceed_corr_px=50.0)) == 1.0
+    L = 20.0
+    got = patch_factor(rows, cols, NoiseModel(exceed_corr_px=L))
+    # six equal tiles: 1 + (1/6) sum over ordered pairs of exp(-d / L)
+    ty, tx = np.divmod(np.arange(6), 3)
+    d = EXCEED_TILE_PX * np.hypot(ty[:, None] - ty[None], tx[:, None] - tx[None])
+    want = 1.0 + (np.exp(-d / L).sum() - 6.0) / 6.0
+    assert got == pytest.approx(want, rel=1e-12)
+    # the longer the reach, the more a count over the same pixels varies, up to all six
+    # tiles as one (factor 6)
+    f = [patch_factor(rows, cols, NoiseModel(exceed_corr_px=x)) for x in (5.0, 20.0, 1e9)]
+    assert 1.0 < f[0] < f[1] < f[2] == pytest.approx(6.0)

@@ -225,6 +225,8 @@ def test_the_exposure_null_is_measured_on_the_scans_flat_tiles(seed: int) -> Non
         seed).scan, cfg).noise_model()
     assert stereo["exceed_rate"] > 1.4 * cfg.alpha / 2
     assert stereo["exceed_dispersion"] > 30.0
+    # the patches reach beyond a tile: neighbouring tiles' counts correlate
+    assert stereo["exceed_corr_px"] > 16.0
     laser = estimate_scan_noise(simulate(
         "floor:sensor=laser,width=320,height=240,f=262.5,distance=2.0,tilt=0.3",
         seed).scan, cfg).noise_model()
@@ -236,6 +238,7 @@ def test_a_pinned_model_keeps_the_normal_exposure_null(noisy) -> None:  # type: 
     est = estimate_scan_noise(noisy.scan, Config(noise_auto=False))
     assert est.noise_model()["exceed_rate"] == 0.0
     assert est.noise_model()["exceed_dispersion"] == 1.0
+    assert est.noise_model()["exceed_corr_px"] == 0.0
 
 
 def test_tile_correlation_recovers_a_smooth_field_and_none_in_white_noise() -> None:

@@ -175,3 +175,38 @@ def exceedance_design_effects(rows: np.ndarray, groups: np.ndarray, n_groups: in
         D_f = np.where(n_g > 0, 1.0 + tot_f / np.maximum(n_g, 1.0), 1.0)
         D_s = np.where(n_g > 0, 1.0 + tot_s / np.maximum(n_g, 1.0), 1.0)
     return np.maximum(D_f, 1.0), np.maximum(D_s, 1.0)
+
+
+#: Side of the tiles over which the scan's noise measured how its exceedances vary and
+#: correlate, pixels (:data:`boxloc.stages.scan_noise.PATCH_PX`).
+EXCEED_TILE_PX = 16
+
+
+def patch_factor(rows: np.ndarray, cols: np.ndarray, noise: NoiseModel) -> float:
+    """How many times more a count over the pixels (rows, cols) varies than
+    ``noise.exceed_dispersion`` says per tile, where the tiles' counts correlate
+    (``noise.exceed_corr_px``): 1 + sum over pairs of distinct :data:`EXCEED_TILE_PX` tiles
+    s != t of exp(-d_st / L) sqrt(n_s n_t) / n, with n_t the pixels in tile t and d_st the
+    distance of the tiles' centres in pixels.
+
+    ``exceed_dispersion`` is measured tile by tile, so it holds for a count over one tile;
+    a face's core spans many, and where the noise's patches are larger than a tile the
+    core's count varies more (a count x of the tiles' Var(x_t) = D n_t p (1 - p) and
+    correlation rho_st has Var = D p (1 - p) (n + sum_{s != t} rho_st sqrt(n_s n_t))).
+    1 without a correlation or pixels.
+    """
+    length = float(noise.exceed_corr_px)
+    if not length > 0 or rows.size == 0:
+        return 1.0
+    ty = np.asarray(rows, np.int64) // EXCEED_TILE_PX
+    tx = np.asarray(cols, np.int64) // EXCEED_TILE_PX
+    key = ty * (int(tx.max()) + 1) + tx
+    ids, n_t = np.unique(key, return_counts=True)
+    if ids.size < 2:
+        return 1.0
+    gy, gx = np.divmod(ids, int(tx.max()) + 1)
+    d = EXCEED_TILE_PX * np.hypot(gy[:, None] - gy[None, :], gx[:, None] - gx[None, :])
+    rho = np.exp(-d / length)
+    np.fill_diagonal(rho, 0.0)
+    sq = np.sqrt(n_t.astype(np.float64))
+    return 1.0 + float(sq @ rho @ sq) / float(n_t.sum())

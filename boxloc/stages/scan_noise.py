@@ -89,12 +89,14 @@ def estimate_scan_noise(scan: Scan, config: Config) -> NoiseEstimate:
     if config.noise_auto:
         model, source, reason = _auto(scan, tiles, corr, nominal, config.alpha)
     z = _z(tiles, model)  # the flat tiles' points in the model's sigmas (their outliers too)
+    grid_width = -(-(W // PATCH_PX) // step)
     if source == NoiseSource.SCAN:
-        rate, dispersion = exceedance(z, tiles.tile[np.isfinite(tiles.residual)],
-                                      config.alpha)
-        model = dataclasses.replace(model, exceed_rate=rate, exceed_dispersion=dispersion)
-    bins, tile_corr, pooled, tests = _fit_tests(tiles, model, config.alpha,
-                                                -(-(W // PATCH_PX) // step))
+        rate, dispersion, corr_px = exceedance(
+            z, tiles.tile[np.isfinite(tiles.residual)], config.alpha, grid_width,
+            PATCH_PX * step)
+        model = dataclasses.replace(model, exceed_rate=rate, exceed_dispersion=dispersion,
+                                    exceed_corr_px=corr_px)
+    bins, tile_corr, pooled, tests = _fit_tests(tiles, model, config.alpha, grid_width)
     tails = _tail_rates(z)
     return NoiseEstimate(
         source=int(source), reason=reason,
@@ -161,10 +163,11 @@ def _auto(scan: Scan, tiles: TileResiduals, corr: np.ndarray, nominal: NoiseMode
         f"{used} range bins)")
 
 
-def exceedance(z: np.ndarray, tile: np.ndarray, alpha: float) -> tuple[float, float]:
-    """How often a flat surface's points lie beyond the point test's critical value, and
-    how patchy those points are: :attr:`NoiseModel.exceed_rate` and
-    :attr:`NoiseModel.exceed_dispersion`.
+def exceedance(z: np.ndarray, tile: np.ndarray, alpha: float, grid_width: int = 0,
+               step_px: float = PATCH_PX) -> tuple[float, float, float]:
+    """How often a flat surface's points lie beyond the point test's critical value, how
+    patchy those points are, and how far the patches reach: :attr:`NoiseModel.exceed_rate`,
+    :attr:`NoiseModel.exceed_dispersion` and :attr:`NoiseModel.exceed_corr_px`.
 
     ``z`` (n,) are the flat tiles' points (their plane-fit outliers too: a heavy tail is
     such points) as |residual| over the model's sigma, ``tile`` (n,) their tiles; a point
@@ -175,26 +178,51 @@ def exceedance(z: np.ndarray, tile: np.ndarray, alpha: float) -> tuple[float, fl
     rate is the median tile's, and the dispersion the counts' interquartile range (as a
     normal's sigma) squared over their binomial variance at that rate.
 
+    The reach is from the correlation rho of neighbouring tiles' counts (on the tile grid
+    of ``grid_width`` tiles a row, ``step_px`` pixels apart; along rows and columns
+    pooled; the counts' deviations winsorized at 3 of their robust sigmas):
+    ``-step_px / ln rho`` where rho is significant at ``alpha`` (above
+    z_{1 - alpha} / sqrt(pairs)), else 0. One step's correlation, no fit of its decay:
+    the counts are small and their correlations at two or more steps mostly noise.
+
     Returns
     -------
     rate : float
         One side's share, half the median tile's two-sided share; at least ``alpha / 2``.
     dispersion : float
         At least 1.
+    corr_px : float
+        Pixels, 0 for none.
     """
     if z.size < MIN_FLAT_TILES * PATCH_PX**2 // 2:
-        return alpha / 2.0, 1.0
+        return alpha / 2.0, 1.0, 0.0
     k = float(norm_isf(alpha / 2.0))
-    _, inv = np.unique(tile, return_inverse=True)
+    ids, inv = np.unique(tile, return_inverse=True)
     count = np.bincount(inv, weights=(z > k).astype(np.float64))
     n = np.bincount(inv).astype(np.float64)
     p = float(np.median(count / n))
     if not p > 0:
-        return alpha / 2.0, 1.0
+        return alpha / 2.0, 1.0, 0.0
     q25, q75 = np.percentile(count - n * p, [25.0, 75.0])
     binomial = float(np.mean(n * p * (1.0 - p)))
-    dispersion = ((q75 - q25) / 1.349) ** 2 / binomial
-    return max(alpha / 2.0, 0.5 * p), max(1.0, float(dispersion))
+    dispersion = max(1.0, ((q75 - q25) / 1.349) ** 2 / binomial)
+    corr_px = 0.0
+    if grid_width > 0:
+        dev = (count - n * p) / np.sqrt(n * p * (1.0 - p))
+        lim = 3.0 * math.sqrt(dispersion)
+        dev = np.clip(dev - float(np.median(dev)), -lim, lim)
+        gy, gx = np.divmod(ids, grid_width)
+        G = np.full((int(gy.max()) + 1, int(gx.max()) + 1), np.nan)
+        G[gy, gx] = dev
+        a = np.concatenate([G[:, :-1].ravel(), G[:-1].ravel()])
+        b = np.concatenate([G[:, 1:].ravel(), G[1:].ravel()])
+        both = np.isfinite(a) & np.isfinite(b)
+        den = math.sqrt(float(np.sum(a[both] ** 2)) * float(np.sum(b[both] ** 2)))
+        if both.sum() >= MIN_TILE_PAIRS and den > 0:
+            rho = float(np.sum(a[both] * b[both])) / den
+            if norm_isf(alpha) / math.sqrt(both.sum()) < rho < 1.0:
+                corr_px = -float(step_px) / math.log(rho)
+    return max(alpha / 2.0, 0.5 * p), float(dispersion), corr_px
 
 
 def _from_differences(scan: Scan, nominal: NoiseModel) -> NoiseModel | None:

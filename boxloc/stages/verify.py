@@ -68,7 +68,7 @@ from boxloc.config import Config
 from boxloc.distributions import binom_isf, binom_sf
 from boxloc.products import EdgeKind, EdgeMap, VerifyReason
 from boxloc.scan import NoiseModel, Scan
-from boxloc.stages.design_effect import exceedance_design_effects
+from boxloc.stages.design_effect import exceedance_design_effects, patch_factor
 from boxloc.stages.lines import MIN_LINE_POINTS
 from boxloc.stages.raster import fill_polygon, polygon_area, rectangle_pixels
 from boxloc.stages.seams import (
@@ -899,8 +899,12 @@ def _test_exposed(fit: _FaceFit, hyp: _Hypothesis, noise: NoiseModel
     beyond k come in runs and every count varies more than a binomial one: a count x of n
     is taken as x / D of n / D independent points, D its design effect under the model
     (:mod:`boxloc.stages.design_effect`), or the patchiness the scan's own flat tiles show
-    (``noise.exceed_dispersion``) where that is larger. How often the noise puts a point in
-    front is the scan's own rate too (``noise.exceed_rate``; alpha / 2 for normal noise):
+    (``noise.exceed_dispersion``) where that is larger; the core's count of front points
+    that times its tiles' :func:`~boxloc.stages.design_effect.patch_factor` (the patches
+    reach beyond a tile; a cell, a few tiles at most, keeps the tile's, and the sign test
+    too, since within a patch the points fall on either side alike). How often the noise
+    puts a point in front is the scan's own rate too (``noise.exceed_rate``; alpha / 2 for
+    normal noise):
     active-stereo depth has heavy tails in patches, and on bulged lids, whose middles
     stand in front of their plane, a model's normal rate called most layers covered. The
     rows record the effective counts (the raw ones for white noise, D = 1)."""
@@ -914,7 +918,11 @@ def _test_exposed(fit: _FaceFit, hyp: _Hypothesis, noise: NoiseModel
     D_f, D_s = exceedance_design_effects(rows, np.zeros(len(rows), np.int64), 1, hyp.k, noise)
     D_cell = exceedance_design_effects(rows, inv, len(ids), hyp.k, noise)[0]
     patchy = float(noise.exceed_dispersion)
-    D_f, D_s, D_cell = (np.maximum(D, patchy) for D in (D_f, D_s, D_cell))
+    # the scan measured the patchiness tile by tile; the core's count of front points
+    # spans many tiles, and a patch of large noise raises it over all of them. Not the
+    # sign test's: within a patch the points fall on either side alike
+    D_f = np.maximum(D_f, patchy * patch_factor(rows, fit.cols[core], noise))
+    D_s, D_cell = np.maximum(D_s, patchy), np.maximum(D_cell, patchy)
     rate = max(alpha / 2, float(noise.exceed_rate))  # of a point in front, under the noise
 
     def eff(x: Any, D: Any) -> np.ndarray:
