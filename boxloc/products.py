@@ -181,7 +181,7 @@ class NoiseEstimate:
         NOISE_FIT (none when no range bin has enough flat tiles).
     bin_design : (B,) float64
         Per range bin, the design effect of its tiles' correlated scales: how many times
-        the variance of independent tiles' median its median has (1 in logs before it).
+        the variance of independent tiles' mean its mean has (1 in logs before it).
     bin_dof : (B,) float64
         Per range bin, the degrees of freedom of the t its z comes from (inf in logs before
         it: the normal).

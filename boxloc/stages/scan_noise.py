@@ -307,11 +307,10 @@ def _fit_tests(tiles: TileResiduals, model: NoiseModel, alpha: float, grid_width
     tiles of ln(tile std / model std), winsorized at 3 robust sigmas (a few tiles of ribbed
     or mixed surface that passed the flatness checks barely move it), with its standard
     error from the tiles' own spread (so correlated noise and heterogeneous surfaces are in
-    it). A scale can never
-    be known exactly (a tile's std carries biases of a percent or so), and only a relevant
-    error matters: the test asks whether some bin's scale is off by more than
-    :func:`scale_margin`, ``t_b = (|d_b| - margin) / se_b``, one-sided, with Bonferroni over
-    the bins.
+    it). A scale can never be known exactly (a tile's std carries biases of a percent or
+    so), and only a relevant error matters: the test asks whether some bin's scale is off
+    by more than :func:`scale_margin`, ``t_b = (|d_b| - margin) / se_b``, one-sided, with
+    Bonferroni over the bins.
 
     Two things make ``se_b`` uncertain, and the test keeps its level only with both (bare
     active-stereo floors fired on 6 of 40 development scans without them, 0 with them):
@@ -385,12 +384,18 @@ def _fit_tests(tiles: TileResiduals, model: NoiseModel, alpha: float, grid_width
                                                   p > alpha, alpha, p_value=p)
 
 
+def _winsorized(x: np.ndarray, centre: float) -> np.ndarray:
+    """``x`` clipped at 3 robust sigmas (1.4826 x the median |x - centre|) around
+    ``centre``; as it is where that is 0."""
+    scale = 1.4826 * float(np.median(np.abs(x - centre)))
+    return np.clip(x, centre - 3.0 * scale, centre + 3.0 * scale) if scale > 0 else x
+
+
 def _range_trend(r: np.ndarray, d: np.ndarray) -> np.ndarray:
     """A least-squares quadratic in range through the tiles' ``d`` (winsorized at 3 robust
     sigmas), at each tile; a line or a constant where the ranges span too few bins."""
     med = float(np.median(d))
-    scale = 1.4826 * float(np.median(np.abs(d - med)))
-    e = np.clip(d, med - 3.0 * scale, med + 3.0 * scale) if scale > 0 else d
+    e = _winsorized(d, med)
     deg = min(2, np.unique(np.floor(r / BIN_WIDTH)).size - 1)
     if deg < 1:
         return np.full(d.shape, med)
@@ -402,9 +407,7 @@ def _scale_off(d: np.ndarray, gy: np.ndarray, gx: np.ndarray, corr: np.ndarray,
                margin: float) -> tuple[float, float, float, float]:
     """Whether tiles' ln(std / model std) ``d`` are off by more than ``margin``: (z, design
     effect, dof, p) of their winsorized mean, one-sided (see :func:`_fit_tests`)."""
-    med = float(np.median(d))
-    lim = 3.0 * 1.4826 * float(np.median(np.abs(d - med)))
-    e = np.clip(d, med - lim, med + lim)
+    e = _winsorized(d, float(np.median(d)))
     # the mean's standard error from the winsorized standard deviation, times the square
     # root of the design effect of the tiles' correlation; Student's t with as many degrees
     # of freedom as the tiles are independent ones (less one), given as the normal z of the
@@ -450,10 +453,8 @@ def tile_correlation(gy: np.ndarray, gx: np.ndarray, dev: np.ndarray) -> np.ndar
     out = np.zeros(4)
     if dev.size < 2:
         return out
-    scale = 1.4826 * float(np.median(np.abs(dev)))
-    e = np.clip(dev, -3.0 * scale, 3.0 * scale) if scale > 0 else dev
     G = np.full((int(gy.max()) + 1, int(gx.max()) + 1), np.nan)
-    G[gy, gx] = e
+    G[gy, gx] = _winsorized(dev, 0.0)
     grid = np.arange(0.0, MAX_TILE_RATIO + 0.005, 0.01)
     for axis in (0, 1):  # along rows (x steps), along columns (y steps)
         lags, rho = [], []
