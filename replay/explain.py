@@ -1141,9 +1141,11 @@ def format_explanation(d: dict[str, Any]) -> str:
                          f"along columns; {dof})")
         rate = nz["model"].get("exceed_rate", 0.0)
         if rate > 0:  # measured on the scan (0: the normal's alpha / 2, a pinned model's)
+            reach = nz["model"].get("exceed_corr_px", 0.0)
             lines.append(f"  exposure null: {_num(100.0 * rate)} % of a face's points beyond "
                          f"k in front, counts {_num(nz['model'].get('exceed_dispersion', 1.0))}"
-                         "x as variable as independent points' (its flat tiles)")
+                         "x as variable as independent points' (its flat tiles)"
+                         + (f", in patches reaching {_num(reach)} px" if reach > 0 else ""))
     for b in d.get("budgets") or []:
         lines.append(f"budget exhausted: the {b['stage']} stage stopped at {_num(b['budget'])} "
                      f"{b['counts']} (it needed {_num(b['work'])}); the scan finished with "

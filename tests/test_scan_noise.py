@@ -154,6 +154,9 @@ def test_the_estimate_is_recorded_and_explained(noisy, tmp_path) -> None:  # typ
     # the exposure test's null, as the scan's flat tiles measured it
     assert d["noise"]["model"]["exceed_rate"] >= 0.005
     assert "exposure null: " in format_explanation(d)
+    # how far its patches reach, where the scan measured a reach
+    reach = d["noise"]["model"]["exceed_corr_px"]
+    assert ("in patches reaching" in format_explanation(d)) == (reach > 0)
 
 
 @pytest.mark.parametrize(("spec", "lo", "hi"), [
