@@ -31,6 +31,7 @@ from __future__ import annotations
 
 import math
 
+import cv2
 import numpy as np
 import numpy.typing as npt
 from scipy import special
@@ -200,13 +201,17 @@ def patch_factor(rows: np.ndarray, cols: np.ndarray, noise: NoiseModel) -> float
         return 1.0
     ty = np.asarray(rows, np.int64) // EXCEED_TILE_PX
     tx = np.asarray(cols, np.int64) // EXCEED_TILE_PX
-    key = ty * (int(tx.max()) + 1) + tx
-    ids, n_t = np.unique(key, return_counts=True)
-    if ids.size < 2:
+    ty, tx = ty - ty.min(), tx - tx.min()
+    H, W = int(ty.max()) + 1, int(tx.max()) + 1
+    n = np.bincount(ty * W + tx, minlength=H * W).astype(np.float64).reshape(H, W)
+    if np.count_nonzero(n) < 2:
         return 1.0
-    gy, gx = np.divmod(ids, int(tx.max()) + 1)
-    d = EXCEED_TILE_PX * np.hypot(gy[:, None] - gy[None, :], gx[:, None] - gx[None, :])
-    rho = np.exp(-d / length)
-    np.fill_diagonal(rho, 0.0)
-    sq = np.sqrt(n_t.astype(np.float64))
-    return 1.0 + float(sq @ rho @ sq) / float(n_t.sum())
+    # the pair sum as one filtering of the tiles' sqrt(n) by the correlation over every
+    # offset the grid holds (zero at offset 0): O(grid + kernel) memory, where the pairs
+    # of a 1280x960 face's 4,800 tiles would take 23 million
+    w = np.sqrt(n)
+    dy, dx = np.arange(-(H - 1), H), np.arange(-(W - 1), W)
+    rho = np.exp(-EXCEED_TILE_PX * np.hypot(dy[:, None], dx[None, :]) / length)
+    rho[H - 1, W - 1] = 0.0
+    s = cv2.filter2D(w, -1, rho, borderType=cv2.BORDER_CONSTANT)
+    return 1.0 + float(np.sum(w * s)) / float(n.sum())

@@ -211,17 +211,9 @@ def exceedance(z: np.ndarray, tile: np.ndarray, alpha: float, grid_width: int = 
         dev = (count - n * p) / np.sqrt(n * p * (1.0 - p))
         lim = 3.0 * math.sqrt(dispersion)
         dev = np.clip(dev - float(np.median(dev)), -lim, lim)
-        gy, gx = np.divmod(ids, grid_width)
-        G = np.full((int(gy.max()) + 1, int(gx.max()) + 1), np.nan)
-        G[gy, gx] = dev
-        a = np.concatenate([G[:, :-1].ravel(), G[:-1].ravel()])
-        b = np.concatenate([G[:, 1:].ravel(), G[1:].ravel()])
-        both = np.isfinite(a) & np.isfinite(b)
-        den = math.sqrt(float(np.sum(a[both] ** 2)) * float(np.sum(b[both] ** 2)))
-        if both.sum() >= MIN_TILE_PAIRS and den > 0:
-            rho = float(np.sum(a[both] * b[both])) / den
-            if norm_isf(alpha) / math.sqrt(both.sum()) < rho < 1.0:
-                corr_px = -float(step_px) / math.log(rho)
+        rho, pairs = _lag_correlation(_on_grid(*np.divmod(ids, grid_width), dev), 1, (0, 1))
+        if pairs >= MIN_TILE_PAIRS and norm_isf(alpha) / math.sqrt(pairs) < rho < 1.0:
+            corr_px = -float(step_px) / math.log(rho)
     return max(alpha / 2.0, 0.5 * p), float(dispersion), corr_px
 
 
@@ -453,21 +445,16 @@ def tile_correlation(gy: np.ndarray, gx: np.ndarray, dev: np.ndarray) -> np.ndar
     out = np.zeros(4)
     if dev.size < 2:
         return out
-    G = np.full((int(gy.max()) + 1, int(gx.max()) + 1), np.nan)
-    G[gy, gx] = _winsorized(dev, 0.0)
+    G = _on_grid(gy, gx, _winsorized(dev, 0.0))
     grid = np.arange(0.0, MAX_TILE_RATIO + 0.005, 0.01)
     for axis in (0, 1):  # along rows (x steps), along columns (y steps)
         lags, rho = [], []
         for lag in TILE_LAGS:
-            if G.shape[1 - axis] <= lag:
-                break
-            a, b = (G[:, :-lag], G[:, lag:]) if axis == 0 else (G[:-lag], G[lag:])
-            both = np.isfinite(a) & np.isfinite(b)
-            den = math.sqrt(float(np.sum(a[both] ** 2)) * float(np.sum(b[both] ** 2)))
-            if both.sum() < MIN_TILE_PAIRS or not den > 0:
+            r, pairs = _lag_correlation(G, lag, (axis,))
+            if pairs < MIN_TILE_PAIRS or not np.isfinite(r):
                 break
             lags.append(lag)
-            rho.append(float(np.sum(a[both] * b[both])) / den)
+            rho.append(r)
         if not lags or not rho[0] > 0:
             continue
         k = np.asarray(lags, np.float64)
@@ -480,6 +467,25 @@ def tile_correlation(gy: np.ndarray, gx: np.ndarray, dev: np.ndarray) -> np.ndar
         best = int(np.argmin(sse))
         out[2 * axis:2 * axis + 2] = (float(c[best]), float(grid[best]))
     return out
+
+
+def _on_grid(gy: np.ndarray, gx: np.ndarray, values: np.ndarray) -> np.ndarray:
+    """The tiles' values at their grid positions, NaN where no tile."""
+    G = np.full((int(gy.max()) + 1, int(gx.max()) + 1), np.nan)
+    G[gy, gx] = values
+    return G
+
+
+def _lag_correlation(G: np.ndarray, lag: int, axes: tuple[int, ...]) -> tuple[float, int]:
+    """The correlation (uncentred: the values are deviations already) of a grid's values
+    ``lag`` steps apart along rows (axis 0) and/or columns (axis 1), pooled over ``axes``,
+    and the number of pairs; NaN without a pair or a spread."""
+    a = np.concatenate([(G[:, :-lag] if ax == 0 else G[:-lag]).ravel() for ax in axes])
+    b = np.concatenate([(G[:, lag:] if ax == 0 else G[lag:]).ravel() for ax in axes])
+    both = np.isfinite(a) & np.isfinite(b)
+    den = math.sqrt(float(np.sum(a[both] ** 2)) * float(np.sum(b[both] ** 2)))
+    rho = float(np.sum(a[both] * b[both])) / den if den > 0 else math.nan
+    return rho, int(both.sum())
 
 
 def design_effect(gy: np.ndarray, gx: np.ndarray, corr: np.ndarray) -> float:

@@ -904,10 +904,9 @@ def _test_exposed(fit: _FaceFit, hyp: _Hypothesis, noise: NoiseModel
     reach beyond a tile; a cell, a few tiles at most, keeps the tile's, and the sign test
     too, since within a patch the points fall on either side alike). How often the noise
     puts a point in front is the scan's own rate too (``noise.exceed_rate``; alpha / 2 for
-    normal noise):
-    active-stereo depth has heavy tails in patches, and on bulged lids, whose middles
-    stand in front of their plane, a model's normal rate called most layers covered. The
-    rows record the effective counts (the raw ones for white noise, D = 1)."""
+    normal noise): active-stereo depth has heavy tails in patches, and on bulged lids,
+    whose middles stand in front of their plane, a model's normal rate called most layers
+    covered. The rows record the effective counts (the raw ones for white noise, D = 1)."""
     alpha = hyp.alpha
     core = fit.core
     rows = fit.rows[core]
