@@ -79,7 +79,8 @@ class TestKind(IntEnum):
     #: y; statistic = the largest z inside)
     VERIFY_SEAM_INTERIOR = 19
     #: hypothesis stage: seams in vertex a's region, extra dimension candidates (b = 0
-    #: along x, 1 along y; one row per seam found, statistic z)
+    #: along x, 1 along y; 2, 3 likewise in the last short box edge before max_edge; one
+    #: row per seam found, statistic z)
     SEAM_PEAK = 20
     #: verification: the face's plane ends at side b of hypothesis a (b = side 0-3;
     #: statistic = fraction of the pixels just beyond the side on the plane, critical =

@@ -87,6 +87,8 @@ _REASON_TEST: dict[VerifyReason, TestKind] = {
     VerifyReason.CONTINUES: TestKind.VERIFY_CONTINUATION,
     VerifyReason.OUTSIDE_IMAGE: TestKind.VERIFY_CONTINUATION,
 }
+#: SEAM_PEAK's b: the axis, and where the search looked (:mod:`boxloc.stages.hypotheses`)
+_SEAM_AXES = ("along x", "along y", "along x, near max_edge", "along y, near max_edge")
 #: the four sides of a rectangle, in the order of the VERIFY_BOUNDARY rows
 _SIDES = ("side at the vertex along x", "far side along x", "side at the vertex along y",
           "far side along y")
@@ -959,6 +961,9 @@ def _dims_lines(d: dict[str, Any], ind: str) -> list[str]:
         out.append(f"{ind}  diagonal vertex V{g['vertex']} at {_point_text(g['point'])}")
         out += [f"{ind}    {_test_text(t)}" for t in g["tests"]]
     e = d["edges"]
+    if d["source"] == "SEAMS":
+        for t in e["seams"][:MAX_ITEMS]:
+            out.append(f"{ind}  seam {_SEAM_AXES[int(t['b'])]}: {_test_text(t)}")
     if d["source"] == "EDGES" or d["source"] == "NONE":
         if d["source"] == "NONE":
             out.append(f"{ind}  {d['n_diagonal_candidates']} diagonal vertex candidate(s)")

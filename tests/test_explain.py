@@ -94,6 +94,11 @@ def test_chosen_surface_chain_matches_the_log(log: Path, records: dict[int, Any]
         else:  # a far side from a seam or from the plane's extent: the tests that gave it
             key = {"SEAMS": "seams", "EXTENT": "extent"}[src]
             assert dims["edges"][key]
+            if src == "SEAMS":  # the text names each seam's axis and its test
+                text = format_explanation(d)
+                for t in dims["edges"]["seams"]:
+                    assert f"SEAM_PEAK {t['a']},{t['b']}:" in text
+                assert "seam along " in text
             assert not any(t.get("used") for t in dims["edges"]["edge_support"])
         # every attempt of the hypothesis, the surface's own one accepted with its tests
         atts = {a["id"]: a for a in e["hypothesis"]["attempts"]}

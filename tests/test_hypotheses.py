@@ -292,3 +292,21 @@ def test_the_hypothesis_stage_works_on_the_highest_vertices_within_its_budget():
     # without the cut every vertex is worked on, and no budget row is recorded
     _, _, V2, H2, _ = _stages(sim)
     assert len(H2.tests.of_kind(TestKind.BUDGET)) == 0 and len(np.unique(H2.att_hypothesis)) > 1
+
+
+def test_a_packed_box_nearly_max_edge_long_is_parted_at_its_far_seam():
+    # four boxes touching (no gap, no edge at the seams): their long side, 0.56 m, is
+    # longer than max_edge less a short box edge, so its seam lies beyond the region the
+    # first seam search covers; the search near max_edge finds it
+    from boxloc.evaluate.metrics import match_surfaces
+    from boxloc.pipeline import find_graspable_surfaces
+    boxes = [box(sx * 0.1505, sy * 0.2805, 0.30, 0.56, 0.25) for sx in (-1, 1) for sy in (-1, 1)]
+    sim = scene(boxes, distance=2.4, tilt=0.1, seed=3)
+    r = find_graspable_surfaces(sim.scan, Config(min_edge=0.15, max_edge=0.6))
+    m = match_surfaces(r.surfaces, sim.truth)
+    assert m.tp == 4 and m.fp == 0
+    far = r.hypotheses.tests.of_kind(TestKind.SEAM_PEAK)
+    near_max = far.b >= 2
+    assert near_max.any() and (far.statistic[near_max] > far.critical[near_max]).all()
+    dims = np.sort(np.c_[r.surfaces.width, r.surfaces.length], axis=1)
+    assert np.allclose(dims, [0.30, 0.56], atol=0.015)

@@ -22,7 +22,9 @@ face, or a side seen at grazing incidence) leaves the accumulators without the r
 candidate; the face's extent along each arm, how far its plane runs in a strip beside the
 arm (:func:`boxloc.stages.verify.face_extent`), gives one (``DimensionSource.EXTENT``). These
 candidates are tried after those from the edges, with a budget of their own
-(``MAX_EXTENT_ATTEMPTS``), so the paper's candidates always come first.
+(``MAX_EXTENT_ATTEMPTS``), so the paper's candidates always come first. Last come seams in
+the last short box edge before ``max_edge`` (:func:`dimensions_near_max_edge`), which the
+seam search of the edges' candidates cannot see.
 
 Per-vertex work is independent (the paper's parallel implementation); with
 ``config.workers > 1`` it runs in processes and the result is identical to serial.
@@ -80,7 +82,8 @@ from boxloc.stats import (
 
 #: Most dimension candidates verified per vertex (bounds the work on cluttered scenes).
 MAX_ATTEMPTS = 6
-#: Most candidates from the face's extent verified per vertex, after the others.
+#: Most candidates from the face's extent verified per vertex, after the others; as many
+#: again from seams near ``max_edge`` (:func:`dimensions_near_max_edge`), after those.
 MAX_EXTENT_ATTEMPTS = 3
 #: Most rounds of neighbours' corners (a row of touching boxes grows by one box a round).
 MAX_NEIGHBOUR_ROUNDS = 8
@@ -143,6 +146,12 @@ class _VertexWork:
     peaks_x: np.ndarray = field(default_factory=lambda: np.zeros(0))
     peaks_y: np.ndarray = field(default_factory=lambda: np.zeros(0))
     n_candidates: int = 0
+    #: the seams :func:`_seam_peaks` found, and the region it searched (NaN: no search)
+    seams_x: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    seams_y: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    seam_region: tuple[float, float] = (np.nan, np.nan)
+    #: how far the plane runs along each arm (:func:`dimensions_from_extent`; NaN: unknown)
+    extent: tuple[float, float] = (np.nan, np.nan)
     #: pixels its rectangle searches read (:meth:`VerifyContext.pixels_in`): its share of
     #: ``Config.max_hypothesis_work``
     pixels: float = 0.0
@@ -362,6 +371,7 @@ def dimensions_from_extent(R: Rectangle, ctx: _Context, work: _VertexWork) -> li
         ext.append(e)
         gaps.append(g)
     ext_a = np.array(ext)
+    work.extent = (float(ext_a[0]), float(ext_a[1]))
     usable = np.isfinite(ext_a) & (ext_a >= lo) & (ext_a <= cfg.max_edge)
     work.tests.append(TestTable.decision(TestKind.FACE_EXTENT, R.vertex, [0, 1], ext_a,
                                          np.array(gaps), usable, cfg.alpha))
@@ -425,7 +435,9 @@ def _seam_peaks(R: Rectangle, ctx: _Context, work: _VertexWork, px: np.ndarray,
     has no peak there; the range points of the region, binned across each axis, still show
     the groove (:func:`boxloc.stages.seams.find_seams`, at the scan's seam level over the
     positions, :func:`boxloc.stages.verify.seam_alpha`). The region
-    runs to the farthest edge peak on each axis (``max_edge`` where there is none).
+    runs to the farthest edge peak on each axis (``max_edge`` where there is none), and a
+    seam must leave a short box edge (0.9 ``min_edge``) of it beyond
+    (:func:`dimensions_near_max_edge` looks past that, last).
     """
     cfg = ctx.config
     U = float(px.max()) if len(px) else cfg.max_edge
@@ -446,7 +458,73 @@ def _seam_peaks(R: Rectangle, ctx: _Context, work: _VertexWork, px: np.ndarray,
         if len(pos):
             work.tests.append(TestTable.decision(TestKind.SEAM_PEAK, R.vertex, b, z, crit,
                                                  True, cfg.alpha))
+    work.seams_x, work.seams_y, work.seam_region = found[0], found[1], (U, V)
     return found[0], found[1]
+
+
+def dimensions_near_max_edge(R: Rectangle, ctx: _Context,
+                             work: _VertexWork) -> list[_Attempt]:
+    """Far sides from seams between ``max_edge`` less a short box edge (0.9 ``min_edge``)
+    and ``max_edge``: the last candidates of a vertex, once no other verified.
+
+    :func:`_seam_peaks` leaves a short box edge of its region beyond any seam it finds, so
+    on an axis without an edge peak it never looks past ``max_edge`` less ``min_edge``.
+    The far side of a box of a tightly packed layer nearly ``max_edge`` long lies there,
+    with no edge (its neighbour is flush) and no extent (the plane runs on): the layer
+    would be one flat region. On each axis with neither an edge peak nor a seam, where
+    the plane runs on into that last short box edge (:func:`dimensions_from_extent`'s
+    extent; unknown counts), :func:`_seams_near_max` looks there; each seam it finds
+    pairs with the other axis's edge peaks and seams, near ``max_edge`` or not
+    (``DimensionSource.SEAMS``), smallest area first.
+    """
+    U, V = work.seam_region
+    if not (np.isfinite(U) and np.isfinite(V)):  # no seam search ran: no region to extend
+        return []
+    spacing = ctx.verify_ctx.spacing_at(R.origin)
+    band = BOUNDARY_BAND * ctx.config.min_edge
+    near = [np.zeros(0), np.zeros(0)]
+    reach = ctx.config.max_edge - 0.9 * ctx.config.min_edge
+    for b, (peaks, seams, across) in enumerate(((work.peaks_x, work.seams_x, V),
+                                                (work.peaks_y, work.seams_y, U))):
+        if not len(peaks) and not len(seams) and not work.extent[b] <= reach:
+            near[b] = _seams_near_max(R, ctx, work, b, across, spacing, band)
+    nx, ny = near
+    xs = np.r_[work.peaks_x, work.seams_x]
+    ys = np.r_[work.peaks_y, work.seams_y]
+    pairs = [(a, b) for a in nx for b in np.r_[ys, ny]] + [(a, b) for a in xs for b in ny]
+    pairs.sort(key=lambda ab: (ab[0] * ab[1], ab[0]))
+    return [_Attempt(DimensionSource.SEAMS, -1, float(a), float(b), np.nan, np.nan)
+            for a, b in pairs]
+
+
+def _seams_near_max(R: Rectangle, ctx: _Context, work: _VertexWork, b: int, across: float,
+                    spacing: float, band: float) -> np.ndarray:
+    """Seams along axis b (0: x, 1: y) between ``max_edge`` less a short box edge (0.9
+    ``min_edge``) and ``max_edge``, where :func:`_seam_peaks`' region cannot show one.
+
+    The region runs along the axis to a short box edge beyond ``max_edge``, across it to
+    ``across``; the search covers the whole axis, as :func:`_seam_peaks`' does (its
+    critical value and the statistic's spread over as many positions), and keeps the seams
+    beyond that search's reach. SEAM_PEAK rows with b = 2 (x), 3 (y).
+    """
+    cfg = ctx.config
+    lo = 0.9 * cfg.min_edge
+    reach = cfg.max_edge + lo
+    ur, vr = ((0.0, reach), (0.0, across)) if b == 0 else ((0.0, across), (0.0, reach))
+    vc = ctx.verify_ctx
+    work.pixels += vc.pixels_in(R.origin, R.x_axis, R.y_axis, ur, vr)
+    fp = face_points(vc.points, vc.valid, vc.sigma, vc.project, R.origin, R.x_axis, R.y_axis,
+                     R.normal, ur, vr, spacing, cfg.alpha, cfg.noise.row_corr)
+    coord, other = (fp.u, fp.v) if b == 0 else (fp.v, fp.u)
+    sel = other > band
+    pos, z, crit = find_seams(coord[sel], fp.w[sel], fp.scale, lo, cfg.max_edge, spacing,
+                              vc.seam_alpha, fp.row[sel], fp.row_corr,
+                              mask_strongest=not cfg.noise.correlated)[:3]
+    beyond = pos > cfg.max_edge - lo
+    if beyond.any():
+        work.tests.append(TestTable.decision(TestKind.SEAM_PEAK, R.vertex, 2 + b, z[beyond],
+                                             crit, True, cfg.alpha))
+    return pos[beyond]
 
 
 def _soft_votes(x: np.ndarray, sx: np.ndarray, h: float, nbins: int) -> np.ndarray:
@@ -536,6 +614,9 @@ def _search_vertex(i: int, ctx: _Context) -> _Piece:
         # the same rectangle again (within a bin) is no new evidence
         tol = work.acc_bin if np.isfinite(work.acc_bin) else 0.0
         ok, _ = _try_in_turn(R, ctx, work, dimensions_from_extent(R, ctx, work),
+                             MAX_EXTENT_ATTEMPTS, tol)
+    if not ok:
+        ok, _ = _try_in_turn(R, ctx, work, dimensions_near_max_edge(R, ctx, work),
                              MAX_EXTENT_ATTEMPTS, tol)
     return work, R, ok
 
