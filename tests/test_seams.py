@@ -39,6 +39,22 @@ def test_a_groove_shallower_than_the_noise_is_found_along_its_length():
     assert z_max == z[0]  # the strongest position is the seam
 
 
+def test_a_search_continued_keeps_the_level_and_spread_of_the_longer_one():
+    # a search near one end of a face, continuing one over the face: the critical value
+    # corrects over the whole span, and the spread is the longer search's
+    u, w = _face(np.random.default_rng(2), 0.55)
+    full = find_seams(u, w, SIGMA, 0.1, 0.58, H, 0.01)
+    part = find_seams(u, w, SIGMA, 0.5, 0.58, H, 0.01, spread=(1.7, 1.3), level_span=0.48)
+    assert part.critical == full.critical
+    assert part.spread == (1.7, 1.3)
+    assert len(part.positions) == 1 and abs(part.positions[0] - 0.55) <= H
+    # the statistics are divided by the given spread, not one measured over the strip
+    same = find_seams(u, w, SIGMA, 0.5, 0.58, H, 0.01, spread=(1.0, 1.0), level_span=0.48)
+    assert part.z[0] < same.z[0]
+    # alone, the short strip would test at a laxer level
+    assert find_seams(u, w, SIGMA, 0.5, 0.58, H, 0.01).critical < part.critical
+
+
 def _banded(rng: np.random.Generator, groove_at: float | None, depth: float = 0.003
             ) -> tuple[np.ndarray, np.ndarray]:
     """A face whose noise is shared along v in bands across u (stereo depth): a smooth

@@ -58,7 +58,14 @@ from boxloc.products import (
 )
 from boxloc.scan import Scan
 from boxloc.stages.height import step_height
-from boxloc.stages.seams import face_points, find_seams, norm_isf, seam_at
+from boxloc.stages.seams import (
+    SEAM_FLANK,
+    SEAM_SCALES,
+    face_points,
+    find_seams,
+    norm_isf,
+    seam_at,
+)
 from boxloc.stages.sizes import distinct, match_size, region_splits
 from boxloc.stages.verify import (
     BOUNDARY_BAND,
@@ -150,6 +157,9 @@ class _VertexWork:
     seams_x: np.ndarray = field(default_factory=lambda: np.zeros(0))
     seams_y: np.ndarray = field(default_factory=lambda: np.zeros(0))
     seam_region: tuple[float, float] = (np.nan, np.nan)
+    #: that search's noise scale and, per axis, its statistic's spread (Seams.spread)
+    seam_scale: float = np.nan
+    seam_spread: tuple[tuple[float, ...], ...] = ()
     #: how far the plane runs along each arm (:func:`dimensions_from_extent`; NaN: unknown)
     extent: tuple[float, float] = (np.nan, np.nan)
     #: pixels its rectangle searches read (:meth:`VerifyContext.pixels_in`): its share of
@@ -447,18 +457,22 @@ def _seam_peaks(R: Rectangle, ctx: _Context, work: _VertexWork, px: np.ndarray,
     fp = face_points(vc.points, vc.valid, vc.sigma, vc.project, R.origin, R.x_axis, R.y_axis,
                      R.normal, (0.0, U), (0.0, V), spacing, cfg.alpha, cfg.noise.row_corr)
     lo = 0.9 * cfg.min_edge
-    found = []
+    found: list[np.ndarray] = []
+    spreads: list[tuple[float, ...]] = []
     for b, (coord, other, ext) in enumerate(((fp.u, fp.v, U), (fp.v, fp.u, V))):
         sel = other > band
         # where the noise is white, a seam's own lobes must not hide it (find_seams)
-        pos, z, crit = find_seams(coord[sel], fp.w[sel], fp.scale, lo, ext - lo, spacing,
-                                  vc.seam_alpha, fp.row[sel], fp.row_corr,
-                                  mask_strongest=not cfg.noise.correlated)[:3]
+        seams = find_seams(coord[sel], fp.w[sel], fp.scale, lo, ext - lo, spacing,
+                           vc.seam_alpha, fp.row[sel], fp.row_corr,
+                           mask_strongest=not cfg.noise.correlated)
+        pos, z, crit = seams[:3]
         found.append(pos)
+        spreads.append(seams.spread)
         if len(pos):
             work.tests.append(TestTable.decision(TestKind.SEAM_PEAK, R.vertex, b, z, crit,
                                                  True, cfg.alpha))
     work.seams_x, work.seams_y, work.seam_region = found[0], found[1], (U, V)
+    work.seam_scale, work.seam_spread = fp.scale, tuple(spreads)
     return found[0], found[1]
 
 
@@ -500,31 +514,35 @@ def dimensions_near_max_edge(R: Rectangle, ctx: _Context,
 def _seams_near_max(R: Rectangle, ctx: _Context, work: _VertexWork, b: int, across: float,
                     spacing: float, band: float) -> np.ndarray:
     """Seams along axis b (0: x, 1: y) between ``max_edge`` less a short box edge (0.9
-    ``min_edge``) and ``max_edge``, where :func:`_seam_peaks`' region cannot show one.
+    ``min_edge``) and ``max_edge``, where :func:`_seam_peaks`' search cannot show one.
 
-    The region runs along the axis to a short box edge beyond ``max_edge``, across it to
-    ``across``; the search covers the whole axis, as :func:`_seam_peaks`' does (its
-    critical value and the statistic's spread over as many positions), and keeps the seams
-    beyond that search's reach. SEAM_PEAK rows with b = 2 (x), 3 (y).
+    That search goes on here, as one: the strip read reaches the groove windows' flanks
+    either side of the positions (across the arm from ``band`` to ``across``), and the
+    statistic keeps that search's noise scale (or the strip's, if larger), its spread and
+    a critical value corrected over the whole axis (``min_edge`` to ``max_edge``), so a
+    short strip neither sees seams the face's own scatter would hide nor tests at a
+    laxer level. SEAM_PEAK rows with b = 2 (x), 3 (y).
     """
     cfg = ctx.config
     lo = 0.9 * cfg.min_edge
-    reach = cfg.max_edge + lo
-    ur, vr = ((0.0, reach), (0.0, across)) if b == 0 else ((0.0, across), (0.0, reach))
+    flank = (SEAM_FLANK[1] * max(SEAM_SCALES) + 1.0) * spacing
+    start = max(cfg.max_edge - lo + 0.5 * spacing, lo)
+    a0, a1 = max(start - flank, 0.0), cfg.max_edge + flank
+    ur, vr = ((a0, a1), (band, across)) if b == 0 else ((band, across), (a0, a1))
     vc = ctx.verify_ctx
     work.pixels += vc.pixels_in(R.origin, R.x_axis, R.y_axis, ur, vr)
     fp = face_points(vc.points, vc.valid, vc.sigma, vc.project, R.origin, R.x_axis, R.y_axis,
                      R.normal, ur, vr, spacing, cfg.alpha, cfg.noise.row_corr)
-    coord, other = (fp.u, fp.v) if b == 0 else (fp.v, fp.u)
-    sel = other > band
-    pos, z, crit = find_seams(coord[sel], fp.w[sel], fp.scale, lo, cfg.max_edge, spacing,
-                              vc.seam_alpha, fp.row[sel], fp.row_corr,
-                              mask_strongest=not cfg.noise.correlated)[:3]
-    beyond = pos > cfg.max_edge - lo
-    if beyond.any():
-        work.tests.append(TestTable.decision(TestKind.SEAM_PEAK, R.vertex, 2 + b, z[beyond],
-                                             crit, True, cfg.alpha))
-    return pos[beyond]
+    if not len(fp):
+        return np.zeros(0)
+    coord = fp.u if b == 0 else fp.v
+    pos, z, crit = find_seams(coord, fp.w, max(fp.scale, work.seam_scale), start,
+                              cfg.max_edge, spacing, vc.seam_alpha, fp.row, fp.row_corr,
+                              spread=work.seam_spread[b], level_span=cfg.max_edge - lo)[:3]
+    if len(pos):
+        work.tests.append(TestTable.decision(TestKind.SEAM_PEAK, R.vertex, 2 + b, z, crit,
+                                             True, cfg.alpha))
+    return pos
 
 
 def _soft_votes(x: np.ndarray, sx: np.ndarray, h: float, nbins: int) -> np.ndarray:

@@ -682,7 +682,9 @@ class Seams(NamedTuple):
 
 def find_seams(coord: np.ndarray, w: np.ndarray, scale: float, lo: float, hi: float,
                h: float, alpha: float, row: np.ndarray | None = None,
-               row_corr: float = 0.0, mask_strongest: bool = False) -> Seams:
+               row_corr: float = 0.0, mask_strongest: bool = False,
+               spread: tuple[float, ...] | None = None,
+               level_span: float | None = None) -> Seams:
     """Significant seams between ``lo`` and ``hi`` (local maxima of :func:`seam_z`, the
     larger of its values at the groove widths of :data:`SEAM_SCALES`).
 
@@ -697,6 +699,12 @@ def find_seams(coord: np.ndarray, w: np.ndarray, scale: float, lo: float, hi: fl
         is divided out (:func:`_spread_beside`): on a narrow face a seam's own lobes
         inflate the spread that would hide it. Only meaningful where the noise is white:
         with correlated noise the undivided statistic passes the critical value by chance.
+    spread : tuple of float, optional
+        The statistic's spread at each scale, measured by a search over more of the same
+        face (its :attr:`Seams.spread`), instead of over these few positions.
+    level_span : float, optional
+        Metres of positions the critical value corrects for (default ``hi - lo``): that
+        search's, when this one continues it.
 
     Returns
     -------
@@ -707,16 +715,21 @@ def find_seams(coord: np.ndarray, w: np.ndarray, scale: float, lo: float, hi: fl
         return Seams(np.zeros(0), np.zeros(0), np.inf, -np.inf)
     step = 0.5 * h
     centres = np.arange(lo, hi + 0.5 * step, step)
-    n_indep = sum(max((hi - lo) / (2.0 * SEAM_INNER * s * h), 1.0) for s in SEAM_SCALES)
+    span = hi - lo if level_span is None else level_span
+    n_indep = sum(max(span / (2.0 * SEAM_INNER * s * h), 1.0) for s in SEAM_SCALES)
     crit = float(norm_isf(alpha / n_indep))
     zs, spreads = [], []
-    for s in SEAM_SCALES:
+    for i, s in enumerate(SEAM_SCALES):
         zr, both = _seam_stats(coord, w, scale, centres, s * h, row, row_corr)
-        # correlated noise (e.g. structured-light depth) spreads the statistic beyond
-        # N(0, 1): measure its spread over the positions and divide it out
-        spreads.append(seam_spread(zr))
-        sp = (_spread_beside(zr, both, centres, SEAM_FLANK[1] * s * h, crit, spreads[-1])
-              if mask_strongest else spreads[-1])
+        if spread is not None:
+            spreads.append(float(spread[i]))
+            sp = spreads[-1]
+        else:
+            # correlated noise (e.g. structured-light depth) spreads the statistic beyond
+            # N(0, 1): measure its spread over the positions and divide it out
+            spreads.append(seam_spread(zr))
+            sp = (_spread_beside(zr, both, centres, SEAM_FLANK[1] * s * h, crit,
+                                 spreads[-1]) if mask_strongest else spreads[-1])
         zs.append(np.where(both, zr / sp, -np.inf))
     Z = np.vstack(zs)
     z = Z.max(axis=0)
