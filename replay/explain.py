@@ -963,7 +963,9 @@ def _dims_lines(d: dict[str, Any], ind: str) -> list[str]:
     e = d["edges"]
     if d["source"] == "SEAMS":
         for t in e["seams"][:MAX_ITEMS]:
-            out.append(f"{ind}  seam {_SEAM_AXES[int(t['b'])]}: {_test_text(t)}")
+            b = int(t["b"])
+            axis = _SEAM_AXES[b] if 0 <= b < len(_SEAM_AXES) else f"b = {b}"
+            out.append(f"{ind}  seam {axis}: {_test_text(t)}")
     if d["source"] == "EDGES" or d["source"] == "NONE":
         if d["source"] == "NONE":
             out.append(f"{ind}  {d['n_diagonal_candidates']} diagonal vertex candidate(s)")
