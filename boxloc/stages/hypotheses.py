@@ -500,6 +500,7 @@ def dimensions_near_max_edge(R: Rectangle, ctx: _Context,
     reach = ctx.config.max_edge - 0.9 * ctx.config.min_edge
     for b, (peaks, seams, across) in enumerate(((work.peaks_x, work.seams_x, V),
                                                 (work.peaks_y, work.seams_y, U))):
+        # NaN extent (not measured, or the strip left the image): the plane may run on
         if not len(peaks) and not len(seams) and not work.extent[b] <= reach:
             near[b] = _seams_near_max(R, ctx, work, b, across, spacing, band)
     nx, ny = near
@@ -519,7 +520,7 @@ def _seams_near_max(R: Rectangle, ctx: _Context, work: _VertexWork, b: int, acro
     That search goes on here, as one: the strip read reaches the groove windows' flanks
     either side of the positions (across the arm from ``band`` to ``across``), and the
     statistic keeps that search's noise scale (or the strip's, if larger), its spread and
-    a critical value corrected over the whole axis (``min_edge`` to ``max_edge``), so a
+    a critical value corrected over the whole axis (0.9 ``min_edge`` to ``max_edge``), so a
     short strip neither sees seams the face's own scatter would hide nor tests at a
     laxer level. SEAM_PEAK rows with b = 2 (x), 3 (y).
     """
