@@ -153,11 +153,10 @@ class _VertexWork:
     peaks_x: np.ndarray = field(default_factory=lambda: np.zeros(0))
     peaks_y: np.ndarray = field(default_factory=lambda: np.zeros(0))
     n_candidates: int = 0
-    #: the seams :func:`_seam_peaks` found, and the region it searched (NaN: no search)
+    #: the seams :func:`_seam_peaks` found, that search's noise scale and, per axis, its
+    #: statistic's spread (Seams.spread; empty: no seam search ran)
     seams_x: np.ndarray = field(default_factory=lambda: np.zeros(0))
     seams_y: np.ndarray = field(default_factory=lambda: np.zeros(0))
-    seam_region: tuple[float, float] = (np.nan, np.nan)
-    #: that search's noise scale and, per axis, its statistic's spread (Seams.spread)
     seam_scale: float = np.nan
     seam_spread: tuple[tuple[float, ...], ...] = ()
     #: how far the plane runs along each arm (:func:`dimensions_from_extent`; NaN: unknown)
@@ -450,8 +449,7 @@ def _seam_peaks(R: Rectangle, ctx: _Context, work: _VertexWork, px: np.ndarray,
     (:func:`dimensions_near_max_edge` looks past that, last).
     """
     cfg = ctx.config
-    U = float(px.max()) if len(px) else cfg.max_edge
-    V = float(py.max()) if len(py) else cfg.max_edge
+    U, V = _seam_reach(px, cfg), _seam_reach(py, cfg)
     vc = ctx.verify_ctx
     work.pixels += vc.pixels_in(R.origin, R.x_axis, R.y_axis, (0.0, U), (0.0, V))
     fp = face_points(vc.points, vc.valid, vc.sigma, vc.project, R.origin, R.x_axis, R.y_axis,
@@ -471,9 +469,15 @@ def _seam_peaks(R: Rectangle, ctx: _Context, work: _VertexWork, px: np.ndarray,
         if len(pos):
             work.tests.append(TestTable.decision(TestKind.SEAM_PEAK, R.vertex, b, z, crit,
                                                  True, cfg.alpha))
-    work.seams_x, work.seams_y, work.seam_region = found[0], found[1], (U, V)
+    work.seams_x, work.seams_y = found[0], found[1]
     work.seam_scale, work.seam_spread = fp.scale, tuple(spreads)
     return found[0], found[1]
+
+
+def _seam_reach(peaks: np.ndarray, cfg: Config) -> float:
+    """How far :func:`_seam_peaks`' region runs along an axis: its farthest edge peak,
+    ``max_edge`` where there is none."""
+    return float(peaks.max()) if len(peaks) else cfg.max_edge
 
 
 def dimensions_near_max_edge(R: Rectangle, ctx: _Context,
@@ -491,13 +495,14 @@ def dimensions_near_max_edge(R: Rectangle, ctx: _Context,
     pairs with the other axis's edge peaks and seams, near ``max_edge`` or not
     (``DimensionSource.SEAMS``), smallest area first.
     """
-    U, V = work.seam_region
-    if not (np.isfinite(U) and np.isfinite(V)):  # no seam search ran: no region to extend
+    if not work.seam_spread:  # no seam search ran: no region to extend
         return []
+    cfg = ctx.config
+    U, V = _seam_reach(work.peaks_x, cfg), _seam_reach(work.peaks_y, cfg)
     spacing = ctx.verify_ctx.spacing_at(R.origin)
-    band = BOUNDARY_BAND * ctx.config.min_edge
+    band = BOUNDARY_BAND * cfg.min_edge
     near = [np.zeros(0), np.zeros(0)]
-    reach = ctx.config.max_edge - 0.9 * ctx.config.min_edge
+    reach = cfg.max_edge - 0.9 * cfg.min_edge
     for b, (peaks, seams, across) in enumerate(((work.peaks_x, work.seams_x, V),
                                                 (work.peaks_y, work.seams_y, U))):
         # NaN extent (not measured, or the strip left the image): the plane may run on
