@@ -244,7 +244,8 @@ class EdgeMap:
         (row, column) of each edge point.
     points : (N, 3) float64, metres, sensor frame
         Sub-pixel edge point: the fitted segments' intersection (crease) or the fitted
-        segment's end on the nearer surface (jump).
+        segment's end on the nearer surface (jump). To float32 precision, like
+        ``covariances`` and ``strength`` (:func:`boxloc.stats.float32_precision`).
     covariances : (N, 3, 3) float64, metres squared
     kinds : (N,) uint8
         :class:`EdgeKind`.

@@ -250,6 +250,19 @@ def chi2_test(
     return t, crit, np.asarray(p, dtype=np.float64), t <= crit
 
 
+def float32_precision(a: npt.ArrayLike) -> np.ndarray:
+    """``a`` as float64 rounded to the nearest float32 (NaN, infinities and -0.0 kept).
+
+    For products whose last digits carry nothing: values derived from a float32 range image
+    (edge points), noise-model covariances, p-values (decisions compare the statistic with
+    its critical value, never the p-value). Seven significant digits are kept, and a log
+    stores such an array in half the bytes (:mod:`recorder.mcap.encode`, filters 6 and 7).
+    Values beyond float32's range become infinite; p-values below 1e-45 become 0.
+    """
+    with np.errstate(over="ignore"):
+        return np.asarray(a, np.float64).astype(np.float32).astype(np.float64)
+
+
 _COLUMNS = ("kind", "a", "b", "statistic", "dof", "critical", "p_value", "accepted")
 
 
@@ -268,7 +281,9 @@ class TestTable:
         Degrees of freedom (0 for decisions that are not chi-square tests).
     critical : ndarray (n,), float64
     p_value : ndarray (n,), float64
-        NaN for decisions that are not chi-square tests.
+        NaN for decisions that are not chi-square tests. To float32 precision
+        (:func:`float32_precision`) where the table was made by :meth:`chi2` or
+        :meth:`decision`.
     accepted : ndarray (n,), bool
         The decision: True where the relation was accepted.
     alpha : float
@@ -319,7 +334,7 @@ class TestTable:
             statistic=t,
             dof=np.full(n, dof, np.float32),
             critical=np.full(n, crit),
-            p_value=np.atleast_1d(p),
+            p_value=float32_precision(np.atleast_1d(p)),
             accepted=np.atleast_1d(acc),
             alpha=float(alpha),
         )
@@ -347,7 +362,7 @@ class TestTable:
             statistic=s,
             dof=np.full(n, dof, np.float32),
             critical=np.broadcast_to(np.asarray(critical, np.float64), (n,)).copy(),
-            p_value=np.broadcast_to(np.asarray(p_value, np.float64), (n,)).copy(),
+            p_value=float32_precision(np.broadcast_to(np.asarray(p_value, np.float64), (n,))),
             accepted=np.broadcast_to(np.asarray(accepted, bool), (n,)).copy(),
             alpha=float(alpha),
         )

@@ -749,7 +749,9 @@ def _replay_at_revision(wt: Any, path: Path, out_dir: Path, config: Config | Non
             src = staging / "input" / path.name
             src.parent.mkdir()
             try:
-                copy_log_for_older_readers(path, src)
+                from replay.versions import schema_tuple
+
+                copy_log_for_older_readers(path, src, schema_tuple(wt.schema_version))
             except Exception as e:  # noqa: BLE001 - a damaged range, a full disk: the log's
                 return ReplayOutcome(  # error, as any unreadable log
                     input=str(path), version=wt.version_info(),
@@ -820,8 +822,9 @@ def _complete_and_publish(staged: Path, final: Path, plan: _RevisionPlan,
     if plan.older_copy:  # the revision's boxloc.replay record names the copy, now gone
         record["input_copy"] = json.dumps(
             {"input": str(path.resolve()), "input_sha256": _sha256(path),
-             "copy": "recorder.mcap.sink.copy_log_for_older_readers: the range in image "
-                     "filter 4, the same bits, for a revision before log schema 1.6"},
+             "copy": "recorder.mcap.sink.copy_log_for_older_readers: float32 arrays as "
+                     "float64 for a revision before log schema 1.7, and the range in image "
+                     "filter 4 for one before 1.6; the same bits"},
             sort_keys=True)
     tmp = final.parent / f".{final.stem}.{os.getpid()}-{secrets.token_hex(4)}{PARTIAL_SUFFIX}"
     try:

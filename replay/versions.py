@@ -42,10 +42,12 @@ recorded in the new log by :func:`replay.replay.replay_log`.
 Logs newer than the revision
 ----------------------------
 From log schema 1.6 the range is stored in image filter 5, which code of schema 1.4 and
-1.5 does not read. The start-up check reports the schema the revision's recorder writes
-(``schema_version``, from 1.6 on; ``compat`` revisions run this recorder); for a revision
+1.5 does not read; from 1.7 float64 arrays of float32 values are stored as float32, which
+code before 1.7 does not read. The start-up check reports the schema the revision's
+recorder writes (``schema_version``, from 1.6 on; ``compat`` revisions run this recorder);
+for a revision
 that reports an older one or none, :func:`replay.replay.replay_log` gives the worker a
-copy of each 1.6 log made by :func:`recorder.mcap.sink.copy_log_for_older_readers`
+copy of each newer log made by :func:`recorder.mcap.sink.copy_log_for_older_readers`
 (:meth:`Worktree.needs_older_log`), never the original.
 
 Notes
@@ -101,6 +103,10 @@ sys.stdout.write(json.dumps(keys) + "\\n")
 #: from 1.6 on), replays a copy of such a log with the range in filter 4
 #: (:func:`recorder.mcap.sink.copy_log_for_older_readers`).
 RANGE_FILTER_5_SCHEMA = (1, 6)
+#: The first log schema whose products older code cannot read (float64 arrays stored as
+#: float32, filters 6 and 7): a revision that reads an older schema replays a copy with
+#: those arrays in filters 1 and 3.
+FLOAT32_FILTER_SCHEMA = (1, 7)
 #: Seconds allowed for the start-up check of a revision (imports only, no JIT).
 CHECK_TIMEOUT_S = 300.0
 _GIT_TIMEOUT_S = 120.0
@@ -268,14 +274,15 @@ class Worktree:
 
     def needs_older_log(self, log_schema: str | None) -> bool:
         """Whether a log of schema ``log_schema`` (its ``boxloc.run`` record) must reach
-        this revision as a copy for older readers: the log stores its range in image
-        filter 5 (:data:`RANGE_FILTER_5_SCHEMA` on) and the revision reads an older schema
-        or did not say (its worker predates the report)."""
+        this revision as a copy for older readers: the log is of schema 1.6 or later (the
+        range in image filter 5, :data:`RANGE_FILTER_5_SCHEMA`; from 1.7 float32 arrays,
+        :data:`FLOAT32_FILTER_SCHEMA`) and the revision reads an older schema or did not
+        say (its worker predates the report)."""
         log_v = schema_tuple(log_schema)
         if log_v is None or log_v < RANGE_FILTER_5_SCHEMA:
             return False
         own = schema_tuple(self.schema_version)
-        return own is None or own < RANGE_FILTER_5_SCHEMA
+        return own is None or own < min(log_v, FLOAT32_FILTER_SCHEMA)
 
     def adapt_config(self, cfg: Config, overrides: Sequence[str], *,
                      send_config: bool) -> AdaptedConfig | None:

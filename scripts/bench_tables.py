@@ -881,19 +881,30 @@ def footprint_summary(r: dict[str, Any], speed: dict[str, Any] | None = None) ->
     sec = r["sections"]["recording"]
     tp = sec.get("throughput") or {}
     runs = {int(x["workers"]): x for x in tp.get("runs", [])}
-    rows = [["MCAP log per 640×480 scan (file / scans)",
-             f"{num(sec.get('mcap_bytes_per_scan', 0) / 1e6, 2)} MB (largest scan "
-             f"{num(sec.get('mcap_max_scan_bytes', 0) / 1e6, 2)} MB)",
-             *_goal(sec, "mcap_bytes_per_scan")],
-            ["MCAP: time in the recorder / pipeline",
-             f"{_pct(sec.get('mcap_fraction'))} (end to end "
-             f"{_pct(sec.get('mcap_end_to_end_fraction'))})", *_goal(sec, "mcap_fraction", True)],
-            ["Rerun: the sink's work / pipeline",
-             f"{_pct(sec.get('rerun_fraction'))} (end to end "
-             f"{_pct(sec.get('rerun_end_to_end_fraction'))})",
-             *_goal(sec, "rerun_fraction", True)],
-            ["Rerun .rrd per scan", f"{num(sec.get('rrd_bytes_per_scan', 0) / 1e6, 2)} MB",
-             "", ""]]
+    mx = sec.get("matrix") or {}
+    rows = []
+    if mx:
+        sensors = ", ".join(f"{k} {num(v / 1e6, 2)}" for k, v in mx["by_sensor"].items())
+        rows.append([f"MCAP log per 640×480 scan, sensor × scene matrix ({mx['scans']} "
+                     "scans, file / scans)",
+                     f"{num(mx['bytes_per_scan'] / 1e6, 3)} MB (a scan: median "
+                     f"{num(mx['median_scan_bytes'] / 1e6, 2)}, largest "
+                     f"{num(mx['max_scan_bytes'] / 1e6, 2)}; by sensor {sensors})",
+                     *_goal(sec, "matrix_bytes_per_scan")])
+    rows += [["MCAP log per 640×480 scan, scene suite (file / scans)",
+              f"{num(sec.get('mcap_bytes_per_scan', 0) / 1e6, 2)} MB (largest scan "
+              f"{num(sec.get('mcap_max_scan_bytes', 0) / 1e6, 2)} MB)",
+              *_goal(sec, "mcap_bytes_per_scan")],
+             ["MCAP: time in the recorder / pipeline",
+              f"{_pct(sec.get('mcap_fraction'))} (end to end "
+              f"{_pct(sec.get('mcap_end_to_end_fraction'))})",
+              *_goal(sec, "mcap_fraction", True)],
+             ["Rerun: the sink's work / pipeline",
+              f"{_pct(sec.get('rerun_fraction'))} (end to end "
+              f"{_pct(sec.get('rerun_end_to_end_fraction'))})",
+              *_goal(sec, "rerun_fraction", True)],
+             ["Rerun .rrd per scan", f"{num(sec.get('rrd_bytes_per_scan', 0) / 1e6, 2)} MB",
+              "", ""]]
     if runs:
         shares = " / ".join(num(runs[w].get("core_share"), 2) for w in sorted(runs))
         rows.append([f"`run --workers 2` / `--workers 1`, scans/s ({tp.get('scans')} scans)",
@@ -907,7 +918,9 @@ def footprint_summary(r: dict[str, Any], speed: dict[str, Any] | None = None) ->
                      f"{num(speed['memory'].get('process_max_rss_mb'), 0)} MB (speed run, "
                      f"{p.get('commit', 'unknown')})", "", ""])
     load = tp.get("load_average_1min")
-    note = (f"First {sec.get('scans')} scans of `scene_suite({r['n']}, {r['seed']})` "
+    matrix = (f"The matrix: its first {mx['scans']} scenes, seed {mx['seed']}, each brought "
+              "to 640×480, every intermediate product recorded. The rest: " if mx else "")
+    note = (f"{matrix}First {sec.get('scans')} scans of `scene_suite({r['n']}, {r['seed']})` "
             "(640×480). A time share is the sink's own work over the pipeline's time (robust "
             "on a busy machine; end to end is noisier). Throughput: `boxloc run DIR --record "
             f"LOG` processes on {tp.get('cpu_count')} cores shared with other jobs (load "
@@ -918,12 +931,17 @@ def footprint_summary(r: dict[str, Any], speed: dict[str, Any] | None = None) ->
 
 def footprint_channels(r: dict[str, Any], **_uses: Any) -> str:
     # every table of the kind is given the reports it uses (Kind.uses); this one reads none
-    ch = r["sections"]["recording"].get("mcap_kb_per_scan_by_channel") or {}
+    sec = r["sections"]["recording"]
+    mx = sec.get("matrix") or {}
+    ch = mx.get("kb_per_scan_by_channel") or sec.get("mcap_kb_per_scan_by_channel") or {}
     total = sum(float(v) for v in ch.values()) or 1.0
     rows = [[f"`{t}`", num(float(v), 1), f"{100 * float(v) / total:.1f} %"]
             for t, v in sorted(ch.items(), key=lambda kv: -float(kv[1]))]
+    what = (f"The matrix's first {mx['scans']} scenes at 640×480 (seed {mx['seed']}). "
+            if mx else "")
     return (table(["channel", "kB per scan (zstd, alone)", "share"], rows)
-            + "\n\nEach channel's messages of a scan compressed alone at the recorder's level; "
+            + f"\n\n{what}Each channel's messages of a scan compressed alone at the "
+            "recorder's level; "
             "the log compresses a scan's channels together, so they add up to about its "
             "size, not exactly.")
 

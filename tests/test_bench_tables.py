@@ -726,8 +726,9 @@ def test_speed_and_footprint_tables_come_from_their_reports(speed_checkout: Path
     doc = (root / "README.md").read_text()
     assert "peak RSS" not in doc
     assert "*No report yet. Run `nice .venv/bin/python scripts/profile_stages.py" in doc
-    assert ("| MCAP log per 640×480 scan (file / scans) | 1.01 MB (largest scan 1.18 MB) | "
-            "≤ 1 MB | miss |") in doc
+    assert ("| MCAP log per 640×480 scan, scene suite (file / scans) | 1.01 MB (largest scan "
+            "1.18 MB) | ≤ 1 MB | miss |") in doc
+    assert "sensor × scene matrix" not in doc  # a report from before the matrix row
     assert "| 4.5 % (end to end 22.9 %) | ≤ 5 % | pass |" in doc
     assert "| 2.9 % (end to end 7.9 %) | ≤ 5 % | pass |" in doc
     assert "| Rerun .rrd per scan | 1.82 MB |" in doc
@@ -771,6 +772,26 @@ def test_speed_and_footprint_tables_come_from_their_reports(speed_checkout: Path
     _write(root / "docs" / "results" / "bench_speed.json", rep)
     assert _run(root, "--check") == 1 and _snapshot(root)["README.md"] == first["README.md"]
     assert _run(root) == 0 and "| **total** | 99.0 |" in (root / "README.md").read_text()
+
+
+def test_the_footprint_of_the_matrix_is_the_target_row_and_gives_the_channels(
+        speed_checkout: Path, tmp_path: Path) -> None:
+    rep = footprint_report()
+    sec = rep["sections"]["recording"]
+    sec["matrix"] = {"scans": 32, "seed": 0, "bytes_per_scan": 979_412.0,
+                     "median_scan_bytes": 879_000, "max_scan_bytes": 1_732_000,
+                     "by_sensor": {"active-stereo": 1_500_000.0, "laser": 800_000.0},
+                     "kb_per_scan_by_channel": {"/scan/range": 673.3, "/boxloc/tests": 111.1}}
+    sec["targets"]["matrix_bytes_per_scan <= 1 MB"] = True
+    assert _run(speed_checkout, "--footprint", str(_write(tmp_path / "bench.json", rep))) == 0
+    doc = (speed_checkout / "README.md").read_text()
+    assert ("| MCAP log per 640×480 scan, sensor × scene matrix (32 scans, file / scans) | "
+            "0.979 MB (a scan: median 0.88, largest 1.73; by sensor active-stereo 1.50, "
+            "laser 0.80) | ≤ 1 MB | pass |") in doc
+    assert doc.index("sensor × scene matrix") < doc.index("scene suite (file / scans)")
+    assert "The matrix: its first 32 scenes, seed 0, each brought to 640×480" in doc
+    # the channels are the matrix's
+    assert "| `/boxloc/tests` | 111.1 | 14.2 % |" in doc and "`/boxloc/edges`" not in doc
 
 
 def test_a_dirty_tree_and_a_missing_baseline_show_in_the_speed_table(

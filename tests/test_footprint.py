@@ -23,6 +23,7 @@ from mcap.reader import make_reader
 
 from boxloc.errors import LogError
 from boxloc.scan import Scan
+from boxloc.stats import float32_precision
 from recorder.mcap import channels as C
 from recorder.mcap import encode as E
 from recorder.mcap.log import open_log
@@ -374,10 +375,12 @@ def test_the_matrix_suite_at_640x480_keeps_each_sensors_field_of_view() -> None:
         assert (s.kind, s.sensor, s.seed) == (orig.kind, orig.sensor, orig.seed)
 
 
-def test_a_log_copied_for_older_readers_holds_the_same_scans_in_filter_4(
-        tmp_path: Path) -> None:
-    """``copy_log_for_older_readers``: the range in the filter 1.4 and 1.5 readers read, the
-    same bits; every other message as it was."""
+@pytest.mark.parametrize("reader", [None, (1, 5), (1, 6)])
+def test_a_log_copied_for_older_readers_holds_the_same_scans_and_products(
+        tmp_path: Path, reader: tuple[int, int] | None) -> None:
+    """``copy_log_for_older_readers``: for readers before 1.6 the range in filter 4, for
+    readers before 1.7 every float64 array in filter 1 or 3, never 6 or 7; the same bits,
+    and every other message as it was."""
     from recorder.mcap.sink import copy_log_for_older_readers
 
     scans = [make_scan(k, (40, 50)) for k in range(3)]
@@ -386,29 +389,116 @@ def test_a_log_copied_for_older_readers_holds_the_same_scans_in_filter_4(
     src, dst = tmp_path / "new.mcap", tmp_path / "old.mcap"
     with McapRecorder(src) as rec:
         for s in scans:
-            feed(rec, s, make_result(s, s.index))
-    copy_log_for_older_readers(src, dst)
+            r = make_result(s, s.index)
+            edges = r.edges  # the edge stage rounds to float32 precision; so does this
+            r = dataclasses.replace(r, edges=dataclasses.replace(
+                edges, points=float32_precision(edges.points),
+                covariances=float32_precision(edges.covariances)))
+            feed(rec, s, r)
+    copy_log_for_older_readers(src, dst, reader)
 
     def messages(path: Path) -> list[tuple[str, int, bytes]]:
         with open(path, "rb") as f:
             return [(c.topic, m.log_time, m.data)
                     for _, c, m in make_reader(f).iter_messages(log_time_order=False)]
 
+    def filters(d: bytes) -> list[int]:
+        msg = message_class("Product")()
+        msg.ParseFromString(d)
+        return [arr.filter for arr in msg.arrays]
+
+    products = {c.topic for c in C.CHANNELS if c.schema_name.endswith(".Product")}
     a, b = messages(src), messages(dst)
     assert [(t, lt) for t, lt, _ in a] == [(t, lt) for t, lt, _ in b]
+    rewritten = set()
     for (topic, _, x), (_, _, y) in zip(a, b):
-        if topic != C.SCAN_RANGE:
+        if topic == C.SCAN_RANGE:
+            assert filters(x) == [5] and filters(y) == [5 if reader == (1, 6) else 4]
+            assert E.decode_range(x).tobytes() == E.decode_range(y).tobytes()
+        elif topic in products and {6, 7} & set(filters(x)):
+            rewritten.add(topic)
+            assert not {6, 7} & set(filters(y))
+            _, ax = E.decode_arrays(x, C.BY_TOPIC[topic].record or "")
+            _, ay = E.decode_arrays(y, C.BY_TOPIC[topic].record or "")
+            assert ax.keys() == ay.keys()
+            assert all(ax[k].dtype == ay[k].dtype and ax[k].tobytes() == ay[k].tobytes()
+                       for k in ax)
+        else:
             assert x == y
-            continue
-        filters = []
-        for d in (x, y):
-            msg = message_class("Product")()
-            msg.ParseFromString(d)
-            filters.append([arr.filter for arr in msg.arrays])
-        assert filters == [[5], [4]]
-        assert E.decode_range(x).tobytes() == E.decode_range(y).tobytes()
+    assert C.EDGES in rewritten
     back = [r.scan.range.tobytes() for r in open_log(dst).scans()]
     assert back == [s.range.tobytes() for s in scans]
+
+
+@pytest.mark.parametrize("shape", [(64,), (70, 3), (30, 3, 3), (2, 40, 6, 6)])
+def test_float64_arrays_of_float32_values_are_stored_as_float32_bit_for_bit(
+        shape: tuple[int, ...]) -> None:
+    """Filters 6 and 7 (schema 1.7): half the bytes, every bit back, special values too;
+    a single value that is not a float32 keeps the array in float64."""
+    rng = np.random.default_rng(len(shape))
+    a = rng.normal(size=shape).astype(np.float32).astype(np.float64)
+    flat = a.reshape(-1)
+    flat[:7] = [np.nan, -0.0, np.inf, -np.inf, 1e-45, 3.4e38, 0.0]
+    flat[:7] = flat[:7].astype(np.float32).astype(np.float64)
+    sym = len(shape) >= 3
+    if sym:
+        a = 0.5 * (a + np.swapaxes(a, -1, -2))
+        a = a.astype(np.float32).astype(np.float64)
+    for f32, expect in ((True, 7 if sym else 6), (False, 3 if sym else 1)):
+        m = _array_msg()
+        E.array_to_msg(m, "x", a, float32=f32)
+        assert m.filter == expect  # type: ignore[attr-defined]
+        b = E.msg_to_array(m)
+        assert b.dtype == np.float64 and b.shape == a.shape and b.tobytes() == a.tobytes()
+        k = shape[-1]
+        stored = a.size // (k * k) * k * (k + 1) // 2 if sym else a.size
+        assert len(m.data) == stored * (4 if f32 else 8)  # type: ignore[attr-defined]
+    c = a.copy()
+    c.reshape(-1)[-1] = 0.1  # not a float32: the whole array stays float64
+    m = _array_msg()
+    E.array_to_msg(m, "x", c)
+    assert m.filter in (1, 3) and E.msg_to_array(m).tobytes() == c.tobytes()  # type: ignore
+
+
+@pytest.mark.parametrize("dtype,shape,data,filt", [
+    ("<f4", (64,), 256, 6), ("<f8", (64,), 512, 6), ("<f8", (64,), 255, 6),
+    ("<i8", (64,), 256, 6), ("<f8", (10, 3, 2), 240, 7), ("<f8", (10, 3, 3), 360, 7),
+    ("<f4", (10, 3, 3), 240, 7)])
+def test_a_malformed_float32_array_is_refused(dtype: str, shape: tuple[int, ...],
+                                              data: int, filt: int) -> None:
+    """Filters 6 and 7 only on float64 (7: stacks of square matrices), with exactly the
+    float32 bytes their shape needs (7: 10 x 6 upper-triangle values are 240 bytes)."""
+    m = _array_msg()
+    m.name, m.dtype, m.data = "x", dtype, b"\0" * data  # type: ignore[attr-defined]
+    m.shape.extend(shape)  # type: ignore[attr-defined]
+    m.filter = filt  # type: ignore[attr-defined]
+    with pytest.raises(LogError):
+        E.msg_to_array(m)
+    if (dtype, shape) == ("<f8", (10, 3, 3)):
+        m.data = b"\0" * 240  # type: ignore[attr-defined]
+        assert not E.msg_to_array(m).any()
+
+
+def test_the_edge_map_and_vertex_tests_are_float32_in_the_log() -> None:
+    """What the pipeline rounds (edge points, covariances, jump heights, p-values, the
+    line-pair statistics) is stored as float32; the scan's products read back bit for bit."""
+    from boxloc.config import Config
+    from boxloc.pipeline import find_graspable_surfaces
+    from boxloc.products import products_equal
+
+    scan = make_scan(3, (120, 160))
+    res = find_graspable_surfaces(scan, Config())
+    e = res.edges
+    assert len(e) > 0
+    for a in (e.points, e.covariances, e.strength, e.tests.p_value, res.vertices.tests.statistic):
+        assert a.tobytes() == a.astype(np.float32).astype(np.float64).tobytes()
+    msg = message_class("Product")()
+    msg.ParseFromString(E.encode_product("edges", e, 0, 0))
+    f = {arr.name: arr.filter for arr in msg.arrays}
+    assert f["points"] == 6 and f["covariances"] == 7
+    tests = E.decode_test_columns(E.encode_test_rows(0, {"edges": e.tests}))["edges"]
+    back = E.decode_product("edges", E.encode_product("edges", e, 0, 0), tests)
+    assert products_equal(back, e) == []
 
 
 def test_damaged_filter_5_data_is_refused_or_decodes_never_raises_otherwise() -> None:

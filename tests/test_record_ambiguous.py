@@ -164,7 +164,7 @@ def test_the_locate_view_has_the_new_surface_keys_and_the_ambiguous_list(
     path = record(tmp_path / "loc.mcap", [(scan, r)])
     (msg,) = list(open_log(path).messages({C.LOCATE}))
     doc = E.decode_locate_json(msg.data)
-    assert doc["schema"] == f"boxloc.Locate/{E.SCHEMA_VERSION}" and E.SCHEMA_VERSION == "1.6"
+    assert doc["schema"] == f"boxloc.Locate/{E.SCHEMA_VERSION}" and E.SCHEMA_VERSION == "1.7"
     s0, s1 = doc["surfaces"][0], doc["surfaces"][1]
     assert (s0["height"], s0["height_sigma"], s0["height_source"], s0["sku"],
             s0["size_flagged"]) == (0.25, 0.003, "side", 0, False)

@@ -43,7 +43,7 @@ from replay.replay import (
     remove_partials,
     replay_log,
 )
-from replay.versions import GitRevision, Worktree, default_repo
+from replay.versions import GitRevision, Worktree, default_repo, schema_tuple
 
 REPO = default_repo()
 SITE: dict[str, Any] = {"min_edge": 0.15, "max_edge": 0.5}
@@ -237,16 +237,37 @@ def _range_filters(path: Path) -> set[int]:
     return filters
 
 
+def _product_filters(path: Path) -> set[int]:
+    """The array filters of every ``boxloc.v1.Product`` record of a log but the range."""
+    products = {c.topic for c in C.CHANNELS if c.schema_name.endswith(".Product")}
+    with open(path, "rb") as f:
+        datas = [m.data for _, c, m in make_reader(f).iter_messages(log_time_order=False)
+                 if c.topic in products - {C.SCAN_RANGE}]
+    filters = set()
+    for d in datas:
+        msg = message_class("Product")()
+        msg.ParseFromString(d)
+        filters |= {a.filter for a in msg.arrays}
+    return filters
+
+
 class _OldReader(_InProcess):
-    """A revision whose reader stops at log schema 1.5: a range in image filter 5 fails as
-    it does there. It notes the paths it is given in ``info['seen']``."""
+    """A revision whose reader stops at the log schema it reports (before 1.6 when it
+    reports none): a range in image filter 5 (1.6) or an array in filter 6 or 7 (1.7) that
+    it cannot read fails as it does there. It notes what it is given in ``info['seen']``:
+    the path, the range's filters and the other records' filters."""
 
     def replay(self, path: Path, *, out_dir: Path, config: Any, overrides: Any,
                out_name: str | None, attachments: Any = None) -> ReplayOutcome:
-        self.info.setdefault("seen", []).append((Path(path), _range_filters(Path(path))))
-        if 5 in _range_filters(Path(path)):
+        ranges, others = _range_filters(Path(path)), _product_filters(Path(path))
+        self.info.setdefault("seen", []).append((Path(path), ranges, others))
+        reads = schema_tuple(self.schema_version) or (1, 5)
+        if 5 in ranges and reads < (1, 6):
             return ReplayOutcome(input=str(path), error=f"{path}: array 'range': 42446 bytes "
                                                         "(76800 expected)")
+        if others & {6, 7} and reads < (1, 7):
+            return ReplayOutcome(input=str(path), error=f"{path}: array 'points': unknown "
+                                                        "filter 6")
         return super().replay(path, out_dir=out_dir, config=config, overrides=overrides,
                               out_name=out_name, attachments=attachments)
 
@@ -273,9 +294,11 @@ def test_a_revision_before_schema_1_6_replays_a_copy_it_reads_and_the_input_is_u
     o = replay_log(logs["sizes"], out_dir=tmp_path, version=old)
     assert o.status == "ok" and o.warnings == (), o
     assert o.input == str(logs["sizes"]) and o.output == str(tmp_path / "sizes.mcap")
-    # it read a copy with the range in filter 4 (what 1.4 and 1.5 read), never the input
-    ((seen, filters),) = old.info["seen"]
+    # it read a copy with the range in filter 4 (what 1.4 and 1.5 read) and no float32
+    # arrays, never the input
+    ((seen, filters, others),) = old.info["seen"]
     assert seen != logs["sizes"] and seen.name == "sizes.mcap" and filters == {4}
+    assert 6 in _product_filters(logs["sizes"]) and not others & {6, 7}
     assert snapshot([logs["sizes"]]) == ins
     # the same range, so the same products; the carton file kept; the original recorded
     new = Path(o.output)
@@ -290,16 +313,29 @@ def test_a_revision_before_schema_1_6_replays_a_copy_it_reads_and_the_input_is_u
     assert sorted(p.name for p in tmp_path.iterdir()) == ["sizes.mcap"]
 
 
-@pytest.mark.parametrize("schema", ["1.6", "1.7", "2.0"])
-def test_a_revision_that_reads_schema_1_6_gets_the_input_itself(
+def test_a_revision_that_reads_schema_1_6_replays_a_copy_with_float64_arrays(
+        logs: dict[str, Path], tmp_path: Path) -> None:
+    old = _old_reader("1.6")
+    o = replay_log(logs["sizes"], out_dir=tmp_path, version=old)
+    assert o.status == "ok" and o.warnings == (), o
+    ((seen, filters, others),) = old.info["seen"]
+    # the range as it is (1.6 reads filter 5); the edge points and covariances, stored as
+    # float32 (filters 6 and 7, schema 1.7), as float64 (1 and 3): the same bits
+    assert seen != logs["sizes"] and filters == {5} and not others & {6, 7} and {1, 3} <= others
+    new = Path(str(o.output))
+    assert product_differences(logs["sizes"], new) == []
+    assert "input_copy" in open_log(new).metadata[REPLAY_CARRIED_METADATA]
+
+
+@pytest.mark.parametrize("schema", ["1.7", "2.0"])
+def test_a_revision_that_reads_schema_1_7_gets_the_input_itself(
         logs: dict[str, Path], tmp_path: Path, schema: str) -> None:
     old = _old_reader(schema)
     o = replay_log(logs["plain"], out_dir=tmp_path, version=old)
-    # this stub cannot read filter 5: given the input, it fails as such a revision would
-    ((seen, filters),) = old.info["seen"]
-    assert seen == logs["plain"] and filters == {5}
-    assert o.status == "error" and "42446 bytes" in str(o.error)
-    assert not (tmp_path / "plain.mcap").exists()
+    ((seen, filters, others),) = old.info["seen"]
+    assert seen == logs["plain"] and filters == {5} and 6 in others
+    assert o.status == "ok" and o.warnings == (), o
+    assert REPLAY_CARRIED_METADATA not in open_log(Path(str(o.output))).metadata
 
 
 def test_an_error_of_a_revision_that_read_a_copy_names_the_input(
@@ -322,7 +358,7 @@ def test_a_copy_that_cannot_be_made_is_the_logs_error(
         logs: dict[str, Path], tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     import recorder.mcap.sink
 
-    def full_disk(src: Any, dst: Any) -> None:
+    def full_disk(src: Any, dst: Any, reader: Any = None) -> None:
         Path(dst).write_bytes(b"half")
         raise OSError(28, "No space left on device")
 
@@ -341,6 +377,9 @@ def test_a_log_before_schema_1_6_goes_to_an_old_revision_as_it_is() -> None:
     assert not old.needs_older_log("1.5") and not old.needs_older_log(None)
     assert not old.needs_older_log("garbage") and old.needs_older_log("1.6")
     assert not _old_reader("1.6").needs_older_log("1.6")
+    assert _old_reader("1.6").needs_older_log("1.7") and old.needs_older_log("1.7")
+    assert not _old_reader("1.7").needs_older_log("1.7")
+    assert not _old_reader("1.7").needs_older_log("1.8")  # nothing newer to rewrite yet
 
 
 # --- adapting a config to a revision's keys --------------------------------------------------

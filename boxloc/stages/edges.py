@@ -44,7 +44,14 @@ from boxloc.config import Config
 from boxloc.distributions import chi2_sf, norm_isf
 from boxloc.products import EdgeKind, EdgeMap
 from boxloc.scan import Scan
-from boxloc.stats import BUDGET_EDGES, TestKind, TestTable, chi2_critical, nanmedian_last
+from boxloc.stats import (
+    BUDGET_EDGES,
+    TestKind,
+    TestTable,
+    chi2_critical,
+    float32_precision,
+    nanmedian_last,
+)
 
 #: A groove is a run of this many to GROOVE_MAX_RUN samples behind the line, with
 #: GROOVE_CONTEXT samples on the line on each side (a seam, not a trend such as bulge).
@@ -938,7 +945,7 @@ def detect_edges(scan: Scan, *, config: Config) -> EdgeMap:
     # test codes of the scan-line kernel: 1 jump (and groove), 2 crease, 3 no return
     kind_col = np.select([is_jump_test, te == 3], [int(TestKind.JUMP), int(TestKind.NO_RETURN)],
                          int(TestKind.CREASE)).astype(np.uint8)
-    pval = np.where(is_jump_test, chi2_sf(sta, 1.0), np.nan)
+    pval = float32_precision(np.where(is_jump_test, chi2_sf(sta, 1.0), np.nan))
     tests = TestTable(
         kind=kind_col, a=np.arange(len(r), dtype=np.int32), b=(r * W + c).astype(np.int32),
         statistic=sta, dof=np.where(is_jump_test, 1.0, 0.0).astype(np.float32), critical=cr,
@@ -999,10 +1006,12 @@ def detect_edges(scan: Scan, *, config: Config) -> EdgeMap:
     return EdgeMap(
         labels=labels,
         pixels=pix,
-        points=out_pt,
-        covariances=out_cov,
+        # float32 precision, as the range they come from (0.2 um at 2-4 m); the covariances
+        # keep 7 digits, far beyond the noise model's own accuracy. Half the log's bytes.
+        points=float32_precision(out_pt),
+        covariances=float32_precision(out_cov),
         kinds=out_kind,
-        strength=out_str,
+        strength=float32_precision(out_str),
         scan_dir=out_dir,
         tests=tests,
     )

@@ -38,7 +38,7 @@ import numpy as np
 from boxloc.config import Config
 from boxloc.distributions import norm_isf
 from boxloc.products import EdgeKind, LineSet, VertexSet
-from boxloc.stats import TestKind, TestTable
+from boxloc.stats import TestKind, TestTable, float32_precision
 
 #: ``VertexSet.parent_side`` of a box corner's vertex (:func:`corner_vertices`); 0-3 are
 #: the seam sides of a neighbour's corner
@@ -112,7 +112,10 @@ def find_vertices(lines: LineSet, *, config: Config, up: np.ndarray | None = Non
     S1 = line_point_covariance(lines, ia, t1)
     S2 = line_point_covariance(lines, ib, t2)
     var_d = np.einsum("ni,nij,nj->n", n, S1 + S2, n) + 2 * config.flatness**2
-    T_meet = delta**2 / np.maximum(var_d, 1e-30)
+    # Every pair of lines is tested (L (L - 1) / 2 pairs, three tests each: most of a
+    # scan's tests). The statistics are kept to float32 precision before the decisions,
+    # which are made on the value recorded; a log stores them in less space.
+    T_meet = float32_precision(delta**2 / np.maximum(var_d, 1e-30))
     meet = TestTable.chi2(TestKind.LINES_MEET, ia, ib, T_meet, 1.0, alpha)
 
     # orthogonal: cos = b1.b2, var = b2^T S_b1 b2 + b1^T S_b2 b1, chi2(1)
@@ -120,7 +123,7 @@ def find_vertices(lines: LineSet, *, config: Config, up: np.ndarray | None = Non
     Sb2 = lines.covariances[ib][:, 3:, 3:]
     var_c = (np.einsum("ni,nij,nj->n", b2, Sb1, b2) + np.einsum("ni,nij,nj->n", b1, Sb2, b1)
              + config.angle_tolerance**2)
-    T_orth = a**2 / np.maximum(var_c, 1e-30)
+    T_orth = float32_precision(a**2 / np.maximum(var_c, 1e-30))
     orth = TestTable.chi2(TestKind.LINES_ORTHOGONAL, ia, ib, T_orth, 1.0, alpha)
 
     # at segment ends: the intersection lies within both segments' extent (+ tolerance)
@@ -130,9 +133,9 @@ def find_vertices(lines: LineSet, *, config: Config, up: np.ndarray | None = Non
     e2 = np.einsum("ij,ij->i", lines.ends[ib] - c2, b2)
     lo1, hi1 = np.minimum(s1, e1), np.maximum(s1, e1)
     lo2, hi2 = np.minimum(s2, e2), np.maximum(s2, e2)
-    beyond = np.maximum.reduce(
+    beyond = float32_precision(np.maximum.reduce(
         [lo1 - t1, t1 - hi1, lo2 - t2, t2 - hi2, np.zeros_like(t1)]
-    )
+    ))
     # a segment may stop short of its corner by a fraction of the shortest edge
     tol = config.end_tolerance * config.min_edge
     ends = TestTable.decision(

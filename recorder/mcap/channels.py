@@ -232,7 +232,9 @@ CHANNELS: tuple[ChannelSpec, ...] = (
                 "(the scan's flat tiles, or the config), its fit per range bin, residual "
                 "correlation and tails (schema 1.3)", E.encode_product, E.decode_product),
     ChannelSpec(EDGES, _PRODUCT, "protobuf", E.PRODUCT_RECORDS["edges"], _S, _R,
-                "EdgeMap: labels, edge points, covariances, kinds, strengths",
+                "EdgeMap: labels, edge points, covariances, kinds, strengths (points, "
+                "covariances and strengths to float32 precision, stored as float32: schema "
+                "1.7)",
                 E.encode_product, E.decode_product),
     ChannelSpec(EDGE_MAP, "foxglove.RawImage", "protobuf", None, _S, _V,
                 f"edge labels, mono8, {E.EDGE_MAP_SCALE} x EdgeKind", E.encode_edge_map),

@@ -81,7 +81,10 @@ SCHEMA_MAJOR = 1
 #: 1.6 (issue #22 part 5): the range's image filter 5 (split at the noise, each part
 #: compressed; :data:`_FILTER_IMAGE_SPLIT`) instead of 4; 1.6 readers read both, 1.4 and
 #: 1.5 readers cannot read 1.6's range (:func:`legacy_range_message` rewrites it for them).
-SCHEMA_MINOR = 6
+#: 1.7 (issue #22 part 5): float64 arrays whose every value is a float32 (the edge points,
+#: their covariances and jump heights, the tests' p-values) in filters 6 and 7, as float32;
+#: 1.6 readers cannot read them (:func:`legacy_product_message` rewrites them for them).
+SCHEMA_MINOR = 7
 SCHEMA_VERSION = f"{SCHEMA_MAJOR}.{SCHEMA_MINOR}"
 
 #: Frame of every geometric message (x right, y down, z forward; metres).
@@ -185,6 +188,13 @@ _FILTER_IMAGE_DELTA_SHUFFLE = 4
 #: Huffman codes well, where a byte shuffle mixed noise and signal in one plane and zstd's
 #: blocks straddled planes: 3-5 % smaller on simulated 640x480 scans, every bit kept.
 _FILTER_IMAGE_SPLIT = 5
+#: For float64 arrays (schema 1.7) whose every value is a float32, bit for bit (the value
+#: comes back from float32 with the same float64 bits): the float32 values, byte-shuffled
+#: (6), or of a stack of symmetric matrices the upper triangle (7, as 3). Half the bytes
+#: of 1 and 3, and the low half of a float64 mantissa was all zeros anyway. Products that
+#: the pipeline rounds to float32 precision (:func:`boxloc.stats.float32_precision`) take
+#: these filters; any other float64 array that happens to qualify does too.
+_FILTER_F32_SHUFFLE, _FILTER_F32_SYMMETRIC_SHUFFLE = 6, 7
 #: zstd level of the image filter's parts (the chunk then finds nothing left to compress).
 IMAGE_ZSTD_LEVEL = 1
 #: filter 5's header: k, flags (bit 0: NaN mask and bits follow), 2 zero bytes, the count
@@ -413,13 +423,27 @@ def _bitwise_symmetric(a: np.ndarray) -> bool:
     return bool(np.array_equal(u, np.swapaxes(u, -1, -2)))
 
 
+def _float32_exact(a: np.ndarray) -> bool:
+    """Whether a float64 array's every value is a float32: it comes back from float32 with
+    the same bits (NaN payloads, -0.0 and infinities included)."""
+    if a.dtype != np.float64:
+        return False
+    with np.errstate(over="ignore", invalid="ignore"):
+        back = a.astype(np.float32).astype(np.float64)
+    return bool(np.array_equal(back.view(np.uint64), a.view(np.uint64)))
+
+
 def array_to_msg(msg: Any, name: str, a: np.ndarray, *, shuffle: bool = True,
-                 image: bool = False, image_filter: int = _FILTER_IMAGE_SPLIT) -> None:
+                 image: bool = False, image_filter: int = _FILTER_IMAGE_SPLIT,
+                 float32: bool = True) -> None:
     """Fill a ``boxloc.v1.Array`` message with ``a`` (any shape; C-order bytes).
 
     ``image``: ``a`` is an image (2-D, numbers of 2, 4 or 8 bytes), stored with an image
     filter, which predicts each pixel from its left neighbour: ``image_filter`` 5 (schema
     1.6, the default) or 4 (what schema 1.4 and 1.5 readers read).
+
+    ``float32``: a float64 array whose every value is a float32 is stored as float32
+    (filters 6 and 7, schema 1.7); False writes what 1.6 readers read (filters 1 and 3).
     """
     a = np.asarray(a)
     if not _DTYPE_RE.match(a.dtype.str):
@@ -449,8 +473,16 @@ def array_to_msg(msg: Any, name: str, a: np.ndarray, *, shuffle: bool = True,
     elif shuffle and big and a.dtype.kind == "f" and _bitwise_symmetric(a):
         # Covariances: the lower triangle is the upper one, bit for bit; keep it once.
         iu = np.triu_indices(a.shape[-1])
-        msg.filter = _FILTER_SYMMETRIC_SHUFFLE
-        msg.data = _shuffle(np.ascontiguousarray(a[..., iu[0], iu[1]]))
+        tri = np.ascontiguousarray(a[..., iu[0], iu[1]])
+        if float32 and _float32_exact(tri):
+            msg.filter = _FILTER_F32_SYMMETRIC_SHUFFLE
+            msg.data = _shuffle(tri.astype(np.float32))
+        else:
+            msg.filter = _FILTER_SYMMETRIC_SHUFFLE
+            msg.data = _shuffle(tri)
+    elif shuffle and big and float32 and _float32_exact(a):
+        msg.filter = _FILTER_F32_SHUFFLE
+        msg.data = _shuffle(a.astype(np.float32))
     elif shuffle and big:
         msg.filter = _FILTER_SHUFFLE
         msg.data = _shuffle(a)
@@ -483,11 +515,17 @@ def msg_to_array(msg: Any, limits: DecodeLimits = DEFAULT_LIMITS) -> np.ndarray:
     if msg.filter == _FILTER_IMAGE_SPLIT:  # compressed: its own sizes are checked inside
         return _image_split_array(data, name, shape, dt)
     stored = nbytes
-    if msg.filter == _FILTER_SYMMETRIC_SHUFFLE:
+    f32 = msg.filter in (_FILTER_F32_SHUFFLE, _FILTER_F32_SYMMETRIC_SHUFFLE)
+    if f32:
+        if dt != np.float64:
+            raise LogError(f"array {name!r}: float32 filter on dtype {dt} is not valid")
+        stored = n * 4
+    if msg.filter in (_FILTER_SYMMETRIC_SHUFFLE, _FILTER_F32_SYMMETRIC_SHUFFLE):
         if len(shape) < 2 or shape[-1] != shape[-2] or dt.kind != "f" or dt.itemsize == 1:
             raise LogError(f"array {name!r}: symmetric filter on shape {shape} {dt} is not valid")
         k = shape[-1]
-        stored = math.prod(shape[:-2]) * (k * (k + 1) // 2) * dt.itemsize
+        stored = (math.prod(shape[:-2]) * (k * (k + 1) // 2)
+                  * (4 if f32 else dt.itemsize))
     if len(data) != stored:
         raise LogError(
             f"array {name!r}: {len(data)} bytes of data for shape {shape} of {dt} "
@@ -499,16 +537,19 @@ def msg_to_array(msg: Any, limits: DecodeLimits = DEFAULT_LIMITS) -> np.ndarray:
         zz = np.frombuffer(data, np.uint8).reshape(dt.itemsize, n).T.copy().view(
             f"<u{dt.itemsize}")
         return _image_undelta(zz.reshape(shape), dt)
-    if msg.filter == _FILTER_SYMMETRIC_SHUFFLE:
+    if msg.filter in (_FILTER_SYMMETRIC_SHUFFLE, _FILTER_F32_SYMMETRIC_SHUFFLE):
         k = shape[-1]
         m = k * (k + 1) // 2
-        packed = (np.frombuffer(data, np.uint8).reshape(dt.itemsize, -1).T.copy().view(dt)
-                  .reshape(shape[:-2] + (m,)))
+        packed = (_unshuffle(data, np.dtype("<f4")).astype(dt) if f32
+                  else np.frombuffer(data, np.uint8).reshape(dt.itemsize, -1).T.copy().view(dt)
+                  ).reshape(shape[:-2] + (m,))
         iu = np.triu_indices(k)
         out = np.empty(shape, dt)
         out[..., iu[0], iu[1]] = packed
         out[..., iu[1], iu[0]] = packed
         return out
+    if msg.filter == _FILTER_F32_SHUFFLE:
+        return _unshuffle(data, np.dtype("<f4")).astype(dt).reshape(shape)
     if msg.filter in (_FILTER_SHUFFLE, _FILTER_DELTA_SHUFFLE):
         if dt.itemsize == 1 or dt.kind not in "iuf":
             raise LogError(f"array {name!r}: filter {msg.filter} on dtype {dt} is not valid")
@@ -1299,6 +1340,31 @@ def legacy_range_message(data: bytes, limits: DecodeLimits = DEFAULT_LIMITS) -> 
     for name, a in arrays.items():
         array_to_msg(msg.arrays.add(), name, a, image=a.ndim == 2,
                      image_filter=_FILTER_IMAGE_DELTA_SHUFFLE)
+    return bytes(msg.SerializeToString())
+
+
+def legacy_product_message(data: bytes, limits: DecodeLimits = DEFAULT_LIMITS) -> bytes:
+    """A ``boxloc.v1.Product`` message as schema 1.6 readers read it: each float64 array
+    stored as float32 (filters 6 and 7, schema 1.7) in filter 1 or 3 instead.
+
+    For older code reading a newer log (``replay --rev`` of a revision before 1.7); every
+    array is the same, bit for bit. A message with no such array is returned as it is.
+
+    Raises
+    ------
+    LogError
+        If ``data`` is not a ``Product`` message or an array in filter 6 or 7 cannot be
+        decoded.
+    """
+    msg = _parse("Product", data)
+    if all(a.filter not in (_FILTER_F32_SHUFFLE, _FILTER_F32_SYMMETRIC_SHUFFLE)
+           for a in msg.arrays):
+        return data
+    for arr in msg.arrays:
+        if arr.filter in (_FILTER_F32_SHUFFLE, _FILTER_F32_SYMMETRIC_SHUFFLE):
+            name, a = arr.name, msg_to_array(arr, limits)
+            arr.Clear()
+            array_to_msg(arr, name, a, float32=False)
     return bytes(msg.SerializeToString())
 
 

@@ -13,8 +13,8 @@ Messages
                bytes, and an optional lossless filter (byte shuffle; delta then byte
                shuffle for integers; upper triangle then byte shuffle for stacks of
                exactly symmetric matrices; for images, the difference from the left
-               neighbour's bits, zigzag, byte shuffle), so that the chunk's zstd
-               compresses well.
+               neighbour's bits, zigzag, byte shuffle; float64 arrays of float32 values
+               as float32), so that the chunk's zstd compresses well.
 ``Product``    a record made of named arrays (``schema`` says which, e.g.
                ``boxloc.EdgeMap/1.2``): every stage product, the scan info, the sensor model.
 ``TestRows``   every statistical test of a scan as readable rows (stage, kind, entities,
@@ -69,7 +69,8 @@ def file_descriptor_proto() -> descriptor_pb2.FileDescriptorProto:
     fdp = descriptor_pb2.FileDescriptorProto(name=FILE_NAME, package=PACKAGE, syntax="proto3")
     _enum(fdp, "Filter", [("FILTER_NONE", 0), ("FILTER_BYTE_SHUFFLE", 1),
                            ("FILTER_DELTA_SHUFFLE", 2), ("FILTER_SYMMETRIC_SHUFFLE", 3),
-                           ("FILTER_IMAGE_DELTA_SHUFFLE", 4), ("FILTER_IMAGE_SPLIT", 5)])
+                           ("FILTER_IMAGE_DELTA_SHUFFLE", 4), ("FILTER_IMAGE_SPLIT", 5),
+                           ("FILTER_F32_SHUFFLE", 6), ("FILTER_F32_SYMMETRIC_SHUFFLE", 7)])
     # Enum values are package-scoped in protobuf, hence the TEST_ prefix.
     _enum(fdp, "TestKind", [("TEST_UNSPECIFIED", 0)]
           + [(f"TEST_{k.name}", int(k)) for k in TestKind])

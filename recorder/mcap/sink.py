@@ -339,21 +339,34 @@ def copy_log_adding(
             raise
 
 
-def copy_log_for_older_readers(src: str | os.PathLike[str], dst: str | os.PathLike[str]) -> None:
-    """Copy the finished log ``src`` to the new file ``dst`` so that code of record schema
-    1.4 and 1.5 reads it: each ``/scan/range`` record's range in image filter 4 (byte
-    shuffle), which they read, instead of filter 5 (schema 1.6), which they do not.
+def copy_log_for_older_readers(src: str | os.PathLike[str], dst: str | os.PathLike[str],
+                               reader: tuple[int, int] | None = None) -> None:
+    """Copy the finished log ``src`` to the new file ``dst`` so that code of an older record
+    schema reads it.
 
-    Everything else is kept as :func:`copy_log_adding` keeps it; the range is the same, bit
-    for bit, and the file about 3 % larger. For ``replay --rev`` of a revision before 1.6.
+    ``reader``: the schema the code reads up to, as ``(major, minor)``; None for code that
+    does not say (before 1.6). Before 1.7, each float64 array stored as float32 (filters 6
+    and 7) is stored as float64 (filters 1 and 3); before 1.6, each ``/scan/range``
+    record's range is also put in image filter 4 (byte shuffle) instead of 5.
+
+    Everything else is kept as :func:`copy_log_adding` keeps it; every array is the same,
+    bit for bit, and the file larger (about 3 % for the range, 10 % for the float32
+    arrays). For ``replay --rev`` of a revision before 1.7.
 
     Raises
     ------
     LogError
-        A range record that cannot be decoded (``dst`` is then removed).
+        A record that cannot be decoded (``dst`` is then removed).
     """
+    from recorder.mcap.proto import PACKAGE
+
+    products = {c.topic for c in C.CHANNELS if c.schema_name == f"{PACKAGE}.Product"}
+    old_range = reader is None or reader < (1, 6)
+
     def older(topic: str, data: bytes) -> bytes:
-        return E.legacy_range_message(data) if topic == C.SCAN_RANGE else data
+        if topic == C.SCAN_RANGE and old_range:
+            data = E.legacy_range_message(data)
+        return E.legacy_product_message(data) if topic in products else data
 
     copy_log_adding(src, dst, transform=older)
 
