@@ -918,14 +918,13 @@ def footprint_summary(r: dict[str, Any], speed: dict[str, Any] | None = None) ->
                      f"{num(speed['memory'].get('process_max_rss_mb'), 0)} MB (speed run, "
                      f"{p.get('commit', 'unknown')})", "", ""])
     load = tp.get("load_average_1min")
-    matrix = (f"The matrix: its first {mx['scans']} scenes, seed {mx['seed']}, each brought "
-              "to 640×480, every intermediate product recorded. The rest: " if mx else "")
-    note = (f"{matrix}First {sec.get('scans')} scans of `scene_suite({r['n']}, {r['seed']})` "
-            "(640×480). A time share is the sink's own work over the pipeline's time (robust "
-            "on a busy machine; end to end is noisier). Throughput: `boxloc run DIR --record "
-            f"LOG` processes on {tp.get('cpu_count')} cores shared with other jobs (load "
-            f"average {num(load, 1)}): a core share below 1 means other work took the rest, "
-            "so the ratio is not an idle machine's.")
+    matrix = (f"The matrix: its first {mx['scans']} scenes (seed {mx['seed']}) at 640×480, "
+              "every product recorded; the rest: the " if mx else "The ")
+    note = (f"{matrix}first {sec.get('scans')} scans of `scene_suite({r['n']}, {r['seed']})` "
+            "(640×480). A time share is the sink's own work over the pipeline's time (end to "
+            "end is noisier). Throughput: `boxloc run DIR --record LOG` on "
+            f"{tp.get('cpu_count')} cores (load average {num(load, 1)}); a core share below 1 "
+            "means other work took the rest.")
     return table(["figure", "measured", "target (issue 22)", ""], rows) + "\n\n" + note
 
 

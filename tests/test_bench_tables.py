@@ -735,7 +735,7 @@ def test_speed_and_footprint_tables_come_from_their_reports(speed_checkout: Path
     assert ("| `run --workers 2` / `--workers 1`, scans/s (32 scans) | 2.30× (steady 2.51×; "
             "core shares 0.60 / 0.65) | ≥ 1.8× scans/s of --workers 1 | pass |") in doc
     assert "| `--workers 2` log = `--workers 1` log | yes | equal | pass |" in doc
-    assert "2 cores shared with other jobs (load average 3.5)" in doc
+    assert "on 2 cores (load average 3.5); a core share below 1" in doc
     assert ("*2026-11-25 15:09 UTC, commit bc27de9, boxloc 0.1.0, config feedc0de: `boxloc "
             "bench --section recording --n 100 --seed 0 --out DIR` (reconstructed); "
             "[report](docs/results/bench_footprint.json).*") in doc
@@ -789,7 +789,8 @@ def test_the_footprint_of_the_matrix_is_the_target_row_and_gives_the_channels(
             "0.979 MB (a scan: median 0.88, largest 1.73; by sensor active-stereo 1.50, "
             "laser 0.80) | ≤ 1 MB | pass |") in doc
     assert doc.index("sensor × scene matrix") < doc.index("scene suite (file / scans)")
-    assert "The matrix: its first 32 scenes, seed 0, each brought to 640×480" in doc
+    assert ("The matrix: its first 32 scenes (seed 0) at 640×480, every product recorded; "
+            "the rest: the first 10 scans") in doc
     # the channels are the matrix's
     assert "| `/boxloc/tests` | 111.1 | 14.2 % |" in doc and "`/boxloc/edges`" not in doc
 
