@@ -58,6 +58,15 @@ def test_help_imports_no_plugin_and_no_algorithm_dependency() -> None:
         assert f"\n  {verb} " in out  # the plugins are listed all the same
 
 
+def test_the_pipeline_and_the_simulator_import_no_scipy_signal() -> None:
+    """The forkserver of `run --workers` imports both before its workers can start;
+    scipy.signal (0.4 s) waits until a sensor model's correlated noise needs it."""
+    r = subprocess.run([sys.executable, "-c", "import boxloc.pipeline, boxloc.simulate, sys; "
+                        "print('scipy.signal' in sys.modules)"], capture_output=True,
+                       text=True, cwd=ROOT, timeout=300)
+    assert r.returncode == 0 and r.stdout.strip() == "False", r.stderr
+
+
 @pytest.fixture(scope="module")
 def small_scan(tmp_path_factory: pytest.TempPathFactory) -> Path:
     """A small simulated scan with a box in it, as .npz."""

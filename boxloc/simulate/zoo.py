@@ -48,7 +48,6 @@ from dataclasses import dataclass
 
 import numpy as np
 from scipy.ndimage import binary_dilation, distance_transform_edt, gaussian_filter1d
-from scipy.signal import lfilter
 
 __all__ = [
     "SENSORS",
@@ -240,6 +239,10 @@ def _unit_field(z: np.ndarray) -> np.ndarray:
 
 def _ar_filter(z: np.ndarray, length: float, axis: int) -> np.ndarray:
     """Unit-variance AR(1) filter (exponential correlation exp(-lag / length)) along an axis."""
+    # imported here: scipy.signal takes 0.4 s to import, which every process that imports
+    # the simulator (the forkserver of `run --workers`, `boxloc simulate`) would pay otherwise
+    from scipy.signal import lfilter
+
     a = math.exp(-1.0 / length)
     return lfilter([math.sqrt(1 - a * a)], [1.0, -a], z, axis=axis)
 
