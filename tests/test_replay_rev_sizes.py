@@ -223,32 +223,30 @@ def test_a_log_that_cannot_be_completed_is_published_as_written_with_a_warning(
 # --- a revision that cannot read the range of a 1.6 log --------------------------------------
 
 
-def _range_filters(path: Path) -> set[int]:
-    """The image filters of the ``/scan/range`` records of a log."""
+def _filters(path: Path, topics: set[str]) -> set[int]:
+    """The array filters of the ``boxloc.v1.Product`` records on ``topics`` of a log."""
     with open(path, "rb") as f:
         datas = [m.data for _, c, m in make_reader(f).iter_messages(log_time_order=False)
-                 if c.topic == C.SCAN_RANGE]
-    assert datas
+                 if c.topic in topics]
     filters = set()
     for d in datas:
         msg = message_class("Product")()
         msg.ParseFromString(d)
         filters |= {a.filter for a in msg.arrays}
+    return filters
+
+
+def _range_filters(path: Path) -> set[int]:
+    """The image filters of the ``/scan/range`` records of a log."""
+    filters = _filters(path, {C.SCAN_RANGE})
+    assert filters
     return filters
 
 
 def _product_filters(path: Path) -> set[int]:
     """The array filters of every ``boxloc.v1.Product`` record of a log but the range."""
     products = {c.topic for c in C.CHANNELS if c.schema_name.endswith(".Product")}
-    with open(path, "rb") as f:
-        datas = [m.data for _, c, m in make_reader(f).iter_messages(log_time_order=False)
-                 if c.topic in products - {C.SCAN_RANGE}]
-    filters = set()
-    for d in datas:
-        msg = message_class("Product")()
-        msg.ParseFromString(d)
-        filters |= {a.filter for a in msg.arrays}
-    return filters
+    return _filters(path, products - {C.SCAN_RANGE})
 
 
 class _OldReader(_InProcess):
