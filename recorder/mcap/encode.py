@@ -82,8 +82,10 @@ SCHEMA_MAJOR = 1
 #: compressed; :data:`_FILTER_IMAGE_SPLIT`) instead of 4; 1.6 readers read both, 1.4 and
 #: 1.5 readers cannot read 1.6's range (:func:`legacy_range_message` rewrites it for them).
 #: 1.7 (issue #22 part 5): float64 arrays whose every value is a float32 (the edge points,
-#: their covariances and jump heights, the tests' p-values) in filters 6 and 7, as float32;
-#: 1.6 readers cannot read them (:func:`legacy_product_message` rewrites them for them).
+#: their covariances and jump heights) in filters 6 and 7, as float32; 1.6 readers cannot
+#: read them (:func:`legacy_product_message` rewrites them for them). The tests' rows are
+#: unchanged (doubles), though their p-values and the line-pair statistics, now float32
+#: values, leave zstd fewer bytes to store.
 SCHEMA_MINOR = 7
 SCHEMA_VERSION = f"{SCHEMA_MAJOR}.{SCHEMA_MINOR}"
 
