@@ -457,15 +457,12 @@ def _seam_peaks(R: Rectangle, ctx: _Context, work: _VertexWork, px: np.ndarray,
     lo = 0.9 * cfg.min_edge
     found: list[np.ndarray] = []
     spreads: list[tuple[float, ...]] = []
-    for b, (coord, other, ext, peaks) in enumerate(((fp.u, fp.v, U, px), (fp.v, fp.u, V, py))):
+    for b, (coord, other, ext) in enumerate(((fp.u, fp.v, U), (fp.v, fp.u, V))):
         sel = other > band
-        # where the noise is white, a seam's own lobes must not hide it (find_seams); on an
-        # axis without an edge peak the search may go on near max_edge
-        # (dimensions_near_max_edge), so the level is corrected over both searches' span
+        # where the noise is white, a seam's own lobes must not hide it (find_seams)
         seams = find_seams(coord[sel], fp.w[sel], fp.scale, lo, ext - lo, spacing,
                            vc.seam_alpha, fp.row[sel], fp.row_corr,
-                           mask_strongest=not cfg.noise.correlated,
-                           level_span=None if len(peaks) else cfg.max_edge - lo)
+                           mask_strongest=not cfg.noise.correlated)
         pos, z, crit = seams[:3]
         found.append(pos)
         spreads.append(seams.spread)
