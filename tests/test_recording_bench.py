@@ -66,3 +66,19 @@ def test_run_measured_counts_the_cpu_of_processes_the_command_leaves_running() -
     r = run_measured([sys.executable, "-c", start])
     assert r["returncode"] == 0 and r["processes"] == 2
     assert r["cpu_s"] >= 0.38
+
+
+def test_the_matrix_footprint_records_matrix_scenes_at_640x480_and_splits_by_sensor() -> None:
+    from recorder.recording_bench import matrix_footprint
+
+    fp = matrix_footprint(Config(min_edge=0.15, max_edge=0.6), n=4)
+    assert fp["scans"] == 4 and fp["seed"] == 0
+    # the first four matrix scenes: one of each sensor, each a scan's chunk of the log
+    assert sorted(fp["by_sensor"]) == ["active-stereo", "laser", "structured-light", "tof"]
+    assert fp["median_scan_bytes"] <= fp["max_scan_bytes"] < 4 * fp["bytes_per_scan"]
+    assert min(fp["by_sensor"].values()) <= fp["max_scan_bytes"]
+    ch = fp["kb_per_scan_by_channel"]
+    assert "/scan/range" in ch and "/boxloc/edges" in ch and "/boxloc/tests" in ch
+    # every intermediate product is in the log: the stage channels all have bytes
+    assert all(ch[t] > 0 for t in ("/boxloc/lines", "/boxloc/vertices", "/boxloc/hypotheses",
+                                   "/boxloc/verification", "/boxloc/surfaces"))
