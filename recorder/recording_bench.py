@@ -224,10 +224,11 @@ def measure_throughput(scans: list[Any], config: Any, *, workers: tuple[int, ...
     }
 
 
-def matrix_footprint(config: Any, n: int = N_MATRIX, seed: int = 0) -> dict[str, Any]:
+def matrix_footprint(n: int = N_MATRIX, seed: int = 0) -> dict[str, Any]:
     """Log bytes per scan of the first ``n`` scenes of the sensor x scene matrix (``seed``),
     each brought to 640x480 (:func:`recorder.mcap.footprint.suite`), recorded with every
-    intermediate product.
+    intermediate product, run as the matrix benchmark runs them (its configuration: the
+    defaults and the site's box range, :func:`boxloc.evaluate.matrix_bench.matrix_config`).
 
     Returns
     -------
@@ -238,9 +239,11 @@ def matrix_footprint(config: Any, n: int = N_MATRIX, seed: int = 0) -> dict[str,
     """
     import statistics
 
+    from boxloc.evaluate.matrix_bench import matrix_config
     from recorder.mcap.footprint import record_footprint, suite
 
-    fp = record_footprint(suite("matrix", n, seed), config)
+    specs = suite("matrix", n, seed)
+    fp = record_footprint(specs, matrix_config(specs)[0])
     chunks = fp["scan_bytes"] or [0]
     by: dict[str, list[int]] = {}
     for scene, b in zip(fp["scenes"], fp["scan_bytes"]):
@@ -266,7 +269,7 @@ def recording_section(ctx: Any) -> dict[str, Any]:
     rr = measure_rerun_overhead(scans, ctx.config)
     stream = [simulate(spec).scan for spec in ctx.specs[:N_STREAM]]
     tp = measure_throughput(stream, ctx.config)
-    fp = matrix_footprint(ctx.config)
+    fp = matrix_footprint()
     return {
         "scans": len(scans),
         "mcap_fraction": mcap["recorder_fraction"],

@@ -71,7 +71,7 @@ def test_run_measured_counts_the_cpu_of_processes_the_command_leaves_running() -
 def test_the_matrix_footprint_records_matrix_scenes_at_640x480_and_splits_by_sensor() -> None:
     from recorder.recording_bench import matrix_footprint
 
-    fp = matrix_footprint(Config(min_edge=0.15, max_edge=0.6), n=4)
+    fp = matrix_footprint(n=4)
     assert fp["scans"] == 4 and fp["seed"] == 0
     # the first four matrix scenes: one of each sensor, each a scan's chunk of the log
     assert sorted(fp["by_sensor"]) == ["active-stereo", "laser", "structured-light", "tof"]

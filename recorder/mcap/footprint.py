@@ -10,7 +10,7 @@ so its raw and zstd figures are about equal.
 This module gives the per-channel footprint of a log or a suite of scenes::
 
     python -m recorder.mcap.footprint --suite scene --n 8      # boxloc.simulate.scene_suite
-    python -m recorder.mcap.footprint --suite matrix --n 32    # matrix_suite, every cell at 640x480
+    python -m recorder.mcap.footprint --suite matrix --n 32    # matrix_suite at 640x480, its config
 
 The README's footprint table is not made by this command: it comes from ``boxloc bench
 --section recording`` (which measures its logs with :func:`log_footprint`, through
@@ -169,7 +169,12 @@ def main(argv: Sequence[str] | None = None) -> int:
     else:
         if args.n < 1:
             ap.error("--n must be at least 1")
-        fp = record_footprint(suite(args.suite, args.n, args.seed))
+        from boxloc.evaluate.matrix_bench import matrix_config
+
+        specs = suite(args.suite, args.n, args.seed)
+        # the matrix as its benchmark runs it: the defaults and the site's box range
+        cfg = matrix_config(specs)[0] if args.suite == "matrix" else None
+        fp = record_footprint(specs, cfg)
     print(format_table(fp))
     return 0
 
