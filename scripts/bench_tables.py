@@ -919,7 +919,7 @@ def footprint_summary(r: dict[str, Any], speed: dict[str, Any] | None = None) ->
                      f"{p.get('commit', 'unknown')})", "", ""])
     load = tp.get("load_average_1min")
     matrix = (f"The matrix: its first {mx['scans']} scenes (seed {mx['seed']}) at 640×480, "
-              "every product recorded; the rest: the " if mx else "The ")
+              "its configuration, every product recorded; the rest: the " if mx else "The ")
     note = (f"{matrix}first {sec.get('scans')} scans of `scene_suite({r['n']}, {r['seed']})` "
             "(640×480). A time share is the sink's own work over the pipeline's time (end to "
             "end is noisier). Throughput: `boxloc run DIR --record LOG` on "

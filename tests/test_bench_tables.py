@@ -789,8 +789,8 @@ def test_the_footprint_of_the_matrix_is_the_target_row_and_gives_the_channels(
             "0.979 MB (a scan: median 0.88, largest 1.73; by sensor active-stereo 1.50, "
             "laser 0.80) | ≤ 1 MB | pass |") in doc
     assert doc.index("sensor × scene matrix") < doc.index("scene suite (file / scans)")
-    assert ("The matrix: its first 32 scenes (seed 0) at 640×480, every product recorded; "
-            "the rest: the first 10 scans") in doc
+    assert ("The matrix: its first 32 scenes (seed 0) at 640×480, its configuration, every "
+            "product recorded; the rest: the first 10 scans") in doc
     # the channels are the matrix's
     assert "| `/boxloc/tests` | 111.1 | 14.2 % |" in doc and "`/boxloc/edges`" not in doc
 
