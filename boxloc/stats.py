@@ -168,6 +168,38 @@ BUDGET_HYPOTHESIS_WORK = 3
 #: the edge stage's samples visited by the split-and-merge (``Config.max_edge_work``)
 BUDGET_EDGES = 4
 
+#: How a row's statistic stands to its critical value where the numbers alone accept it:
+#: ``"<="`` for a chi-square test (the default), the other way for a detection or a count
+#: that must reach a bound. None where the two are not compared (a summary count, a range
+#: check: see the kind's comment). Post-mortem text prints the relation the numbers show,
+#: never one inferred from the decision.
+RELATION: dict[TestKind, str | None] = {
+    TestKind.JUMP: ">", TestKind.CREASE: ">", TestKind.NO_RETURN: ">=",
+    TestKind.EDGE_SUPPORT: ">", TestKind.FIRST_QUADRANT: ">",
+    TestKind.POINT_ON_PLANE: None, TestKind.FACE_EXTENT: None,
+    TestKind.VERIFY_INLIERS: ">=", TestKind.VERIFY_BOUNDARY: ">=",
+    TestKind.VERIFY_INTERIOR: "<",
+    TestKind.VERIFY_SEAM_SIDE: ">", TestKind.SEAM_PEAK: ">",
+    TestKind.VERIFY_CONTINUATION: "<", TestKind.VERIFY_SEAM_CROSSING: "<",
+    TestKind.END_EVIDENCE: ">=", TestKind.SKU_SPLIT_SEAM: ">", TestKind.BOX_HEIGHT: ">",
+    TestKind.BUDGET: "<",
+}
+
+#: The kinds whose decision has conditions beyond :data:`RELATION`: why a row is accepted
+#: against its numbers, and why one is rejected against them ("" where that cannot happen).
+FURTHER_CONDITIONS: dict[TestKind, tuple[str, str]] = {
+    TestKind.VERIFY_BOUNDARY: ("", "the line is not significant over the interior's "
+                                   "scattered edges (p >= alpha)"),
+    TestKind.VERIFY_INTERIOR: ("the line is not significant (p >= the interior's alpha) "
+                               "or too short", ""),
+    TestKind.VERIFY_CONTINUATION: ("the side is a seam or a gap (VERIFY_SEAM_SIDE)",
+                                   "the side's strip leaves the image"),
+    TestKind.VERIFY_PLANE_END: ("", "points in front of the plane, or the strip out of the "
+                                    "image"),
+    TestKind.VERIFY_EXPOSED: ("the other rows do not reject", ""),
+    TestKind.BOX_HEIGHT: ("", "under z at alpha times its sigma"),
+}
+
 
 @lru_cache(maxsize=256)
 def chi2_critical(dof: float, alpha: float) -> float:

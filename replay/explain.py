@@ -30,6 +30,7 @@ readable in a terminal.
 from __future__ import annotations
 
 import math
+import operator
 import os
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -60,21 +61,14 @@ from boxloc.stats import (
     BUDGET_HYPOTHESES,
     BUDGET_HYPOTHESIS_WORK,
     BUDGET_LINES,
+    FURTHER_CONDITIONS,
+    RELATION,
     TestKind,
     TestTable,
 )
 
-#: How a test's statistic is compared with its critical value when the relation holds.
-_SENSE: dict[TestKind, str] = {
-    TestKind.EDGE_SUPPORT: ">", TestKind.FIRST_QUADRANT: ">",
-    TestKind.VERIFY_INLIERS: ">=", TestKind.VERIFY_BOUNDARY: ">=",
-    TestKind.VERIFY_SEAM_SIDE: ">", TestKind.SEAM_PEAK: ">",
-    TestKind.VERIFY_CONTINUATION: "<", TestKind.VERIFY_SEAM_CROSSING: "<",
-    # issue #21: a side's evidence level against 1; a cut's groove z against the seam
-    # level's; a height against the significance its sigma allows
-    TestKind.END_EVIDENCE: ">=", TestKind.SKU_SPLIT_SEAM: ">", TestKind.BOX_HEIGHT: ">",
-}
 _NEGATE = {"<=": ">", "<": ">=", ">": "<=", ">=": "<"}
+_OPS = {"<=": operator.le, "<": operator.lt, ">": operator.gt, ">=": operator.ge}
 #: what each verify reason's failing test is
 _REASON_TEST: dict[VerifyReason, TestKind] = {
     VerifyReason.TILTED: TestKind.VERIFY_TILT,
@@ -899,12 +893,23 @@ def _num(v: Any) -> str:
 
 
 def _test_text(t: dict[str, Any] | None) -> str:
-    """``KIND a,b: T = s <= c (dof, p): accepted``."""
+    """``KIND a,b: s <= c (dof, p): accepted``: the relation the numbers show
+    (:data:`boxloc.stats.RELATION`), and where the decision went the other way, the
+    kind's further conditions that decided it."""
     if not t:
         return ""
     kind = TestKind[t["kind"]]
-    sense = _SENSE.get(kind, "<=")
-    rel = sense if t["accepted"] else _NEGATE[sense]
+    sense = RELATION.get(kind, "<=")
+    s, c = t.get("statistic"), t.get("critical")
+    fs = math.nan if s is None else float(s)
+    fc = math.nan if c is None else float(c)
+    holds = (_OPS[sense](fs, fc) if sense is not None and math.isfinite(fs + fc)
+             else bool(t["accepted"]))
+    if sense is None:
+        rel = f"{_num(s)} (critical {_num(c)})"
+    else:
+        shown = sense if holds else _NEGATE[sense]
+        rel = f"{_num(s)} {shown} {_num(c)}"
     extra = []
     if t.get("dof"):
         extra.append(f"chi2 {_num(t['dof'])} dof")
@@ -913,11 +918,13 @@ def _test_text(t: dict[str, Any] | None) -> str:
         extra.append(f"p = {_num(p)}")
     tail = f" ({', '.join(extra)})" if extra else ""
     verdict = "accepted" if t["accepted"] else "REJECTED"
+    if holds != bool(t["accepted"]):
+        why = FURTHER_CONDITIONS.get(kind, ("", ""))[0 if t["accepted"] else 1]
+        verdict += f": {why}" if why else " (by the kind's further conditions, TestKind)"
     side = f" [{t['side']}]" if t.get("side") else ""
     if t.get("evidence"):
         side += f" ({t['evidence']})"
-    return (f"{t['kind']} {t['a']},{t['b']}{side}: {_num(t['statistic'])} {rel} "
-            f"{_num(t['critical'])}{tail}: {verdict}")
+    return f"{t['kind']} {t['a']},{t['b']}{side}: {rel}{tail}: {verdict}"
 
 
 def _point_text(v: list[Any] | None) -> str:

@@ -273,3 +273,46 @@ def test_exposed_says_when_its_counts_are_effective() -> None:
     assert "307 points beyond k as 28 independent ones" in note and "11.0" in note
     assert _exposed_note(v(307)) == ""
     assert _exposed_note({"n_front": 0, "n_behind": 0, "tests": []}) == ""
+
+
+def test_a_test_reads_as_its_numbers_show() -> None:
+    """The relation printed is the one between the recorded statistic and critical value,
+    never one inferred from the decision; a decision its numbers alone would not make names
+    the kind's further condition (a continuing plane beyond a seam side)."""
+    from replay.explain import _test_text
+
+    row = {"kind": "VERIFY_CONTINUATION", "a": 18, "b": 2, "statistic": 0.8388,
+           "critical": 0.8, "accepted": True}
+    text = _test_text(row)
+    assert "0.8388 >= 0.8: accepted: the side is a seam or a gap" in text
+    assert "< 0.8" not in text
+    assert _test_text({**row, "statistic": 0.1}).endswith("0.1 < 0.8: accepted")
+    # a detection is a statistic above its critical value
+    jump = {"kind": "JUMP", "a": 1, "b": 5, "statistic": 39.0, "critical": 6.635,
+            "dof": 1.0, "accepted": True}
+    assert "39 > 6.635 (chi2 1 dof): accepted" in _test_text(jump)
+    # a summary count is not compared with its critical value
+    pop = {"kind": "POINT_ON_PLANE", "a": 3, "b": 400, "statistic": 361, "critical": 6.635,
+           "dof": 1.0, "accepted": True}
+    assert "361 (critical 6.635)" in _test_text(pop)
+    # rejected against the numbers: the boundary line is not significant
+    side = {"kind": "VERIFY_BOUNDARY", "a": 1, "b": -1, "statistic": 8, "critical": 6,
+            "p_value": 0.2, "accepted": False}
+    assert "8 >= 6 (p = 0.2): REJECTED: the line is not significant" in _test_text(side)
+
+
+def test_every_printed_relation_holds_for_its_numbers(log: Path,
+                                                      records: dict[int, Any]) -> None:
+    """Over every surface of the log, each ``s REL c`` printed is true of s and c."""
+    import operator
+    import re
+
+    ops = {"<=": operator.le, "<": operator.lt, ">": operator.gt, ">=": operator.ge}
+    pat = re.compile(r": (-?[\d.e+-]+) (<=|>=|<|>) (-?[\d.e+-]+)[ :(]")
+    n = 0
+    for i, k in _surfaces(records):
+        for line in format_explanation(explain(log, i, surface=k)).splitlines():
+            for s, rel, c in pat.findall(line):
+                assert ops[rel](float(s), float(c)), line
+                n += 1
+    assert n > 20
