@@ -12,7 +12,7 @@ from boxloc.config import Config
 from boxloc.evaluate.metrics import match_surfaces
 from boxloc.pipeline import find_graspable_surfaces
 from boxloc.products import DimensionSource, VerifyReason
-from boxloc.stages.seams import find_seams, gap_z, seam_at, seam_spread, seam_z
+from boxloc.stages.seams import face_spread, find_seams, gap_z, seam_at, seam_spread, seam_z
 from boxloc.stats import TestKind
 from tests.scenes import box, scene
 
@@ -100,6 +100,30 @@ def test_a_real_groove_stands_out_of_correlated_bands():
         z, crit = seam_at(u, w, SIGMA, 0.30, H, 0.01, spread=found.spread)
         hits += z > crit
     assert hits >= 7
+
+
+def test_a_narrow_face_in_correlated_bands_measures_its_spread_over_the_whole_face():
+    # a rectangle 0.13 m wide on a wider plane (its flush neighbour beyond its sides) has no
+    # interior 0.075 m inside its sides (min_edge 0.15 m) to measure the spread in; over
+    # the whole rectangle its sides' seams keep their level
+    rng = np.random.default_rng(21)
+    fired_raw = fired = 0
+    for _ in range(25):
+        u, w = _banded(rng, None)
+        on = (u >= 0.2) & (u <= 0.33)
+        sp = face_spread(u[on] - 0.2, w[on], SIGMA, 0.13, H)
+        assert min(sp) > 1.5
+        for at in (0.2, 0.33):
+            z_raw, crit = seam_at(u, w, SIGMA, at, H, 0.01)
+            z, _ = seam_at(u, w, SIGMA, at, H, 0.01, spread=sp)
+            fired_raw += z_raw > crit
+            fired += z > crit
+    assert fired_raw >= 10  # 25 of 50
+    assert fired <= 3  # 2 of 50
+    # white noise: no spread to divide out; too narrow a face: none measured
+    u, w = _face(rng, None)
+    assert face_spread(u, w, SIGMA, 0.6, H) == pytest.approx((1.0, 1.0), abs=0.2)
+    assert face_spread(u, w, SIGMA, 0.05, H) == (1.0, 1.0)
 
 
 def test_seam_spread_is_one_for_white_noise_and_few_positions():

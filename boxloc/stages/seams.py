@@ -650,6 +650,41 @@ def seam_spread(z: np.ndarray) -> float:
     return max(1.0, float(1.4826 * np.median(np.abs(fin - np.median(fin)))))
 
 
+def face_spread(coord: np.ndarray, w: np.ndarray, scale: float, extent: float, h: float,
+                row: np.ndarray | None = None, row_corr: float = 0.0) -> tuple[float, ...]:
+    """:func:`seam_spread` at each of :data:`SEAM_SCALES` over every position of a face
+    whose windows lie on it (``SEAM_FLANK[1]`` groove widths inside each end), for a face
+    whose interior, ``BOUNDARY_BAND`` min_edge inside its sides, is too narrow to measure
+    it: a narrow face in correlated depth noise must not test its sides' seams as if
+    the noise were white.
+
+    Parameters
+    ----------
+    coord : (n,) float64
+        The face's points' coordinate across the seams, metres, 0 to ``extent``.
+    w : (n,) float64
+        Their residuals to the face's plane, metres.
+    scale, h, row, row_corr
+        As for :func:`seam_z`.
+
+    Returns
+    -------
+    tuple of float
+        The spread at each scale (1 where fewer than :data:`MIN_SPREAD_POSITIONS` positions
+        are defined).
+    """
+    out = []
+    for s in SEAM_SCALES:
+        reach = SEAM_FLANK[1] * s * h
+        centres = np.arange(reach, extent - reach + 0.25 * h, 0.5 * h)
+        if len(centres) < MIN_SPREAD_POSITIONS or len(coord) == 0:
+            out.append(1.0)
+            continue
+        zr, _ = _seam_stats(coord, w, scale, centres, s * h, row, row_corr)
+        out.append(seam_spread(zr))
+    return tuple(out)
+
+
 def _spread_beside(z: np.ndarray, both: np.ndarray, centres: np.ndarray, reach: float,
                    crit: float, sp: float) -> float:
     """:func:`seam_spread` of the statistic ``z`` at ``centres`` without the positions whose
@@ -815,6 +850,6 @@ def seam_at(coord: np.ndarray, w: np.ndarray, scale: float, position: float, h: 
     return z_best, float(norm_isf(alpha / n_indep))
 
 
-__all__ = ["FacePoints", "Seams", "face_points", "find_seams", "gap_z", "norm_isf", "seam_at",
-           "seam_spread", "seam_z", "MIN_SPREAD_POSITIONS", "SEAM_FLANK", "SEAM_INNER",
-           "SEAM_SCALES"]
+__all__ = ["FacePoints", "Seams", "face_points", "face_spread", "find_seams", "gap_z",
+           "norm_isf", "seam_at", "seam_spread", "seam_z", "MIN_SPREAD_POSITIONS", "SEAM_FLANK",
+           "SEAM_INNER", "SEAM_SCALES"]

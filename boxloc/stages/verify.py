@@ -72,10 +72,12 @@ from boxloc.stages.design_effect import exceedance_design_effects, patch_factor
 from boxloc.stages.lines import MIN_LINE_POINTS
 from boxloc.stages.raster import fill_polygon, polygon_area, rectangle_pixels
 from boxloc.stages.seams import (
+    MIN_SPREAD_POSITIONS,
     SEAM_FLANK,
     SEAM_SCALES,
     FacePoints,
     face_points,
+    face_spread,
     find_seams,
     seam_at,
 )
@@ -771,26 +773,38 @@ def _test_size_sides(fp: FacePoints, hyp: _Hypothesis, sides: _Sides,
                               zz[:, 1], zz[:, 0] > zz[:, 1], hyp.alpha)
 
 
-def _test_seam_interior(fp: FacePoints, hyp: _Hypothesis
+def _test_seam_interior(fp: FacePoints, hyp: _Hypothesis, correlated: bool = False
                         ) -> tuple[bool, list[TestTable],
                                    tuple[tuple[float, ...], tuple[float, ...]]]:
     """VERIFY_SEAM_INTERIOR: no seam crosses the face (the points of the interior, binned
     along x and along y). Returns (crossed, its row, if any points, and the statistic's
     spread over the interior's positions along x and along y, which the side seams'
-    statistics are divided by too, scale by scale: correlated noise spreads them alike)."""
+    statistics are divided by too, scale by scale: correlated noise spreads them alike).
+    Where the model is ``correlated`` and an axis's interior is too narrow to measure the
+    spread in, it is measured over the whole face (:func:`face_spread`)."""
     if not len(fp):
         return False, [], fp.spread
     mi, width, length = hyp.interior_margin, hyp.width, hyp.length
     int_z, int_crit, spread = [], [], []  # spread: per axis, per scale
-    for coord, other, lo_hi, ext in ((fp.u, fp.v, (mi, width - mi), length),
-                                     (fp.v, fp.u, (mi, length - mi), width)):
+    for coord, other, size, ext in ((fp.u, fp.v, width, length), (fp.v, fp.u, length, width)):
+        lo_hi = (mi, size - mi)
         sel = (other >= mi) & (other <= ext - mi)
         found = find_seams(coord[sel], fp.w[sel], fp.scale, lo_hi[0], lo_hi[1],
                            hyp.spacing, hyp.interior_alpha, fp.row[sel], fp.row_corr)
         # the strongest groove anywhere inside, significant or not (NaN: none measurable)
         int_z.append(found.z_max if np.isfinite(found.z_max) else np.nan)
         int_crit.append(found.critical)
-        spread.append(found.spread)
+        narrow = (size - 2 * mi) / (0.5 * hyp.spacing) + 1 < MIN_SPREAD_POSITIONS or not sel.any()
+        if not (narrow and correlated):
+            spread.append(found.spread)
+        else:
+            # an interior too narrow to measure the spread in (a face narrower than
+            # min_edge or barely wider): over the whole face, where the windows lie on it.
+            # Not where the model is white: there what spreads a face is its own shape
+            # (a bulged lid's curve across a narrow top), which its sides' seams are not
+            on = (other >= 0) & (other <= ext) & (coord >= 0) & (coord <= size)
+            spread.append(face_spread(coord[on], fp.w[on], fp.scale, size, hyp.spacing,
+                                      fp.row[on], fp.row_corr))
     row = TestTable.decision(TestKind.VERIFY_SEAM_INTERIOR, hyp.attempt_id, [0, 1], int_z,
                              int_crit, [not z > c for z, c in zip(int_z, int_crit)], hyp.alpha)
     return any(z > c for z, c in zip(int_z, int_crit)), [row], (spread[0], spread[1])
@@ -1170,7 +1184,7 @@ def verify(
     # where the scan's noise is correlated (its model's correlation lengths). With white
     # noise a side's windows share nothing with the interior's, and what spreads the
     # interior's statistic is the face's own shape (tape, labels, a dent), not noise
-    crossed, interior_rows, spread = _test_seam_interior(fp, hyp)
+    crossed, interior_rows, spread = _test_seam_interior(fp, hyp, config.noise.correlated)
     if config.noise.correlated:
         fp = dataclasses.replace(fp, spread=spread)
     else:
