@@ -196,7 +196,6 @@ FURTHER_CONDITIONS: dict[TestKind, tuple[str, str]] = {
                                    "the side's strip leaves the image"),
     TestKind.VERIFY_PLANE_END: ("", "points in front of the plane, or the strip out of the "
                                     "image"),
-    TestKind.VERIFY_EXPOSED: ("the other rows do not reject", ""),
     TestKind.BOX_HEIGHT: ("", "under z at alpha times its sigma"),
 }
 

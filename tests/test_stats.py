@@ -104,3 +104,37 @@ def test_nanmedian_last_is_numpys_nanmedian_bit_for_bit(n: int) -> None:
         got = nanmedian_last(a)
         assert got.shape == ref.shape
         assert np.array_equal(got, ref, equal_nan=True)
+
+
+def test_a_decision_against_its_numbers_has_a_named_condition() -> None:
+    """Every row of a pipeline run whose decision is not what its statistic and critical
+    value say by RELATION is of a kind with FURTHER_CONDITIONS, and that names why: so
+    ``explain`` never prints a relation its numbers contradict without the reason."""
+    import operator
+
+    from boxloc.pipeline import find_graspable_surfaces
+    from boxloc.stats import FURTHER_CONDITIONS, RELATION
+    from tests.scenes import box, scene
+
+    ops = {"<=": operator.le, "<": operator.lt, ">": operator.gt, ">=": operator.ge}
+    sim = scene([box(-0.25, 0.0, 0.40, 0.30, 0.25), box(0.2, 0.05, 0.35, 0.45, 0.35),
+                 box(0.2, -0.35, 0.35, 0.25, 0.25)], distance=1.6, seed=3)
+    r = find_graspable_surfaces(sim.scan, Config())
+    n = against = 0
+    for product in (r.edges, r.lines, r.vertices, r.hypotheses, r.verification,
+                    r.selection, r.surfaces):
+        t = getattr(product, "tests", None)
+        if t is None:
+            continue
+        for k, s, c, acc in zip(t.kind, t.statistic, t.critical, t.accepted):
+            kind = TestKind(int(k))
+            rel = RELATION.get(kind, "<=")
+            if rel is None or not (np.isfinite(s) and np.isfinite(c)):
+                continue
+            n += 1
+            if ops[rel](s, c) != bool(acc):
+                against += 1
+                why = FURTHER_CONDITIONS.get(kind, ("", ""))[0 if acc else 1]
+                assert why, (kind.name, s, c, bool(acc))
+    assert n > 1000
+    assert against > 0  # this scene has such rows (a seam side, a plane end)
