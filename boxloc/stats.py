@@ -8,6 +8,8 @@ statistic, the degrees of freedom, the critical value, the p-value and the decis
 
 from __future__ import annotations
 
+import math
+import operator
 from dataclasses import dataclass
 from enum import IntEnum
 from functools import lru_cache
@@ -184,6 +186,20 @@ RELATION: dict[TestKind, str | None] = {
     TestKind.END_EVIDENCE: ">=", TestKind.SKU_SPLIT_SEAM: ">", TestKind.BOX_HEIGHT: ">",
     TestKind.BUDGET: "<",
 }
+
+_RELATION_OPS = {"<=": operator.le, "<": operator.lt, ">": operator.gt, ">=": operator.ge}
+
+
+def numbers_accept(kind: TestKind, statistic: float, critical: float) -> bool | None:
+    """Whether a row's statistic and critical value alone accept it, by :data:`RELATION`;
+    None where the kind does not compare them or either is not finite (the decision then
+    rests on the kind's own rule)."""
+    rel = RELATION.get(kind, "<=")
+    s, c = float(statistic), float(critical)
+    if rel is None or not (math.isfinite(s) and math.isfinite(c)):
+        return None
+    return bool(_RELATION_OPS[rel](s, c))
+
 
 #: The kinds whose decision has conditions beyond :data:`RELATION`: why a row is accepted
 #: against its numbers, and why one is rejected against them ("" where that cannot happen).

@@ -30,7 +30,6 @@ readable in a terminal.
 from __future__ import annotations
 
 import math
-import operator
 import os
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -65,10 +64,10 @@ from boxloc.stats import (
     RELATION,
     TestKind,
     TestTable,
+    numbers_accept,
 )
 
 _NEGATE = {"<=": ">", "<": ">=", ">": "<=", ">=": "<"}
-_OPS = {"<=": operator.le, "<": operator.lt, ">": operator.gt, ">=": operator.ge}
 #: what each verify reason's failing test is
 _REASON_TEST: dict[VerifyReason, TestKind] = {
     VerifyReason.TILTED: TestKind.VERIFY_TILT,
@@ -901,10 +900,9 @@ def _test_text(t: dict[str, Any] | None) -> str:
     kind = TestKind[t["kind"]]
     sense = RELATION.get(kind, "<=")
     s, c = t.get("statistic"), t.get("critical")
-    fs = math.nan if s is None else float(s)
-    fc = math.nan if c is None else float(c)
-    holds = (_OPS[sense](fs, fc) if sense is not None and math.isfinite(fs + fc)
-             else bool(t["accepted"]))
+    by_numbers = numbers_accept(kind, math.nan if s is None else s,
+                                math.nan if c is None else c)
+    holds = bool(t["accepted"]) if by_numbers is None else by_numbers
     if sense is None:
         rel = f"{_num(s)} (critical {_num(c)})"
     else:

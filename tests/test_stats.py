@@ -110,13 +110,10 @@ def test_a_decision_against_its_numbers_has_a_named_condition() -> None:
     """Every row of a pipeline run whose decision is not what its statistic and critical
     value say by RELATION is of a kind with FURTHER_CONDITIONS, and that names why: so
     ``explain`` never prints a relation its numbers contradict without the reason."""
-    import operator
-
     from boxloc.pipeline import find_graspable_surfaces
-    from boxloc.stats import FURTHER_CONDITIONS, RELATION
+    from boxloc.stats import FURTHER_CONDITIONS, numbers_accept
     from tests.scenes import box, scene
 
-    ops = {"<=": operator.le, "<": operator.lt, ">": operator.gt, ">=": operator.ge}
     sim = scene([box(-0.25, 0.0, 0.40, 0.30, 0.25), box(0.2, 0.05, 0.35, 0.45, 0.35),
                  box(0.2, -0.35, 0.35, 0.25, 0.25)], distance=1.6, seed=3)
     r = find_graspable_surfaces(sim.scan, Config())
@@ -128,13 +125,23 @@ def test_a_decision_against_its_numbers_has_a_named_condition() -> None:
             continue
         for k, s, c, acc in zip(t.kind, t.statistic, t.critical, t.accepted):
             kind = TestKind(int(k))
-            rel = RELATION.get(kind, "<=")
-            if rel is None or not (np.isfinite(s) and np.isfinite(c)):
+            by_numbers = numbers_accept(kind, s, c)
+            if by_numbers is None:
                 continue
             n += 1
-            if ops[rel](s, c) != bool(acc):
+            if by_numbers != bool(acc):
                 against += 1
                 why = FURTHER_CONDITIONS.get(kind, ("", ""))[0 if acc else 1]
                 assert why, (kind.name, s, c, bool(acc))
     assert n > 1000
     assert against > 0  # this scene has such rows (a seam side, a plane end)
+
+
+def test_numbers_accept_follows_the_kinds_relation() -> None:
+    from boxloc.stats import numbers_accept
+
+    assert numbers_accept(TestKind.LINES_MEET, 3.0, 6.6) is True  # chi-square: <=
+    assert numbers_accept(TestKind.JUMP, 3.0, 6.6) is False  # a detection: >
+    assert numbers_accept(TestKind.VERIFY_INLIERS, 0.8, 0.8) is True  # >=
+    assert numbers_accept(TestKind.POINT_ON_PLANE, 361.0, 6.6) is None  # a count
+    assert numbers_accept(TestKind.SEAM_PEAK, float("nan"), 3.0) is None

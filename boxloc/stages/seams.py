@@ -654,10 +654,9 @@ def face_spread(coord: np.ndarray, w: np.ndarray, scale: float, extent: float, h
                 row: np.ndarray | None = None, row_corr: float = 0.0) -> tuple[float, ...]:
     """:func:`seam_spread` at each of :data:`SEAM_SCALES` over every position of a face
     whose windows lie on it (``SEAM_FLANK[1]`` spacings times the scale inside each end,
-    where the outer flank reaches the end), for a face
-    whose interior, ``BOUNDARY_BAND`` min_edge inside its sides, is too narrow to measure
-    it: a narrow face in correlated depth noise must not test its sides' seams as if
-    the noise were white.
+    where the outer flank reaches the end), for a face whose interior, ``BOUNDARY_BAND``
+    min_edge inside its sides, is too narrow to measure it: a narrow face in correlated
+    depth noise must not test its sides' seams as if the noise were white.
 
     Parameters
     ----------
