@@ -711,7 +711,8 @@ class Seams(NamedTuple):
     #: computable): what a post-mortem reads when no seam was found.
     z_max: float
     #: :func:`seam_spread` over the positions at each of :data:`SEAM_SCALES`, which that
-    #: scale's statistics are divided by.
+    #: scale's statistics are divided by (by ``floor_spread`` of :func:`find_seams` where
+    #: that is larger).
     spread: tuple[float, ...] = (1.0,) * len(SEAM_SCALES)
 
 
@@ -719,7 +720,8 @@ def find_seams(coord: np.ndarray, w: np.ndarray, scale: float, lo: float, hi: fl
                h: float, alpha: float, row: np.ndarray | None = None,
                row_corr: float = 0.0, mask_strongest: bool = False,
                spread: tuple[float, ...] | None = None,
-               level_span: float | None = None) -> Seams:
+               level_span: float | None = None,
+               floor_spread: tuple[float, ...] | None = None) -> Seams:
     """Significant seams between ``lo`` and ``hi`` (local maxima of :func:`seam_z`, the
     larger of its values at the groove widths of :data:`SEAM_SCALES`).
 
@@ -740,6 +742,10 @@ def find_seams(coord: np.ndarray, w: np.ndarray, scale: float, lo: float, hi: fl
     level_span : float, optional
         Metres of positions the critical value corrects for (default ``hi - lo``): that
         search's, when this one continues it.
+    floor_spread : tuple of float, optional
+        A second measure of the spread at each scale (:func:`face_spread` over the whole
+        face): the statistics are divided by the larger of it and the positions' own, so a
+        groove must stand out of both. :attr:`Seams.spread` stays the positions' own.
 
     Returns
     -------
@@ -765,6 +771,8 @@ def find_seams(coord: np.ndarray, w: np.ndarray, scale: float, lo: float, hi: fl
             spreads.append(seam_spread(zr))
             sp = (_spread_beside(zr, both, centres, SEAM_FLANK[1] * s * h, crit,
                                  spreads[-1]) if mask_strongest else spreads[-1])
+        if floor_spread is not None:
+            sp = max(sp, float(floor_spread[i]))
         zs.append(np.where(both, zr / sp, -np.inf))
     Z = np.vstack(zs)
     z = Z.max(axis=0)
