@@ -368,6 +368,37 @@ def test_an_edge_crossing_the_interior_rejects_the_face(single_box):
     assert row.statistic[0] >= row.critical[0]
 
 
+def test_the_interior_seam_search_in_correlated_noise_takes_the_larger_spread():
+    # banded noise (tests/test_seams.py) on a 0.6 x 0.4 m face whose interior lies 0.15 m
+    # inside its sides: measured over the interior alone, the bands' spread let a seam
+    # cross it on 19 of 300 faces (6 of the first 60); with the model correlated, verify
+    # divides the search by the whole face's spread where larger: 1 of 300 (0 of 60). The
+    # sides' seams still get the interior's own spread
+    from boxloc.stages.seams import FacePoints
+    from boxloc.stages.verify import _Hypothesis, _test_seam_interior
+    from tests.test_seams import SIGMA, H, _banded
+
+    hyp = _Hypothesis(
+        origin=np.zeros(3), x_axis=np.array([1.0, 0, 0]), y_axis=np.array([0, 1.0, 0]),
+        normal=np.array([0, 0, -1.0]), width=0.6, length=0.4, plane_cov=np.eye(6) * 1e-10,
+        centre=np.array([0.3, 0.2, 0.0]), attempt_id=0, alpha=0.01, seam_alpha=0.01,
+        k=2.58, spacing=H, margin=2 * H, interior_margin=0.15, band=3 * H)
+    rng = np.random.default_rng(31)
+    alone = floored = 0
+    for _ in range(60):
+        u, w = _banded(rng, None)
+        v = np.repeat(np.arange(0, 0.4, H), len(np.arange(0, 0.6, H)))
+        fp = FacePoints(u, v, w, SIGMA, H, np.zeros(len(u), np.int64), 0.0)
+        crossed_white, _, own = _test_seam_interior(fp, hyp, correlated=False)
+        crossed, rows, spread = _test_seam_interior(fp, hyp, correlated=True)
+        assert spread == own  # the sides' seams: the interior's own spread
+        assert np.all(rows[0].statistic <= _test_seam_interior(fp, hyp, False)[1][0].statistic)
+        alone += crossed_white
+        floored += crossed
+    assert alone >= 3
+    assert floored <= 1
+
+
 def test_interior_line_measures_scatter_over_the_interior_only():
     # a narrow face (5 x 20 cm, 1.6 mm spacing): its interior is a strip 15 mm wide, and
     # scatter confined to it is no line, though over the whole 5 cm it would look like one
