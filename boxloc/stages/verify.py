@@ -783,12 +783,13 @@ def _test_seam_interior(fp: FacePoints, hyp: _Hypothesis, correlated: bool = Fal
 
     Where the model is ``correlated`` the spread is measured over the whole face too
     (:func:`face_spread`). An axis's interior too narrow to measure it in takes the whole
-    face's, for its own search as for the sides'. A wider one divides its own search by the
-    larger of the two: the interior's positions are few independent samples of a field
-    whose amplitude wanders (a stereo matcher's quality with the texture), and on the
-    development packed active-stereo layers the tops' own interiors crossed a seam on 7.4 %
-    of their axes at a level of 1 % (0.4-1.1 % for the laser, none for structured light);
-    divided by the larger spread, 2.8 %."""
+    face's, for its own search as for the sides'. A wider one whose search crosses a seam
+    divides it again by the larger of the two (elsewhere the larger could only lower the
+    statistic, and the row holds the interior's own): the interior's positions are few
+    independent samples of a field whose amplitude wanders (a stereo matcher's quality
+    with the texture), and on the development packed active-stereo layers the tops' own
+    interiors crossed a seam on 7.4 % of their axes at a level of 1 % (0.4-1.1 % for the
+    laser, none for structured light); divided by the larger spread, 2.8 %."""
     if not len(fp):
         return False, [], fp.spread
     mi, width, length = hyp.interior_margin, hyp.width, hyp.length
@@ -797,18 +798,23 @@ def _test_seam_interior(fp: FacePoints, hyp: _Hypothesis, correlated: bool = Fal
         lo_hi = (mi, size - mi)
         sel = (other >= mi) & (other <= ext - mi)
         narrow = (size - 2 * mi) / (0.5 * hyp.spacing) + 1 < MIN_SPREAD_POSITIONS or not sel.any()
-        whole: tuple[float, ...] | None = None
-        if correlated:
-            # over the whole face, where the windows lie on it. Not where the model is
-            # white: there what spreads a face is its own shape (a bulged lid's curve
-            # across a narrow top), which its sides' seams are not
-            on = (other >= 0) & (other <= ext) & (coord >= 0) & (coord <= size)
-            whole = face_spread(coord[on], fp.w[on], fp.scale, size, hyp.spacing,
-                                fp.row[on], fp.row_corr)
+        on = (other >= 0) & (other <= ext) & (coord >= 0) & (coord <= size)
+        # the whole face's spread, where the windows lie on it. Not where the model is
+        # white: there what spreads a face is its own shape (a bulged lid's curve across a
+        # narrow top), which its sides' seams are not
+        whole = (face_spread(coord[on], fp.w[on], fp.scale, size, hyp.spacing, fp.row[on],
+                             fp.row_corr) if correlated and narrow else None)
         found = find_seams(coord[sel], fp.w[sel], fp.scale, lo_hi[0], lo_hi[1],
                            hyp.spacing, hyp.interior_alpha, fp.row[sel], fp.row_corr,
-                           spread=whole if narrow else None,
-                           floor_spread=None if narrow else whole)
+                           spread=whole)
+        if correlated and not narrow and found.z_max > found.critical:
+            # measured only where the interior's own spread lets a seam cross: elsewhere the
+            # larger spread could only lower the statistic (the row then holds the own's)
+            whole = face_spread(coord[on], fp.w[on], fp.scale, size, hyp.spacing,
+                                fp.row[on], fp.row_corr)
+            found = find_seams(coord[sel], fp.w[sel], fp.scale, lo_hi[0], lo_hi[1],
+                               hyp.spacing, hyp.interior_alpha, fp.row[sel], fp.row_corr,
+                               floor_spread=whole)
         # the strongest groove anywhere inside, significant or not (NaN: none measurable)
         int_z.append(found.z_max if np.isfinite(found.z_max) else np.nan)
         int_crit.append(found.critical)
