@@ -389,10 +389,10 @@ def test_the_interior_seam_search_in_correlated_noise_takes_the_larger_spread():
         u, w = _banded(rng, None)
         v = np.repeat(np.arange(0, 0.4, H), len(np.arange(0, 0.6, H)))
         fp = FacePoints(u, v, w, SIGMA, H, np.zeros(len(u), np.int64), 0.0)
-        crossed_white, _, own = _test_seam_interior(fp, hyp, correlated=False)
+        crossed_white, rows_white, own = _test_seam_interior(fp, hyp, correlated=False)
         crossed, rows, spread = _test_seam_interior(fp, hyp, correlated=True)
         assert spread == own  # the sides' seams: the interior's own spread
-        assert np.all(rows[0].statistic <= _test_seam_interior(fp, hyp, False)[1][0].statistic)
+        assert np.all(rows[0].statistic <= rows_white[0].statistic)
         alone += crossed_white
         floored += crossed
     assert alone >= 3

@@ -654,9 +654,11 @@ def face_spread(coord: np.ndarray, w: np.ndarray, scale: float, extent: float, h
                 row: np.ndarray | None = None, row_corr: float = 0.0) -> tuple[float, ...]:
     """:func:`seam_spread` at each of :data:`SEAM_SCALES` over every position of a face
     whose windows lie on it (``SEAM_FLANK[1]`` spacings times the scale inside each end,
-    where the outer flank reaches the end), for a face whose interior, ``BOUNDARY_BAND``
-    min_edge inside its sides, is too narrow to measure it: a narrow face in correlated
-    depth noise must not test its sides' seams as if the noise were white.
+    where the outer flank reaches the end). In correlated depth noise it stands in for the
+    spread of a face whose interior, ``BOUNDARY_BAND`` min_edge inside its sides, is too
+    narrow to measure it (a narrow face must not test its sides' seams as if the noise were
+    white), and it is the ``floor_spread`` of a wider interior's search
+    (:func:`boxloc.stages.verify._test_seam_interior`).
 
     Parameters
     ----------
@@ -752,8 +754,9 @@ def find_seams(coord: np.ndarray, w: np.ndarray, scale: float, lo: float, hi: fl
     Seams
         positions, z, critical, z_max, spread.
     """
-    if hi <= lo or len(coord) == 0:
-        return Seams(np.zeros(0), np.zeros(0), np.inf, -np.inf)
+    if hi <= lo or len(coord) == 0:  # no positions: a given spread still stands
+        given = (1.0,) * len(SEAM_SCALES) if spread is None else tuple(map(float, spread))
+        return Seams(np.zeros(0), np.zeros(0), np.inf, -np.inf, given)
     step = 0.5 * h
     centres = np.arange(lo, hi + 0.5 * step, step)
     span = hi - lo if level_span is None else level_span

@@ -773,6 +773,15 @@ def _test_size_sides(fp: FacePoints, hyp: _Hypothesis, sides: _Sides,
                               zz[:, 1], zz[:, 0] > zz[:, 1], hyp.alpha)
 
 
+def _whole_face_spread(fp: FacePoints, hyp: _Hypothesis, coord: np.ndarray, other: np.ndarray,
+                       size: float, ext: float) -> tuple[float, ...]:
+    """:func:`face_spread` along ``coord`` (0 to ``size``) over the face's points, ``other``
+    (across it) within 0 to ``ext``."""
+    on = (other >= 0) & (other <= ext) & (coord >= 0) & (coord <= size)
+    return face_spread(coord[on], fp.w[on], fp.scale, size, hyp.spacing, fp.row[on],
+                       fp.row_corr)
+
+
 def _test_seam_interior(fp: FacePoints, hyp: _Hypothesis, correlated: bool = False
                         ) -> tuple[bool, list[TestTable],
                                    tuple[tuple[float, ...], tuple[float, ...]]]:
@@ -798,28 +807,24 @@ def _test_seam_interior(fp: FacePoints, hyp: _Hypothesis, correlated: bool = Fal
         lo_hi = (mi, size - mi)
         sel = (other >= mi) & (other <= ext - mi)
         narrow = (size - 2 * mi) / (0.5 * hyp.spacing) + 1 < MIN_SPREAD_POSITIONS or not sel.any()
-        on = (other >= 0) & (other <= ext) & (coord >= 0) & (coord <= size)
-        # the whole face's spread, where the windows lie on it. Not where the model is
-        # white: there what spreads a face is its own shape (a bulged lid's curve across a
-        # narrow top), which its sides' seams are not
-        whole = (face_spread(coord[on], fp.w[on], fp.scale, size, hyp.spacing, fp.row[on],
-                             fp.row_corr) if correlated and narrow else None)
+        # the whole face's spread only where the model is correlated: where it is white,
+        # what spreads a face is its own shape (a bulged lid's curve across a narrow top),
+        # which its sides' seams are not
         found = find_seams(coord[sel], fp.w[sel], fp.scale, lo_hi[0], lo_hi[1],
                            hyp.spacing, hyp.interior_alpha, fp.row[sel], fp.row_corr,
-                           spread=whole)
+                           spread=(_whole_face_spread(fp, hyp, coord, other, size, ext)
+                                   if correlated and narrow else None))
         if correlated and not narrow and found.z_max > found.critical:
             # measured only where the interior's own spread lets a seam cross: elsewhere the
             # larger spread could only lower the statistic (the row then holds the own's)
-            whole = face_spread(coord[on], fp.w[on], fp.scale, size, hyp.spacing,
-                                fp.row[on], fp.row_corr)
             found = find_seams(coord[sel], fp.w[sel], fp.scale, lo_hi[0], lo_hi[1],
                                hyp.spacing, hyp.interior_alpha, fp.row[sel], fp.row_corr,
-                               floor_spread=whole)
+                               floor_spread=_whole_face_spread(fp, hyp, coord, other,
+                                                               size, ext))
         # the strongest groove anywhere inside, significant or not (NaN: none measurable)
         int_z.append(found.z_max if np.isfinite(found.z_max) else np.nan)
         int_crit.append(found.critical)
-        # (a face narrower than twice the margin has no interior: no search, whole's spread)
-        spread.append(whole if narrow and whole is not None else found.spread)
+        spread.append(found.spread)  # the sides' (the whole face's where it stood in)
     row = TestTable.decision(TestKind.VERIFY_SEAM_INTERIOR, hyp.attempt_id, [0, 1], int_z,
                              int_crit, [not z > c for z, c in zip(int_z, int_crit)], hyp.alpha)
     return any(z > c for z, c in zip(int_z, int_crit)), [row], (spread[0], spread[1])
