@@ -61,6 +61,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
+import numba as nb
 import numpy as np
 from scipy import special
 
@@ -119,6 +120,9 @@ class VerifyContext:
     #: (N,) jump height or fold angle of each edge point (``EdgeMap.strength``); None: not
     #: known (every jump counts as a boundary)
     edge_strength: np.ndarray | None = None
+    #: :meth:`_per_pixel`'s arrays, built at its first call
+    _flat: tuple[np.ndarray, ...] | None = field(default=None, init=False, repr=False,
+                                                 compare=False)
 
     @classmethod
     def build(cls, scan: Scan, edges: EdgeMap, config: Config, up: np.ndarray,
@@ -136,12 +140,36 @@ class VerifyContext:
         """Expected spacing of edge points along an edge at ``point``, metres."""
         return float(np.linalg.norm(point)) * self.pixel_angle
 
-    def var_along(self, rr: np.ndarray, cc: np.ndarray, direction: np.ndarray) -> np.ndarray:
+    def _per_pixel(self) -> tuple[np.ndarray, ...]:
+        """The points (H W, 3), their squared norms, ``sigma ** 2`` and ``lateral2``, each
+        (H W,), flat: :meth:`var_along` gathers from them by flat index, once per scan
+        instead of squaring and summing per call (the same element-wise values: einsum's
+        sum of one row does not depend on the other rows)."""
+        if self._flat is None:
+            P = np.ascontiguousarray(self.points, np.float64).reshape(-1, 3)
+            self._flat = (P, np.einsum("ij,ij->i", P, P),
+                          np.ascontiguousarray(self.sigma).reshape(-1) ** 2,
+                          np.ascontiguousarray(self.lateral2).reshape(-1))
+        return self._flat
+
+    def gather(self, rr: np.ndarray, cc: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The points at pixels (rr, cc), (n, 3) (``points[rr, cc]``), and the pixels' flat
+        indices (for :meth:`var_along`)."""
+        flat = rr * self.valid.shape[1] + cc
+        return self._per_pixel()[0][flat], flat
+
+    def var_along(self, rr: np.ndarray, cc: np.ndarray, direction: np.ndarray,
+                  P: np.ndarray | None = None, flat: np.ndarray | None = None) -> np.ndarray:
         """Variance of the points at pixels (rr, cc) along a unit direction, m^2: range
-        noise along the ray, lateral noise across it."""
-        P = self.points[rr, cc]
-        cn2 = (P @ direction) ** 2 / np.einsum("ij,ij->i", P, P)
-        return self.sigma[rr, cc] ** 2 * cn2 + self.lateral2[rr, cc] * (1 - cn2)
+        noise along the ray, lateral noise across it. ``P`` and ``flat``, where given, are
+        :meth:`gather`'s of the same pixels."""
+        pts, norm2, sigma2, lateral2 = self._per_pixel()
+        if flat is None:
+            flat = rr * self.valid.shape[1] + cc
+        if P is None:
+            P = pts[flat]
+        cn2 = (P @ direction) ** 2 / norm2[flat]
+        return sigma2[flat] * cn2 + lateral2[flat] * (1 - cn2)
 
     def pixels_in(self, origin: np.ndarray, x_axis: np.ndarray, y_axis: np.ndarray,
                   u_range: tuple[float, float], v_range: tuple[float, float]) -> float:
@@ -377,8 +405,8 @@ def _beyond_sides(
         n_valid[si] = len(rr)
         if len(rr) < MIN_LINE_POINTS:
             continue
-        P = ctx.points[rr, cc]
-        var = ctx.var_along(rr, cc, plane_normal)
+        P, flat = ctx.gather(rr, cc)
+        var = ctx.var_along(rr, cc, plane_normal, P, flat)
         z = ((P - plane_point) @ plane_normal) / np.sqrt(var)
         frac[si] = float((np.abs(z) <= k).mean())
         front[si] = float((z > k).mean())
@@ -404,7 +432,26 @@ def plane_var(plane_cov: np.ndarray, normal: np.ndarray, D: np.ndarray) -> np.nd
     D : (n, 3) float64
     """
     So, Sn = plane_cov[:3, :3], plane_cov[3:, 3:]
+    # einsum sums one row in another order (and a strided Sn in yet another): the kernel
+    # only where it matches it, C-contiguous rows, two or more
+    if (D.dtype == np.float64 and D.ndim == 2 and D.shape[0] > 1 and D.shape[1] == 3
+            and D.flags.c_contiguous and Sn.dtype == np.float64):
+        return normal @ So @ normal + _quad_rows(D, np.ascontiguousarray(Sn))
     return normal @ So @ normal + np.einsum("ni,ij,nj->n", D, Sn, D)
+
+
+@nb.njit(cache=True)
+def _quad_rows(D: np.ndarray, S: np.ndarray) -> np.ndarray:
+    """``np.einsum("ni,ij,nj->n", D, S, D)`` bit for bit, without its iterator's per-call
+    cost: per row, the terms (D_i S_ij) D_j summed in (i, j) order from 0.0."""
+    out = np.empty(D.shape[0])
+    for q in range(D.shape[0]):
+        acc = 0.0
+        for i in range(3):
+            for j in range(3):
+                acc += D[q, i] * S[i, j] * D[q, j]
+        out[q] = acc
+    return out
 
 
 def face_extent(
@@ -452,9 +499,9 @@ def face_extent(
     if pix is None:
         return np.nan, gap
     rr, cc, _ = pix
-    P = ctx.points[rr, cc]
+    P, flat = ctx.gather(rr, cc)
     D = P - origin
-    var = ctx.var_along(rr, cc, normal) + flatness**2 + plane_var(plane_cov, normal, D)
+    var = ctx.var_along(rr, cc, normal, P, flat) + flatness**2 + plane_var(plane_cov, normal, D)
     on = np.abs(D @ normal) <= k * np.sqrt(var)
     t = np.sort(D[on] @ along)
     t = t[t >= 0.0]
@@ -1047,11 +1094,11 @@ def _fit_face(ctx: VerifyContext, hyp: _Hypothesis, rows: np.ndarray, cols: np.n
     """The points at valid pixels (rows, cols) inside the rectangle, against its plane and
     against the plane refitted to them; None if fewer than 3 lie on the rectangle's."""
     k, m, normal = hyp.k, hyp.margin, hyp.normal
-    P = ctx.points[rows, cols]
+    P, flat = ctx.gather(rows, cols)
     D = P - hyp.origin
     w0 = D @ normal
     # each point's noise along the normal; the flatness prior covers cardboard bulge
-    var_pt = ctx.var_along(rows, cols, normal) + flatness**2
+    var_pt = ctx.var_along(rows, cols, normal, P, flat) + flatness**2
     # 1) points on the plane of R, with R's own uncertainty
     var_pl = plane_var(hyp.plane_cov, normal, D)
     on0 = np.abs(w0) <= k * np.sqrt(var_pt + var_pl)
