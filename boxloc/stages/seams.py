@@ -778,6 +778,8 @@ def seam_spread(z: np.ndarray) -> float:
     fin = z[np.isfinite(z)]
     if len(fin) < MIN_SPREAD_POSITIONS:
         return 1.0
+    if fin.dtype == np.float64:  # np.median's value, in a kernel (thousands of calls a scan)
+        return max(1.0, float(1.4826 * _median(np.abs(fin - _median(fin)))))
     return max(1.0, float(1.4826 * np.median(np.abs(fin - np.median(fin)))))
 
 

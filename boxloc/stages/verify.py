@@ -75,6 +75,7 @@ from boxloc.stages.raster import fill_polygon, polygon_area, rectangle_pixels
 from boxloc.stages.seams import (
     MIN_SPREAD_POSITIONS,
     SEAM_FLANK,
+    SEAM_INNER,
     SEAM_SCALES,
     FacePoints,
     face_points,
@@ -318,11 +319,18 @@ def _side_seam(fp: FacePoints, side: int, width: float, length: float, spacing: 
     else:
         sel = (fp.v >= 0) & (fp.v <= length)
         coord, along, at, L, sp = fp.u, fp.v, (0.0, width)[side - 2], length, fp.spread[0]
-    zs, zc = seam_at(coord[sel], fp.w[sel], fp.scale, at, spacing, alpha, reach,
-                     gaps, fp.row[sel], fp.row_corr, sp)
-    for half in (sel & (along < 0.5 * L), sel & (along >= 0.5 * L)):
-        zh, _ = seam_at(coord[half], fp.w[half], fp.scale, at, spacing, alpha, reach,
-                        gaps, fp.row[half], fp.row_corr, sp)
+    # only the points near the side enter a window of seam_at's positions (a spacing more
+    # than its widest reach): the three searches take them, not the whole face's (the same
+    # strips, in the same order)
+    g = SEAM_INNER * max(SEAM_SCALES) * spacing
+    lim = (g if reach is None else max(float(reach), g)) + g + (SEAM_FLANK[1] * max(SEAM_SCALES)
+                                                               + 1.0) * spacing
+    idx = np.flatnonzero(sel & (np.abs(coord - at) <= lim))
+    coord, along, w, row = coord[idx], along[idx], fp.w[idx], fp.row[idx]
+    zs, zc = seam_at(coord, w, fp.scale, at, spacing, alpha, reach, gaps, row, fp.row_corr, sp)
+    for half in (along < 0.5 * L, along >= 0.5 * L):
+        zh, _ = seam_at(coord[half], w[half], fp.scale, at, spacing, alpha, reach,
+                        gaps, row[half], fp.row_corr, sp)
         if zh <= 0:
             zs = min(zs, zh)
     return zs, zc
