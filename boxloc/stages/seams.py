@@ -809,13 +809,20 @@ def face_spread(coord: np.ndarray, w: np.ndarray, scale: float, extent: float, h
         are defined).
     """
     out = []
+    grid = []
     for s in SEAM_SCALES:
         reach = SEAM_FLANK[1] * s * h
-        centres = np.arange(reach, extent - reach + 0.25 * h, 0.5 * h)
+        grid.append(np.arange(reach, extent - reach + 0.25 * h, 0.5 * h))
+    # one sort for every scale, over the strip all of them reach (as _seam_stats does)
+    used = [(s, c) for s, c in zip(SEAM_SCALES, grid) if len(c) >= MIN_SPREAD_POSITIONS]
+    pre = (_presorted(coord, w, row, min(c.min() - SEAM_FLANK[1] * (s * h) for s, c in used),
+                      max(c.max() + SEAM_FLANK[1] * (s * h) for s, c in used))
+           if used and len(coord) else None)
+    for s, centres in zip(SEAM_SCALES, grid):
         if len(centres) < MIN_SPREAD_POSITIONS or len(coord) == 0:
             out.append(1.0)
             continue
-        zr, _ = _seam_stats(coord, w, scale, centres, s * h, row, row_corr)
+        zr, _ = _seam_stats(coord, w, scale, centres, s * h, row, row_corr, pre)
         out.append(seam_spread(zr))
     return tuple(out)
 

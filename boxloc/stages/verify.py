@@ -78,6 +78,8 @@ from boxloc.stages.seams import (
     SEAM_INNER,
     SEAM_SCALES,
     FacePoints,
+    _centred,
+    _median,
     face_points,
     face_spread,
     find_seams,
@@ -199,7 +201,18 @@ class VerifyContext:
         """
         a, b = np.asarray(a, np.float64), np.asarray(b, np.float64)
         q = self.project(np.stack([a, b]))
-        n = float(np.hypot(*(q[1] - q[0])))
+        return self._samples_between(a, b, q[0], q[1])
+
+    def samples_along_sides(self, corners: np.ndarray) -> list[float]:
+        """:meth:`samples_along` of each side 0-3 of a rectangle (``SIDE_CORNERS``), its
+        corners (4, 3) projected at once (a projection maps each point on its own)."""
+        c = np.asarray(corners, np.float64)
+        q = self.project(c)
+        return [self._samples_between(c[i], c[j], q[i], q[j]) for i, j in SIDE_CORNERS]
+
+    def _samples_between(self, a: np.ndarray, b: np.ndarray, qa: np.ndarray, qb: np.ndarray
+                         ) -> float:
+        n = float(np.hypot(*(qb - qa)))
         # off the image (a ray table has no ray there): its length over the spacing
         return n if np.isfinite(n) else float(np.linalg.norm(b - a)) / self.spacing_at(
             0.5 * (a + b))
@@ -300,6 +313,18 @@ def _interior_line_span(
             best, best_p = k, p
             best_span = float(along.max() - along.min()) if len(along) else 0.0
     return best, best_p, best_span
+
+
+@nb.njit(cache=True)
+def _n_distinct(x: np.ndarray) -> int:
+    """``len(np.unique(x))`` of int64 values."""
+    if x.shape[0] == 0:
+        return 0
+    s = np.sort(x)
+    k = 1
+    for i in range(1, s.shape[0]):
+        k += s[i] != s[i - 1]
+    return k
 
 
 def _side_seam(fp: FacePoints, side: int, width: float, length: float, spacing: float,
@@ -757,7 +782,7 @@ def _test_boundary(edges: _FaceEdges, hyp: _Hypothesis, ctx: VerifyContext,
         for near, along, L in sides:
             sel = kind_mask & near & (along >= 0) & (along <= L)
             # distinct positions along the side (one per spacing): coverage, not density
-            k_s = len(np.unique(np.floor(along[sel] / spacing).astype(np.int64)))
+            k_s = _n_distinct(np.floor(along[sel] / spacing).astype(np.int64))
             counts.append(k_s)
             p_values.append(_poisson_sf(k_s - 1, density * L * 2 * band))
         return counts, p_values
@@ -768,7 +793,7 @@ def _test_boundary(edges: _FaceEdges, hyp: _Hypothesis, ctx: VerifyContext,
     concave, _ = side_lines(edges.near_plane & (edges.kinds == EdgeKind.CREASE_CONCAVE))
     side_min = [max(MIN_LINE_POINTS, kc) for kc in concave]
     corners = rectangle_corners(hyp.origin, hyp.x_axis, hyp.y_axis, width, length)
-    expected = [ctx.samples_along(corners[a], corners[b]) for a, b in SIDE_CORNERS]
+    expected = ctx.samples_along_sides(corners)
     ok = [(k >= kmin and pv < hyp.alpha) for k, kmin, pv in zip(covered, side_min, side_p)]
     result = _Sides(covered, ok, expected)
     frac = result.fraction()
@@ -1113,9 +1138,9 @@ def _fit_face(ctx: VerifyContext, hyp: _Hypothesis, rows: np.ndarray, cols: np.n
     if on0.sum() < 3:
         return None
     # 2) the face's plane refitted to them, with covariance
-    Q = P[on0]
-    c = Q.mean(0)
-    lam, V = np.linalg.eigh((Q - c).T @ (Q - c))
+    # Q = P[on0], its mean c and (Q - c) twice, in a kernel (as face_points)
+    c, X1, X2 = _centred(P, on0)
+    lam, V = np.linalg.eigh(X1.T @ X2)
     nf = V[:, 0] if V[:, 0] @ normal > 0 else -V[:, 0]
     # 3) inliers, front and behind against the refitted plane (point noise only)
     z = ((P - c) @ nf) / np.sqrt(var_pt)
@@ -1131,7 +1156,7 @@ def _fit_face(ctx: VerifyContext, hyp: _Hypothesis, rows: np.ndarray, cols: np.n
     if not core.any():
         core[:] = True
     n_in = int(inl.sum())
-    s2 = float(max(lam[0] / max(int(on0.sum()) - 3, 1), np.median(var_pt[on0])))
+    s2 = float(max(lam[0] / max(int(on0.sum()) - 3, 1), _median(var_pt[on0])))
     cov = np.zeros((6, 6))
     cov[:3, :3] = s2 / max(n_in, 1) * np.eye(3)
     cov[3:, 3:] = s2 * (np.outer(V[:, 1], V[:, 1]) / max(lam[1], 1e-12)
