@@ -373,6 +373,7 @@ def continuation(
     margin: float,
     depth: float,
     k: float,
+    memo: dict[Any, Any] | None = None,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """How far a face's plane continues beyond each side of a rectangle.
 
@@ -395,6 +396,8 @@ def continuation(
         Metres.
     k : float
         Critical |z| of one point.
+    memo : dict, optional
+        Shared by the calls for one rectangle (:func:`_beyond_sides`).
 
     Returns
     -------
@@ -408,18 +411,26 @@ def continuation(
         that the face ends (a face that runs out of the image may continue beyond it).
     """
     frac, _, n_valid, in_image = _beyond_sides(ctx, origin, x_axis, y_axis, width, length,
-                                               plane_point, plane_normal, margin, depth, k)
+                                               plane_point, plane_normal, margin, depth, k,
+                                               memo)
     return frac, n_valid, in_image
 
 
 def _beyond_sides(
     ctx: VerifyContext, origin: np.ndarray, x_axis: np.ndarray, y_axis: np.ndarray,
     width: float, length: float, plane_point: np.ndarray, plane_normal: np.ndarray,
-    margin: float, depth: float, k: float,
+    margin: float, depth: float, k: float, memo: dict[Any, Any] | None = None,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """:func:`continuation`'s strips: per side 0-3 the fraction of their valid pixels on
     the plane and the fraction in front of it (toward the sensor, beyond ``k``), both NaN
-    where too few; the valid pixels; whether the strip is mostly in the image."""
+    where too few; the valid pixels; whether the strip is mostly in the image.
+
+    ``memo``: a dict kept over the calls for one rectangle (one frame, width and length):
+    each strip is rasterized and gathered once, and a call with the same plane, margin,
+    depth and k as an earlier one returns copies of its arrays."""
+    key = ("result", plane_point.tobytes(), plane_normal.tobytes(), margin, depth, k)
+    if memo is not None and key in memo:
+        return tuple(a.copy() for a in memo[key])  # type: ignore[return-value]
     m, d = margin, depth
     strips = (((m, width - m), (-m - d, -m)), ((m, width - m), (length + m, length + m + d)),
               ((-m - d, -m), (m, length - m)), ((width + m, width + m + d), (m, length - m)))
@@ -428,21 +439,31 @@ def _beyond_sides(
     n_valid = np.zeros(4, np.int64)
     in_image = np.zeros(4, bool)
     for si, (u_range, v_range) in enumerate(strips):
-        pix = rectangle_pixels(ctx.project, ctx.valid, origin, x_axis, y_axis, u_range,
-                               v_range)
+        pkey = ("strip", si, margin, depth)
+        if memo is not None and pkey in memo:
+            pix, gathered = memo[pkey]
+        else:
+            pix = rectangle_pixels(ctx.project, ctx.valid, origin, x_axis, y_axis, u_range,
+                                   v_range)
+            gathered = (ctx.gather(pix[0], pix[1]) if pix is not None
+                        and len(pix[0]) >= MIN_LINE_POINTS else None)
+            if memo is not None:
+                memo[pkey] = pix, gathered
         if pix is None:
             continue
         rr, cc, inside = pix
         # most of the strip must be in the image to show anything of the side
         in_image[si] = inside >= 0.5
         n_valid[si] = len(rr)
-        if len(rr) < MIN_LINE_POINTS:
+        if gathered is None:
             continue
-        P, flat = ctx.gather(rr, cc)
+        P, flat = gathered
         var = ctx.var_along(rr, cc, plane_normal, P, flat)
         z = ((P - plane_point) @ plane_normal) / np.sqrt(var)
         frac[si] = float((np.abs(z) <= k).mean())
         front[si] = float((z > k).mean())
+    if memo is not None:
+        memo[key] = (frac.copy(), front.copy(), n_valid.copy(), in_image.copy())
     return frac, front, n_valid, in_image
 
 
@@ -911,7 +932,8 @@ def _test_seam_interior(fp: FacePoints, hyp: _Hypothesis, correlated: bool = Fal
 
 
 def _test_plane_ends(ctx: VerifyContext, hyp: _Hypothesis, fit: _FaceFit | None,
-                     sides: _Sides, support_fraction: float) -> list[TestTable]:
+                     sides: _Sides, support_fraction: float,
+                     memo: dict[Any, Any] | None = None) -> list[TestTable]:
     """VERIFY_PLANE_END: a side that is no boundary by its edges (nor a seam) is one where
     the face's refitted plane ends just beyond it, dropping away: at most
     ``PLANE_END_FRACTION`` of the valid pixels of the strip beyond the side (as
@@ -936,7 +958,7 @@ def _test_plane_ends(ctx: VerifyContext, hyp: _Hypothesis, fit: _FaceFit | None,
     centre, normal = (hyp.origin, hyp.normal) if fit is None else (fit.centre, fit.normal)
     frac, front, _, in_image = _beyond_sides(ctx, hyp.origin, hyp.x_axis, hyp.y_axis,
                                              hyp.width, hyp.length, centre, normal, m,
-                                             hyp.flank - m, hyp.k)
+                                             hyp.flank - m, hyp.k, memo)
     # a top's side drops away (behind the plane); a wall rising in front of it is a lower
     # face's side, which a top's never is (the concave creases of VERIFY_BOUNDARY)
     ends = [bool(in_image[si] and np.isfinite(frac[si]) and frac[si] <= PLANE_END_FRACTION
@@ -951,7 +973,8 @@ def _test_plane_ends(ctx: VerifyContext, hyp: _Hypothesis, fit: _FaceFit | None,
 
 
 def _test_continuation(ctx: VerifyContext, fp: FacePoints, hyp: _Hypothesis, fit: _FaceFit,
-                       sides: _Sides, min_inlier_fraction: float
+                       sides: _Sides, min_inlier_fraction: float,
+                       memo: dict[Any, Any] | None = None
                        ) -> tuple[np.ndarray, np.ndarray, list[TestTable]]:
     """VERIFY_CONTINUATION: the face ends at each side, its plane does not run on beyond,
     unless the side is a seam or a gap between equal neighbours (a rectangle cut short
@@ -971,7 +994,7 @@ def _test_continuation(ctx: VerifyContext, fp: FacePoints, hyp: _Hypothesis, fit
     m = hyp.margin
     cont, _, in_image = continuation(ctx, hyp.origin, hyp.x_axis, hyp.y_axis, hyp.width,
                                      hyp.length, fit.centre, fit.normal, m, hyp.flank - m,
-                                     hyp.k)
+                                     hyp.k, memo)
     continues = cont >= min_inlier_fraction
     ends = ~continues
     extra_seam: list[tuple[int, float, float]] = []
@@ -1303,6 +1326,8 @@ def verify(
     if crossed and not region:
         return _failed(VerifyReason.INTERIOR_SEAM, tests, alpha, n_interior_edges=n_int)
     bound = sides.bound(config.support_fraction)
+    # the strips beyond the sides, rasterized once for the plane-end and continuation tests
+    strips: dict[Any, Any] = {}
     # a region's sides short of p together may be covered by the plane's end; a box's not
     # (on bare active-stereo pallets that made false surfaces): 0 asks for no coverage
     end_fraction = config.support_fraction if region else 0.0
@@ -1313,7 +1338,7 @@ def verify(
         # sides without their line of edges may still end where the face's plane drops
         # away just beyond them: first against the rectangle's own plane (cheap: the strips
         # only); only where that shows an end is the plane refitted to decide (below)
-        unbound = _test_plane_ends(ctx, hyp, None, sides.copy(), end_fraction)
+        unbound = _test_plane_ends(ctx, hyp, None, sides.copy(), end_fraction, strips)
         if not unbound or not unbound[0].accepted.any():
             return _failed(VerifyReason.BOUNDARY, tests + unbound, alpha,
                            n_interior_edges=n_int)
@@ -1339,7 +1364,7 @@ def verify(
         return before_fit(VerifyReason.INLIERS, n_inside=n_inside, n_valid=n_valid)
     if not bound:
         # sides without their line of edges: the face's plane may still end just beyond
-        tests += _test_plane_ends(ctx, hyp, fit, sides, end_fraction)
+        tests += _test_plane_ends(ctx, hyp, fit, sides, end_fraction, strips)
         if not sides.bound(config.support_fraction):
             return _failed(VerifyReason.BOUNDARY, tests, alpha, n_inside=n_inside,
                            n_valid=n_valid, n_interior_edges=n_int)
@@ -1351,7 +1376,8 @@ def verify(
     tests.append(row)
     mean, s2_mean, mean_t = _test_mean(fit, hyp, config.flatness)
     tests.append(mean_t)
-    ends, cut, rows = _test_continuation(ctx, fp, hyp, fit, sides, config.min_inlier_fraction)
+    ends, cut, rows = _test_continuation(ctx, fp, hyp, fit, sides, config.min_inlier_fraction,
+                                         strips)
     tests += rows
 
     reason = (VerifyReason.NOT_EXPOSED if not exposed
