@@ -863,7 +863,8 @@ def find_seams(coord: np.ndarray, w: np.ndarray, scale: float, lo: float, hi: fl
                row_corr: float = 0.0, mask_strongest: bool = False,
                spread: tuple[float, ...] | None = None,
                level_span: float | None = None,
-               floor_spread: tuple[float, ...] | None = None) -> Seams:
+               floor_spread: tuple[float, ...] | None = None,
+               stats: list[tuple[np.ndarray, np.ndarray]] | None = None) -> Seams:
     """Significant seams between ``lo`` and ``hi`` (local maxima of :func:`seam_z`, the
     larger of its values at the groove widths of :data:`SEAM_SCALES`).
 
@@ -888,6 +889,10 @@ def find_seams(coord: np.ndarray, w: np.ndarray, scale: float, lo: float, hi: fl
         A second measure of the spread at each scale (:func:`face_spread` over the whole
         face): the statistics are divided by the larger of it and the positions' own, so a
         groove must stand out of both. :attr:`Seams.spread` stays the positions' own.
+    stats : list, optional
+        The statistic and its sign conditions at each scale: a call given an empty list
+        fills it, a call given it filled (the same points, ``lo``, ``hi`` and ``h``) takes
+        them instead of computing them again.
 
     Returns
     -------
@@ -903,11 +908,18 @@ def find_seams(coord: np.ndarray, w: np.ndarray, scale: float, lo: float, hi: fl
     n_indep = sum(max(span / (2.0 * SEAM_INNER * s * h), 1.0) for s in SEAM_SCALES)
     crit = float(norm_isf(alpha / n_indep))
     zs, spreads = [], []
-    # one sort for every scale: the widest reaches farthest
-    reach = SEAM_FLANK[1] * (max(SEAM_SCALES) * h)  # as _seam_stats computes its reach
-    pre = _presorted(coord, w, row, centres.min() - reach, centres.max() + reach)
+    if not stats:
+        # one sort for every scale: the widest reaches farthest
+        reach = SEAM_FLANK[1] * (max(SEAM_SCALES) * h)  # as _seam_stats computes its reach
+        pre = _presorted(coord, w, row, centres.min() - reach, centres.max() + reach)
+        computed = [_seam_stats(coord, w, scale, centres, s * h, row, row_corr, pre)
+                    for s in SEAM_SCALES]
+        if stats is not None:
+            stats.extend(computed)
+    else:
+        computed = stats
     for i, s in enumerate(SEAM_SCALES):
-        zr, both = _seam_stats(coord, w, scale, centres, s * h, row, row_corr, pre)
+        zr, both = computed[i]
         if spread is not None:
             spreads.append(float(spread[i]))
             sp = spreads[-1]
@@ -923,8 +935,8 @@ def find_seams(coord: np.ndarray, w: np.ndarray, scale: float, lo: float, hi: fl
     Z = np.vstack(zs)
     z = Z.max(axis=0)
     width = 2.0 * SEAM_INNER * h * np.asarray(SEAM_SCALES)[Z.argmax(axis=0)]
-    left = np.r_[-np.inf, z[:-1]]
-    right = np.r_[z[1:], -np.inf]
+    left = np.concatenate(([-np.inf], z[:-1]))
+    right = np.concatenate((z[1:], [-np.inf]))
     pk = np.flatnonzero((z > crit) & (z >= left) & (z > right))
     # one seam per groove window: the strongest of maxima closer than the wider window
     keep: list[int] = []

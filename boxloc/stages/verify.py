@@ -911,17 +911,19 @@ def _test_seam_interior(fp: FacePoints, hyp: _Hypothesis, correlated: bool = Fal
         # the whole face's spread only where the model is correlated: where it is white,
         # what spreads a face is its own shape (a bulged lid's curve across a narrow top),
         # which its sides' seams are not
-        found = find_seams(coord[sel], fp.w[sel], fp.scale, lo_hi[0], lo_hi[1],
-                           hyp.spacing, hyp.interior_alpha, fp.row[sel], fp.row_corr,
+        c_in, w_in, r_in = coord[sel], fp.w[sel], fp.row[sel]
+        stats: list[tuple[np.ndarray, np.ndarray]] = []  # the second search reuses them
+        found = find_seams(c_in, w_in, fp.scale, lo_hi[0], lo_hi[1],
+                           hyp.spacing, hyp.interior_alpha, r_in, fp.row_corr,
                            spread=(_whole_face_spread(fp, hyp, coord, other, size, ext)
-                                   if correlated and narrow else None))
+                                   if correlated and narrow else None), stats=stats)
         if correlated and not narrow and found.z_max > found.critical:
             # measured only where the interior's own spread lets a seam cross: elsewhere the
             # larger spread could only lower the statistic (the row then holds the own's)
-            found = find_seams(coord[sel], fp.w[sel], fp.scale, lo_hi[0], lo_hi[1],
-                               hyp.spacing, hyp.interior_alpha, fp.row[sel], fp.row_corr,
+            found = find_seams(c_in, w_in, fp.scale, lo_hi[0], lo_hi[1],
+                               hyp.spacing, hyp.interior_alpha, r_in, fp.row_corr,
                                floor_spread=_whole_face_spread(fp, hyp, coord, other,
-                                                               size, ext))
+                                                               size, ext), stats=stats)
         # the strongest groove anywhere inside, significant or not (NaN: none measurable)
         int_z.append(found.z_max if np.isfinite(found.z_max) else np.nan)
         int_crit.append(found.critical)
