@@ -430,7 +430,7 @@ def _beyond_sides(
     depth and k as an earlier one returns copies of its arrays."""
     key = ("result", plane_point.tobytes(), plane_normal.tobytes(), margin, depth, k)
     if memo is not None and key in memo:
-        return tuple(a.copy() for a in memo[key])  # type: ignore[return-value]
+        return tuple(a.copy() for a in memo[key])
     m, d = margin, depth
     strips = (((m, width - m), (-m - d, -m)), ((m, width - m), (length + m, length + m + d)),
               ((-m - d, -m), (m, length - m)), ((width + m, width + m + d), (m, length - m)))
