@@ -159,7 +159,7 @@ class VerifyContext:
         """The points at pixels (rr, cc), (n, 3) (``points[rr, cc]``), and the pixels' flat
         indices (for :meth:`var_along`)."""
         flat = rr * self.valid.shape[1] + cc
-        return self._per_pixel()[0][flat], flat
+        return _take_rows(self._per_pixel()[0], flat), flat
 
     def var_along(self, rr: np.ndarray, cc: np.ndarray, direction: np.ndarray,
                   P: np.ndarray | None = None, flat: np.ndarray | None = None) -> np.ndarray:
@@ -170,9 +170,9 @@ class VerifyContext:
         if flat is None:
             flat = rr * self.valid.shape[1] + cc
         if P is None:
-            P = pts[flat]
-        cn2 = (P @ direction) ** 2 / norm2[flat]
-        return sigma2[flat] * cn2 + lateral2[flat] * (1 - cn2)
+            P = _take_rows(pts, flat)
+        # the product stays NumPy's (BLAS: its rounding is its own); the rest in a kernel
+        return _mix_var(P @ direction, np.asarray(flat, np.int64), norm2, sigma2, lateral2)
 
     def pixels_in(self, origin: np.ndarray, x_axis: np.ndarray, y_axis: np.ndarray,
                   u_range: tuple[float, float], v_range: tuple[float, float]) -> float:
@@ -492,6 +492,32 @@ def plane_var(plane_cov: np.ndarray, normal: np.ndarray, D: np.ndarray) -> np.nd
             and D.flags.c_contiguous and Sn.dtype == np.float64):
         return normal @ So @ normal + _quad_rows(D, np.ascontiguousarray(Sn))
     return normal @ So @ normal + np.einsum("ni,ij,nj->n", D, Sn, D)
+
+
+@nb.njit(cache=True)
+def _take_rows(P: np.ndarray, flat: np.ndarray) -> np.ndarray:
+    """``P[flat]`` of a (N, 3) array."""
+    out = np.empty((flat.shape[0], 3))
+    for q in range(flat.shape[0]):
+        i = flat[q]
+        out[q, 0] = P[i, 0]
+        out[q, 1] = P[i, 1]
+        out[q, 2] = P[i, 2]
+    return out
+
+
+@nb.njit(cache=True)
+def _mix_var(pd: np.ndarray, flat: np.ndarray, norm2: np.ndarray, sigma2: np.ndarray,
+             lateral2: np.ndarray) -> np.ndarray:
+    """:meth:`VerifyContext.var_along` from the points' products with the direction, element
+    by element as its NumPy expression: cn2 = pd ** 2 / norm2, sigma2 cn2 + lateral2 (1 -
+    cn2)."""
+    out = np.empty(pd.shape[0])
+    for q in range(pd.shape[0]):
+        i = flat[q]
+        cn2 = pd[q] * pd[q] / norm2[i]
+        out[q] = sigma2[i] * cn2 + lateral2[i] * (1 - cn2)
+    return out
 
 
 @nb.njit(cache=True)
