@@ -971,10 +971,26 @@ def gap_z(coord: np.ndarray, centres: np.ndarray, h: float) -> np.ndarray:
     return np.where((nl > 0) & (nr > 0), norm_isf(p), -np.inf)
 
 
+def _seam_at_grid(position: float, h: float, reach: float | None
+                  ) -> tuple[list[tuple[float, float, np.ndarray]], float, float]:
+    """:func:`seam_at`'s positions at each scale (window g, reach r, centres) and the strip
+    [lo, hi] their windows reach."""
+    grid = []
+    for s in SEAM_SCALES:
+        g = SEAM_INNER * s * h
+        r = g if reach is None else max(float(reach), g)
+        grid.append((g, r, position + np.arange(-r, r + 0.25 * g, g)))
+    # as _seam_stats computes each scale's reach
+    lo = min(c.min() - SEAM_FLANK[1] * (s * h) for s, (_, _, c) in zip(SEAM_SCALES, grid))
+    hi = max(c.max() + SEAM_FLANK[1] * (s * h) for s, (_, _, c) in zip(SEAM_SCALES, grid))
+    return grid, float(lo), float(hi)
+
+
 def seam_at(coord: np.ndarray, w: np.ndarray, scale: float, position: float, h: float,
             alpha: float, reach: float | None = None, gaps: bool = False,
             row: np.ndarray | None = None, row_corr: float = 0.0,
-            spread: float | tuple[float, ...] = 1.0) -> tuple[float, float]:
+            spread: float | tuple[float, ...] = 1.0,
+            pre: _Sorted | None = None) -> tuple[float, float]:
     """The strongest seam (or gap) statistic near ``position``, over the groove widths of
     :data:`SEAM_SCALES`.
 
@@ -992,6 +1008,9 @@ def seam_at(coord: np.ndarray, w: np.ndarray, scale: float, position: float, h: 
         (:attr:`Seams.spread` of its interior; one float: the same at every scale): a few
         positions near one side cannot measure it. Divides the groove's statistic, not the
         gap's (a count, which correlated depth noise does not spread).
+    pre : optional
+        The points sorted over the strip the searches reach (:func:`_presorted`, over
+        :func:`_seam_at_grid`'s strip), where a caller has them.
 
     Returns
     -------
@@ -1004,15 +1023,9 @@ def seam_at(coord: np.ndarray, w: np.ndarray, scale: float, position: float, h: 
     """
     spreads = np.broadcast_to(np.asarray(spread, np.float64), (len(SEAM_SCALES),))
     z_best, n_indep = -np.inf, 0.0
-    grid = []
-    for s in SEAM_SCALES:
-        g = SEAM_INNER * s * h
-        r = g if reach is None else max(float(reach), g)
-        grid.append((g, r, position + np.arange(-r, r + 0.25 * g, g)))
-    # one sort for every scale, over the strip all of them reach (as _seam_stats does)
-    lo = min(c.min() - SEAM_FLANK[1] * (s * h) for s, (_, _, c) in zip(SEAM_SCALES, grid))
-    hi = max(c.max() + SEAM_FLANK[1] * (s * h) for s, (_, _, c) in zip(SEAM_SCALES, grid))
-    pre = _presorted(coord, w, row, lo, hi)
+    grid, lo, hi = _seam_at_grid(position, h, reach)
+    if pre is None:  # one sort for every scale, over the strip all of them reach
+        pre = _presorted(coord, w, row, lo, hi)
     for s, sp, (g, r, centres) in zip(SEAM_SCALES, spreads, grid):
         n_indep += max(3.0, 2.0 * r / g + 1.0)
         z = seam_z(coord, w, scale, centres, s * h, row, row_corr, pre) / sp

@@ -80,6 +80,8 @@ from boxloc.stages.seams import (
     FacePoints,
     _centred,
     _median,
+    _presorted,
+    _seam_at_grid,
     face_points,
     face_spread,
     find_seams,
@@ -352,10 +354,20 @@ def _side_seam(fp: FacePoints, side: int, width: float, length: float, spacing: 
                                                                + 1.0) * spacing
     idx = np.flatnonzero(sel & (np.abs(coord - at) <= lim))
     coord, along, w, row = coord[idx], along[idx], fp.w[idx], fp.row[idx]
-    zs, zc = seam_at(coord, w, fp.scale, at, spacing, alpha, reach, gaps, row, fp.row_corr, sp)
+    # the side's strip sorted once: each half's is its part, in the same order (distinct
+    # coordinates; with ties each search sorts its own)
+    _, lo, hi = _seam_at_grid(at, spacing, reach)
+    whole = _presorted(coord, w, np.arange(len(coord)), lo, hi)
+    pre = None if whole is None else (whole[0], whole[1], row[whole[2]])
+    zs, zc = seam_at(coord, w, fp.scale, at, spacing, alpha, reach, gaps, row, fp.row_corr, sp,
+                     pre)
     for half in (along < 0.5 * L, along >= 0.5 * L):
+        pre_h = None
+        if whole is not None and half.any():
+            part = half[whole[2]]
+            pre_h = (whole[0][part], whole[1][part], row[whole[2][part]])
         zh, _ = seam_at(coord[half], w[half], fp.scale, at, spacing, alpha, reach,
-                        gaps, row[half], fp.row_corr, sp)
+                        gaps, row[half], fp.row_corr, sp, pre_h)
         if zh <= 0:
             zs = min(zs, zh)
     return zs, zc
