@@ -313,6 +313,18 @@ def float32_precision(a: npt.ArrayLike) -> np.ndarray:
 _COLUMNS = ("kind", "a", "b", "statistic", "dof", "critical", "p_value", "accepted")
 
 
+def _column(x: npt.ArrayLike, dtype: Any, n: int) -> np.ndarray:
+    """``np.broadcast_to(np.asarray(x, dtype), (n,)).copy()``, without broadcast_to's cost
+    for the two common cases (a scalar, an array of n): tests are recorded by the thousand
+    per scan, a few values each."""
+    v = np.asarray(x, dtype)
+    if v.shape == (n,):
+        return v.copy()
+    if v.ndim == 0:
+        return np.full(n, v, dtype)
+    return np.broadcast_to(v, (n,)).copy()
+
+
 @dataclass(frozen=True, eq=False)
 class TestTable:
     """A column table of statistical tests.
@@ -376,8 +388,8 @@ class TestTable:
         n = t.shape[0]
         return cls(
             kind=np.full(n, int(kind), np.uint8),
-            a=np.broadcast_to(np.asarray(a, np.int32), (n,)).copy(),
-            b=np.broadcast_to(np.asarray(b, np.int32), (n,)).copy(),
+            a=_column(a, np.int32, n),
+            b=_column(b, np.int32, n),
             statistic=t,
             dof=np.full(n, dof, np.float32),
             critical=np.full(n, crit),
@@ -404,13 +416,13 @@ class TestTable:
         n = s.shape[0]
         return cls(
             kind=np.full(n, int(kind), np.uint8),
-            a=np.broadcast_to(np.asarray(a, np.int32), (n,)).copy(),
-            b=np.broadcast_to(np.asarray(b, np.int32), (n,)).copy(),
+            a=_column(a, np.int32, n),
+            b=_column(b, np.int32, n),
             statistic=s,
             dof=np.full(n, dof, np.float32),
-            critical=np.broadcast_to(np.asarray(critical, np.float64), (n,)).copy(),
-            p_value=float32_precision(np.broadcast_to(np.asarray(p_value, np.float64), (n,))),
-            accepted=np.broadcast_to(np.asarray(accepted, bool), (n,)).copy(),
+            critical=_column(critical, np.float64, n),
+            p_value=float32_precision(_column(p_value, np.float64, n)),
+            accepted=_column(accepted, bool, n),
             alpha=float(alpha),
         )
 

@@ -106,13 +106,13 @@ def side_height(ctx: VerifyContext, a: np.ndarray, b: np.ndarray, out: np.ndarra
     rr, cc = rr[keep], cc[keep]
     if len(rr) < MIN_LINE_POINTS:
         return np.nan, np.nan, 0
-    P = ctx.points[rr, cc]
+    P, flat = ctx.gather(rr, cc)
     D = P - a
     # the edge's own mixed pixels and bevel stay out: a sample in from the ends
     spacing = ctx.spacing_at(mid)
     s = D @ along
     t = D @ down
-    var = ctx.var_along(rr, cc, out) + flatness**2
+    var = ctx.var_along(rr, cc, out, P, flat) + flatness**2
     on = ((np.abs(D @ out) <= k * np.sqrt(var)) & (s > 2 * spacing) & (s < L - 2 * spacing)
           & (t > -spacing))
     if on.sum() < MIN_LINE_POINTS:
@@ -182,9 +182,9 @@ def step_height(ctx: VerifyContext, corners: np.ndarray, side: int, centre: np.n
     rr, cc, _ = pix
     if len(rr) < MIN_LINE_POINTS:
         return np.nan, np.nan, 0
-    P = ctx.points[rr, cc]
+    P, flat = ctx.gather(rr, cc)
     d = (centre - P) @ normal  # depth below the top's plane
-    sig = np.sqrt(ctx.var_along(rr, cc, normal) + flatness**2)
+    sig = np.sqrt(ctx.var_along(rr, cc, normal, P, flat) + flatness**2)
     below = d > k * sig
     if below.mean() < min_fraction or below.sum() < MIN_LINE_POINTS:
         return np.nan, np.nan, 0

@@ -562,9 +562,12 @@ def _soft_votes(x: np.ndarray, sx: np.ndarray, h: float, nbins: int) -> np.ndarr
     # only the bins within 6 sigma of a point get a share (beyond: < 1e-9 of a vote)
     lo = np.clip(np.floor((x - 6.0 * s) / h), 0, nbins - 1).astype(np.int64)
     hi = np.clip(np.floor((x + 6.0 * s) / h), 0, nbins - 1).astype(np.int64)
-    j = lo[:, None] + np.arange(int((hi - lo).max()) + 1)[None, :]
-    below = special.ndtr((j * h - x[:, None]) / s[:, None])
-    above = special.ndtr(((j + 1) * h - x[:, None]) / s[:, None])
+    # one column more: a bin's upper edge is the next one's lower edge, the same argument
+    # to ndtr ((j + 1) h - x), so its values are computed once
+    J = lo[:, None] + np.arange(int((hi - lo).max()) + 2)[None, :]
+    T = special.ndtr((J * h - x[:, None]) / s[:, None])
+    j = J[:, :-1]
+    below, above = T[:, :-1].copy(), T[:, 1:].copy()
     # mass beyond the ends stays in the end bins (as the clipped histogram did)
     below[j == 0] = 0.0
     above[j == nbins - 1] = 1.0

@@ -529,6 +529,100 @@ def _sorted_row_sums(cs: np.ndarray, r: np.ndarray, centres: np.ndarray, los: np
     return S
 
 
+@nb.njit(cache=True)
+def _pairwise_sum(a: np.ndarray, lo: int, n: int) -> float:
+    """``a[lo:lo + n].sum()`` bit for bit: NumPy's pairwise summation of float64 (eight
+    accumulators over blocks of at most 128, halves split at a multiple of 8 above)."""
+    if n < 8:
+        res = 0.0
+        for i in range(n):
+            res += a[lo + i]
+        return res
+    if n <= 128:
+        r0, r1, r2, r3 = a[lo], a[lo + 1], a[lo + 2], a[lo + 3]
+        r4, r5, r6, r7 = a[lo + 4], a[lo + 5], a[lo + 6], a[lo + 7]
+        i = 8
+        while i < n - (n % 8):
+            r0 += a[lo + i]
+            r1 += a[lo + i + 1]
+            r2 += a[lo + i + 2]
+            r3 += a[lo + i + 3]
+            r4 += a[lo + i + 4]
+            r5 += a[lo + i + 5]
+            r6 += a[lo + i + 6]
+            r7 += a[lo + i + 7]
+            i += 8
+        res = ((r0 + r1) + (r2 + r3)) + ((r4 + r5) + (r6 + r7))
+        while i < n:
+            res += a[lo + i]
+            i += 1
+        return res
+    n2 = n // 2
+    n2 -= n2 % 8
+    return _pairwise_sum(a, lo, n2) + _pairwise_sum(a, lo + n2, n - n2)
+
+
+@nb.njit(cache=True, error_model="numpy")
+def _row_term_kernel(cs: np.ndarray, row: np.ndarray, centres: np.ndarray, los: np.ndarray,
+                     his: np.ndarray, ni: np.ndarray, nl: np.ndarray, nr: np.ndarray
+                     ) -> np.ndarray:
+    """:func:`_row_term` in one kernel, bit for bit: the weights (-1 / ni, 0.5 / nl,
+    0.5 / nr), :func:`_sorted_row_sums` over the rows counted from the first, and per
+    centre the sum of the squares over the rows as NumPy sums a row of a C array
+    (:func:`_pairwise_sum`)."""
+    n = cs.shape[0]
+    rmin = row[0]
+    rmax = row[0]
+    for i in range(1, n):
+        rmin = min(rmin, row[i])
+        rmax = max(rmax, row[i])
+    R = rmax - rmin + 1
+    m = centres.shape[0]
+    coefs = np.empty((3, m))
+    for j in range(m):
+        coefs[0, j] = -1.0 / ni[j]
+        coefs[1, j] = 0.5 / nl[j]
+        coefs[2, j] = 0.5 / nr[j]
+    r = np.empty(n, np.int64)
+    for i in range(n):
+        r[i] = row[i] - rmin
+    S = _sorted_row_sums(cs, r, centres, los, his, coefs, R)
+    for q in range(S.shape[0]):
+        S[q] = S[q] * S[q]
+    out = np.empty(m)
+    for j in range(m):
+        out[j] = _pairwise_sum(S, j * R, R)
+    return out
+
+
+@nb.njit(cache=True, error_model="numpy")
+def _seam_tail(ni: np.ndarray, si: np.ndarray, nl: np.ndarray, sl: np.ndarray,
+               nr: np.ndarray, sr: np.ndarray, rt: np.ndarray, row_corr: float,
+               use_rows: bool, scale: float, flank_z: float, flank_cols: float
+               ) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`_seam_stats`' statistic and sign conditions from the window sums, element by
+    element in its NumPy expressions' order (``rt``: the row term, where ``use_rows``)."""
+    m = ni.shape[0]
+    z = np.empty(m)
+    both = np.empty(m, np.bool_)
+    for j in range(m):
+        ok = ni[j] > 0 and nl[j] > 0 and nr[j] > 0
+        mi = si[j] / ni[j]
+        ml = sl[j] / nl[j]
+        mr = sr[j] / nr[j]
+        d = 0.5 * (ml + mr) - mi
+        var = 1.0 / ni[j] + 0.25 / nl[j] + 0.25 / nr[j]
+        if use_rows:
+            var = (1.0 - row_corr) * var + row_corr * rt[j]
+        sd = scale * np.sqrt(var)
+        b = ok and (ml > mi) and (mr > mi)
+        b = b and (abs(nl[j] - nr[j]) <= (flank_z * np.sqrt(nl[j] + nr[j])
+                                          + (nl[j] + nr[j]) / flank_cols))
+        both[j] = b and (abs(ml - mr) <= d)
+        z[j] = d / sd if ok else np.nan
+    return z, both
+
+
 def _row_term(coord: np.ndarray, row: np.ndarray, centres: np.ndarray, h: float,
               ni: np.ndarray, nl: np.ndarray, nr: np.ndarray) -> np.ndarray:
     """sum over image rows of (the statistic's weights of that row's points)^2, per centre.
@@ -551,20 +645,54 @@ def _row_term(coord: np.ndarray, row: np.ndarray, centres: np.ndarray, h: float,
     return (S * S).reshape(len(centres), R).sum(1)
 
 
+#: Points sorted by their coordinate, with their residuals and rows, all coordinates
+#: distinct (:func:`_presorted`).
+_Sorted = tuple[np.ndarray, np.ndarray, np.ndarray]
+
+
+def _presorted(coord: np.ndarray, w: np.ndarray, row: np.ndarray | None, lo: float,
+               hi: float) -> _Sorted | None:
+    """The points with ``lo <= coord <= hi`` sorted once for several :func:`_seam_stats`
+    calls whose strips lie inside it (the scales of one search): each takes its strip as a
+    slice. Only where the coordinates are distinct (then a slice is the subset's one
+    sorted order); None otherwise, or where the kernels do not apply."""
+    if coord.dtype != np.float64 or w.dtype != np.float64 or not len(coord):
+        return None
+    rows = np.zeros(len(coord), np.int64) if row is None else np.asarray(row, np.int64)
+    cs, ws, rs, distinct = _strip_sorted(coord, w, rows, float(lo), float(hi))
+    return (cs, ws, rs) if distinct else None
+
+
 def _seam_stats(coord: np.ndarray, w: np.ndarray, scale: float, centres: np.ndarray,
-                h: float, row: np.ndarray | None = None, row_corr: float = 0.0
-                ) -> tuple[np.ndarray, np.ndarray]:
+                h: float, row: np.ndarray | None = None, row_corr: float = 0.0,
+                pre: _Sorted | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Flanks minus groove over its standard deviation (NaN where a window is empty), and
-    whether the groove lies behind each flank on its own, by at least half its depth."""
+    whether the groove lies behind each flank on its own, by at least half its depth.
+    ``pre``: :func:`_presorted` of the same points over a strip holding this one's."""
     if len(centres) and coord.dtype == np.float64 and w.dtype == np.float64:
         # the points in reach, sorted once for the windows and the row term (kernels)
-        rows = np.zeros(len(coord), np.int64) if row is None else np.asarray(row, np.int64)
-        coord, w, rows = _near_sorted(coord, w, rows, centres, h)
+        if pre is not None:
+            r = SEAM_FLANK[1] * h
+            cs = pre[0]
+            a = int(np.searchsorted(cs, centres.min() - r, "left"))
+            b = int(np.searchsorted(cs, centres.max() + r, "right"))
+            coord, w, rows = cs[a:b], pre[1][a:b], pre[2][a:b]
+        else:
+            rows = np.zeros(len(coord), np.int64) if row is None else np.asarray(row, np.int64)
+            coord, w, rows = _near_sorted(coord, w, rows, centres, h)
         row = None if row is None else rows
         offs = np.array(_window_offsets(h), np.float64)
-        ni, si, nl, sl, nr, sr = _sorted_window_sums(
-            coord, w, np.ascontiguousarray(centres, np.float64), offs[:, 0].copy(),
-            offs[:, 1].copy())
+        los, his = offs[:, 0].copy(), offs[:, 1].copy()
+        centres = np.ascontiguousarray(centres, np.float64)
+        ni, si, nl, sl, nr, sr = _sorted_window_sums(coord, w, centres, los, his)
+        # the row term and the statistic in kernels (the per-call cost of some twenty
+        # small NumPy expressions, thousands of calls a scan)
+        use_rows = row_corr > 0 and row is not None and len(coord) > 0
+        rt = (_row_term_kernel(np.ascontiguousarray(coord), np.ascontiguousarray(rows),
+                               centres, los, his, ni, nl, nr) if use_rows else ni)
+        return _seam_tail(ni, si, nl, sl, nr, sr, rt, float(row_corr), use_rows,
+                          float(scale), FLANK_BALANCE_Z,
+                          2.0 * (SEAM_FLANK[1] - SEAM_FLANK[0]))
     else:
         near = _in_reach(coord, centres, h)
         coord, w = coord[near], w[near]
@@ -599,7 +727,8 @@ def _seam_stats(coord: np.ndarray, w: np.ndarray, scale: float, centres: np.ndar
 
 
 def seam_z(coord: np.ndarray, w: np.ndarray, scale: float, centres: np.ndarray, h: float,
-           row: np.ndarray | None = None, row_corr: float = 0.0) -> np.ndarray:
+           row: np.ndarray | None = None, row_corr: float = 0.0,
+           pre: _Sorted | None = None) -> np.ndarray:
     """Seam statistic at each centre: flanks minus groove over its standard deviation.
 
     Parameters
@@ -614,6 +743,8 @@ def seam_z(coord: np.ndarray, w: np.ndarray, scale: float, centres: np.ndarray, 
         Candidate seam positions, metres.
     h : float
         Point spacing, metres.
+    pre : optional
+        :func:`_presorted` of the same points over a strip holding this one's.
 
     Returns
     -------
@@ -622,7 +753,7 @@ def seam_z(coord: np.ndarray, w: np.ndarray, scale: float, centres: np.ndarray, 
         -inf where it does not, or a window is empty (a ridge or a step beside the window
         lifts only one flank).
     """
-    z, both = _seam_stats(coord, w, scale, centres, h, row, row_corr)
+    z, both = _seam_stats(coord, w, scale, centres, h, row, row_corr, pre)
     return np.where(both, z, -np.inf)
 
 
@@ -647,6 +778,8 @@ def seam_spread(z: np.ndarray) -> float:
     fin = z[np.isfinite(z)]
     if len(fin) < MIN_SPREAD_POSITIONS:
         return 1.0
+    if fin.dtype == np.float64:  # np.median's value, in a kernel (thousands of calls a scan)
+        return max(1.0, float(1.4826 * _median(np.abs(fin - _median(fin)))))
     return max(1.0, float(1.4826 * np.median(np.abs(fin - np.median(fin)))))
 
 
@@ -676,13 +809,20 @@ def face_spread(coord: np.ndarray, w: np.ndarray, scale: float, extent: float, h
         are defined).
     """
     out = []
+    grid = []
     for s in SEAM_SCALES:
         reach = SEAM_FLANK[1] * s * h
-        centres = np.arange(reach, extent - reach + 0.25 * h, 0.5 * h)
+        grid.append(np.arange(reach, extent - reach + 0.25 * h, 0.5 * h))
+    # one sort for every scale, over the strip all of them reach (as _seam_stats does)
+    used = [(s, c) for s, c in zip(SEAM_SCALES, grid) if len(c) >= MIN_SPREAD_POSITIONS]
+    pre = (_presorted(coord, w, row, min(c.min() - SEAM_FLANK[1] * (s * h) for s, c in used),
+                      max(c.max() + SEAM_FLANK[1] * (s * h) for s, c in used))
+           if used and len(coord) else None)
+    for s, centres in zip(SEAM_SCALES, grid):
         if len(centres) < MIN_SPREAD_POSITIONS or len(coord) == 0:
             out.append(1.0)
             continue
-        zr, _ = _seam_stats(coord, w, scale, centres, s * h, row, row_corr)
+        zr, _ = _seam_stats(coord, w, scale, centres, s * h, row, row_corr, pre)
         out.append(seam_spread(zr))
     return tuple(out)
 
@@ -723,7 +863,8 @@ def find_seams(coord: np.ndarray, w: np.ndarray, scale: float, lo: float, hi: fl
                row_corr: float = 0.0, mask_strongest: bool = False,
                spread: tuple[float, ...] | None = None,
                level_span: float | None = None,
-               floor_spread: tuple[float, ...] | None = None) -> Seams:
+               floor_spread: tuple[float, ...] | None = None,
+               stats: list[tuple[np.ndarray, np.ndarray]] | None = None) -> Seams:
     """Significant seams between ``lo`` and ``hi`` (local maxima of :func:`seam_z`, the
     larger of its values at the groove widths of :data:`SEAM_SCALES`).
 
@@ -748,6 +889,10 @@ def find_seams(coord: np.ndarray, w: np.ndarray, scale: float, lo: float, hi: fl
         A second measure of the spread at each scale (:func:`face_spread` over the whole
         face): the statistics are divided by the larger of it and the positions' own, so a
         groove must stand out of both. :attr:`Seams.spread` stays the positions' own.
+    stats : list, optional
+        The statistic and its sign conditions at each scale: a call given an empty list
+        fills it, a call given it filled (the same points, ``lo``, ``hi`` and ``h``) takes
+        them instead of computing them again.
 
     Returns
     -------
@@ -763,8 +908,18 @@ def find_seams(coord: np.ndarray, w: np.ndarray, scale: float, lo: float, hi: fl
     n_indep = sum(max(span / (2.0 * SEAM_INNER * s * h), 1.0) for s in SEAM_SCALES)
     crit = float(norm_isf(alpha / n_indep))
     zs, spreads = [], []
+    if not stats:
+        # one sort for every scale: the widest reaches farthest
+        reach = SEAM_FLANK[1] * (max(SEAM_SCALES) * h)  # as _seam_stats computes its reach
+        pre = _presorted(coord, w, row, centres.min() - reach, centres.max() + reach)
+        computed = [_seam_stats(coord, w, scale, centres, s * h, row, row_corr, pre)
+                    for s in SEAM_SCALES]
+        if stats is not None:
+            stats.extend(computed)
+    else:
+        computed = stats
     for i, s in enumerate(SEAM_SCALES):
-        zr, both = _seam_stats(coord, w, scale, centres, s * h, row, row_corr)
+        zr, both = computed[i]
         if spread is not None:
             spreads.append(float(spread[i]))
             sp = spreads[-1]
@@ -780,8 +935,8 @@ def find_seams(coord: np.ndarray, w: np.ndarray, scale: float, lo: float, hi: fl
     Z = np.vstack(zs)
     z = Z.max(axis=0)
     width = 2.0 * SEAM_INNER * h * np.asarray(SEAM_SCALES)[Z.argmax(axis=0)]
-    left = np.r_[-np.inf, z[:-1]]
-    right = np.r_[z[1:], -np.inf]
+    left = np.concatenate(([-np.inf], z[:-1]))
+    right = np.concatenate((z[1:], [-np.inf]))
     pk = np.flatnonzero((z > crit) & (z >= left) & (z > right))
     # one seam per groove window: the strongest of maxima closer than the wider window
     keep: list[int] = []
@@ -816,10 +971,26 @@ def gap_z(coord: np.ndarray, centres: np.ndarray, h: float) -> np.ndarray:
     return np.where((nl > 0) & (nr > 0), norm_isf(p), -np.inf)
 
 
+def _seam_at_grid(position: float, h: float, reach: float | None
+                  ) -> tuple[list[tuple[float, float, np.ndarray]], float, float]:
+    """:func:`seam_at`'s positions at each scale (window g, reach r, centres) and the strip
+    [lo, hi] their windows reach."""
+    grid = []
+    for s in SEAM_SCALES:
+        g = SEAM_INNER * s * h
+        r = g if reach is None else max(float(reach), g)
+        grid.append((g, r, position + np.arange(-r, r + 0.25 * g, g)))
+    # as _seam_stats computes each scale's reach
+    lo = min(c.min() - SEAM_FLANK[1] * (s * h) for s, (_, _, c) in zip(SEAM_SCALES, grid))
+    hi = max(c.max() + SEAM_FLANK[1] * (s * h) for s, (_, _, c) in zip(SEAM_SCALES, grid))
+    return grid, float(lo), float(hi)
+
+
 def seam_at(coord: np.ndarray, w: np.ndarray, scale: float, position: float, h: float,
             alpha: float, reach: float | None = None, gaps: bool = False,
             row: np.ndarray | None = None, row_corr: float = 0.0,
-            spread: float | tuple[float, ...] = 1.0) -> tuple[float, float]:
+            spread: float | tuple[float, ...] = 1.0,
+            pre: _Sorted | None = None) -> tuple[float, float]:
     """The strongest seam (or gap) statistic near ``position``, over the groove widths of
     :data:`SEAM_SCALES`.
 
@@ -837,6 +1008,9 @@ def seam_at(coord: np.ndarray, w: np.ndarray, scale: float, position: float, h: 
         (:attr:`Seams.spread` of its interior; one float: the same at every scale): a few
         positions near one side cannot measure it. Divides the groove's statistic, not the
         gap's (a count, which correlated depth noise does not spread).
+    pre : optional
+        The points sorted over the strip the searches reach (:func:`_presorted`, over
+        :func:`_seam_at_grid`'s strip), where a caller has them.
 
     Returns
     -------
@@ -849,12 +1023,12 @@ def seam_at(coord: np.ndarray, w: np.ndarray, scale: float, position: float, h: 
     """
     spreads = np.broadcast_to(np.asarray(spread, np.float64), (len(SEAM_SCALES),))
     z_best, n_indep = -np.inf, 0.0
-    for s, sp in zip(SEAM_SCALES, spreads):
-        g = SEAM_INNER * s * h
-        r = g if reach is None else max(float(reach), g)
-        centres = position + np.arange(-r, r + 0.25 * g, g)
+    grid, lo, hi = _seam_at_grid(position, h, reach)
+    if pre is None:  # one sort for every scale, over the strip all of them reach
+        pre = _presorted(coord, w, row, lo, hi)
+    for s, sp, (g, r, centres) in zip(SEAM_SCALES, spreads, grid):
         n_indep += max(3.0, 2.0 * r / g + 1.0)
-        z = seam_z(coord, w, scale, centres, s * h, row, row_corr) / sp
+        z = seam_z(coord, w, scale, centres, s * h, row, row_corr, pre) / sp
         if gaps and s == SEAM_SCALES[0]:
             z = np.maximum(z, gap_z(coord, centres, h))
         z_best = max(z_best, float(z.max()))

@@ -61,6 +61,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
+import numba as nb
 import numpy as np
 from scipy import special
 
@@ -74,8 +75,13 @@ from boxloc.stages.raster import fill_polygon, polygon_area, rectangle_pixels
 from boxloc.stages.seams import (
     MIN_SPREAD_POSITIONS,
     SEAM_FLANK,
+    SEAM_INNER,
     SEAM_SCALES,
     FacePoints,
+    _centred,
+    _median,
+    _presorted,
+    _seam_at_grid,
     face_points,
     face_spread,
     find_seams,
@@ -119,6 +125,9 @@ class VerifyContext:
     #: (N,) jump height or fold angle of each edge point (``EdgeMap.strength``); None: not
     #: known (every jump counts as a boundary)
     edge_strength: np.ndarray | None = None
+    #: :meth:`_per_pixel`'s arrays, built at its first call
+    _flat: tuple[np.ndarray, ...] | None = field(default=None, init=False, repr=False,
+                                                 compare=False)
 
     @classmethod
     def build(cls, scan: Scan, edges: EdgeMap, config: Config, up: np.ndarray,
@@ -136,12 +145,36 @@ class VerifyContext:
         """Expected spacing of edge points along an edge at ``point``, metres."""
         return float(np.linalg.norm(point)) * self.pixel_angle
 
-    def var_along(self, rr: np.ndarray, cc: np.ndarray, direction: np.ndarray) -> np.ndarray:
+    def _per_pixel(self) -> tuple[np.ndarray, ...]:
+        """The points (H W, 3), their squared norms, ``sigma ** 2`` and ``lateral2``, each
+        (H W,), flat: :meth:`var_along` gathers from them by flat index, once per scan
+        instead of squaring and summing per call (the same element-wise values: einsum's
+        sum of one row does not depend on the other rows)."""
+        if self._flat is None:
+            P = np.ascontiguousarray(self.points, np.float64).reshape(-1, 3)
+            self._flat = (P, np.einsum("ij,ij->i", P, P),
+                          np.ascontiguousarray(self.sigma).reshape(-1) ** 2,
+                          np.ascontiguousarray(self.lateral2).reshape(-1))
+        return self._flat
+
+    def gather(self, rr: np.ndarray, cc: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The points at pixels (rr, cc), (n, 3) (``points[rr, cc]``), and the pixels' flat
+        indices (for :meth:`var_along`)."""
+        flat = rr * self.valid.shape[1] + cc
+        return _take_rows(self._per_pixel()[0], flat), flat
+
+    def var_along(self, rr: np.ndarray, cc: np.ndarray, direction: np.ndarray,
+                  P: np.ndarray | None = None, flat: np.ndarray | None = None) -> np.ndarray:
         """Variance of the points at pixels (rr, cc) along a unit direction, m^2: range
-        noise along the ray, lateral noise across it."""
-        P = self.points[rr, cc]
-        cn2 = (P @ direction) ** 2 / np.einsum("ij,ij->i", P, P)
-        return self.sigma[rr, cc] ** 2 * cn2 + self.lateral2[rr, cc] * (1 - cn2)
+        noise along the ray, lateral noise across it. ``P`` and ``flat``, where given, are
+        :meth:`gather`'s of the same pixels."""
+        pts, norm2, sigma2, lateral2 = self._per_pixel()
+        if flat is None:
+            flat = rr * self.valid.shape[1] + cc
+        if P is None:
+            P = _take_rows(pts, flat)
+        # the product stays NumPy's (BLAS: its rounding is its own); the rest in a kernel
+        return _mix_var(P @ direction, np.asarray(flat, np.int64), norm2, sigma2, lateral2)
 
     def pixels_in(self, origin: np.ndarray, x_axis: np.ndarray, y_axis: np.ndarray,
                   u_range: tuple[float, float], v_range: tuple[float, float]) -> float:
@@ -170,7 +203,18 @@ class VerifyContext:
         """
         a, b = np.asarray(a, np.float64), np.asarray(b, np.float64)
         q = self.project(np.stack([a, b]))
-        n = float(np.hypot(*(q[1] - q[0])))
+        return self._samples_between(a, b, q[0], q[1])
+
+    def samples_along_sides(self, corners: np.ndarray) -> list[float]:
+        """:meth:`samples_along` of each side 0-3 of a rectangle (``SIDE_CORNERS``), its
+        corners (4, 3) projected at once (a projection maps each point on its own)."""
+        c = np.asarray(corners, np.float64)
+        q = self.project(c)
+        return [self._samples_between(c[i], c[j], q[i], q[j]) for i, j in SIDE_CORNERS]
+
+    def _samples_between(self, a: np.ndarray, b: np.ndarray, qa: np.ndarray, qb: np.ndarray
+                         ) -> float:
+        n = float(np.hypot(*(qb - qa)))
         # off the image (a ray table has no ray there): its length over the spacing
         return n if np.isfinite(n) else float(np.linalg.norm(b - a)) / self.spacing_at(
             0.5 * (a + b))
@@ -273,6 +317,18 @@ def _interior_line_span(
     return best, best_p, best_span
 
 
+@nb.njit(cache=True)
+def _n_distinct(x: np.ndarray) -> int:
+    """``len(np.unique(x))`` of int64 values."""
+    if x.shape[0] == 0:
+        return 0
+    s = np.sort(x)
+    k = 1
+    for i in range(1, s.shape[0]):
+        k += s[i] != s[i - 1]
+    return k
+
+
 def _side_seam(fp: FacePoints, side: int, width: float, length: float, spacing: float,
                alpha: float, reach: float | None = None, gaps: bool = False
                ) -> tuple[float, float]:
@@ -290,11 +346,28 @@ def _side_seam(fp: FacePoints, side: int, width: float, length: float, spacing: 
     else:
         sel = (fp.v >= 0) & (fp.v <= length)
         coord, along, at, L, sp = fp.u, fp.v, (0.0, width)[side - 2], length, fp.spread[0]
-    zs, zc = seam_at(coord[sel], fp.w[sel], fp.scale, at, spacing, alpha, reach,
-                     gaps, fp.row[sel], fp.row_corr, sp)
-    for half in (sel & (along < 0.5 * L), sel & (along >= 0.5 * L)):
-        zh, _ = seam_at(coord[half], fp.w[half], fp.scale, at, spacing, alpha, reach,
-                        gaps, fp.row[half], fp.row_corr, sp)
+    # only the points near the side enter a window of seam_at's positions (a spacing more
+    # than its widest reach): the three searches take them, not the whole face's (the same
+    # strips, in the same order)
+    g = SEAM_INNER * max(SEAM_SCALES) * spacing
+    lim = (g if reach is None else max(float(reach), g)) + g + (SEAM_FLANK[1] * max(SEAM_SCALES)
+                                                               + 1.0) * spacing
+    idx = np.flatnonzero(sel & (np.abs(coord - at) <= lim))
+    coord, along, w, row = coord[idx], along[idx], fp.w[idx], fp.row[idx]
+    # the side's strip sorted once: each half's is its part, in the same order (distinct
+    # coordinates; with ties each search sorts its own)
+    _, lo, hi = _seam_at_grid(at, spacing, reach)
+    whole = _presorted(coord, w, np.arange(len(coord)), lo, hi)
+    pre = None if whole is None else (whole[0], whole[1], row[whole[2]])
+    zs, zc = seam_at(coord, w, fp.scale, at, spacing, alpha, reach, gaps, row, fp.row_corr, sp,
+                     pre)
+    for half in (along < 0.5 * L, along >= 0.5 * L):
+        pre_h = None
+        if whole is not None and half.any():
+            part = half[whole[2]]
+            pre_h = (whole[0][part], whole[1][part], row[whole[2][part]])
+        zh, _ = seam_at(coord[half], w[half], fp.scale, at, spacing, alpha, reach,
+                        gaps, row[half], fp.row_corr, sp, pre_h)
         if zh <= 0:
             zs = min(zs, zh)
     return zs, zc
@@ -312,6 +385,7 @@ def continuation(
     margin: float,
     depth: float,
     k: float,
+    memo: dict[Any, Any] | None = None,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """How far a face's plane continues beyond each side of a rectangle.
 
@@ -334,6 +408,8 @@ def continuation(
         Metres.
     k : float
         Critical |z| of one point.
+    memo : dict, optional
+        Shared by the calls for one rectangle (:func:`_beyond_sides`).
 
     Returns
     -------
@@ -347,18 +423,26 @@ def continuation(
         that the face ends (a face that runs out of the image may continue beyond it).
     """
     frac, _, n_valid, in_image = _beyond_sides(ctx, origin, x_axis, y_axis, width, length,
-                                               plane_point, plane_normal, margin, depth, k)
+                                               plane_point, plane_normal, margin, depth, k,
+                                               memo)
     return frac, n_valid, in_image
 
 
 def _beyond_sides(
     ctx: VerifyContext, origin: np.ndarray, x_axis: np.ndarray, y_axis: np.ndarray,
     width: float, length: float, plane_point: np.ndarray, plane_normal: np.ndarray,
-    margin: float, depth: float, k: float,
+    margin: float, depth: float, k: float, memo: dict[Any, Any] | None = None,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """:func:`continuation`'s strips: per side 0-3 the fraction of their valid pixels on
     the plane and the fraction in front of it (toward the sensor, beyond ``k``), both NaN
-    where too few; the valid pixels; whether the strip is mostly in the image."""
+    where too few; the valid pixels; whether the strip is mostly in the image.
+
+    ``memo``: a dict kept over the calls for one rectangle (one frame, width and length):
+    each strip is rasterized and gathered once, and a call with the same plane, margin,
+    depth and k as an earlier one returns copies of its arrays."""
+    key = ("result", plane_point.tobytes(), plane_normal.tobytes(), margin, depth, k)
+    if memo is not None and key in memo:
+        return tuple(a.copy() for a in memo[key])
     m, d = margin, depth
     strips = (((m, width - m), (-m - d, -m)), ((m, width - m), (length + m, length + m + d)),
               ((-m - d, -m), (m, length - m)), ((width + m, width + m + d), (m, length - m)))
@@ -367,21 +451,31 @@ def _beyond_sides(
     n_valid = np.zeros(4, np.int64)
     in_image = np.zeros(4, bool)
     for si, (u_range, v_range) in enumerate(strips):
-        pix = rectangle_pixels(ctx.project, ctx.valid, origin, x_axis, y_axis, u_range,
-                               v_range)
+        pkey = ("strip", si, margin, depth)
+        if memo is not None and pkey in memo:
+            pix, gathered = memo[pkey]
+        else:
+            pix = rectangle_pixels(ctx.project, ctx.valid, origin, x_axis, y_axis, u_range,
+                                   v_range)
+            gathered = (ctx.gather(pix[0], pix[1]) if pix is not None
+                        and len(pix[0]) >= MIN_LINE_POINTS else None)
+            if memo is not None:
+                memo[pkey] = pix, gathered
         if pix is None:
             continue
         rr, cc, inside = pix
         # most of the strip must be in the image to show anything of the side
         in_image[si] = inside >= 0.5
         n_valid[si] = len(rr)
-        if len(rr) < MIN_LINE_POINTS:
+        if gathered is None:
             continue
-        P = ctx.points[rr, cc]
-        var = ctx.var_along(rr, cc, plane_normal)
+        P, flat = gathered
+        var = ctx.var_along(rr, cc, plane_normal, P, flat)
         z = ((P - plane_point) @ plane_normal) / np.sqrt(var)
         frac[si] = float((np.abs(z) <= k).mean())
         front[si] = float((z > k).mean())
+    if memo is not None:
+        memo[key] = (frac.copy(), front.copy(), n_valid.copy(), in_image.copy())
     return frac, front, n_valid, in_image
 
 
@@ -404,7 +498,52 @@ def plane_var(plane_cov: np.ndarray, normal: np.ndarray, D: np.ndarray) -> np.nd
     D : (n, 3) float64
     """
     So, Sn = plane_cov[:3, :3], plane_cov[3:, 3:]
+    # einsum sums one row in another order (and a strided Sn in yet another): the kernel
+    # only where it matches it, C-contiguous rows, two or more
+    if (D.dtype == np.float64 and D.ndim == 2 and D.shape[0] > 1 and D.shape[1] == 3
+            and D.flags.c_contiguous and Sn.dtype == np.float64):
+        return normal @ So @ normal + _quad_rows(D, np.ascontiguousarray(Sn))
     return normal @ So @ normal + np.einsum("ni,ij,nj->n", D, Sn, D)
+
+
+@nb.njit(cache=True)
+def _take_rows(P: np.ndarray, flat: np.ndarray) -> np.ndarray:
+    """``P[flat]`` of a (N, 3) array."""
+    out = np.empty((flat.shape[0], 3))
+    for q in range(flat.shape[0]):
+        i = flat[q]
+        out[q, 0] = P[i, 0]
+        out[q, 1] = P[i, 1]
+        out[q, 2] = P[i, 2]
+    return out
+
+
+@nb.njit(cache=True)
+def _mix_var(pd: np.ndarray, flat: np.ndarray, norm2: np.ndarray, sigma2: np.ndarray,
+             lateral2: np.ndarray) -> np.ndarray:
+    """:meth:`VerifyContext.var_along` from the points' products with the direction, element
+    by element as its NumPy expression: cn2 = pd ** 2 / norm2, sigma2 cn2 + lateral2 (1 -
+    cn2)."""
+    out = np.empty(pd.shape[0])
+    for q in range(pd.shape[0]):
+        i = flat[q]
+        cn2 = pd[q] * pd[q] / norm2[i]
+        out[q] = sigma2[i] * cn2 + lateral2[i] * (1 - cn2)
+    return out
+
+
+@nb.njit(cache=True)
+def _quad_rows(D: np.ndarray, S: np.ndarray) -> np.ndarray:
+    """``np.einsum("ni,ij,nj->n", D, S, D)`` bit for bit, without its iterator's per-call
+    cost: per row, the terms (D_i S_ij) D_j summed in (i, j) order from 0.0."""
+    out = np.empty(D.shape[0])
+    for q in range(D.shape[0]):
+        acc = 0.0
+        for i in range(3):
+            for j in range(3):
+                acc += D[q, i] * S[i, j] * D[q, j]
+        out[q] = acc
+    return out
 
 
 def face_extent(
@@ -452,9 +591,9 @@ def face_extent(
     if pix is None:
         return np.nan, gap
     rr, cc, _ = pix
-    P = ctx.points[rr, cc]
+    P, flat = ctx.gather(rr, cc)
     D = P - origin
-    var = ctx.var_along(rr, cc, normal) + flatness**2 + plane_var(plane_cov, normal, D)
+    var = ctx.var_along(rr, cc, normal, P, flat) + flatness**2 + plane_var(plane_cov, normal, D)
     on = np.abs(D @ normal) <= k * np.sqrt(var)
     t = np.sort(D[on] @ along)
     t = t[t >= 0.0]
@@ -702,7 +841,7 @@ def _test_boundary(edges: _FaceEdges, hyp: _Hypothesis, ctx: VerifyContext,
         for near, along, L in sides:
             sel = kind_mask & near & (along >= 0) & (along <= L)
             # distinct positions along the side (one per spacing): coverage, not density
-            k_s = len(np.unique(np.floor(along[sel] / spacing).astype(np.int64)))
+            k_s = _n_distinct(np.floor(along[sel] / spacing).astype(np.int64))
             counts.append(k_s)
             p_values.append(_poisson_sf(k_s - 1, density * L * 2 * band))
         return counts, p_values
@@ -713,7 +852,7 @@ def _test_boundary(edges: _FaceEdges, hyp: _Hypothesis, ctx: VerifyContext,
     concave, _ = side_lines(edges.near_plane & (edges.kinds == EdgeKind.CREASE_CONCAVE))
     side_min = [max(MIN_LINE_POINTS, kc) for kc in concave]
     corners = rectangle_corners(hyp.origin, hyp.x_axis, hyp.y_axis, width, length)
-    expected = [ctx.samples_along(corners[a], corners[b]) for a, b in SIDE_CORNERS]
+    expected = ctx.samples_along_sides(corners)
     ok = [(k >= kmin and pv < hyp.alpha) for k, kmin, pv in zip(covered, side_min, side_p)]
     result = _Sides(covered, ok, expected)
     frac = result.fraction()
@@ -810,17 +949,19 @@ def _test_seam_interior(fp: FacePoints, hyp: _Hypothesis, correlated: bool = Fal
         # the whole face's spread only where the model is correlated: where it is white,
         # what spreads a face is its own shape (a bulged lid's curve across a narrow top),
         # which its sides' seams are not
-        found = find_seams(coord[sel], fp.w[sel], fp.scale, lo_hi[0], lo_hi[1],
-                           hyp.spacing, hyp.interior_alpha, fp.row[sel], fp.row_corr,
+        c_in, w_in, r_in = coord[sel], fp.w[sel], fp.row[sel]
+        stats: list[tuple[np.ndarray, np.ndarray]] = []  # the second search reuses them
+        found = find_seams(c_in, w_in, fp.scale, lo_hi[0], lo_hi[1],
+                           hyp.spacing, hyp.interior_alpha, r_in, fp.row_corr,
                            spread=(_whole_face_spread(fp, hyp, coord, other, size, ext)
-                                   if correlated and narrow else None))
+                                   if correlated and narrow else None), stats=stats)
         if correlated and not narrow and found.z_max > found.critical:
             # measured only where the interior's own spread lets a seam cross: elsewhere the
             # larger spread could only lower the statistic (the row then holds the own's)
-            found = find_seams(coord[sel], fp.w[sel], fp.scale, lo_hi[0], lo_hi[1],
-                               hyp.spacing, hyp.interior_alpha, fp.row[sel], fp.row_corr,
+            found = find_seams(c_in, w_in, fp.scale, lo_hi[0], lo_hi[1],
+                               hyp.spacing, hyp.interior_alpha, r_in, fp.row_corr,
                                floor_spread=_whole_face_spread(fp, hyp, coord, other,
-                                                               size, ext))
+                                                               size, ext), stats=stats)
         # the strongest groove anywhere inside, significant or not (NaN: none measurable)
         int_z.append(found.z_max if np.isfinite(found.z_max) else np.nan)
         int_crit.append(found.critical)
@@ -831,7 +972,8 @@ def _test_seam_interior(fp: FacePoints, hyp: _Hypothesis, correlated: bool = Fal
 
 
 def _test_plane_ends(ctx: VerifyContext, hyp: _Hypothesis, fit: _FaceFit | None,
-                     sides: _Sides, support_fraction: float) -> list[TestTable]:
+                     sides: _Sides, support_fraction: float,
+                     memo: dict[Any, Any] | None = None) -> list[TestTable]:
     """VERIFY_PLANE_END: a side that is no boundary by its edges (nor a seam) is one where
     the face's refitted plane ends just beyond it, dropping away: at most
     ``PLANE_END_FRACTION`` of the valid pixels of the strip beyond the side (as
@@ -856,7 +998,7 @@ def _test_plane_ends(ctx: VerifyContext, hyp: _Hypothesis, fit: _FaceFit | None,
     centre, normal = (hyp.origin, hyp.normal) if fit is None else (fit.centre, fit.normal)
     frac, front, _, in_image = _beyond_sides(ctx, hyp.origin, hyp.x_axis, hyp.y_axis,
                                              hyp.width, hyp.length, centre, normal, m,
-                                             hyp.flank - m, hyp.k)
+                                             hyp.flank - m, hyp.k, memo)
     # a top's side drops away (behind the plane); a wall rising in front of it is a lower
     # face's side, which a top's never is (the concave creases of VERIFY_BOUNDARY)
     ends = [bool(in_image[si] and np.isfinite(frac[si]) and frac[si] <= PLANE_END_FRACTION
@@ -871,7 +1013,8 @@ def _test_plane_ends(ctx: VerifyContext, hyp: _Hypothesis, fit: _FaceFit | None,
 
 
 def _test_continuation(ctx: VerifyContext, fp: FacePoints, hyp: _Hypothesis, fit: _FaceFit,
-                       sides: _Sides, min_inlier_fraction: float
+                       sides: _Sides, min_inlier_fraction: float,
+                       memo: dict[Any, Any] | None = None
                        ) -> tuple[np.ndarray, np.ndarray, list[TestTable]]:
     """VERIFY_CONTINUATION: the face ends at each side, its plane does not run on beyond,
     unless the side is a seam or a gap between equal neighbours (a rectangle cut short
@@ -891,7 +1034,7 @@ def _test_continuation(ctx: VerifyContext, fp: FacePoints, hyp: _Hypothesis, fit
     m = hyp.margin
     cont, _, in_image = continuation(ctx, hyp.origin, hyp.x_axis, hyp.y_axis, hyp.width,
                                      hyp.length, fit.centre, fit.normal, m, hyp.flank - m,
-                                     hyp.k)
+                                     hyp.k, memo)
     continues = cont >= min_inlier_fraction
     ends = ~continues
     extra_seam: list[tuple[int, float, float]] = []
@@ -1047,20 +1190,20 @@ def _fit_face(ctx: VerifyContext, hyp: _Hypothesis, rows: np.ndarray, cols: np.n
     """The points at valid pixels (rows, cols) inside the rectangle, against its plane and
     against the plane refitted to them; None if fewer than 3 lie on the rectangle's."""
     k, m, normal = hyp.k, hyp.margin, hyp.normal
-    P = ctx.points[rows, cols]
+    P, flat = ctx.gather(rows, cols)
     D = P - hyp.origin
     w0 = D @ normal
     # each point's noise along the normal; the flatness prior covers cardboard bulge
-    var_pt = ctx.var_along(rows, cols, normal) + flatness**2
+    var_pt = ctx.var_along(rows, cols, normal, P, flat) + flatness**2
     # 1) points on the plane of R, with R's own uncertainty
     var_pl = plane_var(hyp.plane_cov, normal, D)
     on0 = np.abs(w0) <= k * np.sqrt(var_pt + var_pl)
     if on0.sum() < 3:
         return None
     # 2) the face's plane refitted to them, with covariance
-    Q = P[on0]
-    c = Q.mean(0)
-    lam, V = np.linalg.eigh((Q - c).T @ (Q - c))
+    # Q = P[on0], its mean c and (Q - c) twice, in a kernel (as face_points)
+    c, X1, X2 = _centred(P, on0)
+    lam, V = np.linalg.eigh(X1.T @ X2)
     nf = V[:, 0] if V[:, 0] @ normal > 0 else -V[:, 0]
     # 3) inliers, front and behind against the refitted plane (point noise only)
     z = ((P - c) @ nf) / np.sqrt(var_pt)
@@ -1076,7 +1219,7 @@ def _fit_face(ctx: VerifyContext, hyp: _Hypothesis, rows: np.ndarray, cols: np.n
     if not core.any():
         core[:] = True
     n_in = int(inl.sum())
-    s2 = float(max(lam[0] / max(int(on0.sum()) - 3, 1), np.median(var_pt[on0])))
+    s2 = float(max(lam[0] / max(int(on0.sum()) - 3, 1), _median(var_pt[on0])))
     cov = np.zeros((6, 6))
     cov[:3, :3] = s2 / max(n_in, 1) * np.eye(3)
     cov[3:, 3:] = s2 * (np.outer(V[:, 1], V[:, 1]) / max(lam[1], 1e-12)
@@ -1223,6 +1366,8 @@ def verify(
     if crossed and not region:
         return _failed(VerifyReason.INTERIOR_SEAM, tests, alpha, n_interior_edges=n_int)
     bound = sides.bound(config.support_fraction)
+    # the strips beyond the sides, rasterized once for the plane-end and continuation tests
+    strips: dict[Any, Any] = {}
     # a region's sides short of p together may be covered by the plane's end; a box's not
     # (on bare active-stereo pallets that made false surfaces): 0 asks for no coverage
     end_fraction = config.support_fraction if region else 0.0
@@ -1233,7 +1378,7 @@ def verify(
         # sides without their line of edges may still end where the face's plane drops
         # away just beyond them: first against the rectangle's own plane (cheap: the strips
         # only); only where that shows an end is the plane refitted to decide (below)
-        unbound = _test_plane_ends(ctx, hyp, None, sides.copy(), end_fraction)
+        unbound = _test_plane_ends(ctx, hyp, None, sides.copy(), end_fraction, strips)
         if not unbound or not unbound[0].accepted.any():
             return _failed(VerifyReason.BOUNDARY, tests + unbound, alpha,
                            n_interior_edges=n_int)
@@ -1259,7 +1404,7 @@ def verify(
         return before_fit(VerifyReason.INLIERS, n_inside=n_inside, n_valid=n_valid)
     if not bound:
         # sides without their line of edges: the face's plane may still end just beyond
-        tests += _test_plane_ends(ctx, hyp, fit, sides, end_fraction)
+        tests += _test_plane_ends(ctx, hyp, fit, sides, end_fraction, strips)
         if not sides.bound(config.support_fraction):
             return _failed(VerifyReason.BOUNDARY, tests, alpha, n_inside=n_inside,
                            n_valid=n_valid, n_interior_edges=n_int)
@@ -1271,7 +1416,8 @@ def verify(
     tests.append(row)
     mean, s2_mean, mean_t = _test_mean(fit, hyp, config.flatness)
     tests.append(mean_t)
-    ends, cut, rows = _test_continuation(ctx, fp, hyp, fit, sides, config.min_inlier_fraction)
+    ends, cut, rows = _test_continuation(ctx, fp, hyp, fit, sides, config.min_inlier_fraction,
+                                         strips)
     tests += rows
 
     reason = (VerifyReason.NOT_EXPOSED if not exposed
