@@ -109,9 +109,10 @@ EXPECTED = {
     "/stats/timing/total": "Scalars:scalars",
     "/stats/timing/edges": "Scalars:scalars",
     "/stats/counts/surfaces": "Scalars:scalars",
-    "/stats/tests/accepted_fraction/JUMP": "Scalars:scalars",
-    "/stats/tests/median_ratio/VERIFY_MEAN": "Scalars:scalars",
-    "/stats/tests/n_tested/POINT_ON_LINE": "Scalars:scalars",
+    "/stats/tests/accepted_fraction": "Scalars:scalars",
+    "/stats/tests/median_ratio": "Scalars:scalars",
+    "/stats/tests/n_tested": "Scalars:scalars",
+    "/stats/tests/max_ratio": "SeriesLines:names",
     "/stats/noise/source": "Scalars:scalars",
     "/stats/noise/reason": "TextDocument:text",
 }
@@ -598,3 +599,40 @@ def test_measure_rerun_overhead_reports_both_runs() -> None:
     assert out["log_fraction"] == pytest.approx(out["log_only_s"] / out["pipeline_s"])
     with pytest.raises(ValueError, match="at least one scan"):
         measure_rerun_overhead([], Config())
+
+
+class _Calls:
+    """A recording stream that keeps what it is asked to log."""
+
+    def __init__(self) -> None:
+        self.logged: list[tuple[str, object]] = []
+
+    def log(self, path: str, archetype: object, **_: object) -> None:
+        self.logged.append((path, archetype))
+
+
+def test_the_test_statistics_are_one_batch_per_measure_over_all_of_a_scans_tables() -> None:
+    from boxloc.stats import TestKind, TestTable
+
+    jump = TestTable.decision(TestKind.JUMP, np.arange(3), -1, [1.0, 4.0, 9.0], 2.0,
+                              [True, False, True], 0.01)
+    verify = TestTable.decision(TestKind.VERIFY_MEAN, 0, -1, 3.0, 1.0, False, 0.01)
+    rec = _Calls()
+    rs.log_tests(rec, [jump, TestTable.empty(0.01), verify], prefix="b")
+    # five calls a scan, whatever the number of kinds and tables
+    assert [p for p, _ in rec.logged] == [f"/b/stats/tests/{m}" for m in rs.TEST_MEASURES]
+    values = {p.rsplit("/", 1)[1]: a.scalars.as_arrow_array().to_numpy()
+              for p, a in rec.logged}
+    j, v = rs.TEST_SERIES.index("JUMP"), rs.TEST_SERIES.index("VERIFY_MEAN")
+    assert values["n_tested"][j] == 3 and values["n_accepted"][j] == 2
+    assert values["accepted_fraction"][j] == pytest.approx(2 / 3)
+    assert values["median_ratio"][j] == 2.0 and values["max_ratio"][j] == 4.5
+    assert values["n_tested"][v] == 1 and values["accepted_fraction"][v] == 0.0
+    assert values["max_ratio"][v] == 3.0
+    # a kind no table holds is a gap in its series, not a zero
+    others = np.ones(len(rs.TEST_SERIES), bool)
+    others[[j, v]] = False
+    assert all(np.isnan(x[others]).all() for x in values.values())
+    rec2 = _Calls()
+    rs.log_tests(rec2, [TestTable.empty(0.01)])
+    assert rec2.logged == []  # nothing tested: nothing logged

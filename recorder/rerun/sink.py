@@ -19,8 +19,10 @@ so that two runs can share one recording::
     world/hypotheses/rejected       rectangles of the attempts that failed (labels say why)
     world/surfaces                  graspable surfaces, labelled "#id pick k"
     world/surfaces/grasp            grasp points; world/surfaces/normals: the normals
-    stats/tests/<measure>/<KIND>    per scan: n_tested, n_accepted, accepted_fraction,
-                                    median_ratio and max_ratio of statistic / critical
+    stats/tests/<measure>           per scan, one series per test kind (TestKind order,
+                                    NaN where the scan made no such test): n_tested,
+                                    n_accepted, accepted_fraction, median_ratio and
+                                    max_ratio of statistic / critical
     stats/counts/<what>             per scan: edge points, lines, vertices, hypotheses, ...
     stats/noise/<what>              per scan: the range sigma of the model in use at the
                                     scan's median range (mm), its row_corr, the NOISE_FIT z,
@@ -28,9 +30,10 @@ so that two runs can share one recording::
     stats/selection/objective       the MDL objective m^T Q m
     stats/timing/<stage>            wall-clock per stage, milliseconds
 
-The test statistics are grouped by measure, then kind, because a time-series plot names a
-series after the last path component and selects whole subtrees: one plot per measure then
-shows one series per kind.
+The test statistics are one entity per measure, a batch of one value per test kind in a
+fixed order, named by a static ``SeriesLines``: one plot per measure shows one series per
+kind, and a scan costs five calls, not five per kind (about 160: a third of the sink's work
+when each was its own entity). They are logged once per scan, over all of its stages' tests.
 
 Frames
 ------
@@ -120,8 +123,10 @@ STATS_SELECTION = "stats/selection"
 STATS_NOISE = "stats/noise"
 STATS_TIMING = "stats/timing"
 
-#: per-kind test measures logged under ``stats/tests/<measure>/<KIND>``
+#: test measures, one entity each under ``stats/tests/<measure>``, a series per kind
 TEST_MEASURES = ("n_tested", "n_accepted", "accepted_fraction", "median_ratio", "max_ratio")
+#: the kinds in the order of each measure's batch (its series)
+TEST_SERIES = tuple(k.name for k in TestKind)
 
 TIMELINE_SCAN = "scan"
 TIMELINE_CAPTURE = "capture_time"
@@ -232,7 +237,8 @@ def set_scan_time(rec: rr.RecordingStream, scan: Scan) -> None:
 
 
 def log_setup(rec: rr.RecordingStream, *, prefix: str = "") -> None:
-    """Static data: the world's axes convention and the edge-kind annotation contexts."""
+    """Static data: the world's axes convention, the edge-kind annotation contexts and the
+    test measures' series names."""
     rec.log(_root(prefix), rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
     infos = [rr.AnnotationInfo(id=0, label="none", color=(0, 0, 0, 0))]
     for k in EdgeKind:
@@ -242,6 +248,9 @@ def log_setup(rec: rr.RecordingStream, *, prefix: str = "") -> None:
     ctx = rr.AnnotationContext(infos)
     rec.log(entity(prefix, EDGE_IMAGE), ctx, static=True)
     rec.log(entity(prefix, EDGES_3D), ctx, static=True)
+    for measure in TEST_MEASURES:
+        rec.log(entity(prefix, f"{STATS_TESTS}/{measure}"),
+                rr.SeriesLines(names=list(TEST_SERIES)), static=True)
 
 
 def log_camera(
@@ -317,23 +326,36 @@ def log_scan(
             rr.Points3D(P, colors=_height_colors(P, T), radii=rr.Radius.ui_points(1.5)))
 
 
-def log_tests(rec: rr.RecordingStream, tests: TestTable, *, prefix: str = "") -> None:
-    """Per kind: tests made, accepted, and the median/max of statistic / critical."""
-    for k in np.unique(tests.kind):
-        t = tests.of_kind(TestKind(int(k)))
-        name = TestKind(int(k)).name
-        n = len(t)
-        n_acc = int(np.count_nonzero(t.accepted))
-        base = entity(prefix, STATS_TESTS)
-        _scalar(rec, f"{base}/n_tested/{name}", n)
-        _scalar(rec, f"{base}/n_accepted/{name}", n_acc)
-        _scalar(rec, f"{base}/accepted_fraction/{name}", n_acc / n if n else math.nan)
-        with np.errstate(divide="ignore", invalid="ignore"):
-            ratio = t.statistic / t.critical
-        ratio = ratio[np.isfinite(ratio)]
-        if ratio.size:
-            _scalar(rec, f"{base}/median_ratio/{name}", float(np.median(ratio)))
-            _scalar(rec, f"{base}/max_ratio/{name}", float(ratio.max()))
+def log_tests(rec: rr.RecordingStream, tests: TestTable | Sequence[TestTable], *,
+              prefix: str = "") -> None:
+    """Per test kind: tests made, accepted, and the median/max of statistic / critical.
+
+    Each measure is one batch over :data:`TEST_SERIES` (NaN for a kind not tested), so call
+    it once per scan with every stage's tests: a second call at the same time would add a
+    second point to each series.
+    """
+    tables = [t for t in ([tests] if isinstance(tests, TestTable) else tests) if len(t)]
+    if not tables:
+        return
+    kind = np.concatenate([t.kind for t in tables]).astype(np.int64)
+    accepted = np.concatenate([t.accepted for t in tables]).astype(bool)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        ratio = np.concatenate([np.asarray(t.statistic, np.float64)
+                                / np.asarray(t.critical, np.float64) for t in tables])
+    index = {k.value: i for i, k in enumerate(TestKind)}
+    values = np.full((len(TEST_MEASURES), len(TEST_SERIES)), np.nan)
+    for k in np.unique(kind):
+        sel = kind == k
+        n = int(sel.sum())
+        n_acc = int(np.count_nonzero(accepted[sel]))
+        r = ratio[sel]
+        r = r[np.isfinite(r)]
+        col = index[int(k)]
+        values[:, col] = (n, n_acc, n_acc / n, np.median(r) if r.size else np.nan,
+                          r.max() if r.size else np.nan)
+    base = entity(prefix, STATS_TESTS)
+    for measure, row in zip(TEST_MEASURES, values):
+        rec.log(f"{base}/{measure}", rr.Scalars(row))
 
 
 def log_edges(rec: rr.RecordingStream, edges: EdgeMap, *, prefix: str = "") -> None:
@@ -347,7 +369,6 @@ def log_edges(rec: rr.RecordingStream, edges: EdgeMap, *, prefix: str = "") -> N
                      strength=np.asarray(edges.strength, np.float64)),
     )
     _scalar(rec, entity(prefix, f"{STATS_COUNTS}/edge_points"), len(edges))
-    log_tests(rec, edges.tests, prefix=prefix)
 
 
 def log_lines(rec: rr.RecordingStream, lines: LineSet, *, prefix: str = "") -> None:
@@ -365,7 +386,6 @@ def log_lines(rec: rr.RecordingStream, lines: LineSet, *, prefix: str = "") -> N
     )
     _scalar(rec, entity(prefix, f"{STATS_COUNTS}/lines"), len(lines))
     _scalar(rec, entity(prefix, f"{STATS_COUNTS}/hough_trials"), lines.n_trials)
-    log_tests(rec, lines.tests, prefix=prefix)
 
 
 def log_vertices(rec: rr.RecordingStream, vertices: VertexSet, *, prefix: str = "") -> None:
@@ -386,7 +406,6 @@ def log_vertices(rec: rr.RecordingStream, vertices: VertexSet, *, prefix: str = 
             rr.Arrows3D(origins=origins, vectors=vectors, colors=colors,
                         radii=rr.Radius.ui_points(1.0)))
     _scalar(rec, entity(prefix, f"{STATS_COUNTS}/vertices"), n)
-    log_tests(rec, vertices.tests, prefix=prefix)
 
 
 def attempt_corners(hypotheses: HypothesisSet) -> np.ndarray:
@@ -450,7 +469,6 @@ def log_hypotheses(
         )
     _scalar(rec, entity(prefix, f"{STATS_COUNTS}/hypotheses"), len(hypotheses))
     _scalar(rec, entity(prefix, f"{STATS_COUNTS}/attempts"), k)
-    log_tests(rec, hypotheses.tests, prefix=prefix)
 
 
 def log_verification(
@@ -459,7 +477,6 @@ def log_verification(
     """Verification counts and tests (the rectangles are drawn by :func:`log_hypotheses`)."""
     _scalar(rec, entity(prefix, f"{STATS_COUNTS}/verified"),
             int(np.count_nonzero(verification.accepted)))
-    log_tests(rec, verification.tests, prefix=prefix)
 
 
 def log_selection(rec: rr.RecordingStream, selection: Selection, *, prefix: str = "") -> None:
@@ -501,7 +518,6 @@ def log_surfaces(rec: rr.RecordingStream, surfaces: SurfaceSet, *, prefix: str =
             rr.Arrows3D(origins=surfaces.grasp_points, vectors=0.1 * surfaces.normals,
                         colors=colors, radii=rr.Radius.ui_points(1.5)))
     _scalar(rec, entity(prefix, f"{STATS_COUNTS}/surfaces"), n)
-    log_tests(rec, surfaces.tests, prefix=prefix)
 
 
 def _surface_label(surfaces: SurfaceSet, i: int) -> str:
@@ -556,7 +572,6 @@ def log_ambiguous(rec: rr.RecordingStream, ambiguous: AmbiguousSet, *,
                      length=np.asarray(ambiguous.length, np.float64)),
     )
     _scalar(rec, entity(prefix, f"{STATS_COUNTS}/ambiguous"), n)
-    log_tests(rec, ambiguous.tests, prefix=prefix)
 
 
 def log_noise(rec: rr.RecordingStream, noise: NoiseEstimate, *, prefix: str = "") -> None:
@@ -573,7 +588,6 @@ def log_noise(rec: rr.RecordingStream, noise: NoiseEstimate, *, prefix: str = ""
         _scalar(rec, entity(prefix, f"{STATS_NOISE}/fit_z"), float(fit.statistic[0]))
     rec.log(entity(prefix, f"{STATS_NOISE}/reason"),
             rr.TextDocument(f"{NoiseSource(noise.source).name}: {noise.reason}"))
-    log_tests(rec, noise.tests, prefix=prefix)
 
 
 def log_timing(
@@ -625,11 +639,17 @@ def log_products(
         p = products.get(stage)
         if p is not None:
             fn(rec, p, prefix=prefix)
+    log_tests(rec, _tests_of(products.values()), prefix=prefix)
     timing = products.get("timing", products.get("timing_ms"))
     if isinstance(timing, Result):
         timing = timing.timing_ms
     if isinstance(timing, Mapping):
         log_timing(rec, timing, prefix=prefix)
+
+
+def _tests_of(products: Iterable[Any]) -> list[TestTable]:
+    """The test tables of the products that have one."""
+    return [t for p in products if isinstance(t := getattr(p, "tests", None), TestTable)]
 
 
 def log_recording(
@@ -711,6 +731,7 @@ class RerunSink(NullObserver):
         self._setup_done = False
         self._last_sensor: dict[str, Any] | None = None
         self._pending_hypotheses: HypothesisSet | None = None
+        self._pending_tests: list[TestTable] = []  # this scan's, logged with its result
         self._queue: queue.Queue[_Item] | None = None
         self._thread: threading.Thread | None = None
         if threaded:
@@ -759,6 +780,7 @@ class RerunSink(NullObserver):
 
     def _do_scan(self, scan: Scan, config: Config | None) -> None:
         self._pending_hypotheses = None  # from a scan whose pipeline stopped half-way
+        self._pending_tests = []
         if not self._setup_done:
             log_setup(self.rec, prefix=self.prefix)
             if config is not None:
@@ -775,6 +797,12 @@ class RerunSink(NullObserver):
     def _do(self, fn: Callable[..., None], scan: Scan, *products: Any) -> None:
         set_scan_time(self.rec, scan)
         fn(self.rec, *products, prefix=self.prefix)
+        self._pending_tests += _tests_of(products)
+
+    def _do_tests(self, scan: Scan) -> None:
+        set_scan_time(self.rec, scan)
+        log_tests(self.rec, self._pending_tests, prefix=self.prefix)
+        self._pending_tests = []
 
     def _do_hypotheses(self, scan: Scan, hyps: HypothesisSet) -> None:
         # Drawn with the verification that follows, which knows each attempt's verdict.
@@ -784,8 +812,10 @@ class RerunSink(NullObserver):
         set_scan_time(self.rec, scan)
         if self._pending_hypotheses is not None:
             log_hypotheses(self.rec, self._pending_hypotheses, ver, prefix=self.prefix)
+            self._pending_tests += _tests_of([self._pending_hypotheses])
             self._pending_hypotheses = None
         log_verification(self.rec, ver, prefix=self.prefix)
+        self._pending_tests += _tests_of([ver])
 
     # -- the observer protocol --
 
@@ -819,6 +849,7 @@ class RerunSink(NullObserver):
     def on_result(self, scan: Scan, result: Result) -> None:
         # the ambiguous regions come with the result (no stage of their own)
         self._submit(self._do, log_ambiguous, scan, result.ambiguous)
+        self._submit(self._do_tests, scan)
         self._submit(self._do, log_timing, scan, result.timing_ms)
 
     # -- lifetime --
