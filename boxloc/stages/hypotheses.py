@@ -1200,23 +1200,6 @@ MAX_REGION_CORNERS = 4
 
 _Part = tuple[tuple[np.ndarray, ...], int, _Attempt, frozenset[int]]  # vertex, parent, plan, cut
 
-#: A flat region's end lies within about this many correlation lengths of the noise of the
-#: true side (one standard deviation): a sensor that matches windows smooths a step over
-#: its window, which also correlates its noise, and rounds the region's end off by pixels
-#: (active stereo: edges 4-5 px inside the sides, regions 30-150 mm short, method.md).
-REGION_END_CORR = 1.0
-
-
-def region_end_sigma(scan: Scan, config: Config, corner: np.ndarray) -> float:
-    """Standard deviation of the position of a flat region's end, metres: REGION_END_CORR
-    correlation lengths of the noise model in use (the larger of rows and columns) times
-    the pixel's footprint at the region's corner (range x pixel angle); 0 for white noise.
-    """
-    corr = max(config.noise.corr_px_rows, config.noise.corr_px_cols)
-    if not corr > 0:
-        return 0.0
-    return float(REGION_END_CORR * corr * np.linalg.norm(corner) * scan.sensor.pixel_angle)
-
 
 def _plan_split(ctx: _Context, h: int, att: _Attempt, single: set[int]) -> list[_Part]:
     """The parts of one flat region (REGION attempt ``att`` at vertex ``h``) by the carton
@@ -1228,9 +1211,7 @@ def _plan_split(ctx: _Context, h: int, att: _Attempt, single: set[int]) -> list[
     assert out is not None
     R = align(vertices, h, ctx.normal_cov)
     splits = distinct(region_splits(att.width, att.length, cfg.box_sizes,
-                                    cfg.size_tolerance, cfg.alpha,
-                                    end_sigma=region_end_sigma(ctx.scan, cfg,
-                                                               vertices.points[h])))
+                                    cfg.size_tolerance, cfg.alpha))
     if not splits:
         att.threshold = float(AmbiguityReason.NOT_A_MULTIPLE_OF_A_SIZE)
         return []

@@ -11,8 +11,7 @@ in the nearer of the two orientations, with sigma = ``Config.size_tolerance`` (S
 
     T = (U - nx a)^2 / (nx sigma^2) + (V - ny b)^2 / (ny sigma^2)  <=  chi2_{2, 1-alpha}
 
-(each carton's tolerance independent, so n of them in a row add n sigma^2; a region's
-own extent adds its two ends' error, see :func:`region_splits`), nx, ny >= 1
+(each carton's tolerance independent, so n of them in a row add n sigma^2), nx, ny >= 1
 the nearest integers, nx ny >= 2: a multiple (2x1, 3x1, 2x2, ...). Cartons of one layer
 are laid one way; a layer of mixed orientations is not a grid and is not split.
 """
@@ -96,28 +95,20 @@ class Split:
 
 
 def region_splits(width: float, length: float, sizes: tuple[tuple[float, float, float], ...],
-                  tolerance: float, alpha: float, multiples_only: bool = True,
-                  end_sigma: float = 0.0) -> list[Split]:
+                  tolerance: float, alpha: float, multiples_only: bool = True) -> list[Split]:
     """Every listed size, in either orientation, of which a region of ``width`` x ``length``
     (along its x and y axes, metres) is a grid, by its chi-square at alpha; best first.
 
-    With ``multiples_only`` a single carton (1 x 1) is not a split. ``end_sigma`` (metres)
-    is the standard deviation of the position of each of the region's two ends along an
-    axis: the extent's own error, added to the cartons' (n sigma^2 + 2 end_sigma^2).
+    With ``multiples_only`` a single carton (1 x 1) is not a split.
     """
     crit = chi2_critical(2.0, alpha)
-    e2 = 2.0 * end_sigma**2
     out: list[Split] = []
     for j, (w, ln, _) in enumerate(sizes):
         for a, b in {(w, ln), (ln, w)}:
             nx, ny = max(1, round(width / a)), max(1, round(length / b))
             if nx * ny > MAX_PARTS or (multiples_only and nx * ny < 2):
                 continue
-            if e2 > 0:
-                T = ((width - nx * a) ** 2 / (nx * tolerance**2 + e2)
-                     + (length - ny * b) ** 2 / (ny * tolerance**2 + e2))
-            else:  # (the same expression as before the extent's error was counted)
-                T = ((width - nx * a) ** 2 / nx + (length - ny * b) ** 2 / ny) / tolerance**2
+            T = ((width - nx * a) ** 2 / nx + (length - ny * b) ** 2 / ny) / tolerance**2
             if T <= crit:
                 out.append(Split(j, float(a), float(b), int(nx), int(ny), float(T)))
     out.sort(key=lambda s: (s.statistic, s.sku, s.a))
