@@ -38,7 +38,7 @@ offsets cancel between the groove and its flanks, only the rest).
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 from typing import NamedTuple
 
@@ -334,13 +334,27 @@ def _window_offsets(h: float) -> tuple[tuple[float, float], ...]:
     return (-SEAM_INNER * h, SEAM_INNER * h), (-b, -a), (a, b)
 
 
+def _reach(centres: np.ndarray, h: float) -> tuple[float, float]:
+    """The strip [lo, hi] the windows around ``centres`` (not empty) reach at window scale
+    ``h``: the flanks reach farthest."""
+    r = SEAM_FLANK[1] * h
+    return float(centres.min() - r), float(centres.max() + r)
+
+
+def _strip(scaled: Iterable[tuple[float, np.ndarray]]) -> tuple[float, float]:
+    """The strip that the windows of several scales reach: (window scale, centres) pairs
+    (each scale's :func:`_reach`, together)."""
+    ends = [_reach(c, hs) for hs, c in scaled]
+    return min(lo for lo, _ in ends), max(hi for _, hi in ends)
+
+
 def _in_reach(coord: np.ndarray, centres: np.ndarray, h: float) -> np.ndarray:
     """Which points some window around the centres reaches: a search near one side of a
     face then sorts and sums a strip, not the whole face."""
     if len(centres) == 0:
         return np.zeros(len(coord), bool)
-    r = SEAM_FLANK[1] * h  # the flanks reach farthest
-    return (coord >= centres.min() - r) & (coord <= centres.max() + r)
+    lo, hi = _reach(centres, h)
+    return (coord >= lo) & (coord <= hi)
 
 
 def _windows(coord: np.ndarray, w: np.ndarray, centres: np.ndarray, h: float
@@ -444,9 +458,8 @@ def _near_sorted(coord: np.ndarray, w: np.ndarray, row: np.ndarray, centres: np.
 
     ``coord`` and ``w`` are float64 and ``centres`` is not empty.
     """
-    r = SEAM_FLANK[1] * h
-    lo, hi = centres.min() - r, centres.max() + r
-    cs, ws, rs, distinct = _strip_sorted(coord, w, row, float(lo), float(hi))
+    lo, hi = _reach(centres, h)
+    cs, ws, rs, distinct = _strip_sorted(coord, w, row, lo, hi)
     if not distinct:  # ties: np.argsort's order among them, as _windows sorts
         near = (coord >= lo) & (coord <= hi)
         order = np.argsort(coord[near])
@@ -815,8 +828,7 @@ def face_spread(coord: np.ndarray, w: np.ndarray, scale: float, extent: float, h
         grid.append(np.arange(reach, extent - reach + 0.25 * h, 0.5 * h))
     # one sort for every scale, over the strip all of them reach (as _seam_stats does)
     used = [(s, c) for s, c in zip(SEAM_SCALES, grid) if len(c) >= MIN_SPREAD_POSITIONS]
-    pre = (_presorted(coord, w, row, min(c.min() - SEAM_FLANK[1] * (s * h) for s, c in used),
-                      max(c.max() + SEAM_FLANK[1] * (s * h) for s, c in used))
+    pre = (_presorted(coord, w, row, *_strip((s * h, c) for s, c in used))
            if used and len(coord) else None)
     for s, centres in zip(SEAM_SCALES, grid):
         if len(centres) < MIN_SPREAD_POSITIONS or len(coord) == 0:
@@ -909,9 +921,8 @@ def find_seams(coord: np.ndarray, w: np.ndarray, scale: float, lo: float, hi: fl
     crit = float(norm_isf(alpha / n_indep))
     zs, spreads = [], []
     if not stats:
-        # one sort for every scale: the widest reaches farthest
-        reach = SEAM_FLANK[1] * (max(SEAM_SCALES) * h)  # as _seam_stats computes its reach
-        pre = _presorted(coord, w, row, centres.min() - reach, centres.max() + reach)
+        # one sort for every scale, over the strip all of them reach
+        pre = _presorted(coord, w, row, *_strip((s * h, centres) for s in SEAM_SCALES))
         computed = [_seam_stats(coord, w, scale, centres, s * h, row, row_corr, pre)
                     for s in SEAM_SCALES]
         if stats is not None:
@@ -980,10 +991,8 @@ def _seam_at_grid(position: float, h: float, reach: float | None
         g = SEAM_INNER * s * h
         r = g if reach is None else max(float(reach), g)
         grid.append((g, r, position + np.arange(-r, r + 0.25 * g, g)))
-    # as _seam_stats computes each scale's reach
-    lo = min(c.min() - SEAM_FLANK[1] * (s * h) for s, (_, _, c) in zip(SEAM_SCALES, grid))
-    hi = max(c.max() + SEAM_FLANK[1] * (s * h) for s, (_, _, c) in zip(SEAM_SCALES, grid))
-    return grid, float(lo), float(hi)
+    lo, hi = _strip((s * h, c) for s, (_, _, c) in zip(SEAM_SCALES, grid))
+    return grid, lo, hi
 
 
 def seam_at(coord: np.ndarray, w: np.ndarray, scale: float, position: float, h: float,

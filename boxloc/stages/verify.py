@@ -75,7 +75,6 @@ from boxloc.stages.raster import fill_polygon, polygon_area, rectangle_pixels
 from boxloc.stages.seams import (
     MIN_SPREAD_POSITIONS,
     SEAM_FLANK,
-    SEAM_INNER,
     SEAM_SCALES,
     FacePoints,
     _centred,
@@ -346,17 +345,13 @@ def _side_seam(fp: FacePoints, side: int, width: float, length: float, spacing: 
     else:
         sel = (fp.v >= 0) & (fp.v <= length)
         coord, along, at, L, sp = fp.u, fp.v, (0.0, width)[side - 2], length, fp.spread[0]
-    # only the points near the side enter a window of seam_at's positions (a spacing more
-    # than its widest reach): the three searches take them, not the whole face's (the same
-    # strips, in the same order)
-    g = SEAM_INNER * max(SEAM_SCALES) * spacing
-    lim = (g if reach is None else max(float(reach), g)) + g + (SEAM_FLANK[1] * max(SEAM_SCALES)
-                                                               + 1.0) * spacing
-    idx = np.flatnonzero(sel & (np.abs(coord - at) <= lim))
+    # only the points in the strip seam_at's windows reach: the three searches take them,
+    # not the whole face's (the same strips, in the same order)
+    _, lo, hi = _seam_at_grid(at, spacing, reach)
+    idx = np.flatnonzero(sel & (coord >= lo) & (coord <= hi))
     coord, along, w, row = coord[idx], along[idx], fp.w[idx], fp.row[idx]
     # the side's strip sorted once: each half's is its part, in the same order (distinct
     # coordinates; with ties each search sorts its own)
-    _, lo, hi = _seam_at_grid(at, spacing, reach)
     whole = _presorted(coord, w, np.arange(len(coord)), lo, hi)
     pre = None if whole is None else (whole[0], whole[1], row[whole[2]])
     zs, zc = seam_at(coord, w, fp.scale, at, spacing, alpha, reach, gaps, row, fp.row_corr, sp,

@@ -127,6 +127,7 @@ STATS_TIMING = "stats/timing"
 TEST_MEASURES = ("n_tested", "n_accepted", "accepted_fraction", "median_ratio", "max_ratio")
 #: the kinds in the order of each measure's batch (its series)
 TEST_SERIES = tuple(k.name for k in TestKind)
+_SERIES_INDEX = {k.value: i for i, k in enumerate(TestKind)}  # a kind's value -> series
 
 TIMELINE_SCAN = "scan"
 TIMELINE_CAPTURE = "capture_time"
@@ -342,17 +343,16 @@ def log_tests(rec: rr.RecordingStream, tests: TestTable | Sequence[TestTable], *
     with np.errstate(divide="ignore", invalid="ignore"):
         ratio = np.concatenate([np.asarray(t.statistic, np.float64)
                                 / np.asarray(t.critical, np.float64) for t in tables])
-    index = {k.value: i for i, k in enumerate(TestKind)}
     values = np.full((len(TEST_MEASURES), len(TEST_SERIES)), np.nan)
     for k in np.unique(kind):
-        if int(k) not in index:
+        if int(k) not in _SERIES_INDEX:
             continue  # a kind this version does not know (a newer log): no series for it
         sel = kind == k
         n = int(sel.sum())
         n_acc = int(np.count_nonzero(accepted[sel]))
         r = ratio[sel]
         r = r[np.isfinite(r)]
-        col = index[int(k)]
+        col = _SERIES_INDEX[int(k)]
         values[:, col] = (n, n_acc, n_acc / n, np.median(r) if r.size else np.nan,
                           r.max() if r.size else np.nan)
     base = entity(prefix, STATS_TESTS)
