@@ -160,13 +160,6 @@ class TestKind(IntEnum):
     #: PLANE_END_FRACTION; accepted counts the side as a boundary (a fold or step the scan
     #: lines did not resolve)
     VERIFY_PLANE_END = 34
-    #: edge stage: a few pixels with no return between returns on one straight line, in a
-    #: hole as long as the shortest box edge (a gap between coplanar tops the sensor loses;
-    #: a = edge point, b = pixel): statistic = the hole's missing pixels m, critical =
-    #: ln alpha / ln q, q the larger share of pixels missing beside it (HOLE_WINDOW_PX each
-    #: side, Laplace's estimate); a row only where q^m < alpha and the other rules of
-    #: :func:`boxloc.stages.edges._hole_seam` hold (:func:`boxloc.stages.edges.seam_holes`)
-    HOLE_SEAM = 35
 
 
 #: ``TestKind.BUDGET`` rows' ``a``: the stage whose budget it is.
@@ -183,7 +176,7 @@ BUDGET_EDGES = 4
 #: check: see the kind's comment). Post-mortem text prints the relation the numbers show,
 #: never one inferred from the decision.
 RELATION: dict[TestKind, str | None] = {
-    TestKind.JUMP: ">", TestKind.CREASE: ">", TestKind.NO_RETURN: ">=", TestKind.HOLE_SEAM: ">",
+    TestKind.JUMP: ">", TestKind.CREASE: ">", TestKind.NO_RETURN: ">=",
     TestKind.EDGE_SUPPORT: ">", TestKind.FIRST_QUADRANT: ">",
     TestKind.POINT_ON_PLANE: None, TestKind.FACE_EXTENT: None,
     TestKind.VERIFY_INLIERS: ">=", TestKind.VERIFY_BOUNDARY: ">=",

@@ -10,9 +10,6 @@ from boxloc.evaluate.metrics import edge_scores
 from boxloc.products import EdgeKind
 from boxloc.scan import NoiseModel, PinholeModel, Scan
 from boxloc.stages.edges import (
-    GROOVE_MAX_RUN,
-    HOLE_MIN_PX,
-    HOLE_WINDOW_PX,
     NO_RETURN_PX,
     STEP_RUN_MAX,
     _split_at_steps,
@@ -20,7 +17,6 @@ from boxloc.stages.edges import (
     detect_edges,
     residual_thresholds,
     run_thresholds,
-    seam_holes,
 )
 from boxloc.stats import TestKind
 from tests.scenes import box, scene
@@ -60,7 +56,7 @@ def test_covariances_are_symmetric_positive(one_box):
 def test_every_edge_carries_its_test(one_box):
     _, e = one_box
     kinds = set(np.unique(e.tests.kind).tolist())
-    assert kinds <= {TestKind.JUMP, TestKind.CREASE, TestKind.NO_RETURN, TestKind.HOLE_SEAM}
+    assert kinds <= {TestKind.JUMP, TestKind.CREASE, TestKind.NO_RETURN}
     assert len(e.tests) >= len(e)
 
 
@@ -110,66 +106,6 @@ def test_a_surface_that_runs_into_no_return_out_to_the_border_ends_there():
         d = detect_edges(_cut(plane, cols), config=cfg)
         assert len(d.tests.of_kind(TestKind.NO_RETURN)) == 0
         assert len(d) <= len(base) + 0.05 * 240
-
-
-def test_a_few_pixels_of_no_return_across_a_plane_are_a_hole_seam_and_one_is_a_dropout():
-    cfg = Config()
-    plane = _plane_scan(cfg.noise, 3)
-    base = detect_edges(plane, config=cfg)
-    # a gap between two coplanar tops that a stereo camera loses: 3 columns of no return
-    e = detect_edges(_cut(plane, slice(150, 153)), config=cfg)
-    at = (e.pixels[:, 1] == 149) & (e.kinds == EdgeKind.GROOVE)
-    assert at.sum() >= 0.95 * 240
-    # on the plane, halfway across the hole, and uncertain along the row over its width
-    col = plane.sensor.project(e.points[at])[:, 0]  # the hole is columns 150-152
-    assert np.abs(np.median(col) - 151.0) < 0.25 and np.percentile(np.abs(col - 151), 90) < 1
-    assert np.all(np.abs(np.linalg.norm(e.points[at], axis=1) - plane.range[e.pixels[at, 0], 151])
-                  < 0.02)
-    assert np.isinf(e.strength[at]).all()
-    t = e.tests.of_kind(TestKind.HOLE_SEAM)
-    assert len(t) >= 0.95 * 240 and len(e.tests.of_kind(TestKind.NO_RETURN)) == 0
-    # 3 missing pixels against none missing on either side: q = 1/19, so q^3 < alpha
-    q = 1.0 / (HOLE_WINDOW_PX + 1 + 2)
-    assert (t.statistic == 3).all() and t.accepted.all()
-    assert np.allclose(t.critical, np.log(cfg.alpha) / np.log(q), rtol=1e-6)
-    # one missing column is a dropout, and a hole wider than a groove is no seam
-    for cols in (slice(150, 150 + HOLE_MIN_PX - 1), slice(150, 150 + GROOVE_MAX_RUN + 1)):
-        d = detect_edges(_cut(plane, cols), config=cfg)
-        assert (d.kinds == EdgeKind.GROOVE).sum() <= (base.kinds == EdgeKind.GROOVE).sum() + 2
-        assert len(d.tests.of_kind(TestKind.HOLE_SEAM)) == 0
-    # an island of no return shorter than a box edge (a dark label the sensor loses) is no
-    # seam, though each scan line across it sees the same few missing pixels
-    isl = plane.range.copy()
-    isl[100:112, 150:153] = np.nan  # 12 x 3 px, about 9 x 2 cm at 1.5 m
-    assert not seam_holes(Scan(range=isl, sensor=plane.sensor), Config().min_edge).any()
-    d = detect_edges(Scan(range=isl, sensor=plane.sensor), config=cfg)
-    assert len(d.tests.of_kind(TestKind.HOLE_SEAM)) == 0
-    # a stereo camera's dashed seam (70 % of a 4 px band lost) against lossy tape (20 % of
-    # a 7 px band): the seam shows on most rows, the tape on few
-    rows = []
-    for width, share in ((4, 0.7), (7, 0.2)):
-        r = plane.range.copy()
-        band = r[:, 150:150 + width]
-        band[np.random.default_rng(0).random(band.shape) < share] = np.nan
-        d = detect_edges(Scan(range=r, sensor=plane.sensor), config=cfg)
-        rows.append(len(d.tests.of_kind(TestKind.HOLE_SEAM)))
-    assert rows[0] >= 0.7 * 240 and rows[1] <= 0.3 * 240
-    # a jump blurred into a ramp (a stereo camera's disparity filter) with holes in it: the
-    # line across the ramp is short, and the returns beside the hole are on either side of
-    # a step, so it is no seam
-    r = plane.range.copy().astype(np.float64)
-    ramp = np.clip((np.arange(320) - 145) / 12.0, 0.0, 1.0)  # 0.12 m down over 12 px
-    r = (r + 0.12 * ramp[None, :]).astype(np.float32)
-    r[:, 149:155] = np.nan
-    d = detect_edges(Scan(range=r, sensor=plane.sensor), config=cfg)
-    assert len(d.tests.of_kind(TestKind.HOLE_SEAM)) <= 0.02 * 240
-    # speckle (shiny tape: 40 % of the pixels of a band lost) has runs of 2-8 as well, but
-    # against the dropouts around them they are no seam
-    r = plane.range.copy()
-    band = r[:, 100:200]
-    band[np.random.default_rng(0).random(band.shape) < 0.4] = np.nan
-    d = detect_edges(Scan(range=r, sensor=plane.sensor), config=cfg)
-    assert len(d.tests.of_kind(TestKind.HOLE_SEAM)) <= 0.01 * 100 * 240
 
 
 def _far_step(seed: int, sigma: float) -> Scan:

@@ -12,14 +12,6 @@ Every row and every column of the organized cloud is approximated by 3D line seg
   significantly behind both (the seam between two touching boxes of equal height); or,
   inside one segment, a short run of samples lies behind its line with the samples around
   it back on the line, and the deepest of them passes the single-sample test;
-* **hole seam** — :data:`HOLE_MIN_PX` to ``GROOVE_MAX_RUN`` pixels with no return between
-  samples on one line: a narrow gap between coplanar tops that the sensor loses (a stereo
-  camera's left-right check, its second camera's occlusion, a projector's shadow). Labelled
-  a groove, halfway across the hole on the line, uncertain over the hole's width. Its
-  test (``TestKind.HOLE_SEAM``) weighs the missing pixels against the dropouts beside the
-  hole, so speckle (shiny tape) is none; the hole must be as long as the shortest box edge
-  (:func:`seam_holes`), so a dark label the sensor loses is none. One missing pixel is a
-  dropout. A hole has no range to test: that its points line up is the line stage's test;
 * **no-return border** — the scan line's first or last return is followed by no return
   out to the image border, over at least :data:`NO_RETURN_PX` pixels: nothing was measured
   beyond the surface (out of range, a background removed, the sky), so it ends there, a
@@ -79,23 +71,6 @@ MIN_SEGMENT_POINTS = 4
 #: no-return-border jump); shorter runs are dropouts inside a face (as
 #: :data:`boxloc.stages.verify.EXTENT_GAP_PX`, 4, the longest a face's extent bridges).
 NO_RETURN_PX = 5
-#: A run of this many to GROOVE_MAX_RUN pixels with no return between two samples on one
-#: line is a *hole seam*: a narrow gap between coplanar tops, where a stereo camera's
-#: left-right check or second view, or a projector's shadow, loses the surface. A single
-#: missing pixel is a dropout. The hole has no range to test, so the run's length is the
-#: statistic (``TestKind.HOLE_SEAM``); the line stage asks that such points line up.
-HOLE_MIN_PX = 2
-#: Pixels on each side of a hole over which the dropouts around it are counted (twice the
-#: widest hole seam: the surface the hole lies in, not the next box's).
-HOLE_WINDOW_PX = 2 * GROOVE_MAX_RUN
-#: ... and at most this many of them may have no return: a hole seam is a hole in a whole
-#: surface. Speckle (shiny tape losing a share of its pixels) has runs of missing pixels
-#: as long as a seam's all along it, and they line up along the tape.
-HOLE_WINDOW_MISSING = 1
-#: ... and the hole itself is mostly lost (at least this share of the pixels between the
-#: returns around it, as a fraction): a stereo camera loses most pixels beside a jump,
-#: while lossy tape loses a share of its pixels, in runs as long as a seam's.
-HOLE_SHARE = (2, 3)
 
 
 # --- kernels -------------------------------------------------------------------------------
@@ -389,102 +364,15 @@ def _closest_between(c1, d1, c2, d2):
 
 
 @nb.njit(cache=True)
-def _hole_missing(pix, hole, a, b):
-    """Pixels of seam holes (``hole``, over the whole line: :func:`seam_holes`) between
-    samples ``a`` < ``b`` of a line, or 0 unless the span is a hole seam's: at most
-    ``GROOVE_MAX_RUN`` pixels wide, with ``GROOVE_CONTEXT`` consecutive pixels returned on
-    each side (a hole in a whole surface, not speckle)."""
-    n = pix.shape[0]
-    width = pix[b] - pix[a] - 1
-    if width > GROOVE_MAX_RUN or a < GROOVE_CONTEXT - 1 or b + GROOVE_CONTEXT - 1 >= n:
-        return 0
-    if pix[a] - pix[a - GROOVE_CONTEXT + 1] != GROOVE_CONTEXT - 1:
-        return 0
-    if pix[b + GROOVE_CONTEXT - 1] - pix[b] != GROOVE_CONTEXT - 1:
-        return 0
-    m = 0
-    for k in range(pix[a] + 1, pix[b]):
-        if hole[k]:
-            m += 1
-    # a seam's hole is the sensor losing the gap and the pixels beside it: most of the span
-    return m if m * HOLE_SHARE[1] >= width * HOLE_SHARE[0] else 0
-
-
-@nb.njit(cache=True)
-def _hole_seam(P, S, pix, hole, ia, ib, c, d, out_pix, out_pt, out_along, out_sig, out_kind,
-               out_strength, out_stat, out_crit, out_test, n_out, log_alpha, jump_crit):
-    """Append the hole seam between samples ``ia`` and ``ib`` of a line (c, d), if its
-    missing pixels are significant against the dropouts around it: the point on the line
-    along the ray halfway across the hole, uncertain over the hole's width.
-
-    The test: the windows of :data:`HOLE_WINDOW_PX` on either side lose at most
-    :data:`HOLE_WINDOW_MISSING` pixels; with q the larger share they lose (Laplace's
-    estimate, never 0), m missing pixels are a hole seam when q^m < alpha."""
-    m = _hole_missing(pix, hole, ia, ib)
-    if m < HOLE_MIN_PX:
-        return n_out
-    n = pix.shape[0]
-    lo = max(pix[ia] - HOLE_WINDOW_PX, pix[0])
-    hi = min(pix[ib] + HOLE_WINDOW_PX, pix[n - 1])
-    got_l = 0
-    k = ia
-    while k >= 0 and pix[k] >= lo:
-        got_l += 1
-        k -= 1
-    got_r = 0
-    k = ib
-    while k < n and pix[k] <= hi:
-        got_r += 1
-        k += 1
-    pos_l = pix[ia] - lo + 1
-    pos_r = hi - pix[ib] + 1
-    if pos_l - got_l > HOLE_WINDOW_MISSING or pos_r - got_r > HOLE_WINDOW_MISSING:
-        return n_out
-    q = max((pos_l - got_l + 1.0) / (pos_l + 2.0), (pos_r - got_r + 1.0) / (pos_r + 2.0))
-    crit = log_alpha / math.log(q)
-    if m <= crit:
-        return n_out
-    ma = math.sqrt(np.dot(P[ia], P[ia]))
-    mb = math.sqrt(np.dot(P[ib], P[ib]))
-    ua = P[ia] / ma
-    ub = P[ib] / mb
-    # no step across the hole: the two returns beside it are as far off the line as each
-    # other (chi2(1) at alpha, as the jump test); a line fitted across a blurred jump with
-    # a hole in it (a pallet's edge seen by a stereo camera) has them on either side
-    step = (mb - _range_on_line(ub, c, d)) - (ma - _range_on_line(ua, c, d))
-    if not step * step <= jump_crit * (S[ia] * S[ia] + S[ib] * S[ib]):
-        return n_out
-    u = ua + ub
-    u = u / math.sqrt(np.dot(u, u))
-    rl = _range_on_line(u, c, d)
-    w = P[ib] - P[ia]
-    wn = math.sqrt(np.dot(w, w))
-    if not np.isfinite(rl) or wn <= 0.0 or abs(rl - math.sqrt(np.dot(P[ia], P[ia]))) > wn:
-        return n_out
-    out_pt[n_out] = rl * u
-    out_along[n_out] = w / wn
-    out_sig[n_out] = wn / math.sqrt(12.0)
-    out_pix[n_out] = pix[ia]
-    out_kind[n_out] = 4
-    out_strength[n_out] = np.inf
-    out_stat[n_out] = m
-    out_crit[n_out] = crit
-    out_test[n_out] = 4
-    return n_out + 1
-
-
-@nb.njit(cache=True)
 def _scan_line_edges(
     P: np.ndarray,
     S: np.ndarray,
     pix: np.ndarray,
-    hole: np.ndarray,
     thr: np.ndarray,
     run_thr: np.ndarray,
     jump_crit: float,
     min_crease: float,
     z_crease: float,
-    log_alpha: float,
     min_pts: int,
     rho: np.ndarray,
     out_pix: np.ndarray,
@@ -610,27 +498,6 @@ def _scan_line_edges(
                     out_test[n_out] = 1
                     n_out += 1
             i = e + 1
-    # hole seams inside a segment: a few pixels with no return between whole stretches
-    for j in range(nk):
-        k = keep[j]
-        a = B[k, 0] + GROOVE_CONTEXT - 1
-        while a < B[k, 1]:
-            b = a + 1
-            if pix[b] - pix[a] > 1:
-                while b < B[k, 1] and pix[b] - pix[a] - 1 <= GROOVE_MAX_RUN and \
-                        pix[min(b + GROOVE_CONTEXT - 1, n - 1)] - pix[b] != GROOVE_CONTEXT - 1:
-                    b += 1
-                # in a whole surface: its line runs on beyond the hole, on both sides, at
-                # least as far as the widest hole (not a jump's blurred ramp)
-                if pix[a] - pix[B[k, 0]] >= GROOVE_MAX_RUN and \
-                        pix[B[k, 1]] - pix[b] >= GROOVE_MAX_RUN and \
-                        _hole_missing(pix, hole, a, b) >= HOLE_MIN_PX:
-                    n_out = _hole_seam(P, S, pix, hole, a, b, cs[j], ds[j], out_pix, out_pt,
-                                       out_along, out_sig, out_kind, out_strength, out_stat,
-                                       out_crit, out_test, n_out, log_alpha, jump_crit)
-                    a = b
-                    continue
-            a += 1
     for j in range(nk - 1):
         ka = keep[j]
         kb = keep[j + 1]
@@ -730,12 +597,11 @@ def _scan_line_edges(
             out_crit[n_out] = z_crease
             out_test[n_out] = 2
             n_out += 1
-        else:
+        elif ib - ia > 1:
             # collinear and continuous: a groove if the dropped samples lie behind both lines
-            n_before = n_out
             best = 0.0
             kbest = -1
-            for i in range(ia + 1, ib):  # none when the segments are adjacent
+            for i in range(ia + 1, ib):
                 u = P[i] / math.sqrt(np.dot(P[i], P[i]))
                 r = 0.5 * (_range_on_line(u, ca, da) + _range_on_line(u, cb, db))
                 z = (math.sqrt(np.dot(P[i], P[i])) - r) / S[i]
@@ -746,27 +612,21 @@ def _scan_line_edges(
                 u = P[kbest] / math.sqrt(np.dot(P[kbest], P[kbest]))
                 r = 0.5 * (_range_on_line(u, ca, da) + _range_on_line(u, cb, db))
                 mk = math.sqrt(np.dot(P[kbest], P[kbest]))
-                if np.isfinite(r) and abs(r - mk) <= 0.5 * abs(mk):
-                    q = r * u
-                    w = P[ib] - P[ia]
-                    out_pt[n_out] = q
-                    wn = math.sqrt(np.dot(w, w))
-                    out_along[n_out] = w / wn if wn > 0 else da
-                    out_sig[n_out] = wn / math.sqrt(12.0)
-                    out_pix[n_out] = pix[kbest]
-                    out_kind[n_out] = 4
-                    out_strength[n_out] = best * S[kbest]
-                    out_stat[n_out] = best * best
-                    out_crit[n_out] = thr[ib - ia] ** 2
-                    out_test[n_out] = 1
-                    n_out += 1
-            if n_out == n_before and pix[ia] - pix[B[ka, 0]] >= GROOVE_MAX_RUN and \
-                    pix[B[kb, 1]] - pix[ib] >= GROOVE_MAX_RUN and \
-                    _hole_missing(pix, hole, ia, ib) >= HOLE_MIN_PX:
-                # no range behind the break, but a hole across it: a hole seam on their line
-                n_out = _hole_seam(P, S, pix, hole, ia, ib, 0.5 * (ca + cb), da, out_pix, out_pt,
-                                   out_along, out_sig, out_kind, out_strength, out_stat,
-                                   out_crit, out_test, n_out, log_alpha, jump_crit)
+                if not np.isfinite(r) or abs(r - mk) > 0.5 * abs(mk):
+                    continue
+                q = r * u
+                w = P[ib] - P[ia]
+                out_pt[n_out] = q
+                wn = math.sqrt(np.dot(w, w))
+                out_along[n_out] = w / wn if wn > 0 else da
+                out_sig[n_out] = wn / math.sqrt(12.0)
+                out_pix[n_out] = pix[kbest]
+                out_kind[n_out] = 4
+                out_strength[n_out] = best * S[kbest]
+                out_stat[n_out] = best * best
+                out_crit[n_out] = thr[ib - ia] ** 2
+                out_test[n_out] = 1
+                n_out += 1
     return n_out
 
 
@@ -774,13 +634,11 @@ def _scan_line_edges(
 def _all_lines(
     P: np.ndarray,
     S: np.ndarray,
-    holes: np.ndarray,
     thr: np.ndarray,
     run_thr: np.ndarray,
     jump_crit: float,
     min_crease: float,
     z_crease: float,
-    log_alpha: float,
     min_pts: int,
     axis: int,
     rho: np.ndarray,
@@ -811,7 +669,6 @@ def _all_lines(
     buf = np.empty((L, 3))
     sbuf = np.empty(L)
     pbuf = np.empty(L, np.int64)
-    hbuf = np.empty(L, np.bool_)
     done = nlines
     for li in range(nlines):
         if budget > 0 and work[0] >= budget:
@@ -822,11 +679,9 @@ def _all_lines(
             if axis == 0:
                 p = P[li, k]
                 s = S[li, k]
-                hbuf[k] = holes[li, k]
             else:
                 p = P[k, li]
                 s = S[k, li]
-                hbuf[k] = holes[k, li]
             if np.isfinite(s):
                 buf[nv] = p
                 sbuf[nv] = s
@@ -838,8 +693,7 @@ def _all_lines(
             break
         n0 = n_out
         n_out = _scan_line_edges(
-            buf[:nv], sbuf[:nv], pbuf[:nv], hbuf, thr, run_thr, jump_crit, min_crease, z_crease,
-            log_alpha,
+            buf[:nv], sbuf[:nv], pbuf[:nv], thr, run_thr, jump_crit, min_crease, z_crease,
             min_pts, rho,
             out_pix, out_pt, out_along, out_sig, out_kind, out_strength, out_stat,
             out_crit, out_test, n_out, work,
@@ -1006,63 +860,6 @@ def _crossing_ok(r: np.ndarray, c: np.ndarray, scan_dir: np.ndarray,
     return flat | np.where(row, across_x >= lim, across_y >= lim)
 
 
-def seam_holes(scan: Scan, min_edge: float) -> np.ndarray:
-    """Pixels with no return that may be a hole seam's: those of a hole at least as long
-    as the shortest box edge, (H, W) bool.
-
-    A gap between two boxes runs the length of a side, and the sensor loses it over that
-    length; a dark label or a patch the sensor loses on a lid is an island shorter than
-    the lid's sides. A hole (8-connected pixels, joined across a returned pixel or two) is
-    as long as a strip with the same spread of pixels along its main axis, times the
-    pixel's footprint at the range around its centre.
-
-    Parameters
-    ----------
-    scan : Scan
-    min_edge : float
-        The shortest box edge, metres.
-
-    Returns
-    -------
-    (H, W) bool
-    """
-    r = np.asarray(scan.range, dtype=np.float32)
-    hole = ~np.isfinite(r)
-    if not hole.any() or hole.all():
-        return np.zeros(r.shape, bool)
-    # a stereo camera loses a gap in dashes (the left-right check fails on most pixels
-    # beside a jump, not all): holes a returned pixel or two apart are one
-    joined = cv2.dilate(hole.astype(np.uint8), np.ones((3, 3), np.uint8))
-    n, lab = cv2.connectedComponents(joined, connectivity=8)
-    # each hole's length from the second moments of its own pixels (a thin strip of length
-    # l has variance l^2 / 12 along it), which a stray dropout beside it hardly moves
-    yy, xx = np.nonzero(hole)
-    k = lab[yy, xx]
-    cnt = np.bincount(k, minlength=n).astype(np.float64)
-    safe = np.maximum(cnt, 1.0)
-    mx, my = np.bincount(k, xx, n) / safe, np.bincount(k, yy, n) / safe
-    sxx = np.bincount(k, xx * xx.astype(np.float64), n) / safe - mx * mx
-    syy = np.bincount(k, yy * yy.astype(np.float64), n) / safe - my * my
-    sxy = np.bincount(k, xx * yy.astype(np.float64), n) / safe - mx * my
-    lam = 0.5 * (sxx + syy) + np.sqrt(np.maximum(0.25 * (sxx - syy) ** 2 + sxy**2, 0.0))
-    length = np.sqrt(12.0 * np.maximum(lam, 0.0)) + 1.0  # pixels, end to end
-    # the range around each hole: the mean of the returns in a window HOLE_WINDOW_PX wide
-    valid = (~hole).astype(np.float32)
-    w = (2 * HOLE_WINDOW_PX + 1,) * 2
-    num = cv2.blur(np.where(hole, 0.0, r).astype(np.float32), w)
-    den = cv2.blur(valid, w)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        around = num / den
-    H, W = r.shape
-    cy = np.clip(np.rint(my).astype(np.int64), 0, H - 1)
-    cx = np.clip(np.rint(mx).astype(np.int64), 0, W - 1)
-    rng = around[cy, cx].astype(np.float64)
-    rng = np.where(np.isfinite(rng) & (rng > 0), rng, float(np.median(r[~hole])))
-    long_enough = length * rng * scan.sensor.pixel_angle >= min_edge
-    long_enough[0] = False  # label 0: the returns
-    return hole & long_enough[lab]
-
-
 def detect_edges(scan: Scan, *, config: Config) -> EdgeMap:
     """Jump, crease and groove edges of a range image by scan-line approximation.
 
@@ -1092,7 +889,6 @@ def detect_edges(scan: Scan, *, config: Config) -> EdgeMap:
     jump_crit = chi2_critical(1.0, config.alpha)
     # a crease is a fold significantly larger than min_crease_angle (one-sided z at alpha)
     z_crease = float(norm_isf(config.alpha))
-    holes = seam_holes(scan, config.min_edge)
     parts = []
     # the budget: half for the rows; the columns get the rest (what the rows left too)
     budget = config.max_edge_work
@@ -1101,8 +897,8 @@ def detect_edges(scan: Scan, *, config: Config) -> EdgeMap:
     for axis in (0, 1):
         share = 0 if not budget else (budget + 1) // 2 if axis == 0 else budget
         *part, done = _all_lines(
-            P, S, holes, thr, run_thr, jump_crit, config.min_crease_angle, z_crease,
-            math.log(config.alpha), MIN_SEGMENT_POINTS, axis,
+            P, S, thr, run_thr, jump_crit, config.min_crease_angle, z_crease,
+            MIN_SEGMENT_POINTS, axis,
             correlation_lags(config.noise.corr_px_rows if axis == 0
                              else config.noise.corr_px_cols), share, work)
         stopped |= done < (H if axis == 0 else W)
@@ -1146,10 +942,8 @@ def detect_edges(scan: Scan, *, config: Config) -> EdgeMap:
 
     # the tests at every breakpoint, in detection order
     is_jump_test = te == 1
-    # test codes of the scan-line kernel: 1 jump (and groove), 2 crease, 3 no return,
-    # 4 hole seam
-    kind_col = np.select([is_jump_test, te == 3, te == 4],
-                         [int(TestKind.JUMP), int(TestKind.NO_RETURN), int(TestKind.HOLE_SEAM)],
+    # test codes of the scan-line kernel: 1 jump (and groove), 2 crease, 3 no return
+    kind_col = np.select([is_jump_test, te == 3], [int(TestKind.JUMP), int(TestKind.NO_RETURN)],
                          int(TestKind.CREASE)).astype(np.uint8)
     pval = float32_precision(np.where(is_jump_test, chi2_sf(sta, 1.0), np.nan))
     tests = TestTable(
