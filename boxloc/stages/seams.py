@@ -334,6 +334,11 @@ def _window_offsets(h: float) -> tuple[tuple[float, float], ...]:
     return (-SEAM_INNER * h, SEAM_INNER * h), (-b, -a), (a, b)
 
 
+#: Twice a flank's width, in spacings: (nl + nr) / this is one spacing's column of points,
+#: by which the two flanks' counts may differ on the sampling grid alone (:func:`_seam_stats`).
+_FLANK_COLUMNS = 2.0 * (SEAM_FLANK[1] - SEAM_FLANK[0])
+
+
 def _reach(centres: np.ndarray, h: float) -> tuple[float, float]:
     """The strip [lo, hi] the windows around ``centres`` (not empty) reach at window scale
     ``h``: the flanks reach farthest."""
@@ -685,10 +690,10 @@ def _seam_stats(coord: np.ndarray, w: np.ndarray, scale: float, centres: np.ndar
     if len(centres) and coord.dtype == np.float64 and w.dtype == np.float64:
         # the points in reach, sorted once for the windows and the row term (kernels)
         if pre is not None:
-            r = SEAM_FLANK[1] * h
+            lo, hi = _reach(centres, h)
             cs = pre[0]
-            a = int(np.searchsorted(cs, centres.min() - r, "left"))
-            b = int(np.searchsorted(cs, centres.max() + r, "right"))
+            a = int(np.searchsorted(cs, lo, "left"))
+            b = int(np.searchsorted(cs, hi, "right"))
             coord, w, rows = cs[a:b], pre[1][a:b], pre[2][a:b]
         else:
             rows = np.zeros(len(coord), np.int64) if row is None else np.asarray(row, np.int64)
@@ -704,8 +709,7 @@ def _seam_stats(coord: np.ndarray, w: np.ndarray, scale: float, centres: np.ndar
         rt = (_row_term_kernel(np.ascontiguousarray(coord), np.ascontiguousarray(rows),
                                centres, los, his, ni, nl, nr) if use_rows else ni)
         return _seam_tail(ni, si, nl, sl, nr, sr, rt, float(row_corr), use_rows,
-                          float(scale), FLANK_BALANCE_Z,
-                          2.0 * (SEAM_FLANK[1] - SEAM_FLANK[0]))
+                          float(scale), FLANK_BALANCE_Z, _FLANK_COLUMNS)
     else:
         near = _in_reach(coord, centres, h)
         coord, w = coord[near], w[near]
@@ -729,7 +733,7 @@ def _seam_stats(coord: np.ndarray, w: np.ndarray, scale: float, centres: np.ndar
         # may differ by chance and by one spacing's column of points (a flank 2.5 spacings
         # wide holds 2 or 3 columns of the sampling grid)
         both &= np.abs(nl - nr) <= (FLANK_BALANCE_Z * np.sqrt(nl + nr)
-                                    + (nl + nr) / (2.0 * (SEAM_FLANK[1] - SEAM_FLANK[0])))
+                                    + (nl + nr) / _FLANK_COLUMNS)
         # the flanks differ by less than the groove is deep (the groove lies behind its
         # lower flank by at least half its depth): a ridge (tape or a label on a lid) lifts
         # one flank by its height h, and a window on the flat lid beside it lies h / 2

@@ -476,7 +476,8 @@ def log_hypotheses(
 def log_verification(
     rec: rr.RecordingStream, verification: Verification, *, prefix: str = ""
 ) -> None:
-    """Verification counts and tests (the rectangles are drawn by :func:`log_hypotheses`)."""
+    """The verified count (the rectangles are drawn by :func:`log_hypotheses`; the tests
+    with the scan's others, :func:`log_tests`)."""
     _scalar(rec, entity(prefix, f"{STATS_COUNTS}/verified"),
             int(np.count_nonzero(verification.accepted)))
 
