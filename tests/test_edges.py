@@ -193,3 +193,60 @@ def test_local_scale_follows_a_noisier_region_and_ignores_edges():
     # no return: NaN ranges leave the scale at 1
     r2 = np.full((H, W), np.nan)
     assert np.all(local_scale(r2, S) == 1.0)
+
+
+def _fuse_one_pixel_at_a_time(flat, pt, cov, kd, stg, sd, chi3):
+    """The fusion as a loop over the pixels: the reference :func:`_fuse` must equal."""
+    order = np.lexsort((kd, flat))
+    uniq, start = np.unique(flat[order], return_index=True)
+    stop = np.r_[start[1:], len(order)]
+    first = order[start]
+    out = [pt[first], cov[first], kd[first], stg[first], sd[first]]
+    for gi in range(len(uniq)):
+        g = order[start[gi]:stop[gi]]
+        d = pt[g] - pt[g[0]]
+        T = np.array([d[k] @ np.linalg.solve(cov[g[k]] + cov[g[0]], d[k])
+                      for k in range(1, len(g))])
+        g = np.concatenate([[g[0]], g[1:][T <= chi3]]).astype(np.int64)
+        if len(g) == 1:
+            continue
+        info = np.linalg.inv(cov[g])
+        Cf = np.linalg.inv(info.sum(0))
+        out[1][gi] = 0.5 * (Cf + Cf.T)
+        out[0][gi] = Cf @ np.einsum("kij,kj->i", info, pt[g])
+        out[2][gi], out[3][gi] = kd[g].min(), stg[g].max()
+        out[4][gi] = np.bitwise_or.reduce(sd[g])
+    return (uniq, *out)
+
+
+def test_fusing_a_pixels_detections_equals_fusing_them_one_pixel_at_a_time():
+    """Pixels with one to four detections, some agreeing with their first and some not
+    (a kind's point a centimetre off): the batched fusion gives every array bit for bit
+    what a loop over the pixels gives, and fuses what agrees only."""
+    from boxloc.stages.edges import _fuse
+
+    rng = np.random.default_rng(3)
+    flat = np.repeat(np.arange(0, 3000, 3), rng.integers(1, 5, 1000))
+    n = len(flat)
+    pt = np.array([0.1, -0.2, 2.0]) + rng.normal(0.0, 1e-3, (n, 3))
+    far = rng.random(n) < 0.3
+    pt[far] += 0.01  # disagrees with the others of its pixel (sigma ~ 1 mm)
+    A = rng.normal(0.0, 1e-3, (n, 3, 3))
+    cov = A @ A.transpose(0, 2, 1) + 1e-7 * np.eye(3)
+    kd = rng.integers(1, 5, n).astype(np.uint8)
+    stg = rng.random(n)
+    sd = rng.integers(1, 4, n).astype(np.uint8)
+    perm = rng.permutation(n)  # detections arrive in scan order, not by pixel
+    args = (flat[perm], pt[perm], cov[perm], kd[perm], stg[perm], sd[perm], 7.815)
+    got, want = _fuse(*args), _fuse_one_pixel_at_a_time(*args)
+    for g, w in zip(got, want):
+        assert g.dtype == w.dtype and g.shape == w.shape
+        assert g.tobytes() == w.tobytes()
+    # some pixels fused several detections, some kept their first only
+    uniq, fused_pt = got[0], got[1]
+    counts = np.bincount(np.searchsorted(uniq, flat), minlength=len(uniq))
+    first_pt = pt[perm][np.lexsort((kd[perm], flat[perm]))][np.r_[0, np.cumsum(counts)[:-1]]]
+    changed = np.any(fused_pt != first_pt, axis=1)
+    assert changed.sum() > 100 and (~changed & (counts > 1)).sum() > 50
+    assert not changed[counts == 1].any()
+    assert len(_fuse(flat[:0], pt[:0], cov[:0], kd[:0], stg[:0], sd[:0], 7.815)[0]) == 0
