@@ -37,12 +37,12 @@ from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
 from typing import Any
 
+import numba as nb
 import numpy as np
 import numpy.typing as npt
 
 from boxloc.errors import InputError
 from boxloc.scan import NoiseModel, Scan
-from boxloc.stats import nanmedian_last
 
 __all__ = ["plane_residuals", "tile_residuals", "TileResiduals", "estimate_noise", "fit_residuals",
            "noise_toml", "NOISE_TERMS"]
@@ -270,8 +270,7 @@ def _tile_scale(h: np.ndarray, w: np.ndarray) -> np.ndarray:
     """Each tile's robust residual scale (1.4826 x the median |h| of its inliers), so that
     the pooled correlation weighs every tile alike: otherwise a few tiles of large, folded
     residuals (a box's side at grazing incidence) decide it."""
-    with np.errstate(invalid="ignore"):
-        mad = nanmedian_last(np.where(w, np.abs(h), np.nan))
+    mad = _abs_medians(h, w)
     return np.maximum(_MAD_TO_STD * np.nan_to_num(mad), 1e-12)
 
 
@@ -475,27 +474,33 @@ def _ray_planes(
     A3 = np.stack([u, v, one], -1)
     A6 = np.stack([u, v, one, u * u, u * v, v * v], -1)
 
-    def fit(A: np.ndarray, wt: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def fit(A: np.ndarray, wt: np.ndarray, t: slice | np.ndarray = slice(None)
+            ) -> tuple[np.ndarray, np.ndarray]:
+        """The tiles ``t``'s planes (``A``, ``wt``: theirs already) and residuals; each
+        tile's from its own rows only, whichever others are fitted with it."""
         AwT = (A * wt[..., None]).transpose(0, 2, 1)  # batched matmul: BLAS, not einsum
         M = AwT @ A + 1e-12 * np.eye(A.shape[-1])
-        beta = np.linalg.solve(M, AwT @ q[..., None])
+        beta = np.linalg.solve(M, AwT @ q[t][..., None])
         with np.errstate(divide="ignore", invalid="ignore"):
             zfit = 1.0 / (A @ beta)[..., 0]
         beta = beta[..., 0]
-        return beta, np.where(ok, (Z - zfit) * ray, 0.0)
+        return beta, np.where(ok[t], (Z[t] - zfit) * ray[t], 0.0)
 
     wt = ok.astype(np.float64)
-    for it in range(rounds + 1):
-        beta, h = fit(A3, wt)
-        if it == rounds:
-            break
-        with np.errstate(invalid="ignore"):
-            mad = nanmedian_last(np.where(wt > 0, np.abs(h), np.nan))
+    beta, h = fit(A3, wt)
+    # A tile whose inliers did not change has its final fit: only the others are refitted
+    # (most tiles settle in one round), the same rounds as refitting all until none changes
+    active = np.arange(T)
+    for _ in range(rounds):
+        mad = _abs_medians(h[active], wt[active])
         lim = 3.5 * np.maximum(_MAD_TO_STD * np.nan_to_num(mad), 1e-9)
-        nw = (ok & (np.abs(h) <= lim[:, None])).astype(np.float64)
-        if np.array_equal(nw, wt):
+        nw = (ok[active] & (np.abs(h[active]) <= lim[:, None])).astype(np.float64)
+        moved = np.any(nw != wt[active], axis=1)
+        if not moved.any():
             break
-        wt = nw
+        active = active[moved]
+        wt[active] = nw[moved]
+        beta[active], h[active] = fit(A3[active], wt[active], active)
     # beta in (u, v, 1) -> the plane a x + b y + c = 1 / Z in normalized coordinates
     a = beta[:, 0] / sc[:, 0]
     b = beta[:, 1] / sc[:, 0]
@@ -533,6 +538,9 @@ def quantization_floor(r: np.ndarray, z: np.ndarray) -> float:
     sensor without steps the distinct depths are as many as the points and the floor is
     negligible (a tenth of a millimetre over a 0.1 m bin of 1000 points).
     """
+    r, z = np.asarray(r), np.asarray(z)
+    if r.dtype == z.dtype == np.float64 and r.ndim == z.ndim == 1 and r.shape == z.shape:
+        return float(_floor_kernel(r, z))  # the same, bit for bit, without NumPy's overheads
     u = np.unique(z)
     # one level stored at several roundings (z = range x ray in float32) is one level
     gaps = np.diff(u)
@@ -551,7 +559,227 @@ def _bin_std(row: dict[str, Any], estimator: str) -> float:
 
 
 def _robust_std(y: np.ndarray) -> float:
-    return float(_MAD_TO_STD * np.median(np.abs(y - np.median(y))))
+    return float(_MAD_TO_STD * _mad(np.asarray(y, dtype=np.float64)))
+
+
+def median(x: np.ndarray) -> float:
+    """``float(np.median(x))`` of a 1-D float64 array, bit for bit, by selection: NumPy's
+    per-call overhead (tens of microseconds) is most of a small median's cost, and the
+    noise stage takes hundreds per scan."""
+    return float(_median(np.asarray(x, dtype=np.float64)))
+
+
+# --- exact medians by selection -------------------------------------------------------------
+# A median is an order statistic (or the mean of two), so any exact selection gives NumPy's
+# value. NumPy's ``np.median`` returns ``mean`` of the middle one or two values: the sum
+# starts from 0.0, so ``0.0 + a`` (odd n) or ``(0.0 + a + b) / 2`` (even n), never -0.0; the
+# kernels below compute exactly that, and NaN for a NaN anywhere (NumPy's nan check) or no
+# values (its mean of nothing).
+
+
+@nb.njit(cache=True)
+def _select(a: np.ndarray, k: int, lo: int, hi: int) -> float:
+    """The value of rank ``k`` in ``a[lo:hi + 1]`` (no NaN), reordering that range in place
+    so that no value before ``k`` is above it and none after below (Hoare's selection, a
+    median-of-three pivot: ties, common in quantized depths, split evenly)."""
+    while True:
+        if hi <= lo + 1:
+            if hi == lo + 1 and a[hi] < a[lo]:
+                a[lo], a[hi] = a[hi], a[lo]
+            return a[k]
+        mid = (lo + hi) >> 1
+        a[mid], a[lo + 1] = a[lo + 1], a[mid]
+        if a[lo] > a[hi]:
+            a[lo], a[hi] = a[hi], a[lo]
+        if a[lo + 1] > a[hi]:
+            a[lo + 1], a[hi] = a[hi], a[lo + 1]
+        if a[lo] > a[lo + 1]:
+            a[lo], a[lo + 1] = a[lo + 1], a[lo]
+        i, j = lo + 1, hi
+        pivot = a[lo + 1]
+        while True:
+            i += 1
+            while a[i] < pivot:
+                i += 1
+            j -= 1
+            while a[j] > pivot:
+                j -= 1
+            if j < i:
+                break
+            a[i], a[j] = a[j], a[i]
+        a[lo + 1] = a[j]
+        a[j] = pivot
+        if j >= k:
+            hi = j - 1
+        if j <= k:
+            lo = i
+
+
+@nb.njit(cache=True)
+def _median_inplace(a: np.ndarray, n: int) -> float:
+    """``np.median(a[:n])`` bit for bit, reordering ``a[:n]``."""
+    if n == 0:
+        return np.nan
+    for i in range(n):
+        if np.isnan(a[i]):
+            return np.nan
+    k = (n - 1) // 2
+    m = _select(a, k, 0, n - 1)
+    if n % 2 == 1:
+        return 0.0 + m
+    up = a[k + 1]  # the next order statistic: the least value after rank k
+    for i in range(k + 2, n):
+        up = min(up, a[i])
+    return (0.0 + m + up) / 2.0
+
+
+@nb.njit(cache=True)
+def _median(x: np.ndarray) -> float:
+    """``np.median(x)`` of a 1-D float64 array, bit for bit (``x`` is not changed)."""
+    return _median_inplace(x.copy(), x.shape[0])
+
+
+@nb.njit(cache=True)
+def _mad(y: np.ndarray) -> float:
+    """``np.median(np.abs(y - np.median(y)))`` of a 1-D float64 array, bit for bit."""
+    n = y.shape[0]
+    buf = y.copy()
+    m = _median_inplace(buf, n)
+    for i in range(n):
+        buf[i] = abs(y[i] - m)
+    return _median_inplace(buf, n)
+
+
+@nb.njit(cache=True)
+def _group_medians(x: np.ndarray, order: np.ndarray, starts: np.ndarray, stops: np.ndarray,
+                   mad: bool) -> np.ndarray:
+    """Per group g, the median of ``x[order[starts[g]:stops[g]]]`` (``mad``: the median of
+    the absolute deviations from it, :func:`_mad`), bit for bit; NaN for an empty group."""
+    out = np.empty(starts.shape[0])
+    buf = np.empty(x.shape[0])
+    dev = np.empty(x.shape[0])
+    for g in range(starts.shape[0]):
+        n = stops[g] - starts[g]
+        for i in range(n):
+            buf[i] = x[order[starts[g] + i]]
+        m = _median_inplace(buf, n)
+        if mad:
+            for i in range(n):
+                dev[i] = abs(x[order[starts[g] + i]] - m)
+            m = _median_inplace(dev, n)
+        out[g] = m
+    return out
+
+
+@nb.njit(cache=True)
+def _abs_medians(h: np.ndarray, w: np.ndarray) -> np.ndarray:
+    """Per row t of (T, n) ``h``, the median of ``|h[t]|`` over ``w[t] > 0`` (NaN values
+    skipped), NaN where none: ``nanmedian_last(np.where(w > 0, np.abs(h), np.nan))`` bit
+    for bit (the values are never -0.0, so any exact selection gives its value)."""
+    T, n = h.shape
+    out = np.empty(T)
+    buf = np.empty(n)
+    for t in range(T):
+        m = 0
+        for i in range(n):
+            if w[t, i] > 0 and not np.isnan(h[t, i]):
+                buf[m] = abs(h[t, i])
+                m += 1
+        if m == 0:
+            out[t] = np.nan
+            continue
+        k = (m - 1) // 2
+        lo = _select(buf, k, 0, m - 1)
+        if m % 2 == 1:
+            out[t] = lo
+        else:
+            up = buf[k + 1]
+            for i in range(k + 2, m):
+                up = min(up, buf[i])
+            out[t] = (lo + up) / 2.0
+    return out
+
+
+@nb.njit(cache=True)
+def _lower_medians(x: np.ndarray, starts: np.ndarray, counts: np.ndarray) -> np.ndarray:
+    """The lower median of each group ``x[starts[k]:starts[k] + counts[k]]``, (K,): the
+    element of rank (count - 1) // 2 as a sort would place it (NaN last), an order
+    statistic, so exact (found by selection, not a sort)."""
+    out = np.empty(starts.shape[0])
+    for k in range(starts.shape[0]):
+        g = x[starts[k]:starts[k] + counts[k]].copy()
+        m = 0  # the non-NaN values first, as a sort puts them
+        for i in range(g.shape[0]):
+            if not np.isnan(g[i]):
+                g[m] = g[i]
+                m += 1
+        rank = (counts[k] - 1) // 2
+        out[k] = _select(g, rank, 0, m - 1) if rank < m else np.nan
+    return out
+
+
+@nb.njit(cache=True)
+def _group_distinct(t: np.ndarray, order: np.ndarray, starts: np.ndarray,
+                    stops: np.ndarray) -> np.ndarray:
+    """Per group g, ``np.unique(t[order[starts[g]:stops[g]]]).size`` (integers)."""
+    out = np.zeros(starts.shape[0], np.int64)
+    for g in range(starts.shape[0]):
+        n = stops[g] - starts[g]
+        if n == 0:
+            continue
+        v = np.sort(t[order[starts[g]:stops[g]]])
+        k = 1
+        for i in range(1, n):
+            if v[i] != v[i - 1]:
+                k += 1
+        out[g] = k
+    return out
+
+
+@nb.njit(cache=True, error_model="numpy")
+def _floor_kernel(r: np.ndarray, z: np.ndarray) -> float:
+    """:func:`quantization_floor` of 1-D float64 ``r``, ``z``, bit for bit."""
+    n = z.shape[0]
+    for i in range(n):
+        if np.isnan(z[i]):
+            return 0.0  # np.unique keeps one NaN: the median |u| and every gap test are NaN
+    u = np.sort(z)
+    m = 0  # the distinct depths, ascending, in u[:m]
+    for i in range(n):
+        if m == 0 or u[i] != u[m - 1]:
+            u[m] = u[i]
+            m += 1
+    if m < 2:
+        return 0.0
+    buf = np.empty(m)
+    for i in range(m):
+        buf[i] = abs(u[i])
+    tol = QUANTUM_TOL * _median_inplace(buf, m)
+    k = 0
+    for i in range(m - 1):
+        gap = u[i + 1] - u[i]
+        if gap > tol:
+            buf[k] = gap
+            k += 1
+    if k == 0:
+        return 0.0
+    step = _median_inplace(buf, k)
+    q = np.empty(r.shape[0])
+    for i in range(r.shape[0]):
+        q[i] = r[i] / z[i]
+    ray = _median_inplace(q, q.shape[0])
+    return step / math.sqrt(12.0) * (ray if math.isfinite(ray) else 1.0)
+
+
+@nb.njit(cache=True)
+def _group_floors(r: np.ndarray, z: np.ndarray, order: np.ndarray, starts: np.ndarray,
+                  stops: np.ndarray) -> np.ndarray:
+    """Per group g, :func:`quantization_floor` of the points ``order[starts[g]:stops[g]]``."""
+    out = np.empty(starts.shape[0])
+    for g in range(starts.shape[0]):
+        idx = order[starts[g]:stops[g]]
+        out[g] = _floor_kernel(r[idx], z[idx])
+    return out
 
 
 def _clipped_std(y: np.ndarray, k: float = 3.0, iters: int = 10) -> float:
@@ -745,19 +973,27 @@ def fit_residuals(
     cuts = np.searchsorted(which[order], np.arange(nb + 1))
     members = [order[cuts[b]:cuts[b + 1]] for b in range(nb)]
     clipped = estimator == "clipped" or diagnostics
+    # the bins' medians, tile counts and floors in one pass each (bit for bit the per-bin
+    # NumPy calls: a few hundred small medians per scan cost more in overhead than work)
+    starts, stops = cuts[:-1], cuts[1:]
+    r_med = _group_medians(r, order, starts, stops, False)
+    mad = _group_medians(y, order, starts, stops, True)
+    n_tile = _group_distinct(tile, order, starts, stops)
+    floors = _group_floors(r, d, order, starts, stops)
     rows = []
     for b in range(nb):
         sel = members[b]
         if not sel.size:
             continue
         yb = y[sel]
-        tiles_b = int(np.unique(tile[sel]).size)
+        tiles_b = int(n_tile[b])
         row: dict[str, Any] = {
             "lo": float(edges[b]), "hi": float(edges[b + 1]),
-            "range": float(np.median(r[sel])), "count": int(sel.size), "tiles": tiles_b,
-            "std_mad": _robust_std(yb), "std_clipped": _clipped_std(yb) if clipped else None,
+            "range": float(r_med[b]), "count": int(sel.size), "tiles": tiles_b,
+            "std_mad": float(_MAD_TO_STD * mad[b]),
+            "std_clipped": _clipped_std(yb) if clipped else None,
             "mean_cos": float(np.mean(c[sel])),
-            "floor": quantization_floor(r[sel], d[sel]),
+            "floor": float(floors[b]),
         }
         row["std"] = _bin_std(row, estimator)
         row["used"] = bool(row["count"] >= min_points and tiles_b >= min_tiles
@@ -779,13 +1015,15 @@ def fit_residuals(
         # (the report's incidence_exponent) is too noisy to use: range and incidence go
         # together on a tilted plane.
         best = math.inf
+        c_min = np.maximum(c, base.min_cos)
         for g_try in INCIDENCE_EXPONENTS:
-            y_try = e_ray * np.maximum(c, base.min_cos) ** g_try
+            y_try = e_ray * c_min ** g_try
+            mad_try = _group_medians(y_try, order, starts, stops, True)
             rows_try = [dict(row) for row in rows]
             for row in rows_try:
-                yb = y_try[members[int(round((row["lo"] - lo) / bin_width))]]
-                row["std_mad"] = _robust_std(yb)
-                row["std_clipped"] = _clipped_std(yb) if clipped else None
+                b = int(round((row["lo"] - lo) / bin_width))
+                row["std_mad"] = float(_MAD_TO_STD * mad_try[b])
+                row["std_clipped"] = _clipped_std(y_try[members[b]]) if clipped else None
                 row["std"] = _bin_std(row, estimator)
             used_try = [row for row in rows_try if row["used"] and row["std"] > 0]
             if not used_try:
