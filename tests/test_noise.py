@@ -425,3 +425,52 @@ def test_grouped_median_kernels_are_numpys_bit_for_bit() -> None:
         y = np.abs(x[:counts.sum()])
         want = [np.sort(y[s:s + c])[(c - 1) // 2] for s, c in zip(starts, counts)]
         assert _same(_lower_medians(y, starts, counts), want)
+
+
+def test_norms_and_lag_sums_are_numpys_bit_for_bit() -> None:
+    from boxloc.calibrate.noise import CORRELATION_LAGS, _lag_sums, _norms
+
+    rng = np.random.default_rng(12)
+    for T, n in ((0, 256), (1, 1), (3, 7), (300, 256), (41, 1296)):
+        P = rng.normal(size=(T, n, 3)) * 10.0 ** rng.uniform(-3, 3, (T, n, 3))
+        if T:
+            P[0, 0] = (np.nan, 1.0, 2.0)
+            P[-1, -1] = (np.inf, 0.0, -0.0)
+        assert _same(_norms(P), np.linalg.norm(P, axis=2))
+    for patch in (4, 8, 16):
+        T = 50
+        h = rng.normal(size=(T, patch * patch))
+        w = rng.random(h.shape) < 0.9
+        w[0] = False
+        want = np.zeros((2, len(CORRELATION_LAGS), 3))  # the sums as NumPy expressions
+        H = np.where(w, h, 0.0).reshape(T, patch, patch)
+        M = w.reshape(T, patch, patch)
+        for j, lag in enumerate(CORRELATION_LAGS):
+            if lag >= patch:
+                continue
+            for i, (a, b, ma, mb) in enumerate((
+                    (H[:, :, :-lag], H[:, :, lag:], M[:, :, :-lag], M[:, :, lag:]),
+                    (H[:, :-lag], H[:, lag:], M[:, :-lag], M[:, lag:]))):
+                both = ma & mb
+                want[i, j] = ((a * b)[both].sum(), (a * a)[both].sum(), (b * b)[both].sum())
+        assert _same(_lag_sums(h, w, patch), want)
+
+
+def test_unique_runs_and_stable_order_are_numpys() -> None:
+    from boxloc.calibrate.noise import _group_distinct, stable_order, unique_runs
+
+    rng = np.random.default_rng(13)
+    cases = [np.zeros(0, np.int64), np.array([5]), np.sort(rng.integers(0, 40, 3000)),
+             rng.integers(0, 40, 3000), np.repeat(np.arange(7) << 32, 5),
+             np.sort(rng.integers(0, 9, 100)).astype(np.uint16),
+             rng.integers(-(2**62), 2**62, 500), np.array([3, 3, -1, 7, 7, 7, 2])]
+    for t in cases:
+        for got, want in zip(unique_runs(t), np.unique(t, return_inverse=True,
+                                                       return_counts=True)):
+            assert got.dtype == want.dtype and np.array_equal(got, want)
+        assert np.array_equal(stable_order(t), np.argsort(t, kind="stable"))
+        if t.size:  # the distinct values of groups in order and out of it
+            order = np.arange(t.size)
+            starts, stops = np.array([0, t.size // 2]), np.array([t.size // 2, t.size])
+            got = _group_distinct(t.astype(np.int64), order, starts, stops)
+            assert list(got) == [np.unique(t[a:b]).size for a, b in zip(starts, stops)]

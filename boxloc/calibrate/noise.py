@@ -248,7 +248,7 @@ def tile_residuals(
     sel = np.flatnonzero(ok)
     wi = w[sel] > 0
     Ps, hs = P0[sel], h[sel]
-    r = np.linalg.norm(Ps, axis=2)
+    r = _norms(Ps)
     with np.errstate(invalid="ignore", divide="ignore"):
         d = Ps / r[..., None]
     ndot = np.einsum("tnk,tk->tn", d, normal[sel])
@@ -274,22 +274,63 @@ def _tile_scale(h: np.ndarray, w: np.ndarray) -> np.ndarray:
     return np.maximum(_MAD_TO_STD * np.nan_to_num(mad), 1e-12)
 
 
+def _norms(P: np.ndarray) -> np.ndarray:
+    """``np.linalg.norm(P, axis=2)`` of (T, n, 3) float64 points, bit for bit: NumPy's
+    reduction over the short last axis adds the squares left to right, ``(x*x + y*y) +
+    z*z`` (an implementation detail, so a test holds this to NumPy's result), then takes
+    the square root; a kernel does that without the (T, n, 3) squares and NumPy's
+    per-point loop overhead."""
+    return _norms_kernel(np.ascontiguousarray(P, dtype=np.float64))
+
+
+@nb.njit(cache=True)
+def _norms_kernel(P: np.ndarray) -> np.ndarray:
+    T, n = P.shape[0], P.shape[1]
+    out = np.empty((T, n))
+    for t in range(T):
+        for i in range(n):
+            x, y, z = P[t, i, 0], P[t, i, 1], P[t, i, 2]
+            out[t, i] = math.sqrt((x * x + y * y) + z * z)
+    return out
+
+
 def _lag_sums(h: np.ndarray, w: np.ndarray, patch: int) -> np.ndarray:
     """Sums for the correlation of two inlier residuals of a tile ``lag`` pixels apart,
     along a row and along a column: (2, len(CORRELATION_LAGS), 3) of sum a*b, a*a, b*b."""
     T = h.shape[0]
-    H = np.where(w, h, 0.0).reshape(T, patch, patch)
-    M = w.reshape(T, patch, patch)
+    H = np.ascontiguousarray(h, dtype=np.float64).reshape(T, patch, patch)
+    M = np.ascontiguousarray(w, dtype=np.bool_).reshape(T, patch, patch)
     out = np.zeros((2, len(CORRELATION_LAGS), 3))
     for j, lag in enumerate(CORRELATION_LAGS):
         if lag >= patch:
             continue
-        for i, (a, b, ma, mb) in enumerate((
-                (H[:, :, :-lag], H[:, :, lag:], M[:, :, :-lag], M[:, :, lag:]),
-                (H[:, :-lag], H[:, lag:], M[:, :-lag], M[:, lag:]))):
-            both = ma & mb
-            out[i, j] = ((a * b)[both].sum(), (a * a)[both].sum(), (b * b)[both].sum())
+        for i in range(2):
+            # the products of the pairs in NumPy's order, summed by NumPy as before
+            prod = _lag_products(H, M, lag, i == 0)
+            out[i, j] = (prod[0].sum(), prod[1].sum(), prod[2].sum())
     return out
+
+
+@nb.njit(cache=True)
+def _lag_products(H: np.ndarray, M: np.ndarray, lag: int, along_rows: bool) -> np.ndarray:
+    """The pairs of inliers ``lag`` pixels apart in (T, p, p) tiles ``H`` (inliers ``M``),
+    along rows or along columns: (3, pairs) of a*b, a*a, b*b in C order of the pairs'
+    first pixel, bit for bit ``(a * b)[both]`` of :func:`_lag_sums`' slices (without the
+    masks and products of every pixel)."""
+    T, p = H.shape[0], H.shape[1]
+    dr, dc = (0, lag) if along_rows else (lag, 0)
+    out = np.empty((3, T * p * p))
+    m = 0
+    for t in range(T):
+        for r in range(p - dr):
+            for c in range(p - dc):
+                if M[t, r, c] and M[t, r + dr, c + dc]:
+                    a, b = H[t, r, c], H[t, r + dr, c + dc]
+                    out[0, m] = a * b
+                    out[1, m] = a * a
+                    out[2, m] = b * b
+                    m += 1
+    return out[:, :m]
 
 
 def _row_share(h: np.ndarray, w: np.ndarray, patch: int) -> np.ndarray:
@@ -370,7 +411,7 @@ def _incidence_normals(scan: Scan, valid: np.ndarray, ids: np.ndarray, step: int
     P = scan.points[rr, cc].reshape(T, -1, 3).astype(np.float64)
     V = valid[rr, cc].reshape(T, -1) & (P[..., 2] > 0)
     P = np.where(V[..., None], P, 0.0)
-    dist = np.linalg.norm(P, axis=2)
+    dist = _norms(P)
     with np.errstate(invalid="ignore", divide="ignore"):
         u = P / dist[..., None]
     sig = _tile_scale(h[sel], w[sel] > 0)
@@ -540,7 +581,7 @@ def quantization_floor(r: np.ndarray, z: np.ndarray) -> float:
     """
     r, z = np.asarray(r), np.asarray(z)
     if r.dtype == z.dtype == np.float64 and r.ndim == z.ndim == 1 and r.shape == z.shape:
-        return float(_floor_kernel(r, z))  # the same, bit for bit, without NumPy's overheads
+        return float(_floor_kernel(r, z, np.sort(z)))  # the same, without the overheads
     u = np.unique(z)
     # one level stored at several roundings (z = range x ray in float32) is one level
     gaps = np.diff(u)
@@ -567,6 +608,46 @@ def median(x: np.ndarray) -> float:
     per-call overhead (tens of microseconds) is most of a small median's cost, and the
     noise stage takes hundreds per scan."""
     return float(_median(np.asarray(x, dtype=np.float64)))
+
+
+def unique_runs(t: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``np.unique(t, return_inverse=True, return_counts=True)`` of 1-D integers, the
+    same arrays; from the runs of equal values when ``t`` is sorted (the tiles' points:
+    each tile's together, the tiles in ascending order), without NumPy's hashing."""
+    t = np.asarray(t)
+    if t.ndim == 1 and t.size and t.dtype.kind in "iu" and bool(np.all(t[1:] >= t[:-1])):
+        first = np.flatnonzero(np.concatenate([[True], t[1:] != t[:-1]]))
+        counts = np.diff(np.append(first, t.size))
+        return t[first], np.repeat(np.arange(first.size), counts), counts
+    return np.unique(t, return_inverse=True, return_counts=True)
+
+
+def stable_order(keys: np.ndarray) -> np.ndarray:
+    """``np.argsort(keys, kind="stable")`` of 1-D int64 ``keys``, the same permutation (a
+    stable sort's is unique): by counting when their range is small (range bins), several
+    times faster than NumPy's merge sort."""
+    keys = np.asarray(keys)
+    if keys.ndim == 1 and keys.size and keys.dtype == np.int64:
+        lo, hi = int(keys.min()), int(keys.max())
+        if hi - lo <= 4 * keys.size + 1024:
+            return _counting_order(keys, lo, hi - lo + 1)
+    return np.argsort(keys, kind="stable")
+
+
+@nb.njit(cache=True)
+def _counting_order(keys: np.ndarray, lo: int, span: int) -> np.ndarray:
+    """The stable sorting permutation of ``keys`` (all in [lo, lo + span)) by counting."""
+    start = np.zeros(span + 1, np.int64)
+    for i in range(keys.shape[0]):
+        start[keys[i] - lo + 1] += 1
+    for v in range(span):
+        start[v + 1] += start[v]
+    out = np.empty(keys.shape[0], np.int64)
+    for i in range(keys.shape[0]):
+        v = keys[i] - lo
+        out[start[v]] = i
+        start[v] += 1
+    return out
 
 
 # --- exact medians by selection -------------------------------------------------------------
@@ -615,6 +696,11 @@ def _select(a: np.ndarray, k: int, lo: int, hi: int) -> float:
             lo = i
 
 
+#: Values from which a median first narrows the values down to a band around it
+#: (:func:`_band`); fewer are selected among directly.
+BAND_MIN = 1024
+
+
 @nb.njit(cache=True)
 def _median_inplace(a: np.ndarray, n: int) -> float:
     """``np.median(a[:n])`` bit for bit, reordering ``a[:n]``."""
@@ -624,13 +710,51 @@ def _median_inplace(a: np.ndarray, n: int) -> float:
         if np.isnan(a[i]):
             return np.nan
     k = (n - 1) // 2
-    m = _select(a, k, 0, n - 1)
+    if n >= BAND_MIN:
+        band, below = _band(a, n, k)
+        j = k - below
+        # the band holds ranks k (and k + 1 for even n): select there, else among all
+        if 0 <= j and j + 1 - n % 2 < band.shape[0]:
+            a, k, n_sel = band, j, band.shape[0]
+        else:
+            n_sel = n
+    else:
+        n_sel = n
+    m = _select(a, k, 0, n_sel - 1)
     if n % 2 == 1:
         return 0.0 + m
     up = a[k + 1]  # the next order statistic: the least value after rank k
-    for i in range(k + 2, n):
+    for i in range(k + 2, n_sel):
         up = min(up, a[i])
     return (0.0 + m + up) / 2.0
+
+
+@nb.njit(cache=True)
+def _band(a: np.ndarray, n: int, k: int) -> tuple[np.ndarray, int]:
+    """The values of ``a[:n]`` (no NaN) between two pivots that likely bracket rank
+    ``k``, and how many are below the band (Floyd and Rivest's sampling: the pivots are
+    ranks about 3 standard errors either side of ``k`` in an evenly spaced sample of
+    ``6 sqrt(n)``; the band is a tenth to a fifth of the values). Whether it brackets
+    rank ``k`` is the caller's check. A pass without branches on the values' order:
+    selecting among all costs a mispredicted branch per value and step."""
+    s = min(n, int(6.0 * math.sqrt(n)))
+    sample = np.empty(s)
+    for j in range(s):
+        sample[j] = a[(j * n) // s]
+    ks = (k * s) // n
+    d = int(1.5 * math.sqrt(s)) + 1
+    i_lo, i_hi = max(ks - d, 0), min(ks + 1 + d, s - 1)
+    p_lo = _select(sample, i_lo, 0, s - 1)
+    p_hi = _select(sample, i_hi, i_lo, s - 1)
+    band = np.empty(n)
+    m = 0
+    below = 0
+    for i in range(n):
+        x = a[i]
+        below += x < p_lo
+        band[m] = x
+        m += (x >= p_lo) & (x <= p_hi)
+    return band[:m], below
 
 
 @nb.njit(cache=True)
@@ -727,7 +851,11 @@ def _group_distinct(t: np.ndarray, order: np.ndarray, starts: np.ndarray,
         n = stops[g] - starts[g]
         if n == 0:
             continue
-        v = np.sort(t[order[starts[g]:stops[g]]])
+        v = t[order[starts[g]:stops[g]]]
+        for i in range(1, n):
+            if v[i] < v[i - 1]:  # in order already where a tile's points are together
+                v = np.sort(v)
+                break
         k = 1
         for i in range(1, n):
             if v[i] != v[i - 1]:
@@ -737,13 +865,13 @@ def _group_distinct(t: np.ndarray, order: np.ndarray, starts: np.ndarray,
 
 
 @nb.njit(cache=True, error_model="numpy")
-def _floor_kernel(r: np.ndarray, z: np.ndarray) -> float:
-    """:func:`quantization_floor` of 1-D float64 ``r``, ``z``, bit for bit."""
+def _floor_kernel(r: np.ndarray, z: np.ndarray, u: np.ndarray) -> float:
+    """:func:`quantization_floor` of 1-D float64 ``r``, ``z``, bit for bit, given ``u``,
+    ``z`` sorted (NumPy's sort, vectorized, is several times numba's; ``u`` is reused)."""
     n = z.shape[0]
     for i in range(n):
         if np.isnan(z[i]):
             return 0.0  # np.unique keeps one NaN: the median |u| and every gap test are NaN
-    u = np.sort(z)
     m = 0  # the distinct depths, ascending, in u[:m]
     for i in range(n):
         if m == 0 or u[i] != u[m - 1]:
@@ -752,9 +880,14 @@ def _floor_kernel(r: np.ndarray, z: np.ndarray) -> float:
     if m < 2:
         return 0.0
     buf = np.empty(m)
-    for i in range(m):
-        buf[i] = abs(u[i])
-    tol = QUANTUM_TOL * _median_inplace(buf, m)
+    if u[0] >= 0:  # |u| is u, ascending: its median by index
+        h = (m - 1) // 2
+        mid = 0.0 + abs(u[h]) if m % 2 else (0.0 + abs(u[h]) + abs(u[h + 1])) / 2.0
+    else:
+        for i in range(m):
+            buf[i] = abs(u[i])
+        mid = _median_inplace(buf, m)
+    tol = QUANTUM_TOL * mid
     k = 0
     for i in range(m - 1):
         gap = u[i + 1] - u[i]
@@ -771,14 +904,15 @@ def _floor_kernel(r: np.ndarray, z: np.ndarray) -> float:
     return step / math.sqrt(12.0) * (ray if math.isfinite(ray) else 1.0)
 
 
-@nb.njit(cache=True)
 def _group_floors(r: np.ndarray, z: np.ndarray, order: np.ndarray, starts: np.ndarray,
                   stops: np.ndarray) -> np.ndarray:
-    """Per group g, :func:`quantization_floor` of the points ``order[starts[g]:stops[g]]``."""
-    out = np.empty(starts.shape[0])
-    for g in range(starts.shape[0]):
-        idx = order[starts[g]:stops[g]]
-        out[g] = _floor_kernel(r[idx], z[idx])
+    """Per group g, :func:`quantization_floor` of the points ``order[starts[g]:stops[g]]``
+    (1-D float64 ``r``, ``z``), bit for bit."""
+    out = np.empty(len(starts))
+    for g, (a, b) in enumerate(zip(starts, stops)):
+        idx = order[a:b]
+        rg, zg = r[idx], z[idx]
+        out[g] = _floor_kernel(rg, zg, np.sort(zg))
     return out
 
 
@@ -956,7 +1090,7 @@ def fit_residuals(
     r, y, c, tile, d = r[ok], y[ok], c[ok], tile[ok], d[ok]
     report: dict[str, Any] = {
         "n_scans": len(tiles), "n_points": int(r.size), "n_tiles": n_tiles,
-        "n_tiles_used": int(np.unique(tile).size), "tiles_rejected": rejected,
+        "n_tiles_used": int(unique_runs(tile)[0].size), "tiles_rejected": rejected,
         "estimator": estimator, "incidence": incidence, "terms": list(terms),
         "bin_width": float(bin_width),
     }
@@ -969,7 +1103,7 @@ def fit_residuals(
     edges = lo + bin_width * np.arange(nb + 1)
     which = np.clip(((r - lo) / bin_width).astype(np.int64), 0, nb - 1)
     # each bin's points, in their order (the same selection as ``which == b``, found once)
-    order = np.argsort(which, kind="stable")
+    order = stable_order(which)
     cuts = np.searchsorted(which[order], np.arange(nb + 1))
     members = [order[cuts[b]:cuts[b + 1]] for b in range(nb)]
     clipped = estimator == "clipped" or diagnostics

@@ -35,7 +35,9 @@ from boxloc.calibrate.noise import (
     fit_bins,
     fit_residuals,
     median,
+    stable_order,
     tile_residuals,
+    unique_runs,
 )
 from boxloc.config import Config
 from boxloc.distributions import chi2_isf, norm_isf, t_sf
@@ -199,7 +201,7 @@ def exceedance(z: np.ndarray, tile: np.ndarray, alpha: float, grid_width: int = 
     if z.size < MIN_FLAT_TILES * PATCH_PX**2 // 2:
         return alpha / 2.0, 1.0, 0.0
     k = float(norm_isf(alpha / 2.0))
-    ids, inv = np.unique(tile, return_inverse=True)
+    ids, inv, _ = unique_runs(tile)
     count = np.bincount(inv, weights=(z > k).astype(np.float64))
     n = np.bincount(inv).astype(np.float64)
     p = median(count / n)
@@ -267,12 +269,14 @@ def _tile_stats(tiles: TileResiduals, model: NoiseModel
     e = np.abs(tiles.residual[inl]) * np.maximum(
         tiles.cos_incidence[inl], model.min_cos) ** model.incidence_exponent
     r = tiles.range[inl]
-    ids, inv, counts = np.unique(tid, return_inverse=True, return_counts=True)
+    ids, inv, counts = unique_runs(tid)
     starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
-    # each tile's points together (they already are, in tile order: then this is a copy)
-    by_tile = np.argsort(inv, kind="stable")
-    mad = _lower_medians(e[by_tile], starts, counts)  # lower median of |e| per tile
-    r_med = _lower_medians(r[by_tile], starts, counts)
+    # each tile's points together (they already are, in tile order: then nothing moves)
+    if np.any(inv[1:] < inv[:-1]):
+        by_tile = stable_order(inv)
+        e, r = e[by_tile], r[by_tile]
+    mad = _lower_medians(e, starts, counts)  # lower median of |e| per tile
+    r_med = _lower_medians(r, starts, counts)
     return r_med, 1.4826 * mad, counts.astype(np.float64), ids
 
 
@@ -330,7 +334,7 @@ def _fit_tests(tiles: TileResiduals, model: NoiseModel, alpha: float, grid_width
     floored = np.zeros(s.shape, bool)
     ks = np.unique(b)
     # each bin's points: the points' bins sorted once, not a mask per bin
-    by_bin = np.argsort(bp, kind="stable")
+    by_bin = stable_order(bp)
     bp_sorted = bp[by_bin]
     floors = _group_floors(rp, zp, by_bin, np.searchsorted(bp_sorted, ks, "left"),
                            np.searchsorted(bp_sorted, ks, "right"))
