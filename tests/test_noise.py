@@ -474,3 +474,33 @@ def test_unique_runs_and_stable_order_are_numpys() -> None:
             starts, stops = np.array([0, t.size // 2]), np.array([t.size // 2, t.size])
             got = _group_distinct(t.astype(np.int64), order, starts, stops)
             assert list(got) == [np.unique(t[a:b]).size for a, b in zip(starts, stops)]
+
+
+def test_window_points_are_numpys_gather() -> None:
+    from boxloc.calibrate.noise import _window_points
+
+    rng = np.random.default_rng(14)
+    H, W, side, stride = 60, 80, 48, 3
+    points = rng.normal(1.0, 1.0, (H, W, 3)).astype(np.float32)
+    points[rng.random((H, W)) < 0.1] = np.nan
+    valid = np.isfinite(points[..., 2]) & (rng.random((H, W)) < 0.95)
+    r0, c0 = rng.integers(0, H - side + 1, 9), rng.integers(0, W - side + 1, 9)
+    off = np.arange(0, side, stride)
+    rr = r0[:, None, None] + off[None, :, None]
+    cc = c0[:, None, None] + off[None, None, :]
+    P = points[rr, cc].reshape(9, -1, 3).astype(np.float64)
+    V = valid[rr, cc].reshape(9, -1) & (P[..., 2] > 0)
+    P = np.where(V[..., None], P, 0.0)
+    got_P, got_V = _window_points(points, valid, r0, c0, side, stride)
+    assert _same(got_P, P) and np.array_equal(got_V, V)
+
+
+def test_design_matrices_are_numpys_stack() -> None:
+    from boxloc.calibrate.noise import _design
+
+    rng = np.random.default_rng(15)
+    u, v = rng.normal(size=(5, 256)), rng.normal(size=(5, 256))
+    one = np.ones_like(u)
+    assert _same(_design(u, v, False), np.stack([u, v, one], -1))
+    assert _same(_design(u, v, True), np.stack([u, v, one, u * u, u * v, v * v], -1))
+    assert _design(u, v, True).flags.c_contiguous

@@ -238,7 +238,11 @@ def tile_residuals(
 
     # Incidence at the tile's centroid, from the normal of the surface around the tile (see
     # _incidence_normals: a noisy tile's own normal is biased toward grazing).
-    normal = _incidence_normals(scan, valid, ids, step, patch, mean, normal, h, w, ok)
+    # each tile's robust scale, for the incidence window's band and the lag correlations
+    # (a tile's own: computed once for the tiles both take)
+    scale = np.full(ok.shape, np.nan)
+    scale[ok] = _tile_scale(h[ok], w[ok] > 0)
+    normal = _incidence_normals(scan, valid, ids, step, patch, mean, normal, ok, scale[ok])
     d_mean = mean / np.linalg.norm(mean, axis=1, keepdims=True)
     cos_tile = np.abs(np.einsum("tk,tk->t", d_mean, normal))
     grazing = ok & (cos_tile < min_cos)
@@ -260,7 +264,7 @@ def tile_residuals(
         range=r[vi], cos_incidence=np.abs(ndot[vi]), residual=e_ray[vi],
         depth=Ps[..., 2][vi],
         tile=tile[vi].astype(np.int64), inlier=wi[vi], row_share=_row_share(hs, wi, patch),
-        lag_sums=_lag_sums(hs / _tile_scale(hs, wi)[:, None], wi, patch),
+        lag_sums=_lag_sums(hs / scale[sel][:, None], wi, patch),
         n_tiles=n_tiles, n_accepted=int(sel.size),
         rejected=rejected,
     )
@@ -373,8 +377,8 @@ INCIDENCE_SCATTER = 3.0
 
 
 def _incidence_normals(scan: Scan, valid: np.ndarray, ids: np.ndarray, step: int, patch: int,
-                       mean: np.ndarray, normal: np.ndarray, h: np.ndarray, w: np.ndarray,
-                       ok: np.ndarray) -> np.ndarray:
+                       mean: np.ndarray, normal: np.ndarray, ok: np.ndarray, sig: np.ndarray
+                       ) -> np.ndarray:
     """Each accepted tile's surface normal, fitted over a window INCIDENCE_TILES tiles wide.
 
     A tile's own plane has 256 points. Where the range noise is large against the tile's
@@ -392,6 +396,7 @@ def _incidence_normals(scan: Scan, valid: np.ndarray, ids: np.ndarray, step: int
     or holds fewer points than the tile, or the tile scatters more than INCIDENCE_SCATTER
     times the median of its accepted neighbours (or has none), the tile's own normal stays.
 
+    ``sig`` (accepted tiles,) are the accepted tiles' robust scales (:func:`_tile_scale`).
     Returns (T, 3) unit normals toward the sensor (``normal`` with the accepted tiles'
     rows replaced).
     """
@@ -404,20 +409,13 @@ def _incidence_normals(scan: Scan, valid: np.ndarray, ids: np.ndarray, step: int
     gy, gx = np.divmod(ids[sel], tx)
     r0 = np.clip(gy * step * patch - patch * (INCIDENCE_TILES // 2), 0, H - side)
     c0 = np.clip(gx * step * patch - patch * (INCIDENCE_TILES // 2), 0, W - side)
-    off = np.arange(0, side, INCIDENCE_STRIDE)
-    rr = r0[:, None, None] + off[None, :, None]
-    cc = c0[:, None, None] + off[None, None, :]
-    T = sel.size
-    P = scan.points[rr, cc].reshape(T, -1, 3).astype(np.float64)
-    V = valid[rr, cc].reshape(T, -1) & (P[..., 2] > 0)
-    P = np.where(V[..., None], P, 0.0)
+    P, V = _window_points(scan.points, valid, r0, c0, side, INCIDENCE_STRIDE)
     dist = _norms(P)
     with np.errstate(invalid="ignore", divide="ignore"):
         u = P / dist[..., None]
-    sig = _tile_scale(h[sel], w[sel] > 0)
     Zs = np.where(V, P[..., 2], 1.0)
     x, y, q = P[..., 0] / Zs, P[..., 1] / Zs, 1.0 / Zs
-    A = np.stack([x, y, np.ones_like(x)], -1)
+    A = _design(x, y, False)  # (x, y, 1)
     n, c = normal[sel], np.einsum("tk,tk->t", normal[sel], mean[sel])
     for _ in range(2):
         with np.errstate(invalid="ignore", divide="ignore"):
@@ -444,12 +442,37 @@ def _incidence_normals(scan: Scan, valid: np.ndarray, ids: np.ndarray, step: int
     grid[gy + 1, gx + 1] = sig
     nb = np.stack([grid[gy + 1 + dy, gx + 1 + dx] for dy in (-1, 0, 1) for dx in (-1, 0, 1)
                    if dy or dx], 1)
-    with _quiet_nan():
-        typical = np.nanmedian(nb, 1)
+    # np.nanmedian(nb, 1): the scales are positive (at least 1e-12), their |x| is x
+    typical = _abs_medians(nb, nb > 0)
     same = sig <= INCIDENCE_SCATTER * typical  # False without a neighbour (NaN)
     out = normal.copy()
     out[sel] = np.where(same[:, None], n, normal[sel])
     return out
+
+
+@nb.njit(cache=True)
+def _window_points(points: np.ndarray, valid: np.ndarray, r0: np.ndarray, c0: np.ndarray,
+                   side: int, stride: int) -> tuple[np.ndarray, np.ndarray]:
+    """The incidence windows' points: every ``stride``-th pixel of the ``side`` x ``side``
+    window from (r0[t], c0[t]), row-major; (T, m, 3) float64, 0 where no return, and (T,
+    m) which have one (valid and in front of the sensor), as NumPy's gather of the pixels
+    (``points[rr, cc]``, converted, masked) gives them, without its index arrays."""
+    T = r0.shape[0]
+    k = (side + stride - 1) // stride
+    P = np.zeros((T, k * k, 3))
+    V = np.zeros((T, k * k), np.bool_)
+    for t in range(T):
+        for a in range(k):
+            for b in range(k):
+                r, c = r0[t] + a * stride, c0[t] + b * stride
+                z = np.float64(points[r, c, 2])
+                if valid[r, c] and z > 0:
+                    i = a * k + b
+                    V[t, i] = True
+                    P[t, i, 0] = np.float64(points[r, c, 0])
+                    P[t, i, 1] = np.float64(points[r, c, 1])
+                    P[t, i, 2] = z
+    return P, V
 
 
 @contextlib.contextmanager
@@ -511,9 +534,8 @@ def _ray_planes(
     sc = np.sqrt((np.where(ok, (x - xm) ** 2 + (y - ym) ** 2, 0.0)).sum(1, keepdims=True)
                  / cnt) + 1e-12
     u, v = (x - xm) / sc, (y - ym) / sc
-    one = np.ones_like(u)
-    A3 = np.stack([u, v, one], -1)
-    A6 = np.stack([u, v, one, u * u, u * v, v * v], -1)
+    A3 = _design(u, v, False)  # (u, v, 1)
+    A6 = _design(u, v, True)  # (u, v, 1, u u, u v, v v)
 
     def fit(A: np.ndarray, wt: np.ndarray, t: slice | np.ndarray = slice(None)
             ) -> tuple[np.ndarray, np.ndarray]:
@@ -557,6 +579,27 @@ def _ray_planes(
     vq = (wt * hq * hq).sum(1) / np.maximum(ns - 6.0, 1.0)
     ratio = vp / np.maximum(vq, 1e-30)
     return mean, normal, np.where(ok, h, 0.0), wt, ratio
+
+
+@nb.njit(cache=True)
+def _design(u: np.ndarray, v: np.ndarray, quadratic: bool) -> np.ndarray:
+    """The (T, n) coordinates' design matrices, (T, n, 3) ``(u, v, 1)`` or (T, n, 6) ``(u,
+    v, 1, u*u, u*v, v*v)``, C-contiguous: ``np.stack`` of those columns, without the
+    columns as arrays."""
+    T, n = u.shape
+    k = 6 if quadratic else 3
+    A = np.empty((T, n, k))
+    for t in range(T):
+        for i in range(n):
+            a, b = u[t, i], v[t, i]
+            A[t, i, 0] = a
+            A[t, i, 1] = b
+            A[t, i, 2] = 1.0
+            if quadratic:
+                A[t, i, 3] = a * a
+                A[t, i, 4] = a * b
+                A[t, i, 5] = b * b
+    return A
 
 
 # --- the fit ------------------------------------------------------------------------------
