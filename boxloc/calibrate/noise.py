@@ -1195,7 +1195,10 @@ def fit_residuals(
         c_min = np.maximum(c, base.min_cos)
         for g_try in INCIDENCE_EXPONENTS:
             y_try = e_ray * c_min ** g_try
-            mad_try = _group_medians(y_try, order, starts, stops, True)
+            # g = 0 on residuals binned as they are (incidence="fit") gives the same bits
+            # as the bins above: their MADs are those
+            same = np.array_equal(y_try.view(np.uint64), y.view(np.uint64))
+            mad_try = mad if same else _group_medians(y_try, order, starts, stops, True)
             rows_try = [dict(row) for row in rows]
             for row in rows_try:
                 b = int(round((row["lo"] - lo) / bin_width))
