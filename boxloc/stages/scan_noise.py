@@ -497,9 +497,10 @@ def design_effect(gy: np.ndarray, gx: np.ndarray, corr: np.ndarray) -> float:
     n = gy.size
     if n < 2 or not (c_r * a_r > 0 or c_c * a_c > 0):
         return 1.0
-    if gy.dtype.kind in "iu" and gx.dtype.kind in "iu":
-        # the same sums in one kernel, without the (n, n) arrays: the powers from a table
-        # of NumPy's own (the same ufunc, element by element)
+    if gy.dtype.kind == "i" and gx.dtype.kind == "i":
+        # the same (n, n) correlations from one kernel, without the distance, factor and
+        # power arrays: the powers from a table of np.power's own (element by element the
+        # same ufunc); summed by NumPy as before
         gy, gx = gy.astype(np.int64), gx.astype(np.int64)
         p_r = np.power(a_r, np.arange(int(gx.max() - gx.min()) + 1, dtype=np.int64))
         p_c = np.power(a_c, np.arange(int(gy.max() - gy.min()) + 1, dtype=np.int64))
