@@ -1,9 +1,10 @@
 """Compile boxloc's numba kernels into numba's on-disk cache; scripts/setup.sh runs it.
 
 The kernels (``@numba.njit(cache=True)`` in boxloc/stages/edges.py, lines.py, scan_noise.py
-and seams.py) compile on their first call, about 30 s on one core, and are then written to
-numba's cache: beside the sources (``boxloc/stages/__pycache__/*.nbi, *.nbc``) for a
-checkout or an editable install, or under
+and seams.py, and boxloc/calibrate/noise.py) compile on their first call, about 30 s on one
+core, and are then written to numba's cache: beside the sources
+(``boxloc/stages/__pycache__/*.nbi, *.nbc``, and boxloc/calibrate's) for a checkout or an
+editable install, or under
 ``NUMBA_CACHE_DIR`` when that is set (then it must be set the same way when boxloc runs).
 An entry is valid until its source file changes (numba keys it on the file's time stamp and
 size), so after a ``git pull`` that touches a kernel, running set-up again rebuilds it.
@@ -58,6 +59,19 @@ def _seam_kernels() -> None:
     seam_z(coord, np.zeros(50), 0.001, np.array([0.05]), 0.005, np.arange(50) // 5, 0.25)
 
 
+def _noise_kernels() -> None:
+    """The calibration's robust std (``boxloc calibrate-noise``; the pipeline's per-scan fit
+    takes its bins' in one kernel) and the tiles' design effect with correlated tiles (the
+    simulated scan above has none): their kernels are called here on a few values."""
+    import numpy as np
+
+    from boxloc.calibrate.noise import _robust_std
+    from boxloc.stages.scan_noise import design_effect
+
+    _robust_std(np.linspace(-1.0, 1.0, 11))
+    design_effect(np.arange(4) // 2, np.arange(4) % 2, np.array([0.5, 0.5, 0.5, 0.5]))
+
+
 def warm_up() -> int:
     """Run the pipeline on a 160 x 120 simulated scan; print what was compiled or loaded.
 
@@ -76,6 +90,7 @@ def warm_up() -> int:
                                f=float(spec.f) * 160 / spec.width)
     find_graspable_surfaces(simulate(spec).scan, Config())
     _seam_kernels()
+    _noise_kernels()
     found = kernels()
     compiled = sum(sum(k.stats.cache_misses.values()) for k in found.values())
     loaded = sum(sum(k.stats.cache_hits.values()) for k in found.values())

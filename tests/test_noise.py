@@ -323,3 +323,184 @@ def test_quantized_depth_has_the_noise_of_its_steps() -> None:
     zc = 4.0 + rng.uniform(-0.05, 0.05, 1000)
     assert quantization_floor(zc, zc) < 1e-4
 
+
+
+# --- the exact-median kernels: each equals the NumPy expression it replaces, bit for bit ---
+
+
+def _same(a: object, b: object) -> bool:
+    """Equal bytes as float64 (so -0.0 != 0.0 and NaN == NaN)."""
+    return bool(np.asarray(a, np.float64).tobytes() == np.asarray(b, np.float64).tobytes())
+
+
+def _samples(rng: np.random.Generator, n: int) -> list[np.ndarray]:
+    """Continuous values, heavy ties, quantized depths, signed zeros, extreme scales."""
+    return [rng.normal(size=n), rng.integers(-3, 4, n).astype(np.float64),
+            np.round(rng.normal(4.0, 0.05, n) / 0.018) * 0.018,
+            rng.choice([-0.0, 0.0, 1.0, -1.0], n),
+            rng.normal(size=n) * 10.0 ** rng.integers(-300, 300)]
+
+
+def _floor_numpy(r: np.ndarray, z: np.ndarray) -> float:
+    """quantization_floor as NumPy expressions (its definition)."""
+    u = np.unique(z)
+    gaps = np.diff(u)
+    gaps = gaps[gaps > 1e-6 * float(np.median(np.abs(u)))] if u.size > 1 else gaps
+    if gaps.size == 0:
+        return 0.0
+    with np.errstate(invalid="ignore", divide="ignore"):
+        ray = float(np.median(r / z))
+    return float(np.median(gaps)) / np.sqrt(12.0) * (ray if np.isfinite(ray) else 1.0)
+
+
+@pytest.mark.parametrize("n", [1, 2, 3, 4, 7, 8, 255, 256, 1001, 4096])
+def test_median_kernels_are_numpys_bit_for_bit(n: int) -> None:
+    import warnings
+
+    from boxloc.calibrate.noise import _mad, _median
+
+    rng = np.random.default_rng(n)
+    for x in _samples(rng, n):
+        for a in (x, np.where(np.arange(n) == n // 2, np.nan, x)):  # and with a NaN
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore", RuntimeWarning)
+                ref, ref_mad = np.median(a), np.median(np.abs(a - np.median(a)))
+            before = a.copy()
+            assert _same(_median(a), ref) and _same(_mad(a), ref_mad)
+            assert _same(a, before)  # the input is not reordered
+            z = np.abs(a) + 1.0
+            r = z * rng.uniform(1.0, 1.2, n)
+            assert _same(quantization_floor(r, z), _floor_numpy(r, z))
+    assert np.isnan(_median(np.zeros(0)))
+    assert quantization_floor(np.zeros(0), np.zeros(0)) == 0.0
+
+
+def test_grouped_median_kernels_are_numpys_bit_for_bit() -> None:
+    from boxloc.calibrate.noise import (
+        _abs_medians,
+        _group_distinct,
+        _group_floors,
+        _group_medians,
+        _lower_medians,
+    )
+
+    rng = np.random.default_rng(7)
+    n, G = 5000, 40
+    which = rng.integers(0, G, n)
+    which[which == 5] = 6  # an empty group
+    order = np.argsort(which, kind="stable")
+    cuts = np.searchsorted(which[order], np.arange(G + 1))
+    t = rng.integers(0, 60, n)
+    for x in _samples(rng, n):
+        z = np.abs(x) + 1.0
+        r = z * rng.uniform(1.0, 1.2, n)
+        med = _group_medians(x, order, cuts[:-1], cuts[1:], False)
+        mad = _group_medians(x, order, cuts[:-1], cuts[1:], True)
+        floors = _group_floors(r, z, order, cuts[:-1], cuts[1:])
+        distinct = _group_distinct(t, order, cuts[:-1], cuts[1:])
+        for g in range(G):
+            sel = order[cuts[g]:cuts[g + 1]]
+            if sel.size == 0:
+                assert np.isnan(med[g]) and distinct[g] == 0 and floors[g] == 0.0
+                continue
+            xs = x[sel]
+            assert _same(med[g], np.median(xs))
+            assert _same(mad[g], np.median(np.abs(xs - np.median(xs))))
+            assert _same(floors[g], _floor_numpy(r[sel], z[sel]))
+            assert distinct[g] == np.unique(t[sel]).size
+        # per row: nanmedian_last of the masked |h|, and the lower median of groups
+        from boxloc.stats import nanmedian_last
+
+        h = x[:4000].reshape(16, 250).copy()
+        h[3, 7] = np.nan
+        w = rng.random(h.shape) < 0.8
+        w[2] = False  # a row without inliers
+        w[4, 1:] = False  # a row of one
+        with np.errstate(invalid="ignore"):
+            ref = nanmedian_last(np.where(w, np.abs(h), np.nan))
+        assert _same(_abs_medians(h, w), ref)
+        assert _same(_abs_medians(h, w.astype(np.float64)), ref)
+        counts = np.array([1, 2, 3, 250, 251, 500, 993])
+        starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
+        y = np.abs(x[:counts.sum()])
+        want = [np.sort(y[s:s + c])[(c - 1) // 2] for s, c in zip(starts, counts)]
+        assert _same(_lower_medians(y, starts, counts), want)
+
+
+def test_norms_and_lag_sums_are_numpys_bit_for_bit() -> None:
+    from boxloc.calibrate.noise import CORRELATION_LAGS, _lag_sums, _norms
+
+    rng = np.random.default_rng(12)
+    for T, n in ((0, 256), (1, 1), (3, 7), (300, 256), (41, 1296)):
+        P = rng.normal(size=(T, n, 3)) * 10.0 ** rng.uniform(-3, 3, (T, n, 3))
+        if T:
+            P[0, 0] = (np.nan, 1.0, 2.0)
+            P[-1, -1] = (np.inf, 0.0, -0.0)
+        assert _same(_norms(P), np.linalg.norm(P, axis=2))
+    for patch in (4, 8, 16):
+        T = 50
+        h = rng.normal(size=(T, patch * patch))
+        w = rng.random(h.shape) < 0.9
+        w[0] = False
+        want = np.zeros((2, len(CORRELATION_LAGS), 3))  # the sums as NumPy expressions
+        H = np.where(w, h, 0.0).reshape(T, patch, patch)
+        M = w.reshape(T, patch, patch)
+        for j, lag in enumerate(CORRELATION_LAGS):
+            if lag >= patch:
+                continue
+            for i, (a, b, ma, mb) in enumerate((
+                    (H[:, :, :-lag], H[:, :, lag:], M[:, :, :-lag], M[:, :, lag:]),
+                    (H[:, :-lag], H[:, lag:], M[:, :-lag], M[:, lag:]))):
+                both = ma & mb
+                want[i, j] = ((a * b)[both].sum(), (a * a)[both].sum(), (b * b)[both].sum())
+        assert _same(_lag_sums(h, w, patch), want)
+
+
+def test_unique_runs_and_stable_order_are_numpys() -> None:
+    from boxloc.calibrate.noise import _group_distinct, stable_order, unique_runs
+
+    rng = np.random.default_rng(13)
+    cases = [np.zeros(0, np.int64), np.array([5]), np.sort(rng.integers(0, 40, 3000)),
+             rng.integers(0, 40, 3000), np.repeat(np.arange(7) << 32, 5),
+             np.sort(rng.integers(0, 9, 100)).astype(np.uint16),
+             rng.integers(-(2**62), 2**62, 500), np.array([3, 3, -1, 7, 7, 7, 2])]
+    for t in cases:
+        for got, want in zip(unique_runs(t), np.unique(t, return_inverse=True,
+                                                       return_counts=True)):
+            assert got.dtype == want.dtype and np.array_equal(got, want)
+        assert np.array_equal(stable_order(t), np.argsort(t, kind="stable"))
+        if t.size:  # the distinct values of groups in order and out of it
+            order = np.arange(t.size)
+            starts, stops = np.array([0, t.size // 2]), np.array([t.size // 2, t.size])
+            got = _group_distinct(t.astype(np.int64), order, starts, stops)
+            assert list(got) == [np.unique(t[a:b]).size for a, b in zip(starts, stops)]
+
+
+def test_window_points_are_numpys_gather() -> None:
+    from boxloc.calibrate.noise import _window_points
+
+    rng = np.random.default_rng(14)
+    H, W, side, stride = 60, 80, 48, 3
+    points = rng.normal(1.0, 1.0, (H, W, 3)).astype(np.float32)
+    points[rng.random((H, W)) < 0.1] = np.nan
+    valid = np.isfinite(points[..., 2]) & (rng.random((H, W)) < 0.95)
+    r0, c0 = rng.integers(0, H - side + 1, 9), rng.integers(0, W - side + 1, 9)
+    off = np.arange(0, side, stride)
+    rr = r0[:, None, None] + off[None, :, None]
+    cc = c0[:, None, None] + off[None, None, :]
+    P = points[rr, cc].reshape(9, -1, 3).astype(np.float64)
+    V = valid[rr, cc].reshape(9, -1) & (P[..., 2] > 0)
+    P = np.where(V[..., None], P, 0.0)
+    got_P, got_V = _window_points(points, valid, r0, c0, side, stride)
+    assert _same(got_P, P) and np.array_equal(got_V, V)
+
+
+def test_design_matrices_are_numpys_stack() -> None:
+    from boxloc.calibrate.noise import _design
+
+    rng = np.random.default_rng(15)
+    u, v = rng.normal(size=(5, 256)), rng.normal(size=(5, 256))
+    one = np.ones_like(u)
+    assert _same(_design(u, v, False), np.stack([u, v, one], -1))
+    assert _same(_design(u, v, True), np.stack([u, v, one, u * u, u * v, v * v], -1))
+    assert _design(u, v, True).flags.c_contiguous

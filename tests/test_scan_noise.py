@@ -276,6 +276,29 @@ def test_design_effect() -> None:
     assert design_effect(gx, gy, np.array([1.0, 0.5, 0.0, 0.0])) == 1.0
 
 
+def test_design_effect_kernel_is_the_numpy_expression_bit_for_bit() -> None:
+    import math
+
+    def numpy_design_effect(gy: np.ndarray, gx: np.ndarray, corr: np.ndarray) -> float:
+        c_r, a_r, c_c, a_c = (float(v) for v in corr)
+        dx = np.abs(gx[:, None] - gx[None, :])
+        dy = np.abs(gy[:, None] - gy[None, :])
+        c = np.where(dy == 0, c_r, np.where(dx == 0, c_c, math.sqrt(c_r * c_c)))
+        rho = c * np.power(a_r, dx) * np.power(a_c, dy)
+        return 1.0 + float(rho.sum() - np.trace(rho)) / gy.size
+
+    rng = np.random.default_rng(11)
+    for n in (2, 3, 9, 130, 400):
+        gy, gx = rng.integers(0, 25, n), rng.integers(0, 30, n)
+        for corr in (rng.uniform(0.0, 1.0, 4), np.array([0.7, 0.9, 0.0, 0.0]),
+                     np.array([0.0, 0.0, 0.4, 0.6]), np.array([0.3, 0.0, 0.5, 0.95])):
+            want = numpy_design_effect(gy, gx, corr)
+            assert design_effect(gy, gx, corr) == want
+            # integer tile indices of any width, and the float fallback
+            assert design_effect(gy.astype(np.int32), gx.astype(np.int32), corr) == want
+            assert design_effect(gy.astype(np.float64), gx.astype(np.float64), corr) == want
+
+
 @pytest.mark.parametrize("seed", [1, 2, 3])
 def test_noise_fit_keeps_its_level_on_a_stereo_cameras_patchy_noise(seed: int) -> None:
     # Active-stereo depth noise varies in scale over the image (its matching quality): a

@@ -37,12 +37,12 @@ from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
 from typing import Any
 
+import numba as nb
 import numpy as np
 import numpy.typing as npt
 
 from boxloc.errors import InputError
 from boxloc.scan import NoiseModel, Scan
-from boxloc.stats import nanmedian_last
 
 __all__ = ["plane_residuals", "tile_residuals", "TileResiduals", "estimate_noise", "fit_residuals",
            "noise_toml", "NOISE_TERMS"]
@@ -238,7 +238,11 @@ def tile_residuals(
 
     # Incidence at the tile's centroid, from the normal of the surface around the tile (see
     # _incidence_normals: a noisy tile's own normal is biased toward grazing).
-    normal = _incidence_normals(scan, valid, ids, step, patch, mean, normal, h, w, ok)
+    # each tile's robust scale, for the incidence window's band and the lag correlations
+    # (a tile's own: computed once for the tiles both take)
+    scale = np.full(ok.shape, np.nan)
+    scale[ok] = _tile_scale(h[ok], w[ok] > 0)
+    normal = _incidence_normals(scan, valid, ids, step, patch, mean, normal, ok, scale[ok])
     d_mean = mean / np.linalg.norm(mean, axis=1, keepdims=True)
     cos_tile = np.abs(np.einsum("tk,tk->t", d_mean, normal))
     grazing = ok & (cos_tile < min_cos)
@@ -248,7 +252,7 @@ def tile_residuals(
     sel = np.flatnonzero(ok)
     wi = w[sel] > 0
     Ps, hs = P0[sel], h[sel]
-    r = np.linalg.norm(Ps, axis=2)
+    r = _norms(Ps)
     with np.errstate(invalid="ignore", divide="ignore"):
         d = Ps / r[..., None]
     ndot = np.einsum("tnk,tk->tn", d, normal[sel])
@@ -260,7 +264,7 @@ def tile_residuals(
         range=r[vi], cos_incidence=np.abs(ndot[vi]), residual=e_ray[vi],
         depth=Ps[..., 2][vi],
         tile=tile[vi].astype(np.int64), inlier=wi[vi], row_share=_row_share(hs, wi, patch),
-        lag_sums=_lag_sums(hs / _tile_scale(hs, wi)[:, None], wi, patch),
+        lag_sums=_lag_sums(hs / scale[sel][:, None], wi, patch),
         n_tiles=n_tiles, n_accepted=int(sel.size),
         rejected=rejected,
     )
@@ -270,27 +274,67 @@ def _tile_scale(h: np.ndarray, w: np.ndarray) -> np.ndarray:
     """Each tile's robust residual scale (1.4826 x the median |h| of its inliers), so that
     the pooled correlation weighs every tile alike: otherwise a few tiles of large, folded
     residuals (a box's side at grazing incidence) decide it."""
-    with np.errstate(invalid="ignore"):
-        mad = nanmedian_last(np.where(w, np.abs(h), np.nan))
+    mad = _abs_medians(h, w)
     return np.maximum(_MAD_TO_STD * np.nan_to_num(mad), 1e-12)
+
+
+def _norms(P: np.ndarray) -> np.ndarray:
+    """``np.linalg.norm(P, axis=2)`` of (T, n, 3) float64 points, bit for bit: NumPy's
+    reduction over the short last axis adds the squares left to right, ``(x*x + y*y) +
+    z*z`` (an implementation detail, so a test holds this to NumPy's result), then takes
+    the square root; a kernel does that without the (T, n, 3) squares and NumPy's
+    per-point loop overhead."""
+    return _norms_kernel(np.ascontiguousarray(P, dtype=np.float64))
+
+
+@nb.njit(cache=True)
+def _norms_kernel(P: np.ndarray) -> np.ndarray:
+    T, n = P.shape[0], P.shape[1]
+    out = np.empty((T, n))
+    for t in range(T):
+        for i in range(n):
+            x, y, z = P[t, i, 0], P[t, i, 1], P[t, i, 2]
+            out[t, i] = math.sqrt((x * x + y * y) + z * z)
+    return out
 
 
 def _lag_sums(h: np.ndarray, w: np.ndarray, patch: int) -> np.ndarray:
     """Sums for the correlation of two inlier residuals of a tile ``lag`` pixels apart,
     along a row and along a column: (2, len(CORRELATION_LAGS), 3) of sum a*b, a*a, b*b."""
     T = h.shape[0]
-    H = np.where(w, h, 0.0).reshape(T, patch, patch)
-    M = w.reshape(T, patch, patch)
+    H = np.ascontiguousarray(h, dtype=np.float64).reshape(T, patch, patch)
+    M = np.ascontiguousarray(w, dtype=np.bool_).reshape(T, patch, patch)
     out = np.zeros((2, len(CORRELATION_LAGS), 3))
     for j, lag in enumerate(CORRELATION_LAGS):
         if lag >= patch:
             continue
-        for i, (a, b, ma, mb) in enumerate((
-                (H[:, :, :-lag], H[:, :, lag:], M[:, :, :-lag], M[:, :, lag:]),
-                (H[:, :-lag], H[:, lag:], M[:, :-lag], M[:, lag:]))):
-            both = ma & mb
-            out[i, j] = ((a * b)[both].sum(), (a * a)[both].sum(), (b * b)[both].sum())
+        for i in range(2):
+            # the products of the pairs in NumPy's order, summed by NumPy as before
+            prod = _lag_products(H, M, lag, i == 0)
+            out[i, j] = (prod[0].sum(), prod[1].sum(), prod[2].sum())
     return out
+
+
+@nb.njit(cache=True)
+def _lag_products(H: np.ndarray, M: np.ndarray, lag: int, along_rows: bool) -> np.ndarray:
+    """The pairs of inliers ``lag`` pixels apart in (T, p, p) tiles ``H`` (inliers ``M``),
+    along rows or along columns: (3, pairs) of a*b, a*a, b*b in C order of the pairs'
+    first pixel, bit for bit ``(a * b)[both]`` of :func:`_lag_sums`' slices (without the
+    masks and products of every pixel)."""
+    T, p = H.shape[0], H.shape[1]
+    dr, dc = (0, lag) if along_rows else (lag, 0)
+    out = np.empty((3, T * p * p))
+    m = 0
+    for t in range(T):
+        for r in range(p - dr):
+            for c in range(p - dc):
+                if M[t, r, c] and M[t, r + dr, c + dc]:
+                    a, b = H[t, r, c], H[t, r + dr, c + dc]
+                    out[0, m] = a * b
+                    out[1, m] = a * a
+                    out[2, m] = b * b
+                    m += 1
+    return out[:, :m]
 
 
 def _row_share(h: np.ndarray, w: np.ndarray, patch: int) -> np.ndarray:
@@ -333,8 +377,8 @@ INCIDENCE_SCATTER = 3.0
 
 
 def _incidence_normals(scan: Scan, valid: np.ndarray, ids: np.ndarray, step: int, patch: int,
-                       mean: np.ndarray, normal: np.ndarray, h: np.ndarray, w: np.ndarray,
-                       ok: np.ndarray) -> np.ndarray:
+                       mean: np.ndarray, normal: np.ndarray, ok: np.ndarray, sig: np.ndarray
+                       ) -> np.ndarray:
     """Each accepted tile's surface normal, fitted over a window INCIDENCE_TILES tiles wide.
 
     A tile's own plane has 256 points. Where the range noise is large against the tile's
@@ -352,6 +396,7 @@ def _incidence_normals(scan: Scan, valid: np.ndarray, ids: np.ndarray, step: int
     or holds fewer points than the tile, or the tile scatters more than INCIDENCE_SCATTER
     times the median of its accepted neighbours (or has none), the tile's own normal stays.
 
+    ``sig`` (accepted tiles,) are the accepted tiles' robust scales (:func:`_tile_scale`).
     Returns (T, 3) unit normals toward the sensor (``normal`` with the accepted tiles'
     rows replaced).
     """
@@ -364,20 +409,13 @@ def _incidence_normals(scan: Scan, valid: np.ndarray, ids: np.ndarray, step: int
     gy, gx = np.divmod(ids[sel], tx)
     r0 = np.clip(gy * step * patch - patch * (INCIDENCE_TILES // 2), 0, H - side)
     c0 = np.clip(gx * step * patch - patch * (INCIDENCE_TILES // 2), 0, W - side)
-    off = np.arange(0, side, INCIDENCE_STRIDE)
-    rr = r0[:, None, None] + off[None, :, None]
-    cc = c0[:, None, None] + off[None, None, :]
-    T = sel.size
-    P = scan.points[rr, cc].reshape(T, -1, 3).astype(np.float64)
-    V = valid[rr, cc].reshape(T, -1) & (P[..., 2] > 0)
-    P = np.where(V[..., None], P, 0.0)
-    dist = np.linalg.norm(P, axis=2)
+    P, V = _window_points(scan.points, valid, r0, c0, side, INCIDENCE_STRIDE)
+    dist = _norms(P)
     with np.errstate(invalid="ignore", divide="ignore"):
         u = P / dist[..., None]
-    sig = _tile_scale(h[sel], w[sel] > 0)
     Zs = np.where(V, P[..., 2], 1.0)
     x, y, q = P[..., 0] / Zs, P[..., 1] / Zs, 1.0 / Zs
-    A = np.stack([x, y, np.ones_like(x)], -1)
+    A = _design(x, y, False)  # (x, y, 1)
     n, c = normal[sel], np.einsum("tk,tk->t", normal[sel], mean[sel])
     for _ in range(2):
         with np.errstate(invalid="ignore", divide="ignore"):
@@ -404,12 +442,37 @@ def _incidence_normals(scan: Scan, valid: np.ndarray, ids: np.ndarray, step: int
     grid[gy + 1, gx + 1] = sig
     nb = np.stack([grid[gy + 1 + dy, gx + 1 + dx] for dy in (-1, 0, 1) for dx in (-1, 0, 1)
                    if dy or dx], 1)
-    with _quiet_nan():
-        typical = np.nanmedian(nb, 1)
+    # np.nanmedian(nb, 1): the scales are positive (at least 1e-12), their |x| is x
+    typical = _abs_medians(nb, nb > 0)
     same = sig <= INCIDENCE_SCATTER * typical  # False without a neighbour (NaN)
     out = normal.copy()
     out[sel] = np.where(same[:, None], n, normal[sel])
     return out
+
+
+@nb.njit(cache=True)
+def _window_points(points: np.ndarray, valid: np.ndarray, r0: np.ndarray, c0: np.ndarray,
+                   side: int, stride: int) -> tuple[np.ndarray, np.ndarray]:
+    """The incidence windows' points: every ``stride``-th pixel of the ``side`` x ``side``
+    window from (r0[t], c0[t]), row-major; (T, m, 3) float64, 0 where no return, and (T,
+    m) which have one (valid and in front of the sensor), as NumPy's gather of the pixels
+    (``points[rr, cc]``, converted, masked) gives them, without its index arrays."""
+    T = r0.shape[0]
+    k = (side + stride - 1) // stride
+    P = np.zeros((T, k * k, 3))
+    V = np.zeros((T, k * k), np.bool_)
+    for t in range(T):
+        for a in range(k):
+            for b in range(k):
+                r, c = r0[t] + a * stride, c0[t] + b * stride
+                z = np.float64(points[r, c, 2])
+                if valid[r, c] and z > 0:
+                    i = a * k + b
+                    V[t, i] = True
+                    P[t, i, 0] = np.float64(points[r, c, 0])
+                    P[t, i, 1] = np.float64(points[r, c, 1])
+                    P[t, i, 2] = z
+    return P, V
 
 
 @contextlib.contextmanager
@@ -471,31 +534,36 @@ def _ray_planes(
     sc = np.sqrt((np.where(ok, (x - xm) ** 2 + (y - ym) ** 2, 0.0)).sum(1, keepdims=True)
                  / cnt) + 1e-12
     u, v = (x - xm) / sc, (y - ym) / sc
-    one = np.ones_like(u)
-    A3 = np.stack([u, v, one], -1)
-    A6 = np.stack([u, v, one, u * u, u * v, v * v], -1)
+    A3 = _design(u, v, False)  # (u, v, 1)
+    A6 = _design(u, v, True)  # (u, v, 1, u u, u v, v v)
 
-    def fit(A: np.ndarray, wt: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def fit(A: np.ndarray, wt: np.ndarray, t: slice | np.ndarray = slice(None)
+            ) -> tuple[np.ndarray, np.ndarray]:
+        """The tiles ``t``'s planes (``A``, ``wt``: theirs already) and residuals; each
+        tile's from its own rows only, whichever others are fitted with it."""
         AwT = (A * wt[..., None]).transpose(0, 2, 1)  # batched matmul: BLAS, not einsum
         M = AwT @ A + 1e-12 * np.eye(A.shape[-1])
-        beta = np.linalg.solve(M, AwT @ q[..., None])
+        beta = np.linalg.solve(M, AwT @ q[t][..., None])
         with np.errstate(divide="ignore", invalid="ignore"):
             zfit = 1.0 / (A @ beta)[..., 0]
         beta = beta[..., 0]
-        return beta, np.where(ok, (Z - zfit) * ray, 0.0)
+        return beta, np.where(ok[t], (Z[t] - zfit) * ray[t], 0.0)
 
     wt = ok.astype(np.float64)
-    for it in range(rounds + 1):
-        beta, h = fit(A3, wt)
-        if it == rounds:
-            break
-        with np.errstate(invalid="ignore"):
-            mad = nanmedian_last(np.where(wt > 0, np.abs(h), np.nan))
+    beta, h = fit(A3, wt)
+    # A tile whose inliers did not change has its final fit: only the others are refitted
+    # (most tiles settle in one round), the same rounds as refitting all until none changes
+    active = np.arange(T)
+    for _ in range(rounds):
+        mad = _abs_medians(h[active], wt[active])
         lim = 3.5 * np.maximum(_MAD_TO_STD * np.nan_to_num(mad), 1e-9)
-        nw = (ok & (np.abs(h) <= lim[:, None])).astype(np.float64)
-        if np.array_equal(nw, wt):
+        nw = (ok[active] & (np.abs(h[active]) <= lim[:, None])).astype(np.float64)
+        moved = np.any(nw != wt[active], axis=1)
+        if not moved.any():
             break
-        wt = nw
+        active = active[moved]
+        wt[active] = nw[moved]
+        beta[active], h[active] = fit(A3[active], wt[active], active)
     # beta in (u, v, 1) -> the plane a x + b y + c = 1 / Z in normalized coordinates
     a = beta[:, 0] / sc[:, 0]
     b = beta[:, 1] / sc[:, 0]
@@ -511,6 +579,27 @@ def _ray_planes(
     vq = (wt * hq * hq).sum(1) / np.maximum(ns - 6.0, 1.0)
     ratio = vp / np.maximum(vq, 1e-30)
     return mean, normal, np.where(ok, h, 0.0), wt, ratio
+
+
+@nb.njit(cache=True)
+def _design(u: np.ndarray, v: np.ndarray, quadratic: bool) -> np.ndarray:
+    """The (T, n) coordinates' design matrices, (T, n, 3) ``(u, v, 1)`` or (T, n, 6) ``(u,
+    v, 1, u*u, u*v, v*v)``, C-contiguous: ``np.stack`` of those columns, without the
+    columns as arrays."""
+    T, n = u.shape
+    k = 6 if quadratic else 3
+    A = np.empty((T, n, k))
+    for t in range(T):
+        for i in range(n):
+            a, b = u[t, i], v[t, i]
+            A[t, i, 0] = a
+            A[t, i, 1] = b
+            A[t, i, 2] = 1.0
+            if quadratic:
+                A[t, i, 3] = a * a
+                A[t, i, 4] = a * b
+                A[t, i, 5] = b * b
+    return A
 
 
 # --- the fit ------------------------------------------------------------------------------
@@ -533,6 +622,9 @@ def quantization_floor(r: np.ndarray, z: np.ndarray) -> float:
     sensor without steps the distinct depths are as many as the points and the floor is
     negligible (a tenth of a millimetre over a 0.1 m bin of 1000 points).
     """
+    r, z = np.asarray(r), np.asarray(z)
+    if r.dtype == z.dtype == np.float64 and r.ndim == z.ndim == 1 and r.shape == z.shape:
+        return float(_floor_kernel(r, z, np.sort(z)))  # the same, without the overheads
     u = np.unique(z)
     # one level stored at several roundings (z = range x ray in float32) is one level
     gaps = np.diff(u)
@@ -551,7 +643,320 @@ def _bin_std(row: dict[str, Any], estimator: str) -> float:
 
 
 def _robust_std(y: np.ndarray) -> float:
-    return float(_MAD_TO_STD * np.median(np.abs(y - np.median(y))))
+    return float(_MAD_TO_STD * _mad(np.asarray(y, dtype=np.float64)))
+
+
+def median(x: np.ndarray) -> float:
+    """``float(np.median(x))`` of a 1-D float64 array, bit for bit, by selection: NumPy's
+    per-call overhead (tens of microseconds) is most of a small median's cost, and the
+    noise stage takes hundreds per scan."""
+    return float(_median(np.asarray(x, dtype=np.float64)))
+
+
+def unique_runs(t: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``np.unique(t, return_inverse=True, return_counts=True)`` of 1-D integers, the
+    same arrays; from the runs of equal values when ``t`` is sorted (the tiles' points:
+    each tile's together, the tiles in ascending order), without NumPy's hashing."""
+    t = np.asarray(t)
+    if t.ndim == 1 and t.size and t.dtype.kind in "iu" and bool(np.all(t[1:] >= t[:-1])):
+        first = np.flatnonzero(np.concatenate([[True], t[1:] != t[:-1]]))
+        counts = np.diff(np.append(first, t.size))
+        return t[first], np.repeat(np.arange(first.size), counts), counts
+    return np.unique(t, return_inverse=True, return_counts=True)
+
+
+def stable_order(keys: np.ndarray) -> np.ndarray:
+    """``np.argsort(keys, kind="stable")`` of 1-D int64 ``keys``, the same permutation (a
+    stable sort's is unique): by counting when their range is small (range bins), several
+    times faster than NumPy's merge sort."""
+    keys = np.asarray(keys)
+    if keys.ndim == 1 and keys.size and keys.dtype == np.int64:
+        lo, hi = int(keys.min()), int(keys.max())
+        if hi - lo <= 4 * keys.size + 1024:
+            return _counting_order(keys, lo, hi - lo + 1)
+    return np.argsort(keys, kind="stable")
+
+
+@nb.njit(cache=True)
+def _counting_order(keys: np.ndarray, lo: int, span: int) -> np.ndarray:
+    """The stable sorting permutation of ``keys`` (all in [lo, lo + span)) by counting."""
+    start = np.zeros(span + 1, np.int64)
+    for i in range(keys.shape[0]):
+        start[keys[i] - lo + 1] += 1
+    for v in range(span):
+        start[v + 1] += start[v]
+    out = np.empty(keys.shape[0], np.int64)
+    for i in range(keys.shape[0]):
+        v = keys[i] - lo
+        out[start[v]] = i
+        start[v] += 1
+    return out
+
+
+# --- exact medians by selection -------------------------------------------------------------
+# A median is an order statistic (or the mean of two), so any exact selection gives NumPy's
+# value. NumPy's ``np.median`` returns ``mean`` of the middle one or two values: the sum
+# starts from 0.0, so ``0.0 + a`` (odd n) or ``(0.0 + a + b) / 2`` (even n), never -0.0; the
+# kernels below compute exactly that, and NaN for a NaN anywhere (NumPy's nan check) or no
+# values (its mean of nothing).
+
+
+@nb.njit(cache=True)
+def _select(a: np.ndarray, k: int, lo: int, hi: int) -> float:
+    """The value of rank ``k`` in ``a[lo:hi + 1]`` (no NaN), reordering that range in place
+    so that no value before ``k`` is above it and none after below (Hoare's selection, a
+    median-of-three pivot: ties, common in quantized depths, split evenly)."""
+    while True:
+        if hi <= lo + 1:
+            if hi == lo + 1 and a[hi] < a[lo]:
+                a[lo], a[hi] = a[hi], a[lo]
+            return a[k]
+        mid = (lo + hi) >> 1
+        a[mid], a[lo + 1] = a[lo + 1], a[mid]
+        if a[lo] > a[hi]:
+            a[lo], a[hi] = a[hi], a[lo]
+        if a[lo + 1] > a[hi]:
+            a[lo + 1], a[hi] = a[hi], a[lo + 1]
+        if a[lo] > a[lo + 1]:
+            a[lo], a[lo + 1] = a[lo + 1], a[lo]
+        i, j = lo + 1, hi
+        pivot = a[lo + 1]
+        while True:
+            i += 1
+            while a[i] < pivot:
+                i += 1
+            j -= 1
+            while a[j] > pivot:
+                j -= 1
+            if j < i:
+                break
+            a[i], a[j] = a[j], a[i]
+        a[lo + 1] = a[j]
+        a[j] = pivot
+        if j >= k:
+            hi = j - 1
+        if j <= k:
+            lo = i
+
+
+#: Values from which a median first narrows the values down to a band around it
+#: (:func:`_band`); fewer are selected among directly.
+BAND_MIN = 1024
+
+
+@nb.njit(cache=True)
+def _median_inplace(a: np.ndarray, n: int) -> float:
+    """``np.median(a[:n])`` bit for bit, reordering ``a[:n]``."""
+    if n == 0:
+        return np.nan
+    for i in range(n):
+        if np.isnan(a[i]):
+            return np.nan
+    k = (n - 1) // 2
+    if n >= BAND_MIN:
+        band, below = _band(a, n, k)
+        j = k - below
+        # the band holds ranks k (and k + 1 for even n): select there, else among all
+        if 0 <= j and j + 1 - n % 2 < band.shape[0]:
+            a, k, n_sel = band, j, band.shape[0]
+        else:
+            n_sel = n
+    else:
+        n_sel = n
+    m = _select(a, k, 0, n_sel - 1)
+    if n % 2 == 1:
+        return 0.0 + m
+    up = a[k + 1]  # the next order statistic: the least value after rank k
+    for i in range(k + 2, n_sel):
+        up = min(up, a[i])
+    return (0.0 + m + up) / 2.0
+
+
+@nb.njit(cache=True)
+def _band(a: np.ndarray, n: int, k: int) -> tuple[np.ndarray, int]:
+    """The values of ``a[:n]`` (no NaN) between two pivots that likely bracket rank
+    ``k``, and how many are below the band (Floyd and Rivest's sampling: the pivots are
+    ranks about 3 standard errors either side of ``k`` in an evenly spaced sample of
+    ``6 sqrt(n)``; the band is a tenth to a fifth of the values). Whether it brackets
+    rank ``k`` is the caller's check. A pass without branches on the values' order:
+    selecting among all costs a mispredicted branch per value and step."""
+    s = min(n, int(6.0 * math.sqrt(n)))
+    sample = np.empty(s)
+    for j in range(s):
+        sample[j] = a[(j * n) // s]
+    ks = (k * s) // n
+    d = int(1.5 * math.sqrt(s)) + 1
+    i_lo, i_hi = max(ks - d, 0), min(ks + 1 + d, s - 1)
+    p_lo = _select(sample, i_lo, 0, s - 1)
+    p_hi = _select(sample, i_hi, i_lo, s - 1)
+    band = np.empty(n)
+    m = 0
+    below = 0
+    for i in range(n):
+        x = a[i]
+        below += x < p_lo
+        band[m] = x
+        m += (x >= p_lo) & (x <= p_hi)
+    return band[:m], below
+
+
+@nb.njit(cache=True)
+def _median(x: np.ndarray) -> float:
+    """``np.median(x)`` of a 1-D float64 array, bit for bit (``x`` is not changed)."""
+    return _median_inplace(x.copy(), x.shape[0])
+
+
+@nb.njit(cache=True)
+def _mad(y: np.ndarray) -> float:
+    """``np.median(np.abs(y - np.median(y)))`` of a 1-D float64 array, bit for bit."""
+    n = y.shape[0]
+    buf = y.copy()
+    m = _median_inplace(buf, n)
+    for i in range(n):
+        buf[i] = abs(y[i] - m)
+    return _median_inplace(buf, n)
+
+
+@nb.njit(cache=True)
+def _group_medians(x: np.ndarray, order: np.ndarray, starts: np.ndarray, stops: np.ndarray,
+                   mad: bool) -> np.ndarray:
+    """Per group g, the median of ``x[order[starts[g]:stops[g]]]`` (``mad``: the median of
+    the absolute deviations from it, :func:`_mad`), bit for bit; NaN for an empty group."""
+    out = np.empty(starts.shape[0])
+    buf = np.empty(x.shape[0])
+    dev = np.empty(x.shape[0])
+    for g in range(starts.shape[0]):
+        n = stops[g] - starts[g]
+        for i in range(n):
+            buf[i] = x[order[starts[g] + i]]
+        m = _median_inplace(buf, n)
+        if mad:
+            for i in range(n):
+                dev[i] = abs(x[order[starts[g] + i]] - m)
+            m = _median_inplace(dev, n)
+        out[g] = m
+    return out
+
+
+@nb.njit(cache=True)
+def _abs_medians(h: np.ndarray, w: np.ndarray) -> np.ndarray:
+    """Per row t of (T, n) ``h``, the median of ``|h[t]|`` over ``w[t] > 0`` (NaN values
+    skipped), NaN where none: ``nanmedian_last(np.where(w > 0, np.abs(h), np.nan))`` bit
+    for bit (the values are never -0.0, so any exact selection gives its value)."""
+    T, n = h.shape
+    out = np.empty(T)
+    buf = np.empty(n)
+    for t in range(T):
+        m = 0
+        for i in range(n):
+            if w[t, i] > 0 and not np.isnan(h[t, i]):
+                buf[m] = abs(h[t, i])
+                m += 1
+        if m == 0:
+            out[t] = np.nan
+            continue
+        k = (m - 1) // 2
+        lo = _select(buf, k, 0, m - 1)
+        if m % 2 == 1:
+            out[t] = lo
+        else:
+            up = buf[k + 1]
+            for i in range(k + 2, m):
+                up = min(up, buf[i])
+            out[t] = (lo + up) / 2.0
+    return out
+
+
+@nb.njit(cache=True)
+def _lower_medians(x: np.ndarray, starts: np.ndarray, counts: np.ndarray) -> np.ndarray:
+    """The lower median of each group ``x[starts[k]:starts[k] + counts[k]]``, (K,): the
+    element of rank (count - 1) // 2 as a sort would place it (NaN last), an order
+    statistic, so exact (found by selection, not a sort)."""
+    out = np.empty(starts.shape[0])
+    for k in range(starts.shape[0]):
+        g = x[starts[k]:starts[k] + counts[k]].copy()
+        m = 0  # the non-NaN values first, as a sort puts them
+        for i in range(g.shape[0]):
+            if not np.isnan(g[i]):
+                g[m] = g[i]
+                m += 1
+        rank = (counts[k] - 1) // 2
+        out[k] = _select(g, rank, 0, m - 1) if rank < m else np.nan
+    return out
+
+
+@nb.njit(cache=True)
+def _group_distinct(t: np.ndarray, order: np.ndarray, starts: np.ndarray,
+                    stops: np.ndarray) -> np.ndarray:
+    """Per group g, ``np.unique(t[order[starts[g]:stops[g]]]).size`` (integers)."""
+    out = np.zeros(starts.shape[0], np.int64)
+    for g in range(starts.shape[0]):
+        n = stops[g] - starts[g]
+        if n == 0:
+            continue
+        v = t[order[starts[g]:stops[g]]]
+        for i in range(1, n):
+            if v[i] < v[i - 1]:  # in order already where a tile's points are together
+                v = np.sort(v)
+                break
+        k = 1
+        for i in range(1, n):
+            if v[i] != v[i - 1]:
+                k += 1
+        out[g] = k
+    return out
+
+
+@nb.njit(cache=True, error_model="numpy")
+def _floor_kernel(r: np.ndarray, z: np.ndarray, u: np.ndarray) -> float:
+    """:func:`quantization_floor` of 1-D float64 ``r``, ``z``, bit for bit, given ``u``,
+    ``z`` sorted (NumPy's sort, vectorized, is several times numba's; ``u`` is reused)."""
+    n = z.shape[0]
+    for i in range(n):
+        if np.isnan(z[i]):
+            return 0.0  # np.unique keeps one NaN: the median |u| and every gap test are NaN
+    m = 0  # the distinct depths, ascending, in u[:m]
+    for i in range(n):
+        if m == 0 or u[i] != u[m - 1]:
+            u[m] = u[i]
+            m += 1
+    if m < 2:
+        return 0.0
+    buf = np.empty(m)
+    if u[0] >= 0:  # |u| is u, ascending: its median by index
+        h = (m - 1) // 2
+        mid = 0.0 + abs(u[h]) if m % 2 else (0.0 + abs(u[h]) + abs(u[h + 1])) / 2.0
+    else:
+        for i in range(m):
+            buf[i] = abs(u[i])
+        mid = _median_inplace(buf, m)
+    tol = QUANTUM_TOL * mid
+    k = 0
+    for i in range(m - 1):
+        gap = u[i + 1] - u[i]
+        if gap > tol:
+            buf[k] = gap
+            k += 1
+    if k == 0:
+        return 0.0
+    step = _median_inplace(buf, k)
+    q = np.empty(r.shape[0])
+    for i in range(r.shape[0]):
+        q[i] = r[i] / z[i]
+    ray = _median_inplace(q, q.shape[0])
+    return step / math.sqrt(12.0) * (ray if math.isfinite(ray) else 1.0)
+
+
+def _group_floors(r: np.ndarray, z: np.ndarray, order: np.ndarray, starts: np.ndarray,
+                  stops: np.ndarray) -> np.ndarray:
+    """Per group g, :func:`quantization_floor` of the points ``order[starts[g]:stops[g]]``
+    (1-D float64 ``r``, ``z``), bit for bit."""
+    out = np.empty(len(starts))
+    for g, (a, b) in enumerate(zip(starts, stops)):
+        idx = order[a:b]
+        rg, zg = r[idx], z[idx]
+        out[g] = _floor_kernel(rg, zg, np.sort(zg))
+    return out
 
 
 def _clipped_std(y: np.ndarray, k: float = 3.0, iters: int = 10) -> float:
@@ -728,7 +1133,7 @@ def fit_residuals(
     r, y, c, tile, d = r[ok], y[ok], c[ok], tile[ok], d[ok]
     report: dict[str, Any] = {
         "n_scans": len(tiles), "n_points": int(r.size), "n_tiles": n_tiles,
-        "n_tiles_used": int(np.unique(tile).size), "tiles_rejected": rejected,
+        "n_tiles_used": int(unique_runs(tile)[0].size), "tiles_rejected": rejected,
         "estimator": estimator, "incidence": incidence, "terms": list(terms),
         "bin_width": float(bin_width),
     }
@@ -741,23 +1146,31 @@ def fit_residuals(
     edges = lo + bin_width * np.arange(nb + 1)
     which = np.clip(((r - lo) / bin_width).astype(np.int64), 0, nb - 1)
     # each bin's points, in their order (the same selection as ``which == b``, found once)
-    order = np.argsort(which, kind="stable")
+    order = stable_order(which)
     cuts = np.searchsorted(which[order], np.arange(nb + 1))
     members = [order[cuts[b]:cuts[b + 1]] for b in range(nb)]
     clipped = estimator == "clipped" or diagnostics
+    # the bins' medians, tile counts and floors in one pass each (bit for bit the per-bin
+    # NumPy calls: a few hundred small medians per scan cost more in overhead than work)
+    starts, stops = cuts[:-1], cuts[1:]
+    r_med = _group_medians(r, order, starts, stops, False)
+    mad = _group_medians(y, order, starts, stops, True)
+    n_tile = _group_distinct(tile, order, starts, stops)
+    floors = _group_floors(r, d, order, starts, stops)
     rows = []
     for b in range(nb):
         sel = members[b]
         if not sel.size:
             continue
         yb = y[sel]
-        tiles_b = int(np.unique(tile[sel]).size)
+        tiles_b = int(n_tile[b])
         row: dict[str, Any] = {
             "lo": float(edges[b]), "hi": float(edges[b + 1]),
-            "range": float(np.median(r[sel])), "count": int(sel.size), "tiles": tiles_b,
-            "std_mad": _robust_std(yb), "std_clipped": _clipped_std(yb) if clipped else None,
+            "range": float(r_med[b]), "count": int(sel.size), "tiles": tiles_b,
+            "std_mad": float(_MAD_TO_STD * mad[b]),
+            "std_clipped": _clipped_std(yb) if clipped else None,
             "mean_cos": float(np.mean(c[sel])),
-            "floor": quantization_floor(r[sel], d[sel]),
+            "floor": float(floors[b]),
         }
         row["std"] = _bin_std(row, estimator)
         row["used"] = bool(row["count"] >= min_points and tiles_b >= min_tiles
@@ -779,13 +1192,18 @@ def fit_residuals(
         # (the report's incidence_exponent) is too noisy to use: range and incidence go
         # together on a tilted plane.
         best = math.inf
+        c_min = np.maximum(c, base.min_cos)
         for g_try in INCIDENCE_EXPONENTS:
-            y_try = e_ray * np.maximum(c, base.min_cos) ** g_try
+            y_try = e_ray * c_min ** g_try
+            # g = 0 on residuals binned as they are (incidence="fit") gives the same bits
+            # as the bins above: their MADs are those
+            same = np.array_equal(y_try.view(np.uint64), y.view(np.uint64))
+            mad_try = mad if same else _group_medians(y_try, order, starts, stops, True)
             rows_try = [dict(row) for row in rows]
             for row in rows_try:
-                yb = y_try[members[int(round((row["lo"] - lo) / bin_width))]]
-                row["std_mad"] = _robust_std(yb)
-                row["std_clipped"] = _clipped_std(yb) if clipped else None
+                b = int(round((row["lo"] - lo) / bin_width))
+                row["std_mad"] = float(_MAD_TO_STD * mad_try[b])
+                row["std_clipped"] = _clipped_std(y_try[members[b]]) if clipped else None
                 row["std"] = _bin_std(row, estimator)
             used_try = [row for row in rows_try if row["used"] and row["std"] > 0]
             if not used_try:

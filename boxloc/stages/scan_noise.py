@@ -30,10 +30,14 @@ from boxloc.calibrate.noise import (
     NOISE_TERMS,
     TAIL_SIGMAS,
     TileResiduals,
+    _group_floors,
+    _lower_medians,
     fit_bins,
     fit_residuals,
-    quantization_floor,
+    median,
+    stable_order,
     tile_residuals,
+    unique_runs,
 )
 from boxloc.config import Config
 from boxloc.distributions import chi2_isf, norm_isf, t_sf
@@ -197,10 +201,10 @@ def exceedance(z: np.ndarray, tile: np.ndarray, alpha: float, grid_width: int = 
     if z.size < MIN_FLAT_TILES * PATCH_PX**2 // 2:
         return alpha / 2.0, 1.0, 0.0
     k = float(norm_isf(alpha / 2.0))
-    ids, inv = np.unique(tile, return_inverse=True)
+    ids, inv, _ = unique_runs(tile)
     count = np.bincount(inv, weights=(z > k).astype(np.float64))
     n = np.bincount(inv).astype(np.float64)
-    p = float(np.median(count / n))
+    p = median(count / n)
     if not p > 0:
         return alpha / 2.0, 1.0, 0.0
     q25, q75 = np.percentile(count - n * p, [25.0, 75.0])
@@ -210,7 +214,7 @@ def exceedance(z: np.ndarray, tile: np.ndarray, alpha: float, grid_width: int = 
     if grid_width > 0:
         dev = (count - n * p) / np.sqrt(n * p * (1.0 - p))
         lim = 3.0 * math.sqrt(dispersion)
-        dev = np.clip(dev - float(np.median(dev)), -lim, lim)
+        dev = np.clip(dev - median(dev), -lim, lim)
         rho, pairs = _lag_correlation(_on_grid(*np.divmod(ids, grid_width), dev), 1, (0, 1))
         if pairs >= MIN_TILE_PAIRS and norm_isf(alpha) / math.sqrt(pairs) < rho < 1.0:
             corr_px = -float(step_px) / math.log(rho)
@@ -265,24 +269,15 @@ def _tile_stats(tiles: TileResiduals, model: NoiseModel
     e = np.abs(tiles.residual[inl]) * np.maximum(
         tiles.cos_incidence[inl], model.min_cos) ** model.incidence_exponent
     r = tiles.range[inl]
-    ids, inv, counts = np.unique(tid, return_inverse=True, return_counts=True)
+    ids, inv, counts = unique_runs(tid)
     starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
-    # each tile's points together (they already are, in tile order: then this is a copy)
-    by_tile = np.argsort(inv, kind="stable")
-    mad = _lower_medians(e[by_tile], starts, counts)  # lower median of |e| per tile
-    r_med = _lower_medians(r[by_tile], starts, counts)
+    # each tile's points together (they already are, in tile order: then nothing moves)
+    if np.any(inv[1:] < inv[:-1]):
+        by_tile = stable_order(inv)
+        e, r = e[by_tile], r[by_tile]
+    mad = _lower_medians(e, starts, counts)  # lower median of |e| per tile
+    r_med = _lower_medians(r, starts, counts)
     return r_med, 1.4826 * mad, counts.astype(np.float64), ids
-
-
-@nb.njit(cache=True)
-def _lower_medians(x: np.ndarray, starts: np.ndarray, counts: np.ndarray) -> np.ndarray:
-    """The lower median of each group ``x[starts[k]:starts[k] + counts[k]]``, (K,): the
-    element of rank (count - 1) // 2, an order statistic, so exact."""
-    out = np.empty(starts.shape[0])
-    for k in range(starts.shape[0]):
-        g = np.sort(x[starts[k]:starts[k] + counts[k]])
-        out[k] = g[(counts[k] - 1) // 2]
-    return out
 
 
 def scale_margin(alpha: float) -> float:
@@ -337,9 +332,14 @@ def _fit_tests(tiles: TileResiduals, model: NoiseModel, alpha: float, grid_width
     rp, zp = tiles.range[inl], tiles.depth[inl]
     bp = np.floor(rp / BIN_WIDTH).astype(np.int64)
     floored = np.zeros(s.shape, bool)
-    for k in np.unique(b):
-        q, t = bp == k, b == k
-        floor = quantization_floor(rp[q], zp[q])
+    ks = np.unique(b)
+    # each bin's points: the points' bins sorted once, not a mask per bin
+    by_bin = stable_order(bp)
+    bp_sorted = bp[by_bin]
+    floors = _group_floors(rp, zp, by_bin, np.searchsorted(bp_sorted, ks, "left"),
+                           np.searchsorted(bp_sorted, ks, "right"))
+    for k, floor in zip(ks, floors):  # quantization_floor of the bin's points
+        t = b == k
         floored[t] = s[t] <= floor
         s[t] = np.maximum(s[t], floor)
     d = np.log(s / model.sigma_range(r)) + 1.36 / (2.0 * n)
@@ -356,8 +356,8 @@ def _fit_tests(tiles: TileResiduals, model: NoiseModel, alpha: float, grid_width
         q = b == k
         if q.sum() < MIN_TEST_TILES:
             continue
-        rk = float(np.median(r[q]))
-        rows.append((rk, float(q.sum()), float(np.exp(np.median(np.log(s[q])))),
+        rk = median(r[q])
+        rows.append((rk, float(q.sum()), float(np.exp(median(np.log(s[q])))),
                      float(model.sigma_range(rk)), *_scale_off(d[q], gy[q], gx[q], corr,
                                                                 margin)))
     if not rows:
@@ -379,14 +379,14 @@ def _fit_tests(tiles: TileResiduals, model: NoiseModel, alpha: float, grid_width
 def _winsorized(x: np.ndarray, centre: float) -> np.ndarray:
     """``x`` clipped at 3 robust sigmas (1.4826 x the median |x - centre|) around
     ``centre``; as it is where that is 0."""
-    scale = 1.4826 * float(np.median(np.abs(x - centre)))
+    scale = 1.4826 * median(np.abs(x - centre))
     return np.clip(x, centre - 3.0 * scale, centre + 3.0 * scale) if scale > 0 else x
 
 
 def _range_trend(r: np.ndarray, d: np.ndarray) -> np.ndarray:
     """A least-squares quadratic in range through the tiles' ``d`` (winsorized at 3 robust
     sigmas), at each tile; a line or a constant where the ranges span too few bins."""
-    med = float(np.median(d))
+    med = median(d)
     e = _winsorized(d, med)
     deg = min(2, np.unique(np.floor(r / BIN_WIDTH)).size - 1)
     if deg < 1:
@@ -399,7 +399,7 @@ def _scale_off(d: np.ndarray, gy: np.ndarray, gx: np.ndarray, corr: np.ndarray,
                margin: float) -> tuple[float, float, float, float]:
     """Whether tiles' ln(std / model std) ``d`` are off by more than ``margin``: (z, design
     effect, dof, p) of their winsorized mean, one-sided (see :func:`_fit_tests`)."""
-    e = _winsorized(d, float(np.median(d)))
+    e = _winsorized(d, median(d))
     # the mean's standard error from the winsorized standard deviation, times the square
     # root of the design effect of the tiles' correlation; Student's t with as many degrees
     # of freedom as the tiles are independent ones (less one), given as the normal z of the
@@ -497,11 +497,37 @@ def design_effect(gy: np.ndarray, gx: np.ndarray, corr: np.ndarray) -> float:
     n = gy.size
     if n < 2 or not (c_r * a_r > 0 or c_c * a_c > 0):
         return 1.0
-    dx = np.abs(gx[:, None] - gx[None, :])
-    dy = np.abs(gy[:, None] - gy[None, :])
-    c = np.where(dy == 0, c_r, np.where(dx == 0, c_c, math.sqrt(c_r * c_c)))
-    rho = c * np.power(a_r, dx) * np.power(a_c, dy)
+    if gy.dtype.kind == "i" and gx.dtype.kind == "i":
+        # the same (n, n) correlations from one kernel, without the distance, factor and
+        # power arrays: the powers from a table of np.power's own (element by element the
+        # same ufunc); summed by NumPy as before
+        gy, gx = gy.astype(np.int64), gx.astype(np.int64)
+        p_r = np.power(a_r, np.arange(int(gx.max() - gx.min()) + 1, dtype=np.int64))
+        p_c = np.power(a_c, np.arange(int(gy.max() - gy.min()) + 1, dtype=np.int64))
+        rho = _correlations(gy, gx, c_r, c_c, math.sqrt(c_r * c_c), p_r, p_c)
+    else:
+        dx = np.abs(gx[:, None] - gx[None, :])
+        dy = np.abs(gy[:, None] - gy[None, :])
+        c = np.where(dy == 0, c_r, np.where(dx == 0, c_c, math.sqrt(c_r * c_c)))
+        rho = c * np.power(a_r, dx) * np.power(a_c, dy)
     return 1.0 + float(rho.sum() - np.trace(rho)) / n
+
+
+@nb.njit(cache=True)
+def _correlations(gy: np.ndarray, gx: np.ndarray, c_r: float, c_c: float, c_x: float,
+                  p_r: np.ndarray, p_c: np.ndarray) -> np.ndarray:
+    """:func:`design_effect`'s (n, n) correlations, bit for bit: ``c * p_r[|dx|] *
+    p_c[|dy|]`` with ``c`` = ``c_r`` in one row, else ``c_c`` in one column, else ``c_x``
+    (its NumPy expression builds five (n, n) arrays and calls ``pow`` n**2 times)."""
+    n = gy.shape[0]
+    rho = np.empty((n, n))
+    for i in range(n):
+        for j in range(n):
+            dx = abs(gx[i] - gx[j])
+            dy = abs(gy[i] - gy[j])
+            c = c_r if dy == 0 else (c_c if dx == 0 else c_x)
+            rho[i, j] = c * p_r[dx] * p_c[dy]
+    return rho
 
 
 def _z(tiles: TileResiduals, model: NoiseModel) -> np.ndarray:
