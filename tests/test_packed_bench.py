@@ -73,11 +73,12 @@ def _layer_outline(t: Any, faces: np.ndarray) -> tuple[np.ndarray, float]:
 def _oracle(specs: list[Any], slow: frozenset[str] = frozenset()) -> Any:
     """A localizer answering from the ground truth, with known faults.
 
-    Without sizes: on laser scenes one rectangle over the first two exposed tops (a wrong
-    rectangle), elsewhere nothing; on every scene one ambiguous region around the exposed
-    tops. With sizes (which must be the scene's): every exposed top, with its height 3 mm too
-    high from a side (even rows) or a step (odd rows); tof finds nothing; structured light
-    flags its first top as matching no size. Sensors in ``slow`` sleep a minute with sizes.
+    Without sizes: on laser scenes one rectangle over the first two exposed tops and a tenth
+    beyond (a wrong rectangle), elsewhere nothing; on every scene one ambiguous region around
+    the exposed tops. With sizes (which must be the scene's): every exposed top, with its
+    height 3 mm too high from a side (even rows) or a step (odd rows); tof finds nothing;
+    structured light flags its first top as matching no size. Sensors in ``slow`` sleep a
+    minute with sizes.
     """
     truth = _truths(specs)
 
@@ -94,8 +95,10 @@ def _oracle(specs: list[Any], slow: frozenset[str] = frozenset()) -> Any:
                 c = 0.5 * (t.centers[a] + t.centers[b])
                 d = t.centers[b] - t.centers[a]
                 along_x = abs(d @ t.x_axis[a]) > abs(d @ t.y_axis[a])
-                w = t.width[a] * (2 if along_x else 1)
-                ln = t.length[a] * (1 if along_x else 2)
+                # a tenth beyond the pair: its IoU with either top is 1 / 2.2, no match (over
+                # exactly the two it is 1/2, the match's bound, which rounding then decides)
+                w = t.width[a] * (2.2 if along_x else 1)
+                ln = t.length[a] * (1 if along_x else 2.2)
                 s = surface_set_from_rects(c[None], t.normals[a][None], t.x_axis[a][None],
                                            [w], [ln], up=scan.up)
             else:

@@ -236,21 +236,26 @@ def _digest(sim) -> str:
     return m.hexdigest()[:16]
 
 
-#: Digests of default-sensor scenes computed on the commit before the zoo (8b4571a).
+#: Digests of default-sensor scenes computed on the commit before the zoo (8b4571a), each
+#: as the machines the project runs on give it. Floating-point rounding differs between
+#: CPUs by an ulp here and there (NumPy's SIMD paths), and two scenes hash differently on
+#: an AMD EPYC with AVX2 than where the digests were first taken: the second digest, which
+#: 8b4571a's code gives there too (checked 2026-11-30), so the zoo still changes nothing.
 DEFAULT_DIGESTS = {
-    "pallet:seed=3": "7577ef7237ee3773",
-    "mixed:seed=5,width=160,height=120,f=131.25": "f21e539849a7811d",
-    "touching:seed=2,width=160,height=120,f=131.25": "a5d9ad6db84880ec",
-    "partial:seed=7,width=160,height=120,f=131.25,bulge=0.01": "c14083d85077919e",
-    "single:seed=1,width=160,height=120,f=131.25,noise.row_corr=0.3": "a576bc08b4d6f337",
-    "empty:seed=4,width=160,height=120,f=131.25": "d81db60f70286785",
+    "pallet:seed=3": ("7577ef7237ee3773", "c8b73766760071db"),
+    "mixed:seed=5,width=160,height=120,f=131.25": ("f21e539849a7811d",),
+    "touching:seed=2,width=160,height=120,f=131.25": ("a5d9ad6db84880ec",),
+    "partial:seed=7,width=160,height=120,f=131.25,bulge=0.01": ("c14083d85077919e",),
+    "single:seed=1,width=160,height=120,f=131.25,noise.row_corr=0.3": ("a576bc08b4d6f337",
+                                                                      "7873694bbd05e832"),
+    "empty:seed=4,width=160,height=120,f=131.25": ("d81db60f70286785",),
 }
 
 
 @pytest.mark.parametrize("text", sorted(DEFAULT_DIGESTS))
 def test_default_sensor_is_unchanged_bit_for_bit(text: str) -> None:
     sim = simulate(text)
-    assert _digest(sim) == DEFAULT_DIGESTS[text]
+    assert _digest(sim) in DEFAULT_DIGESTS[text]
     d = sim.spec.to_dict()
     assert not {"sensor", "noise_scale", "sensor_class", "tape", "labels"} & set(d)
 
@@ -260,7 +265,8 @@ def test_scene_suite_is_unchanged() -> None:
     assert [s.kind for s in suite[:6]] == ["single", "pallet", "partial", "mixed", "touching",
                                           "single"]
     small = dataclasses.replace(suite[1], width=160, height=120, f=131.25)
-    assert _digest(simulate(small)) == "94153b38c6497e16"
+    # the second digest: an AMD EPYC with AVX2 (see DEFAULT_DIGESTS)
+    assert _digest(simulate(small)) in ("94153b38c6497e16", "e43ed083710bda1d")
 
 
 @pytest.mark.parametrize("sensor", SENSORS)
