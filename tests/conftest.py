@@ -10,18 +10,10 @@ test that cannot run where it is run fails, saying why.
 
 from __future__ import annotations
 
-import os
 from pathlib import Path
 from typing import Any
 
 import pytest
-
-# The benches pin numba to one thread through the environment (``os.environ.setdefault``),
-# and tests run some of them in this process. numba reads NUMBA_NUM_THREADS again whenever
-# it compiles, and raises if the value differs from the one its thread pool started with:
-# a kernel compiled after such a bench then failed, depending on the order the tests ran
-# in. So the suite starts with the value the benches set, before anything imports numba.
-os.environ.setdefault("NUMBA_NUM_THREADS", "1")
 
 #: tests/test_suite_rules.py runs the rules below on small suites of its own
 pytest_plugins = ["pytester"]

@@ -338,3 +338,24 @@ def test_common_grasp_compares_on_the_faces_both_found() -> None:
     assert cg["n"] == 1
     assert cg["a_median_mm"] == pytest.approx(0.0, abs=1e-6)
     assert cg["b_median_mm"] == pytest.approx(10.0, abs=1e-3)
+
+
+def test_the_thread_report_starts_no_numba_pool_so_a_later_compile_still_works(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    """The benches report the pools in force (_limit_threads), and the stream and replay
+    pools set NUMBA_NUM_THREADS for their workers in this process's environment. A kernel
+    compiled afterwards here must still compile: numba refuses a changed NUMBA_NUM_THREADS
+    once its threading layer has started, which _limit_threads once did (it set numba to
+    one thread), and a test's kernel then failed depending on the tests' order."""
+    import os
+
+    import numba
+    from numba.core import config as numba_config
+
+    info = bench._limit_threads()
+    assert info["numba_threads"] == numba_config.NUMBA_NUM_THREADS
+    other = "2" if int(numba_config.NUMBA_NUM_THREADS) == 1 else "1"
+    monkeypatch.setenv("NUMBA_NUM_THREADS", other)  # as recorder.stream._pin_threads may
+    add = numba.njit(lambda x, y: x + y)  # new to this process: compiled here
+    assert add(2, 3) == 5
+    assert os.environ["NUMBA_NUM_THREADS"] == other

@@ -6,7 +6,6 @@ A skip outside the real-data set turns a green run red and names the test; a tes
 
 from __future__ import annotations
 
-import os
 from pathlib import Path
 
 import pytest
@@ -125,19 +124,3 @@ def test_the_real_data_set_is_exactly_the_tests_that_read_it() -> None:
     assert reading, "no test reads the mOSD frames any more: update tests/real_data.py"
     assert marked == reading, {"unmarked": sorted(reading - marked),
                                "marked without reading": sorted(marked - reading)}
-
-
-def test_a_kernel_compiles_after_a_bench_pinned_the_threads_in_this_process() -> None:
-    """What `boxloc bench` does in a test's process (start numba's thread pool pinned to one
-    thread, and set NUMBA_NUM_THREADS if unset), then a kernel compiled afterwards: numba
-    raised when the variable differed from its pool's size (conftest.py pins it first)."""
-    import numba
-
-    from boxloc.evaluate.scene_bench import _limit_threads
-
-    _limit_threads()
-    os.environ.setdefault("NUMBA_NUM_THREADS", "1")
-    # a function new to this process: compiled here, which re-reads numba's configuration
-    add = numba.njit(lambda x, y: x + y)
-    assert add(2, 3) == 5
-    assert os.environ["NUMBA_NUM_THREADS"] == "1"

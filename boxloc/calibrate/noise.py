@@ -766,10 +766,17 @@ def _median_inplace(a: np.ndarray, n: int) -> float:
     m = _select(a, k, 0, n_sel - 1)
     if n % 2 == 1:
         return 0.0 + m
-    up = a[k + 1]  # the next order statistic: the least value after rank k
-    for i in range(k + 2, n_sel):
+    return (0.0 + m + _least_after(a, k, n_sel)) / 2.0
+
+
+@nb.njit(cache=True)
+def _least_after(a: np.ndarray, k: int, n: int) -> float:
+    """The order statistic after rank ``k`` once :func:`_select` has placed it: the least
+    of ``a[k + 1:n]``."""
+    up = a[k + 1]
+    for i in range(k + 2, n):
         up = min(up, a[i])
-    return (0.0 + m + up) / 2.0
+    return up
 
 
 @nb.njit(cache=True)
@@ -857,13 +864,8 @@ def _abs_medians(h: np.ndarray, w: np.ndarray) -> np.ndarray:
             continue
         k = (m - 1) // 2
         lo = _select(buf, k, 0, m - 1)
-        if m % 2 == 1:
-            out[t] = lo
-        else:
-            up = buf[k + 1]
-            for i in range(k + 2, m):
-                up = min(up, buf[i])
-            out[t] = (lo + up) / 2.0
+        # nanmedian_last's mean of the middle two, (lo + up) / 2 (not np.median's 0.0 + ...)
+        out[t] = lo if m % 2 == 1 else (lo + _least_after(buf, k, m)) / 2.0
     return out
 
 

@@ -48,7 +48,6 @@ import sys
 import threading
 import time
 import traceback
-import warnings
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field
 from importlib.metadata import entry_points
@@ -300,19 +299,24 @@ def _spec_text(spec: Any) -> str | None:
 
 
 def _limit_threads() -> dict[str, Any]:
-    """Pin numba to one thread (the time target is per core) and say what is in force."""
+    """Say which thread pools are in force (the time target is per core).
+
+    The pools are pinned by the environment, before the libraries load (the bench's CLI and
+    scripts/profile_stages.py set it). numba's pool size is reported, not set: boxloc's
+    kernels are serial, and starting numba's threading layer only to shrink it made numba
+    refuse every later compile in the process once NUMBA_NUM_THREADS changed (as the
+    stream and replay pools set it for their workers).
+    """
     info: dict[str, Any] = {
         k: os.environ.get(k) for k in ("OMP_NUM_THREADS", "NUMBA_NUM_THREADS",
                                        "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
     }
     try:
-        import numba
+        from numba.core import config as numba_config
 
-        with warnings.catch_warnings():  # starting the threading layer may warn about TBB
-            warnings.simplefilter("ignore")
-            numba.set_num_threads(1)
-        info["numba_threads"] = numba.get_num_threads()
-    except Exception:  # noqa: BLE001 - numba missing or already pinned lower
+        # set at import from the environment (numba fills its config module dynamically)
+        info["numba_threads"] = int(numba_config.NUMBA_NUM_THREADS)  # type: ignore[attr-defined]
+    except Exception:  # noqa: BLE001 - numba missing
         info["numba_threads"] = None
     return info
 
