@@ -255,6 +255,8 @@ def reconstruct_command(report: dict[str, Any], kind: Kind) -> str:
         return (f"python scripts/profile_stages.py --suite {report['suite']} --n {report['n']} "
                 f"--seed {report['seed']} --size {report['size']}"
                 + (" --no-baseline" if report.get("baseline") is None else "")
+                # a report without its box range ran Config() alone
+                + ("" if report.get("box_range") else " --box-range defaults")
                 + " --out DIR/bench_speed.json")
     if kind.name == "footprint":
         return " ".join([f"boxloc bench --section recording --n {report['n']} --seed "
@@ -834,8 +836,12 @@ def speed_summary(r: dict[str, Any]) -> str:
         f"≤ {num(goals[k].get('bound_ms'), 0)}: {verdict(goals[k].get('pass'))}"
         if k in goals else "" for k in ("median", "p99")], "", ""])
     m, mc = r["memory"], r["machine"]
+    br = r.get("box_range")  # absent before the report said it: Config() alone
+    config = (f"the default configuration with the site's box range {br[0]}–{br[1]} m, as "
+              "the matrix benchmark runs" if br else "the bare default configuration")
     note = (f"{r['scans']} scans of `{r['suite']}_suite({r['n']}, {r['seed']})` at "
-            f"{r['size']}, one process, numba and BLAS on one thread, after a warm-up scan; "
+            f"{r['size']}, {config}; one process, numba and BLAS on one thread, after a "
+            "warm-up scan; "
             f"stages from `Result.timing_ms`. Peak RSS {num(m.get('process_max_rss_mb'), 0)} "
             f"MB. {mc.get('cpu_count')} cores shared with other jobs (load average "
             f"{num(mc.get('load_average_1min_before'), 1)} before, "

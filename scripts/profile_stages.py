@@ -88,6 +88,21 @@ def _specs(suite: str, n: int, seed: int, size: tuple[int, int] | None) -> list[
             for s in specs]
 
 
+def site_config(box_range: str) -> Any:
+    """The configuration a profile runs with: ``Config()`` with the smallest and largest box
+    of the simulated scenes (``box_range="site"``: the one site input a user gives, as the
+    matrix benchmark runs), or ``Config()`` alone (``"defaults"``: ``min_edge`` 0.1 m,
+    ``max_edge`` 1 m, wider than the scenes' boxes: more search per vertex and region)."""
+    from boxloc.config import Config
+
+    if box_range == "defaults":
+        return Config()
+    from boxloc.evaluate.matrix_bench import site_box_range
+
+    lo, hi = site_box_range()  # every simulated scene's (SceneSpec's documented range)
+    return Config(min_edge=lo, max_edge=hi)
+
+
 def _scans(specs: list[Any], cache: Path | None) -> list[Any]:
     """Simulated scans of the specs (read from / written to ``cache`` when given)."""
     from boxloc.simulate import simulate
@@ -214,7 +229,8 @@ def speed_report(times: dict[str, list[float]], walls: list[float],
         "schema": SCHEMA, "version": boxloc.__version__, "suite": suite, "n": n, "seed": seed,
         "size": "native" if size is None else f"{size[0]}x{size[1]}", "scans": len(walls),
         "pixels": int(sorted(pixels)[len(pixels) // 2]) if pixels else 0,
-        "config_hash": config.hash, "threads": threads, "warmup": True,
+        "config_hash": config.hash, "box_range": [config.min_edge, config.max_edge],
+        "threads": threads, "warmup": True,
         "stages_ms": stages, "wall_ms": figures(walls), "baseline": base,
         "targets": [_target(name, key, bound, total[key]) for name, key, bound in TARGETS],
         "memory": {"process_max_rss_mb_before": round(rss_mb[0], 1),
@@ -262,6 +278,9 @@ def main(argv: Sequence[str] | None = None) -> int:
                     help="keep the simulated scans here (pickles) for repeated runs")
     ap.add_argument("--no-baseline", action="store_true",
                     help="do not time the open3d baseline on the same scans")
+    ap.add_argument("--box-range", choices=("site", "defaults"), default="site",
+                    help="site (default): Config() with the suite's box range, the one site "
+                         "input, as its accuracy bench runs it; defaults: Config() alone")
     ap.add_argument("--out", type=Path, default=None, metavar="FILE",
                     help="write the figures as JSON (for scripts/bench_tables.py --speed)")
     a = ap.parse_args(argv)
@@ -281,12 +300,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     # one core, as `boxloc bench` measures: pin the pools before numpy and numba load
     for var in ("OMP_NUM_THREADS", "NUMBA_NUM_THREADS", "OPENBLAS_NUM_THREADS"):
         os.environ.setdefault(var, "1")
-    from boxloc.config import Config
     from boxloc.evaluate.scene_bench import _limit_threads, process_max_rss_mb
     from boxloc.pipeline import find_graspable_surfaces
 
     threads = _limit_threads()
-    config = Config()
+    config = site_config(a.box_range)
     scans = _scans(_specs(a.suite, a.n, a.seed, size), a.scans_cache)
     find_graspable_surfaces(scans[0], config)  # numba kernels and lazy tables, not timed
     rss_before = process_max_rss_mb()

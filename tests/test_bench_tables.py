@@ -806,6 +806,15 @@ def test_a_dirty_tree_and_a_missing_baseline_show_in_the_speed_table(
     assert "baseline" not in doc.split("<!-- bench:footprint")[0].split("-->", 1)[1]
     assert bt.reconstruct_command(rep, bt.KINDS["speed"]) == (
         "python scripts/profile_stages.py --suite matrix --n 32 --seed 0 --size 640x480 "
+        "--no-baseline --box-range defaults --out DIR/bench_speed.json")
+    assert "at 640x480, the bare default configuration; one process" in doc
+    # a report that ran with the site's box range says so, and its command needs no option
+    rep["box_range"] = [0.15, 0.6]
+    assert _run(speed_checkout, "--speed", str(_write(tmp_path / "s.json", rep))) == 0
+    assert ("at 640x480, the default configuration with the site's box range 0.15–0.6 m, "
+            "as the matrix benchmark runs; one process") in (speed_checkout / "README.md"
+                                                            ).read_text()
+    assert bt.reconstruct_command(rep, bt.KINDS["speed"]).endswith(
         "--no-baseline --out DIR/bench_speed.json")
 
 
@@ -848,6 +857,7 @@ def test_profile_stages_writes_a_report_the_tables_read(speed_checkout: Path,
     assert rep["schema"] == "boxloc.bench_speed/1" and rep["scans"] == 2
     assert rep["size"] == "96x72" and rep["pixels"] == 96 * 72
     assert rep["threads"]["numba_threads"] == 1
+    assert rep["box_range"] == [0.15, 0.6]  # the simulator's boxes: the site input
     assert list(rep["stages_ms"])[-1] == "total" and "hypotheses" in rep["stages_ms"]
     for f in rep["stages_ms"].values():
         assert f["median"] <= f["p99"] <= f["max"]
