@@ -53,7 +53,11 @@ copy of each newer log made by :func:`recorder.mcap.sink.copy_log_for_older_read
 Notes
 -----
 numba caches compiled kernels next to the sources, so a fresh worktree compiles them once
-(seconds to tens of seconds, once per worker process at most) before its first scan.
+(about a minute for all of them, once per worker process at most) before its first scan.
+Where the revision's ``boxloc`` is the running code's, file for file, the worktree gets the
+running code's compiled kernels instead (:func:`seed_kernels`): the same sources compile to
+the same code, so nothing is compiled again (``replay --rev HEAD`` on a clean checkout, or a
+revision that changed only the recorder, replay, tests or docs).
 
 With a Dask cluster the workers must see the worktree, the logs and the output directory
 at the same paths (a shared file system, or a ``LocalCluster``).
@@ -208,6 +212,7 @@ class GitRevision:
             _git(repo, "-c", "core.hooksPath=/dev/null", "worktree", "add", "--detach",
                  "--quiet", str(src), sha)
             added = True
+            seed_kernels(src)
             wt = _layout(self.ref, sha, src, tmp)
             wt = _check(wt)
             yield wt
@@ -441,6 +446,64 @@ def _layout(ref: str, sha: str, src: Path, tmp: Path) -> Worktree:
     for pkg in ("recorder", "replay"):
         (shim / pkg).symlink_to(here / pkg, target_is_directory=True)
     return Worktree(ref, sha, str(src), (str(shim),), "compat", tmp=str(tmp))
+
+
+#: numba's cache files (:mod:`numba.core.caching`): the index of a function's compiled
+#: overloads, and one file of machine code per overload.
+_KERNEL_SUFFIXES = (".nbi", ".nbc")
+
+
+def seed_kernels(src: Path, here: Path | None = None) -> int:
+    """Give the worktree ``src`` the compiled numba kernels of the running code, if its
+    ``boxloc`` package is the running code's, file for file.
+
+    numba keeps a function's compiled code in ``__pycache__`` beside its source, valid while
+    the source's modification time and size are those it was compiled from; a kernel that
+    calls a kernel or reads a constant of another module is not checked against that
+    module. So the kernels are copied only when every ``.py`` file of the package is the
+    same (the same files, byte for byte), and each copied source gets the running source's
+    modification time. The cache's key also holds the CPU and numba's version, so a kernel
+    that does not apply here is compiled as before, never run.
+
+    Parameters
+    ----------
+    src : Path
+        The worktree (its ``boxloc`` package).
+    here : Path, optional
+        The running code's checkout (default: the one this module is in).
+
+    Returns
+    -------
+    int
+        Cache files copied (0: the packages differ, the running code has no compiled kernels
+        beside its sources, or ``NUMBA_CACHE_DIR`` puts every cache elsewhere).
+    """
+    if os.environ.get("NUMBA_CACHE_DIR"):
+        return 0  # a cache directory keyed by each source's path: nothing to share
+    mine = (here or Path(__file__).resolve().parent.parent) / "boxloc"
+    theirs = src / "boxloc"
+    if not mine.is_dir() or not theirs.is_dir():
+        return 0
+    files = sorted(p.relative_to(mine) for p in mine.rglob("*.py"))
+    if files != sorted(p.relative_to(theirs) for p in theirs.rglob("*.py")):
+        return 0
+    if any((mine / f).read_bytes() != (theirs / f).read_bytes() for f in files):
+        return 0
+    n = 0
+    for cache in sorted(mine.rglob("__pycache__")):
+        kernels = [f for f in sorted(cache.iterdir()) if f.suffix in _KERNEL_SUFFIXES]
+        if not kernels:
+            continue
+        dest = theirs / cache.relative_to(mine)
+        dest.mkdir(exist_ok=True)
+        for f in kernels:
+            shutil.copyfile(f, dest / f.name)
+            n += 1
+    if n:
+        for f in files:  # the stamp numba checks a cached kernel against
+            st = (mine / f).stat()
+            os.utime(theirs / f, ns=(st.st_atime_ns, st.st_mtime_ns))
+    return n
 
 
 def _last_line(text: str) -> str:

@@ -839,6 +839,9 @@ def speed_summary(r: dict[str, Any]) -> str:
     br = r.get("box_range")  # absent before the report said it: Config() alone
     config = (f"the default configuration with the site's box range {br[0]}–{br[1]} m, as "
               "the matrix benchmark runs" if br else "the bare default configuration")
+    hot = r.get("compiled_while_timed")  # absent before the profile counted it
+    if hot:
+        config += f" ({hot} numba compilation(s) inside the timed scans count in their times)"
     note = (f"{r['scans']} scans of `{r['suite']}_suite({r['n']}, {r['seed']})` at "
             f"{r['size']}, {config}; one process, numba and BLAS on one thread, after a "
             "warm-up scan; "

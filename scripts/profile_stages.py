@@ -16,7 +16,10 @@ to one thread as ``boxloc bench`` pins them (the targets of issue 22 are per cor
 ``scripts/bench_tables.py --speed FILE``:
 
 - ``schema``, ``version``, ``suite``, ``n``, ``seed``, ``size`` (``"WxH"`` or ``"native"``),
-  ``scans``, ``pixels`` (median per scan), ``config_hash``, ``threads``, ``warmup``
+  ``scans``, ``pixels`` (median per scan), ``config_hash``, ``box_range`` (``[min_edge,
+  max_edge]``, m), ``threads``, ``warmup``, ``compiled_while_timed`` (numba compilations
+  inside the timed scans: 0 after the warm-up, which runs set-up's ``scripts/warm_up.py``
+  and one scan of the suite)
 - ``stages_ms``: per stage in pipeline order, then ``total`` (``Result.timing_ms``):
   ``median``, ``p99``, ``max`` (ms) and ``share`` (of the median total)
 - ``wall_ms``: ``median``, ``p99``, ``max`` of the whole call (ms, ``perf_counter``)
@@ -46,6 +49,7 @@ Usage: python scripts/profile_stages.py [--suite scene|matrix] [--n N] [--seed S
 from __future__ import annotations
 
 import argparse
+import contextlib
 import cProfile
 import dataclasses
 import datetime as dt
@@ -101,6 +105,23 @@ def site_config(box_range: str) -> Any:
 
     lo, hi = site_box_range()  # every simulated scene's (SceneSpec's documented range)
     return Config(min_edge=lo, max_edge=hi)
+
+
+def _warm_up_module() -> Any:
+    """scripts/warm_up.py, the set-up's kernel warm-up, as a module."""
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location("boxloc_warm_up",
+                                                  Path(__file__).with_name("warm_up.py"))
+    assert spec is not None and spec.loader is not None
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+def _compiled(warm: Any) -> int:
+    """numba compilations so far in this process (cache misses of every boxloc kernel)."""
+    return sum(sum(k.stats.cache_misses.values()) for k in warm.kernels().values())
 
 
 def _scans(specs: list[Any], cache: Path | None) -> list[Any]:
@@ -198,8 +219,8 @@ def speed_report(times: dict[str, list[float]], walls: list[float],
                  baseline: tuple[list[float], list[str]] | None, *, suite: str, n: int,
                  seed: int, size: tuple[int, int] | None, pixels: list[int], config: Any,
                  threads: dict[str, Any], run_s: float, rss_mb: tuple[float, float],
-                 load: tuple[float | None, float | None], argv: Sequence[str]
-                 ) -> dict[str, Any]:
+                 load: tuple[float | None, float | None], argv: Sequence[str],
+                 compiled: int = 0) -> dict[str, Any]:
     """The JSON report of a profile run (layout in the module's docstring).
 
     Parameters
@@ -230,7 +251,7 @@ def speed_report(times: dict[str, list[float]], walls: list[float],
         "size": "native" if size is None else f"{size[0]}x{size[1]}", "scans": len(walls),
         "pixels": int(sorted(pixels)[len(pixels) // 2]) if pixels else 0,
         "config_hash": config.hash, "box_range": [config.min_edge, config.max_edge],
-        "threads": threads, "warmup": True,
+        "threads": threads, "compiled_while_timed": compiled, "warmup": True,
         "stages_ms": stages, "wall_ms": figures(walls), "baseline": base,
         "targets": [_target(name, key, bound, total[key]) for name, key, bound in TARGETS],
         "memory": {"process_max_rss_mb_before": round(rss_mb[0], 1),
@@ -306,7 +327,14 @@ def main(argv: Sequence[str] | None = None) -> int:
     threads = _limit_threads()
     config = site_config(a.box_range)
     scans = _scans(_specs(a.suite, a.n, a.seed, size), a.scans_cache)
-    find_graspable_surfaces(scans[0], config)  # numba kernels and lazy tables, not timed
+    # not timed: every numba kernel compiled or loaded (set-up's warm-up reaches them all; a
+    # scan alone need not, and a kernel compiled inside a timed scan adds seconds to it),
+    # then the lazy tables of a scan of the suite
+    warm = _warm_up_module()
+    with contextlib.redirect_stderr(io.StringIO()):
+        warm.warm_up()
+    find_graspable_surfaces(scans[0], config)
+    compiled_before = _compiled(warm)
     rss_before = process_max_rss_mb()
     load_before = _load()
     times: dict[str, list[float]] = {}
@@ -319,6 +347,10 @@ def main(argv: Sequence[str] | None = None) -> int:
         for k, v in res.timing_ms.items():
             times.setdefault(k, []).append(float(v))
     wall = time.perf_counter() - t0
+    compiled = _compiled(warm) - compiled_before
+    if compiled:
+        print(f"profile_stages: {compiled} numba compilation(s) inside the timed scans: "
+              "their times include it", file=sys.stderr)
     load_after = _load()
     rss_after = process_max_rss_mb()
     baseline = None if a.no_baseline else time_baseline(scans, config)
@@ -330,7 +362,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         report = speed_report(times, walls, baseline, suite=a.suite, n=a.n, seed=a.seed,
                               size=size, pixels=[s.range.size for s in scans], config=config,
                               threads=threads, run_s=wall, rss_mb=(rss_before, rss_after),
-                              load=(load_before, load_after), argv=argv)
+                              load=(load_before, load_after), argv=argv, compiled=compiled)
         if report["baseline"] is not None:
             r = report["baseline"]["ratio"]
             print(f"\nboxloc's total over the open3d baseline's time on the same scans: "

@@ -7,8 +7,10 @@ committed code (a real worktree of this repository) and removes the worktree aft
 from __future__ import annotations
 
 import json
+import os
 import shutil
 import subprocess
+import sys
 import tempfile
 from pathlib import Path
 
@@ -20,7 +22,7 @@ from boxloc.cli import cli
 from boxloc.errors import InputError
 from recorder.mcap.log import open_log
 from replay.replay import REPLAY_METADATA
-from replay.versions import GitRevision, default_repo
+from replay.versions import GitRevision, default_repo, seed_kernels
 
 REPO = default_repo()
 
@@ -158,3 +160,68 @@ def test_rev_head_replays_with_the_committed_code(logs: list[Path], tmp_path: Pa
                                 "boxloc"], check=False).returncode == 0
     if same_code:
         assert product_differences(logs[0], out / logs[0].name) == []
+
+
+_KERNEL = """import numba
+
+
+@numba.njit(cache=True)
+def f(x):
+    return x + 1
+"""
+_CALL = ("import json; from boxloc.k import f; f(1); "
+         "print(json.dumps([sum(f.stats.cache_hits.values()), "
+         "sum(f.stats.cache_misses.values())]))")
+
+
+def _cache_use(root: Path) -> list[int]:
+    """[cache hits, cache misses] of one call of the kernel in a fresh process at ``root``."""
+    env = {k: v for k, v in os.environ.items() if k != "NUMBA_CACHE_DIR"}
+    env["PYTHONPATH"] = str(root)
+    p = subprocess.run([sys.executable, "-P", "-c", _CALL], capture_output=True, text=True,
+                       env=env, cwd=root, timeout=300)
+    assert p.returncode == 0, p.stderr
+    return list(json.loads(p.stdout.splitlines()[-1]))
+
+
+def _package(root: Path, text: str = _KERNEL) -> None:
+    (root / "boxloc").mkdir(parents=True)
+    (root / "boxloc" / "__init__.py").write_text("")
+    (root / "boxloc" / "k.py").write_text(text)
+
+
+def test_a_worktree_of_the_same_package_reuses_the_compiled_kernels(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.delenv("NUMBA_CACHE_DIR", raising=False)
+    here, src = tmp_path / "here", tmp_path / "src"
+    _package(here)
+    assert _cache_use(here) == [0, 1]  # compiled and cached beside the source
+    _package(src)  # a checkout: the same bytes, a later modification time
+    os.utime(src / "boxloc" / "k.py", (1e9, 1e9))
+    assert seed_kernels(src, here) >= 2  # the index and the overload's code
+    assert (src / "boxloc" / "k.py").stat().st_mtime_ns == \
+        (here / "boxloc" / "k.py").stat().st_mtime_ns
+    assert _cache_use(src) == [1, 0]  # loaded, not compiled
+
+
+def test_a_worktree_whose_package_differs_compiles_its_own_kernels(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.delenv("NUMBA_CACHE_DIR", raising=False)
+    here = tmp_path / "here"
+    _package(here)
+    assert _cache_use(here) == [0, 1]
+    # another kernel module's byte, or a module more: nothing is copied
+    for k, (text, extra) in enumerate([(_KERNEL.replace("x + 1", "x + 2"), None),
+                                       (_KERNEL, "other.py")]):
+        src = tmp_path / f"src{k}"
+        _package(src, text)
+        if extra:
+            (src / "boxloc" / extra).write_text("")
+        assert seed_kernels(src, here) == 0 and not (src / "boxloc" / "__pycache__").exists()
+        assert _cache_use(src) == [0, 1]
+    # a cache directory of its own (keyed by each source's path): nothing is copied either
+    src = tmp_path / "src-env"
+    _package(src)
+    monkeypatch.setenv("NUMBA_CACHE_DIR", str(tmp_path / "nc"))
+    assert seed_kernels(src, here) == 0
+
