@@ -9,7 +9,8 @@ shows at once.
 
 The fast tests run "the other revision" in this process (:class:`_InProcess`, a worktree
 whose recorder writes no carton file and whose config keys are chosen); the slow ones check
-out real revisions (a fresh worktree compiles its numba kernels once: about a minute).
+out real revisions (an older revision's fresh worktree compiles its numba kernels once, most
+of a minute; this code's reuses the running code's, :func:`replay.versions.seed_kernels`).
 """
 
 from __future__ import annotations

@@ -135,8 +135,8 @@ def test_revision_with_its_own_replay_runs_its_own_code(tmp_path: Path) -> None:
 @pytest.mark.slow
 @pytest.mark.timeout(600)
 def test_rev_head_replays_with_the_committed_code(logs: list[Path], tmp_path: Path) -> None:
-    # A real worktree of this repository. Slow: the fresh checkout compiles its numba
-    # kernels once (numba caches them next to the sources).
+    # A real worktree of this repository. Its numba kernels are the running code's where
+    # the committed boxloc is the working tree's (seed_kernels); else it compiles them once.
     sha = _git(REPO, "rev-parse", "HEAD")
     has_replay = bool(_git(REPO, "ls-tree", "HEAD", "replay/worker.py"))
     before, dirs, ins = _worktrees_of(REPO, sha), _rev_dirs(sha), snapshot(logs)
