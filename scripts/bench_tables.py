@@ -837,19 +837,18 @@ def speed_summary(r: dict[str, Any]) -> str:
         if k in goals else "" for k in ("median", "p99")], "", ""])
     m, mc = r["memory"], r["machine"]
     br = r.get("box_range")  # absent before the report said it: Config() alone
-    config = (f"the default configuration with the site's box range {br[0]}–{br[1]} m, as "
-              "the matrix benchmark runs" if br else "the bare default configuration")
+    config = (f"defaults with the site's box range {br[0]}–{br[1]} m (as the matrix "
+              "bench)" if br else "the bare defaults")
     hot = r.get("compiled_while_timed")  # absent before the profile counted it
     if hot:
-        config += f" ({hot} numba compilation(s) inside the timed scans count in their times)"
+        config += f", {hot} numba compilation(s) timed"
     note = (f"{r['scans']} scans of `{r['suite']}_suite({r['n']}, {r['seed']})` at "
-            f"{r['size']}, {config}; one process, numba and BLAS on one thread, after a "
-            "warm-up scan; "
-            f"stages from `Result.timing_ms`. Peak RSS {num(m.get('process_max_rss_mb'), 0)} "
+            f"{r['size']}, {config}; one process and thread, after a warm-up; stages "
+            f"from `Result.timing_ms`. Peak RSS {num(m.get('process_max_rss_mb'), 0)} "
             f"MB. {mc.get('cpu_count')} cores shared with other jobs (load average "
             f"{num(mc.get('load_average_1min_before'), 1)} before, "
             f"{num(mc.get('load_average_1min_after'), 1)} after): times vary 10–20 % "
-            "between runs.")
+            "between runs, the slowest scans' more.")
     return (table(["stage", "median (ms)", "p99 (ms)", "max (ms)", "share of median total"],
                   rows) + "\n\n" + note)
 

@@ -807,20 +807,18 @@ def test_a_dirty_tree_and_a_missing_baseline_show_in_the_speed_table(
     assert bt.reconstruct_command(rep, bt.KINDS["speed"]) == (
         "python scripts/profile_stages.py --suite matrix --n 32 --seed 0 --size 640x480 "
         "--no-baseline --box-range defaults --out DIR/bench_speed.json")
-    assert "at 640x480, the bare default configuration; one process" in doc
+    assert "at 640x480, the bare defaults; one process" in doc
     # a report that ran with the site's box range says so, and its command needs no option
     rep["box_range"] = [0.15, 0.6]
     assert _run(speed_checkout, "--speed", str(_write(tmp_path / "s.json", rep))) == 0
-    assert ("at 640x480, the default configuration with the site's box range 0.15–0.6 m, "
-            "as the matrix benchmark runs; one process") in (speed_checkout / "README.md"
-                                                            ).read_text()
+    assert ("at 640x480, defaults with the site's box range 0.15–0.6 m (as the matrix "
+            "bench); one process") in (speed_checkout / "README.md").read_text()
     assert bt.reconstruct_command(rep, bt.KINDS["speed"]).endswith(
         "--no-baseline --out DIR/bench_speed.json")
     rep["compiled_while_timed"] = 3  # a kernel compiled inside a timed scan is said
     assert _run(speed_checkout, "--speed", str(_write(tmp_path / "s.json", rep))) == 0
-    assert ("0.15–0.6 m, as the matrix benchmark runs (3 numba compilation(s) inside the "
-            "timed scans count in their times); one process") in (speed_checkout /
-                                                                   "README.md").read_text()
+    assert ("0.15–0.6 m (as the matrix bench), 3 numba compilation(s) timed; one process"
+            ) in (speed_checkout / "README.md").read_text()
 
 
 def _no_recording() -> dict[str, Any]:
