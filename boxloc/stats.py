@@ -160,6 +160,11 @@ class TestKind(IntEnum):
     #: PLANE_END_FRACTION; accepted counts the side as a boundary (a fold or step the scan
     #: lines did not resolve)
     VERIFY_PLANE_END = 34
+    #: hypotheses: vertex a's plane (the normal of its two lines) is within ``max_tilt`` of
+    #: up: statistic = its tilt, radians; critical = ``max_tilt``. Recorded where it is not:
+    #: no rectangle is sought from that vertex, since every one would share its normal and
+    #: fail VERIFY_TILT (a side face of a stack, seen from above at an angle)
+    HYPOTHESIS_TILT = 35
 
 
 #: ``TestKind.BUDGET`` rows' ``a``: the stage whose budget it is.

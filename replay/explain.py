@@ -735,7 +735,12 @@ def explain_at(ctx: _Ctx, at: Any) -> dict[str, Any]:
     parts = []
     for hd in out["hypotheses"][:4]:
         dims = hd["dimensions"]
-        if hd["n_attempts"] == 0:
+        tilt = _tests(ctx.hypotheses.tests, [TestKind.HYPOTHESIS_TILT], a=hd["id"])
+        if hd["n_attempts"] == 0 and tilt:
+            parts.append(f"hypothesis {hd['id']} (vertex V{hd['vertex']['id']}): no rectangle "
+                         f"was sought, its plane is tilted beyond max_tilt from up (a side "
+                         f"face): {_test_text(tilt[0])}")
+        elif hd["n_attempts"] == 0:
             n_diag = dims["n_diagonal_candidates"]
             sup = dims["edges"]["edge_support"]
             best = max(sup, key=lambda r: r["statistic"] - r["critical"], default=None)

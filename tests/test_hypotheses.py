@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import re
 
 import numpy as np
 import pytest
@@ -310,3 +311,74 @@ def test_a_packed_box_nearly_max_edge_long_is_parted_at_its_far_seam():
     assert near_max.any() and (far.statistic[near_max] > far.critical[near_max]).all()
     dims = np.sort(np.c_[r.surfaces.width, r.surfaces.length], axis=1)
     assert np.allclose(dims, [0.30, 0.56], atol=0.015)
+
+
+# --- a vertex of a side face: no search (HYPOTHESIS_TILT) --------------------------------------
+
+
+@pytest.fixture(scope="module")
+def tall_box_at_an_angle():
+    # a tall box seen 0.6 rad off vertical: its side faces show, with vertices of their own
+    sim = scene([box(0.0, 0.0, 0.40, 0.30, 0.45, 0.3)], tilt=0.6, seed=3)
+    return sim, _stages(sim)
+
+
+def test_a_vertex_tilted_beyond_max_tilt_gets_no_rectangle(tall_box_at_an_angle):
+    from boxloc.stages.verify import tilt_from_up
+
+    sim, (_, _, V, H, ver) = tall_box_at_an_angle
+    rows = H.tests.of_kind(TestKind.HYPOTHESIS_TILT)
+    assert len(rows) >= 1  # the side faces' corners
+    cfg = Config()
+    for i, t, crit, ok in zip(rows.a, rows.statistic, rows.critical, rows.accepted):
+        assert not ok and crit == cfg.max_tilt and t > cfg.max_tilt
+        assert t == tilt_from_up(V.normals[i], sim.scan.up)
+        assert i not in set(H.att_hypothesis.tolist())  # no attempt from it
+    # every other vertex is searched, and none of its attempts fails the tilt prior
+    assert not (ver.reason == VerifyReason.TILTED).any()
+    assert ver.accepted.any()  # the top is still found
+
+
+def test_skipping_the_tilted_vertices_changes_no_verified_rectangle(tall_box_at_an_angle,
+                                                                    monkeypatch):
+    import boxloc.stages.hypotheses as hyp_stage
+
+    sim, (_, _, _, H, ver) = tall_box_at_an_angle
+    monkeypatch.setattr(hyp_stage, "_too_tilted", lambda R, ctx: None)  # search them all
+    _, _, _, H_all, ver_all = _stages(sim)
+    tilted = H.tests.of_kind(TestKind.HYPOTHESIS_TILT).a
+    of_tilted = np.isin(H_all.att_hypothesis, tilted)
+    assert of_tilted.any()  # searched now: each of their attempts fails the tilt first
+    assert (ver_all.reason[of_tilted] == VerifyReason.TILTED).all()
+
+    def accepted(H: object, v: object) -> list[tuple[float, ...]]:
+        k = np.flatnonzero(v.accepted)  # type: ignore[attr-defined]
+        return sorted((int(H.att_hypothesis[j]), float(H.att_width[j]),  # type: ignore[attr-defined]
+                       float(H.att_length[j])) for j in k)  # type: ignore[attr-defined]
+
+    assert accepted(H, ver) == accepted(H_all, ver_all)
+
+
+def test_explain_at_a_side_face_says_its_vertex_was_tilted(tall_box_at_an_angle, tmp_path):
+    from factories import feed
+
+    from boxloc import find_graspable_surfaces
+    from recorder.mcap.sink import McapRecorder
+    from replay.explain import explain
+
+    sim, _ = tall_box_at_an_angle
+    cfg = Config()
+    r = find_graspable_surfaces(sim.scan, cfg)
+    log = tmp_path / "tilt.mcap"
+    with McapRecorder(log) as rec:
+        feed(rec, sim.scan, r, cfg)
+    V = r.vertices
+    said = []
+    for i in r.hypotheses.tests.of_kind(TestKind.HYPOTHESIS_TILT).a:
+        P = V.points[i] + 0.06 * V.d1[i] + 0.06 * V.d2[i]  # inside the side face's corner
+        a = explain(log, 0, at=tuple(float(x) for x in P))["at"]
+        said.append(a["stopped_at"] == "dimensions" and re.search(
+            rf"vertex V{i}\): no rectangle was sought, its plane is tilted beyond max_tilt "
+            rf"from up \(a side face\): HYPOTHESIS_TILT {i},-1: [\d.]+ > 0.7854: REJECTED",
+            a["why"]) is not None)
+    assert any(said), said

@@ -26,6 +26,11 @@ candidates are tried after those from the edges, with a budget of their own
 the last short box edge before ``max_edge`` (:func:`dimensions_near_max_edge`), which the
 seam search of the edges' candidates cannot see.
 
+A vertex whose plane (the normal of its two lines) is tilted beyond ``max_tilt`` from up
+gets no search: every rectangle of it shares that normal and would fail the tilt prior
+first (``HYPOTHESIS_TILT`` records it). Such vertices are the corners of side faces, which
+a tall stack seen at an angle shows in numbers.
+
 Per-vertex work is independent (the paper's parallel implementation); with
 ``config.workers > 1`` it runs in processes and the result is identical to serial.
 """
@@ -76,6 +81,7 @@ from boxloc.stages.verify import (
     face_sigma,
     plane_var,
     rectangle_corners,
+    tilt_from_up,
     verify,
 )
 from boxloc.stages.vertices import _skew, append_vertices, normal_covariance
@@ -628,11 +634,24 @@ def _work_on_vertex(i: int, ctx: _Context) -> _VertexWork:
     return work
 
 
+def _too_tilted(R: Rectangle, ctx: _Context) -> float | None:
+    """R's tilt from up (radians) where it exceeds ``max_tilt``, else None. Every rectangle
+    of the vertex shares R's normal, so each would fail VERIFY_TILT first."""
+    t = tilt_from_up(R.normal, ctx.verify_ctx.up)
+    return t if t > ctx.config.max_tilt else None
+
+
 def _search_vertex(i: int, ctx: _Context) -> _Piece:
     """The search for a box top at vertex i: dimensions from the diagonal vertices, the
-    edges and seams, then the face's extent, until one verifies."""
+    edges and seams, then the face's extent, until one verifies. None for a vertex whose
+    plane is tilted beyond ``max_tilt`` (HYPOTHESIS_TILT): no top of it could verify."""
     work = _VertexWork(vertex=i)
     R = align(ctx.vertices, i, ctx.normal_cov)
+    t = _too_tilted(R, ctx)
+    if t is not None:
+        work.tests.append(TestTable.decision(TestKind.HYPOTHESIS_TILT, i, -1, t,
+                                             ctx.config.max_tilt, False, ctx.config.alpha))
+        return work, R, False
     ok, tried = _try_in_turn(R, ctx, work, dimensions_from_vertices(R, ctx, work), MAX_ATTEMPTS)
     if not ok:
         ok, _ = _try_in_turn(R, ctx, work, dimensions_from_edges(R, ctx, work),
@@ -654,6 +673,8 @@ def _search_region(item: tuple[int, Rectangle], ctx: _Context) -> _Piece:
     and it can wait until every vertex has been searched for a box top."""
     i, R = item
     work = _VertexWork(vertex=i)
+    if _too_tilted(R, ctx) is not None:  # recorded by the vertex's own search
+        return work, R, False
     for att in dimensions_from_region(R, ctx, work):
         _verify(R, att, ctx)
         work.pixels += _verified_pixels(R, att, ctx)

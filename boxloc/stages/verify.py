@@ -787,9 +787,14 @@ class _FaceFit:
 # --- the tests, in the order of the README's table ------------------------------------------
 
 
+def tilt_from_up(normal: np.ndarray, up: np.ndarray) -> float:
+    """The angle between a face's unit normal (3,) and up (3,), radians."""
+    return float(np.arccos(np.clip(normal @ up, -1, 1)))
+
+
 def _test_tilt(hyp: _Hypothesis, up: np.ndarray, max_tilt: float) -> tuple[bool, TestTable]:
     """VERIFY_TILT: the face's normal within ``max_tilt`` of up. Returns (tilted, row)."""
-    tilt = float(np.arccos(np.clip(hyp.normal @ up, -1, 1)))
+    tilt = tilt_from_up(hyp.normal, up)
     return tilt > max_tilt, TestTable.decision(
         TestKind.VERIFY_TILT, hyp.attempt_id, -1, tilt, max_tilt, tilt <= max_tilt, hyp.alpha)
 
