@@ -643,8 +643,9 @@ def _too_tilted(R: Rectangle, ctx: _Context) -> float | None:
 
 def _search_vertex(i: int, ctx: _Context) -> _Piece:
     """The search for a box top at vertex i: dimensions from the diagonal vertices, the
-    edges and seams, then the face's extent, until one verifies. None for a vertex whose
-    plane is tilted beyond ``max_tilt`` (HYPOTHESIS_TILT): no top of it could verify."""
+    edges and seams, then the face's extent, until one verifies. A vertex whose plane is
+    tilted beyond ``max_tilt`` gets only its HYPOTHESIS_TILT row: no top of it could
+    verify."""
     work = _VertexWork(vertex=i)
     R = align(ctx.vertices, i, ctx.normal_cov)
     t = _too_tilted(R, ctx)
