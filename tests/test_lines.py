@@ -69,6 +69,34 @@ def test_two_lines_are_found_among_clutter():
     assert len(L.tests.of_kind(TestKind.BUDGET)) == 0  # the work budget was not hit
 
 
+def _lines_and_clutter(seed: int, k: int = 8, n: int = 40):
+    """k straight runs of n points 3 mm apart in random directions, and 300 points of
+    clutter: each line found resets the run of failed trials."""
+    rng = np.random.default_rng(seed)
+    s = 0.0015
+    pts = []
+    for _ in range(k):
+        o = rng.uniform([-0.3, -0.3, 1.3], [0.3, 0.3, 1.7])
+        d = rng.normal(size=3)
+        pts.append(o + np.arange(n)[:, None] * 0.003 * (d / np.linalg.norm(d)))
+    pts.append(rng.uniform([-0.4, -0.4, 1.2], [0.4, 0.4, 1.9], (300, 3)))
+    P = np.concatenate(pts)
+    return P + rng.normal(0, s, P.shape), s
+
+
+def test_the_trials_are_olsons_count_in_all():
+    # p_success is the chance that each line of m_min points is hit: log(1 - P) /
+    # log(1 - m_min / N) draws in all, however many lines are found on the way (a run of
+    # that many failures after the last line found drew 109 on seed 0)
+    import math
+
+    for seed in range(3):
+        P, s = _lines_and_clutter(seed)
+        L = find_lines(_scan(), _edge_map(P, s), config=Config(), rng=np.random.default_rng(0))
+        cap = math.ceil(math.log(1.0 - Config().p_success) / math.log(1.0 - float(L.epsilon)))
+        assert len(L) == 8 and L.n_trials <= cap, (seed, len(L), L.n_trials, cap)
+
+
 def test_same_seed_same_lines():
     P, s, *_ = _two_lines_and_clutter(2)
     a = find_lines(_scan(), _edge_map(P, s), config=Config(), rng=np.random.default_rng(5))

@@ -17,8 +17,9 @@ parameters; they are recovered in two 2-D Hough transforms:
 The inliers (point-on-line test, chi2(2) at alpha) are refitted by total least squares,
 with covariance, and split into segments at gaps. Olson's bound gives the number of
 trials: t = ceil(ln(1 - P) / ln(1 - eps)), eps = the fraction of edge points on the
-smallest line worth finding; it is recomputed as found lines remove their points, and the
-search stops after t consecutive trials that find nothing.
+smallest line worth finding. The search stops after t trials in all (each such line is hit
+with probability P), or sooner after t' consecutive trials that find nothing, t' the same
+count for the points no line has taken yet.
 """
 
 from __future__ import annotations
@@ -401,7 +402,12 @@ def find_lines(scan: Scan, edges: EdgeMap, *, config: Config, rng: np.random.Gen
         return int(math.ceil(math.log(1.0 - config.p_success) / math.log(1.0 - eps)))
 
     needed = needed_trials(n_alive)  # changes only with n_alive
-    while n_alive >= m_min and fails < needed:
+    # Olson's count as a total: in needed(N) trials every line of m_min points is hit with
+    # probability p_success (a found line's points leave the draw, which only raises the
+    # others' chances). A run of that many failures since the last line found ends the
+    # search sooner where the edges are few; the total bounds it on cluttered scans.
+    total = needed
+    while n_alive >= m_min and fails < needed and trial < total:
         if budget and work >= budget:
             exhausted = True
             break
