@@ -98,13 +98,9 @@ def site_config(box_range: str) -> Any:
     matrix benchmark runs), or ``Config()`` alone (``"defaults"``: ``min_edge`` 0.1 m,
     ``max_edge`` 1 m, wider than the scenes' boxes: more search per vertex and region)."""
     from boxloc.config import Config
+    from boxloc.evaluate.matrix_bench import matrix_config
 
-    if box_range == "defaults":
-        return Config()
-    from boxloc.evaluate.matrix_bench import site_box_range
-
-    lo, hi = site_box_range()  # every simulated scene's (SceneSpec's documented range)
-    return Config(min_edge=lo, max_edge=hi)
+    return Config() if box_range == "defaults" else matrix_config([])[0]
 
 
 def _warm_up_module() -> Any:
@@ -117,11 +113,6 @@ def _warm_up_module() -> Any:
     mod = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(mod)
     return mod
-
-
-def _compiled(warm: Any) -> int:
-    """numba compilations so far in this process (cache misses of every boxloc kernel)."""
-    return sum(sum(k.stats.cache_misses.values()) for k in warm.kernels().values())
 
 
 def _scans(specs: list[Any], cache: Path | None) -> list[Any]:
@@ -336,7 +327,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     if missed:  # a kernel the warm-up does not reach may compile inside a timed scan
         print(said.getvalue().strip().splitlines()[-1], file=sys.stderr)
     find_graspable_surfaces(scans[0], config)
-    compiled_before = _compiled(warm)
+    compiled_before = warm.compilations()
     rss_before = process_max_rss_mb()
     load_before = _load()
     times: dict[str, list[float]] = {}
@@ -349,7 +340,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         for k, v in res.timing_ms.items():
             times.setdefault(k, []).append(float(v))
     wall = time.perf_counter() - t0
-    compiled = _compiled(warm) - compiled_before
+    compiled = warm.compilations() - compiled_before
     if compiled:
         print(f"profile_stages: {compiled} numba compilation(s) inside the timed scans: "
               "their times include it", file=sys.stderr)

@@ -39,6 +39,11 @@ def kernels() -> dict[str, Any]:
     return found
 
 
+def compilations() -> int:
+    """numba compilations so far in this process: cache misses of every boxloc kernel."""
+    return sum(sum(k.stats.cache_misses.values()) for k in kernels().values())
+
+
 def _cached(kernel: Any) -> bool:
     """Whether numba's cache holds code for KERNEL's current source (a kernel called only
     from other kernels gets no signatures in a process that loads its callers' code)."""
@@ -92,7 +97,7 @@ def warm_up() -> int:
     _seam_kernels()
     _noise_kernels()
     found = kernels()
-    compiled = sum(sum(k.stats.cache_misses.values()) for k in found.values())
+    compiled = compilations()
     loaded = sum(sum(k.stats.cache_hits.values()) for k in found.values())
     idle = sorted(n for n, k in found.items() if not k.signatures and not _cached(k))
     print(f"warm-up: {len(found)} numba kernels, {compiled} compiled and cached, {loaded} "
