@@ -165,6 +165,12 @@ class TestKind(IntEnum):
     #: no rectangle is sought from that vertex, since every one would share its normal and
     #: fail VERIFY_TILT (a side face of a stack, seen from above at an angle)
     HYPOTHESIS_TILT = 35
+    #: result stage: chosen attempt a's box lies in one flush layer with attempt b's (their
+    #: tops touch and are coplanar), and b's height measurement is the layer's smallest:
+    #: statistic = a's own measured height less b's, over the sigma of that difference
+    #: (+inf: a measured none); critical = z at alpha. Accepted takes b's height for a:
+    #: a's own reached significantly deeper (down a stack's side, to the floor beyond it)
+    LAYER_HEIGHT = 36
 
 
 #: ``TestKind.BUDGET`` rows' ``a``: the stage whose budget it is.
@@ -189,7 +195,7 @@ RELATION: dict[TestKind, str | None] = {
     TestKind.VERIFY_SEAM_SIDE: ">", TestKind.SEAM_PEAK: ">",
     TestKind.VERIFY_CONTINUATION: "<", TestKind.VERIFY_SEAM_CROSSING: "<",
     TestKind.END_EVIDENCE: ">=", TestKind.SKU_SPLIT_SEAM: ">", TestKind.BOX_HEIGHT: ">",
-    TestKind.BUDGET: "<",
+    TestKind.BUDGET: "<", TestKind.LAYER_HEIGHT: ">",
 }
 
 _RELATION_OPS = {"<=": operator.le, "<": operator.lt, ">": operator.gt, ">=": operator.ge}

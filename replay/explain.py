@@ -389,11 +389,13 @@ class _Ctx:
 
 
     def height(self, k: int) -> dict[str, Any]:
-        """Surface k's box height: value, sigma, source and its BOX_HEIGHT test."""
+        """Surface k's box height: value, sigma, source and its BOX_HEIGHT test, after its
+        LAYER_HEIGHT test where its flush layer's smallest measurement was weighed."""
         S = self.surfaces
         return {"height_mm": _mm(S.height[k]), "sigma_mm": _mm(S.height_sigma[k]),
                 "source": _name(HeightSource, S.height_source[k]),
-                "tests": _tests(S.tests, [TestKind.BOX_HEIGHT], a=int(S.attempt[k]))}
+                "tests": _tests(S.tests, [TestKind.LAYER_HEIGHT, TestKind.BOX_HEIGHT],
+                                a=int(S.attempt[k]))}
 
     def size(self, k: int) -> dict[str, Any]:
         """Surface k against the carton list: the matched size (row of
@@ -1094,6 +1096,9 @@ def _height_lines(h: dict[str, Any] | None, ind: str) -> list[str]:
         how = _HEIGHT_TEXT[HeightSource[h["source"]]]
     except KeyError:
         how = f"source {h['source']}"
+    took = [t for t in h["tests"] if t["kind"] == "LAYER_HEIGHT" and t["accepted"]]
+    if took:  # not its own measurement: its flush layer's smallest
+        how += f", measured on the top of attempt {took[0]['b']} of its flush layer"
     if h["height_mm"] is None:
         out = [f"{ind}box height {how}"]
     else:

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -13,7 +14,7 @@ from scenes import box, scene
 from boxloc.config import Config
 from boxloc.pipeline import find_graspable_surfaces
 from boxloc.products import HeightSource
-from boxloc.stages.height import box_heights, height_context
+from boxloc.stages.height import box_heights, flush_layers, height_context
 from boxloc.stats import TestKind
 
 CFG = Config(min_edge=0.15, max_edge=0.6)
@@ -79,3 +80,61 @@ def test_a_flush_stack_measures_its_whole_height_unless_the_listed_height_says_o
     r = find_graspable_surfaces(sim.scan, dataclasses.replace(CFG, box_sizes=((0.3, 0.4, 0.2),)))
     s = r.surfaces
     assert s.sku[0] == 0 and s.height_source[0] == HeightSource.SKU and s.height[0] == 0.2
+
+
+def _layer_on_a_stack(ledge: float) -> tuple[object, object]:
+    """Two 0.3 x 0.4 x 0.2 m cartons A and B 4 mm apart on two others, seen at a slant: A
+    is flush with the carton under it, B's stands out by ``ledge`` on every side but the
+    one facing A."""
+    from scenes import TOP
+
+    h, g = 0.2, 0.004
+    a = [-0.15 - g / 2, 0.0, TOP + h + h / 2, 0.3, 0.4, h, 0.0]
+    b = [0.15 + g / 2, 0.0, TOP + h + h / 2, 0.3, 0.4, h, 0.0]
+    under_a = box(-0.15 - g / 2, 0.0, 0.3, 0.4, h)
+    under_b = box(0.15 + g / 2 + ledge / 2, 0.0, 0.3 + ledge, 0.4 + 2 * ledge, h)
+    sim = scene([under_a, under_b, a, b], distance=1.5, tilt=0.35, bevel=0.0)
+    return sim, find_graspable_surfaces(sim.scan, CFG)
+
+
+def test_a_flush_layer_takes_its_smallest_height_measurement() -> None:
+    # A's side runs down the stack (0.4 m); B's ends on the ledge at its foot (0.2 m): one
+    # layer, one support, so A takes B's height, and a LAYER_HEIGHT row says so
+    _, r = _layer_on_a_stack(0.05)
+    s = r.surfaces
+    assert len(s) == 2
+    assert np.all(np.abs(s.height - 0.2) <= 0.010), s.height
+    rows = s.tests.of_kind(TestKind.LAYER_HEIGHT)
+    assert len(rows) == 1 and rows.accepted[0] and rows.statistic[0] > rows.critical[0]
+    taker = int(np.flatnonzero(s.attempt == rows.a[0])[0])
+    giver = int(np.flatnonzero(s.attempt == rows.b[0])[0])
+    assert taker != giver and s.height[taker] == s.height[giver]
+
+
+def test_tops_that_do_not_touch_keep_their_own_heights() -> None:
+    # the same measurements, the two tops moved apart in the surface set: not one layer
+    sim, r = _layer_on_a_stack(0.05)
+    s = r.surfaces
+    far = dataclasses.replace(s, corners=s.corners.copy(), centers=s.centers.copy())
+    far.corners[1] += 0.2 * s.x_axis[1]
+    far.centers[1] += 0.2 * s.x_axis[1]
+    assert len(set(flush_layers(height_context(sim.scan, CFG, r.hypotheses.up), far, CFG))) == 2
+    same = flush_layers(height_context(sim.scan, CFG, r.hypotheses.up), s, CFG)
+    assert same[0] == same[1]
+
+
+def test_explain_says_a_height_came_from_the_flush_layer(tmp_path: Path) -> None:
+    from recorder.mcap.sink import McapRecorder
+    from replay.explain import explain, format_explanation
+
+    sim, _ = _layer_on_a_stack(0.05)
+    path = tmp_path / "layer.mcap"
+    with McapRecorder(path) as rec:
+        r = find_graspable_surfaces(sim.scan, CFG, observer=rec)
+    taker = int(np.flatnonzero(r.surfaces.tests.of_kind(TestKind.LAYER_HEIGHT).accepted)[0])
+    a = int(r.surfaces.tests.of_kind(TestKind.LAYER_HEIGHT).a[taker])
+    k = int(np.flatnonzero(r.surfaces.attempt == a)[0])
+    d = explain(path, 0, surface=k)["surfaces"][0]["height"]
+    assert [t["kind"] for t in d["tests"]] == ["LAYER_HEIGHT", "BOX_HEIGHT"]
+    text = format_explanation(explain(path, 0, surface=k))
+    assert "of its flush layer" in text and "LAYER_HEIGHT" in text and "ACCEPTED" in text

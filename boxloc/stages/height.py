@@ -26,6 +26,14 @@ the pallet; the listed height is reported instead (``HeightSource.SKU``), as it 
 nothing is measured. Without a list, such a measurement is reported as it is: from the
 top alone, a flush stack of sharp-edged cartons cannot be told from one tall carton.
 
+The reported tops of one flush layer (:func:`flush_layers`: touching, coplanar) stand on
+one support, so their boxes are equally tall, and every measurement above is at least that
+height: a side face runs down to the box's foot or, flush with the layer below, on down the
+stack; the step beyond the layer's outer side finds the layer below, the pallet or the
+floor. The layer's smallest measurement is its height (:func:`pool_layers`): a top whose
+own is significantly deeper, or missing, takes it, and a LAYER_HEIGHT row says so. Where no
+top of a layer shows its foot (flush all round), the layer still measures the stack.
+
 The standard deviations propagate the noise model: for the side, the sample spacing down
 the face (the run ends within one sample) and the top plane's offset; for the step, the
 two surfaces' offsets (each a mean over its points, with their robust spread) and the
@@ -49,6 +57,9 @@ from boxloc.stages.raster import fill_polygon, rectangle_pixels
 from boxloc.stages.verify import EXTENT_GAP_PX, SIDE_CORNERS, VerifyContext
 from boxloc.stats import TestKind, TestTable, chi2_critical
 
+#: Two reported tops touch (one flush layer, :func:`flush_layers`) within this many point
+#: spacings of each other.
+LAYER_GAP_SPACINGS = 4.0
 #: How far down a side face is searched, as a multiple of ``Config.max_edge`` (cartons are
 #: rarely taller than their longest edge; beyond it lies the rest of a stack).
 SIDE_REACH = 1.5
@@ -240,7 +251,8 @@ def box_heights(scan_ctx: VerifyContext, surfaces: SurfaceSet, config: Config,
     source : (s,) int8
         :class:`HeightSource`.
     tests : TestTable
-        BOX_HEIGHT per measured height (a = attempt, b = source).
+        LAYER_HEIGHT per top of a flush layer but the one whose measurement is the
+        layer's (:func:`pool_layers`), then BOX_HEIGHT per height (a = attempt, b = source).
     """
     n = len(surfaces)
     height = np.full(n, np.nan)
@@ -250,32 +262,10 @@ def box_heights(scan_ctx: VerifyContext, surfaces: SurfaceSet, config: Config,
     z_a = float(norm_isf(config.alpha))
     rows: list[tuple[int, int, float, float, bool]] = []
     for i in range(n):
-        C = surfaces.corners[i]
-        c, nrm = surfaces.centers[i], surfaces.normals[i]
-        x, y = surfaces.x_axis[i], surfaces.y_axis[i]
-        w, ln = float(surfaces.width[i]), float(surfaces.length[i])
-        outs = (-y, y, -x, x)
-        sides = []
-        for si, (ia, ib) in enumerate(SIDE_CORNERS):
-            h, s, m = side_height(scan_ctx, C[ia], C[ib], outs[si], -nrm,
-                                  SIDE_REACH * config.max_edge, k, config.flatness)
-            if np.isfinite(h) and h > z_a * s:
-                sides.append((m, h, s))
-        if sides:
-            # the side seen best (most points) gives the height
-            _, h, s = max(sides)
-            height[i], sigma[i], source[i] = h, s, HeightSource.SIDE
-        else:
-            steps = []
-            for si in range(4):
-                h, s, m = step_height(scan_ctx, C, si, c, nrm, x, y, w, ln,
-                                      0.5 * config.min_edge, k, config.flatness,
-                                      config.min_inlier_fraction)
-                if np.isfinite(h) and h > z_a * s:
-                    steps.append((h, s))
-            if steps:
-                h, s = min(steps)
-                height[i], sigma[i], source[i] = h, s, HeightSource.STEP
+        height[i], sigma[i], source[i] = _measure(scan_ctx, surfaces, i, config, k, z_a)
+    layer_rows = pool_layers(height, sigma, source, flush_layers(scan_ctx, surfaces, config),
+                             surfaces.attempt, z_a, config.alpha)
+    for i in range(n):
         h_sku = sku_height[i] if sku_height is not None else np.nan
         if np.isfinite(h_sku) and not (
                 source[i] != HeightSource.NONE
@@ -289,7 +279,138 @@ def box_heights(scan_ctx: VerifyContext, surfaces: SurfaceSet, config: Config,
             rows.append((int(surfaces.attempt[i]), int(source[i]), float(height[i]),
                          float(sigma[i]), bool(height[i] > z_a * sigma[i])))
     if not rows:
-        return height, sigma, source, TestTable.empty(config.alpha)
+        return height, sigma, source, TestTable.concat([layer_rows], config.alpha)
     r = list(zip(*rows))
     tests = TestTable.decision(TestKind.BOX_HEIGHT, r[0], r[1], r[2], r[3], r[4], config.alpha)
-    return height, sigma, source, tests
+    return height, sigma, source, TestTable.concat([layer_rows, tests], config.alpha)
+
+
+def _measure(ctx: VerifyContext, surfaces: SurfaceSet, i: int, config: Config, k: float,
+             z_a: float) -> tuple[float, float, int]:
+    """Surface i's own height measurement: (height, sigma, :class:`HeightSource`), NaN and
+    NONE where none is significant."""
+    C = surfaces.corners[i]
+    c, nrm = surfaces.centers[i], surfaces.normals[i]
+    x, y = surfaces.x_axis[i], surfaces.y_axis[i]
+    w, ln = float(surfaces.width[i]), float(surfaces.length[i])
+    outs = (-y, y, -x, x)
+    sides = []
+    for si, (ia, ib) in enumerate(SIDE_CORNERS):
+        h, s, m = side_height(ctx, C[ia], C[ib], outs[si], -nrm,
+                              SIDE_REACH * config.max_edge, k, config.flatness)
+        if np.isfinite(h) and h > z_a * s:
+            sides.append((m, h, s))
+    if sides:
+        # the side seen best (most points) gives the height
+        _, h, s = max(sides)
+        return h, s, int(HeightSource.SIDE)
+    steps = []
+    for si in range(4):
+        h, s, m = step_height(ctx, C, si, c, nrm, x, y, w, ln, 0.5 * config.min_edge, k,
+                              config.flatness, config.min_inlier_fraction)
+        if np.isfinite(h) and h > z_a * s:
+            steps.append((h, s))
+    if steps:
+        h, s = min(steps)
+        return h, s, int(HeightSource.STEP)
+    return np.nan, np.nan, int(HeightSource.NONE)
+
+
+def _rect_gap(a: np.ndarray, b: np.ndarray) -> float:
+    """Distance between two convex quadrilaterals (4, 2), 0 where they overlap."""
+    def inside(p: np.ndarray, q: np.ndarray) -> bool:
+        # p within convex q (either winding): on one side of every edge
+        e = np.roll(q, -1, axis=0) - q
+        cr = e[:, 0] * (p[1] - q[:, 1]) - e[:, 1] * (p[0] - q[:, 0])
+        return bool((cr >= 0).all() or (cr <= 0).all())
+
+    def seg_dist(p: np.ndarray, q0: np.ndarray, q1: np.ndarray) -> float:
+        d = q1 - q0
+        t = float(np.clip((p - q0) @ d / max(float(d @ d), 1e-30), 0.0, 1.0))
+        return float(np.linalg.norm(p - (q0 + t * d)))
+
+    if any(inside(p, b) for p in a) or any(inside(p, a) for p in b):
+        return 0.0
+    return min(min(seg_dist(p, q[j], q[(j + 1) % 4]) for p in r for j in range(4))
+               for r, q in ((a, b), (b, a)))
+
+
+def flush_layers(ctx: VerifyContext, surfaces: SurfaceSet, config: Config) -> np.ndarray:
+    """Which reported tops form one flush layer: (s,) int labels, the connected components
+    of the pairs that touch and are coplanar.
+
+    Two tops touch where their rectangles, in the first one's plane, lie within
+    :data:`LAYER_GAP_SPACINGS` point spacings of each other (a carton's side is located
+    within a spacing or two, and cartons in a layer stand a few millimetres apart at
+    most), and are coplanar where each one's centre lies on the other's plane (z at alpha
+    of both centres' uncertainty along the normal and the flatness prior, twice).
+    """
+    n = len(surfaces)
+    label = np.arange(n)
+    k = math.sqrt(chi2_critical(1.0, config.alpha))
+    cov = np.asarray(surfaces.covariances, np.float64)
+
+    def find(i: int) -> int:
+        while label[i] != i:
+            label[i] = label[label[i]]
+            i = int(label[i])
+        return i
+
+    for i in range(n):
+        ci, ni = surfaces.centers[i], surfaces.normals[i]
+        vi = float(ni @ cov[i, :3, :3] @ ni)
+        xi, yi = surfaces.x_axis[i], surfaces.y_axis[i]
+        qi = np.stack([(surfaces.corners[i] - ci) @ xi, (surfaces.corners[i] - ci) @ yi], 1)
+        for j in range(i + 1, n):
+            cj, nj = surfaces.centers[j], surfaces.normals[j]
+            vj = float(nj @ cov[j, :3, :3] @ nj)
+            tol = k * math.sqrt(vi + vj + 2.0 * config.flatness**2)
+            if abs(float((cj - ci) @ ni)) > tol or abs(float((ci - cj) @ nj)) > tol:
+                continue
+            qj = np.stack([(surfaces.corners[j] - ci) @ xi, (surfaces.corners[j] - ci) @ yi], 1)
+            gap = LAYER_GAP_SPACINGS * ctx.spacing_at(0.5 * (ci + cj))
+            if _rect_gap(qi, qj) <= gap:
+                label[find(j)] = find(i)
+    return np.array([find(i) for i in range(n)], np.int64)
+
+
+def pool_layers(height: np.ndarray, sigma: np.ndarray, source: np.ndarray, layer: np.ndarray,
+                attempt: np.ndarray, z_a: float, alpha: float) -> TestTable:
+    """Give the tops of one flush layer the layer's smallest height measurement, in place,
+    where their own reaches significantly deeper or is missing.
+
+    The tops of a flush layer stand on one support (equal top heights, touching), so its
+    boxes are equally tall, and every measurement of one is at least that height: a side
+    face runs down to the box's foot or, flush with the layer below, on down the stack; the
+    step beyond the layer's outer side finds the layer below, the pallet or the floor. The
+    smallest of them is the layer's height; a top whose own measurement exceeds it
+    significantly (z at alpha of the difference's sigma), or that has none, takes it.
+
+    Returns
+    -------
+    TestTable
+        LAYER_HEIGHT per top of a layer with a measurement, but the one that gave it
+        (a = its attempt, b = the attempt whose measurement is the layer's).
+    """
+    rows: list[tuple[int, int, float, float, bool]] = []
+    measured = np.isfinite(height) & (source != HeightSource.NONE)
+    for lab in np.unique(layer):
+        members = np.flatnonzero(layer == lab)
+        have = members[measured[members]]
+        if len(members) < 2 or len(have) == 0:
+            continue
+        g = int(have[np.argmin(height[have])])
+        hg, sg, src = float(height[g]), float(sigma[g]), int(source[g])
+        for i in members:
+            if i == g:
+                continue
+            z = ((float(height[i]) - hg) / math.hypot(float(sigma[i]), sg) if measured[i]
+                 else math.inf)
+            take = z > z_a
+            rows.append((int(attempt[i]), int(attempt[g]), z, z_a, take))
+            if take:
+                height[i], sigma[i], source[i] = hg, sg, src
+    if not rows:
+        return TestTable.empty(alpha)
+    r = list(zip(*rows))
+    return TestTable.decision(TestKind.LAYER_HEIGHT, r[0], r[1], r[2], r[3], r[4], alpha)
