@@ -776,8 +776,9 @@ def _test_keys(t: TestTable, maps: Mapping[str, Mapping[int, int] | None]) -> di
             # b: a side, a cut, a listed size: the same on both runs of one attempt
             x = m("attempts", a)
             key = None if x is None else (kind, x, b)
-        elif kind == TestKind.BOX_HEIGHT:
-            # b is the height's source, which may change: one row per chosen attempt
+        elif kind in (TestKind.BOX_HEIGHT, TestKind.LAYER_HEIGHT):
+            # b (the height's source; the layer mate whose height it took) may change: one
+            # row per chosen attempt
             x = m("attempts", a)
             key = None if x is None else (kind, x)
         elif kind == TestKind.NEIGHBOUR_CORNER:

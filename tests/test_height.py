@@ -15,7 +15,7 @@ from boxloc.config import Config
 from boxloc.pipeline import find_graspable_surfaces
 from boxloc.products import HeightSource
 from boxloc.stages.height import box_heights, flush_layers, height_context
-from boxloc.stats import TestKind
+from boxloc.stats import TestKind, TestTable
 
 CFG = Config(min_edge=0.15, max_edge=0.6)
 
@@ -138,3 +138,20 @@ def test_explain_says_a_height_came_from_the_flush_layer(tmp_path: Path) -> None
     assert [t["kind"] for t in d["tests"]] == ["LAYER_HEIGHT", "BOX_HEIGHT"]
     text = format_explanation(explain(path, 0, surface=k))
     assert "of its flush layer" in text and "LAYER_HEIGHT" in text and "ACCEPTED" in text
+
+
+def test_a_layer_height_decision_that_flips_between_versions_is_a_flipped_test() -> None:
+    from replay.diff import ItemMatch, flipped_tests
+
+    def rows(take: bool, giver: int) -> TestTable:
+        return TestTable.decision(TestKind.LAYER_HEIGHT, [7], [giver], [3.0 if take else 1.0],
+                                  [2.326], [take], 0.01)
+
+    # attempt 7 of the base is attempt 9 of the candidate; the layer mate renumbers too
+    maps = {"attempts": ItemMatch(10, 10, pairs=[(7, 9)])}
+    base, cand = rows(True, 4), TestTable.decision(TestKind.LAYER_HEIGHT, [9], [5], [1.0],
+                                                   [2.326], [False], 0.01)
+    (f,) = flipped_tests("surfaces", base, cand, maps)
+    assert f.kind == "LAYER_HEIGHT" and f.base["accepted"] and not f.candidate["accepted"]
+    assert flipped_tests("surfaces", base, rows(True, 4), {"attempts": ItemMatch(
+        10, 10, pairs=[(7, 7)])}) == []
