@@ -166,7 +166,7 @@ class TestKind(IntEnum):
     #: fail VERIFY_TILT (a side face of a stack, seen from above at an angle)
     HYPOTHESIS_TILT = 35
     #: result stage: chosen attempt a's box lies in one flush layer with attempt b's (their
-    #: tops touch and are coplanar), and b's height measurement is the layer's smallest:
+    #: tops touch and are coplanar), and b's side-face height is the layer's smallest:
     #: statistic = a's own measured height less b's, over the sigma of that difference
     #: (+inf: a measured none); critical = z at alpha. Accepted takes b's height for a:
     #: a's own reached significantly deeper (down a stack's side, to the floor beyond it)

@@ -155,3 +155,22 @@ def test_a_layer_height_decision_that_flips_between_versions_is_a_flipped_test()
     assert f.kind == "LAYER_HEIGHT" and f.base["accepted"] and not f.candidate["accepted"]
     assert flipped_tests("surfaces", base, rows(True, 4), {"attempts": ItemMatch(
         10, 10, pairs=[(7, 7)])}) == []
+
+
+def test_a_layer_pools_side_faces_only_and_a_step_keeps_its_own() -> None:
+    from boxloc.stages.height import pool_layers
+
+    S, T, N = int(HeightSource.SIDE), int(HeightSource.STEP), int(HeightSource.NONE)
+    # one layer: a step to a shorter neighbour (0.15), a stack's side (0.60), a foot seen
+    # on a side (0.30), a top with nothing; another layer of one top
+    h = np.array([0.15, 0.60, 0.30, np.nan, 0.90])
+    s = np.array([0.005, 0.005, 0.005, np.nan, 0.005])
+    src = np.array([T, S, S, N, T], np.int8)
+    rows = pool_layers(h, s, src, np.array([0, 0, 0, 0, 4]), np.arange(5, dtype=np.int32),
+                       2.326, 0.01)
+    assert list(h) == [0.15, 0.30, 0.30, 0.30, 0.90]
+    assert list(src) == [T, S, S, S, T]
+    # a row per layer mate of the giver (attempt 2); taken by the deeper side and the
+    # top without a measurement, not by the shallower step
+    assert sorted(zip(rows.a.tolist(), rows.b.tolist(), rows.accepted.tolist())) == [
+        (0, 2, False), (1, 2, True), (3, 2, True)]

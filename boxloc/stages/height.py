@@ -27,12 +27,14 @@ nothing is measured. Without a list, such a measurement is reported as it is: fr
 top alone, a flush stack of sharp-edged cartons cannot be told from one tall carton.
 
 The reported tops of one flush layer (:func:`flush_layers`: touching, coplanar) stand on
-one support, so their boxes are equally tall, and every measurement above is at least that
-height: a side face runs down to the box's foot or, flush with the layer below, on down the
-stack; the step beyond the layer's outer side finds the layer below, the pallet or the
-floor. The layer's smallest measurement is its height (:func:`pool_layers`): a top whose
-own is significantly deeper, or missing, takes it, and a LAYER_HEIGHT row says so. Where no
-top of a layer shows its foot (flush all round), the layer still measures the stack.
+one support, so their boxes are equally tall. A side face seen runs from the top's edge down
+to the box's foot or, flush with the layer below, on down the stack: at least the box's
+height. So the layer's smallest side measurement is its height (:func:`pool_layers`): a top
+whose own measurement is significantly deeper (the stack's side, the floor beyond the
+layer), or missing, takes it, and a LAYER_HEIGHT row says so. A step is not pooled: beyond
+a side it may find a shorter neighbour standing on the same support, less than the height.
+Where no top of a layer shows its foot (flush all round), the layer still measures the
+stack.
 
 The standard deviations propagate the noise model: for the side, the sample spacing down
 the face (the run ends within one sample) and the top plane's offset; for the step, the
@@ -251,8 +253,9 @@ def box_heights(scan_ctx: VerifyContext, surfaces: SurfaceSet, config: Config,
     source : (s,) int8
         :class:`HeightSource`.
     tests : TestTable
-        LAYER_HEIGHT per top of a flush layer but the one whose measurement is the
-        layer's (:func:`pool_layers`), then BOX_HEIGHT per height (a = attempt, b = source).
+        LAYER_HEIGHT per top of a flush layer but the one whose side measurement is
+        the layer's (:func:`pool_layers`), then BOX_HEIGHT per height (a = attempt, b =
+        source).
     """
     n = len(surfaces)
     height = np.full(n, np.nan)
@@ -376,27 +379,28 @@ def flush_layers(ctx: VerifyContext, surfaces: SurfaceSet, config: Config) -> np
 
 def pool_layers(height: np.ndarray, sigma: np.ndarray, source: np.ndarray, layer: np.ndarray,
                 attempt: np.ndarray, z_a: float, alpha: float) -> TestTable:
-    """Give the tops of one flush layer the layer's smallest height measurement, in place,
-    where their own reaches significantly deeper or is missing.
+    """Give the tops of one flush layer the layer's smallest side-face height, in place,
+    where their own measurement reaches significantly deeper or is missing.
 
     The tops of a flush layer stand on one support (equal top heights, touching), so its
-    boxes are equally tall, and every measurement of one is at least that height: a side
-    face runs down to the box's foot or, flush with the layer below, on down the stack; the
-    step beyond the layer's outer side finds the layer below, the pallet or the floor. The
-    smallest of them is the layer's height; a top whose own measurement exceeds it
-    significantly (z at alpha of the difference's sigma), or that has none, takes it.
+    boxes are equally tall, and a side face of one runs down to the box's foot or, flush
+    with the layer below, on down the stack: at least that height. The smallest side
+    measurement is the layer's height; a top whose own measurement (side or step) exceeds it
+    significantly (z at alpha of the difference's sigma), or that has none, takes it. Steps
+    give no layer height: beyond a side a step may find a shorter neighbour on the same
+    support, less than the height.
 
     Returns
     -------
     TestTable
-        LAYER_HEIGHT per top of a layer with a measurement, but the one that gave it
-        (a = its attempt, b = the attempt whose measurement is the layer's).
+        LAYER_HEIGHT per top of a layer with a side measurement, but the one that gave
+        it (a = its attempt, b = the attempt whose side measurement is the layer's).
     """
     rows: list[tuple[int, int, float, float, bool]] = []
     measured = np.isfinite(height) & (source != HeightSource.NONE)
     for lab in np.unique(layer):
         members = np.flatnonzero(layer == lab)
-        have = members[measured[members]]
+        have = members[measured[members] & (source[members] == HeightSource.SIDE)]
         if len(members) < 2 or len(have) == 0:
             continue
         g = int(have[np.argmin(height[have])])
