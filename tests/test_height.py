@@ -174,3 +174,12 @@ def test_a_layer_pools_side_faces_only_and_a_step_keeps_its_own() -> None:
     # top without a measurement, not by the shallower step
     assert sorted(zip(rows.a.tolist(), rows.b.tolist(), rows.accepted.tolist())) == [
         (0, 2, False), (1, 2, True), (3, 2, True)]
+
+
+def test_a_top_whose_centre_uncertainty_is_unknown_joins_no_layer() -> None:
+    sim, r = _layer_on_a_stack(0.05)
+    s = r.surfaces
+    cov = s.covariances.copy()
+    cov[1] = np.nan
+    ctx = height_context(sim.scan, CFG, r.hypotheses.up)
+    assert len(set(flush_layers(ctx, dataclasses.replace(s, covariances=cov), CFG))) == 2

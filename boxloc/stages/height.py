@@ -368,7 +368,8 @@ def flush_layers(ctx: VerifyContext, surfaces: SurfaceSet, config: Config) -> np
             cj, nj = surfaces.centers[j], surfaces.normals[j]
             vj = float(nj @ cov[j, :3, :3] @ nj)
             tol = k * math.sqrt(vi + vj + 2.0 * config.flatness**2)
-            if abs(float((cj - ci) @ ni)) > tol or abs(float((ci - cj) @ nj)) > tol:
+            # written so that an unknown (NaN) uncertainty joins nothing
+            if not (abs(float((cj - ci) @ ni)) <= tol and abs(float((ci - cj) @ nj)) <= tol):
                 continue
             qj = np.stack([(surfaces.corners[j] - ci) @ xi, (surfaces.corners[j] - ci) @ yi], 1)
             gap = LAYER_GAP_SPACINGS * ctx.spacing_at(0.5 * (ci + cj))
