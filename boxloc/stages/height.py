@@ -48,6 +48,7 @@ from __future__ import annotations
 
 import math
 
+import cv2
 import numpy as np
 
 from boxloc.config import Config
@@ -320,22 +321,12 @@ def _measure(ctx: VerifyContext, surfaces: SurfaceSet, i: int, config: Config, k
 
 
 def _rect_gap(a: np.ndarray, b: np.ndarray) -> float:
-    """Distance between two convex quadrilaterals (4, 2), 0 where they overlap."""
-    def inside(p: np.ndarray, q: np.ndarray) -> bool:
-        # p within convex q (either winding): on one side of every edge
-        e = np.roll(q, -1, axis=0) - q
-        cr = e[:, 0] * (p[1] - q[:, 1]) - e[:, 1] * (p[0] - q[:, 0])
-        return bool((cr >= 0).all() or (cr <= 0).all())
-
-    def seg_dist(p: np.ndarray, q0: np.ndarray, q1: np.ndarray) -> float:
-        d = q1 - q0
-        t = float(np.clip((p - q0) @ d / max(float(d @ d), 1e-30), 0.0, 1.0))
-        return float(np.linalg.norm(p - (q0 + t * d)))
-
-    if any(inside(p, b) for p in a) or any(inside(p, a) for p in b):
-        return 0.0
-    return min(min(seg_dist(p, q[j], q[(j + 1) % 4]) for p in r for j in range(4))
-               for r, q in ((a, b), (b, a)))
+    """Distance between two convex quadrilaterals (4, 2), metres; 0 where a corner of one
+    lies in the other (OpenCV's signed distance of each corner to the other's outline)."""
+    d = max(cv2.pointPolygonTest(q.astype(np.float32).reshape(-1, 1, 2),
+                                 (float(x), float(y)), True)
+            for p, q in ((a, b), (b, a)) for x, y in p)
+    return max(0.0, -float(d))
 
 
 def flush_layers(ctx: VerifyContext, surfaces: SurfaceSet, config: Config) -> np.ndarray:
