@@ -641,7 +641,7 @@ class SurfaceSet:
         without one has ``bulge`` 0 and its centre on the points' plane. END_EVIDENCE per
         side of every surface; SKU_SIZE per surface when ``Config.box_sizes`` lists sizes;
         BOX_HEIGHT per height found; LAYER_HEIGHT per top of a flush layer whose height
-        was weighed against the layer's smallest measurement.
+        was weighed against the layer's smallest side-face height.
     height, height_sigma : (s,) float64
         The box's height (its top above what it stands on) and its standard deviation,
         metres; NaN where none was measured or listed.

@@ -50,6 +50,7 @@ import math
 
 import cv2
 import numpy as np
+from scipy.sparse.csgraph import connected_components
 
 from boxloc.config import Config
 from boxloc.distributions import norm_isf
@@ -340,33 +341,24 @@ def flush_layers(ctx: VerifyContext, surfaces: SurfaceSet, config: Config) -> np
     of both centres' uncertainty along the normal and the flatness prior, twice).
     """
     n = len(surfaces)
-    label = np.arange(n)
     k = math.sqrt(chi2_critical(1.0, config.alpha))
-    cov = np.asarray(surfaces.covariances, np.float64)
-
-    def find(i: int) -> int:
-        while label[i] != i:
-            label[i] = label[label[i]]
-            i = int(label[i])
-        return i
-
+    N, C = surfaces.normals, surfaces.centers
+    # each centre's variance along its normal
+    v = np.einsum("si,sij,sj->s", N, np.asarray(surfaces.covariances, np.float64)[:, :3, :3], N)
+    joined = np.zeros((n, n), bool)
     for i in range(n):
-        ci, ni = surfaces.centers[i], surfaces.normals[i]
-        vi = float(ni @ cov[i, :3, :3] @ ni)
-        xi, yi = surfaces.x_axis[i], surfaces.y_axis[i]
+        ci, xi, yi = C[i], surfaces.x_axis[i], surfaces.y_axis[i]
         qi = np.stack([(surfaces.corners[i] - ci) @ xi, (surfaces.corners[i] - ci) @ yi], 1)
         for j in range(i + 1, n):
-            cj, nj = surfaces.centers[j], surfaces.normals[j]
-            vj = float(nj @ cov[j, :3, :3] @ nj)
-            tol = k * math.sqrt(vi + vj + 2.0 * config.flatness**2)
+            tol = k * math.sqrt(v[i] + v[j] + 2.0 * config.flatness**2)
             # written so that an unknown (NaN) uncertainty joins nothing
-            if not (abs(float((cj - ci) @ ni)) <= tol and abs(float((ci - cj) @ nj)) <= tol):
+            if not (abs(float((C[j] - ci) @ N[i])) <= tol
+                    and abs(float((ci - C[j]) @ N[j])) <= tol):
                 continue
             qj = np.stack([(surfaces.corners[j] - ci) @ xi, (surfaces.corners[j] - ci) @ yi], 1)
-            gap = LAYER_GAP_SPACINGS * ctx.spacing_at(0.5 * (ci + cj))
-            if _rect_gap(qi, qj) <= gap:
-                label[find(j)] = find(i)
-    return np.array([find(i) for i in range(n)], np.int64)
+            gap = LAYER_GAP_SPACINGS * ctx.spacing_at(0.5 * (ci + C[j]))
+            joined[i, j] = _rect_gap(qi, qj) <= gap
+    return np.asarray(connected_components(joined, directed=False)[1], np.int64)
 
 
 def pool_layers(height: np.ndarray, sigma: np.ndarray, source: np.ndarray, layer: np.ndarray,
