@@ -120,6 +120,10 @@ class AmbiguityReason(IntEnum):
     #: with a carton list: the region is a multiple of a listed size, but stands less than
     #: that carton's listed height above what lies beyond its sides (a bare pallet)
     TOO_LOW_FOR_THE_SIZE = 5
+    #: with a carton list: the region is a grid of a listed size, but the cartons can be
+    #: laid over it another way too (turned, a brick or pinwheel pattern), and no seam
+    #: shows the grid's cuts
+    SEVERAL_TILINGS = 6
 
 
 class NoiseSource(IntEnum):

@@ -171,6 +171,14 @@ class TestKind(IntEnum):
     #: (+inf: a measured none); critical = z at alpha. Accepted takes b's height for a:
     #: a's own reached significantly deeper (down a stack's side, to the floor beyond it)
     LAYER_HEIGHT = 36
+    #: hypothesis stage, in a flat region's rows: its split's grid is the only way to lay
+    #: the listed cartons over the grid's extent (:func:`boxloc.stages.sizes.other_tiling`;
+    #: b = the grid's listed size): statistic = the cartons laid otherwise (turned, or of
+    #: another size) in the first other tiling found, 0 if none, NaN where the search
+    #: stopped at its budget (``sizes.MAX_TILING_STATES`` skylines) undecided; critical 0.
+    #: Rejected leaves the region unsplit (``SEVERAL_TILINGS``): only seams seen at every
+    #: cut of a grid show it is the grid (their SKU_SPLIT_SEAM rows)
+    SKU_TILING = 37
 
 
 #: ``TestKind.BUDGET`` rows' ``a``: the stage whose budget it is.

@@ -105,9 +105,16 @@ _AMBIGUITY_TEXT = {
                                               "a listed carton size",
     AmbiguityReason.SEVERAL_SPLITS: "it is a multiple of more than one listed size (or of "
                                     "one in two ways) and no seam shows which",
+    AmbiguityReason.TOO_LOW_FOR_THE_SIZE: "it stands less than the listed carton's height "
+                                          "above what lies beyond its sides (a bare pallet)",
+    AmbiguityReason.SEVERAL_TILINGS: "it is a grid of a listed size, but the cartons can be "
+                                     "laid over its outline another way too (turned: a "
+                                     "brick or pinwheel pattern), and no seam shows the "
+                                     "grid's cuts",
 }
 #: the tests behind an ambiguous region or a box's size and height
-_REGION_TESTS = (TestKind.END_EVIDENCE, TestKind.SKU_SPLIT_SEAM, TestKind.SKU_SIZE)
+_REGION_TESTS = (TestKind.END_EVIDENCE, TestKind.SKU_SPLIT_SEAM, TestKind.SKU_SIZE,
+                 TestKind.SKU_TILING)
 _HEIGHT_TEXT = {HeightSource.SIDE: "from its visible side face",
                 HeightSource.STEP: "from the step down to its neighbour or the layer below",
                 HeightSource.SKU: "the matched carton size's height",

@@ -18,7 +18,7 @@ from boxloc.evaluate.metrics import match_surfaces
 from boxloc.pipeline import find_graspable_surfaces
 from boxloc.products import AmbiguityReason, DimensionSource, Result
 from boxloc.simulate import SimulatedScan
-from boxloc.stages.sizes import distinct, match_size, region_splits
+from boxloc.stages.sizes import Split, distinct, match_size, other_tiling, region_splits
 from boxloc.stats import TestKind
 
 #: The site's carton range: the one site input without a carton list (the largest box is
@@ -277,3 +277,78 @@ def test_in_plane_moves_a_corner_and_its_axes_into_a_plane() -> None:
     # where the verification refitted no plane, the corner stays as it was
     nan = SimpleNamespace(plane_center=np.full(3, np.nan), plane_normal=np.full(3, np.nan))
     assert _in_plane(R, nan)[1] is R.x_axis  # type: ignore[arg-type]
+
+
+#: Cartons whose long edge is twice the short one: three side by side (0.6 x 0.4 m) have
+#: the outline of two turned across one end and one along the other.
+BRICK = (0.2, 0.4, 0.25)
+GRID3 = [box(x, 0.0, 0.2, 0.4, 0.25) for x in (-0.2, 0.0, 0.2)]
+MIXED3 = [box(-0.1, y, 0.4, 0.2, 0.25) for y in (-0.1, 0.1)] + [box(0.2, 0.0, 0.2, 0.4, 0.25)]
+
+
+def test_other_tiling_finds_turned_cartons_and_proves_a_grid_unique() -> None:
+    grid = region_splits(0.6, 0.4, (BRICK,), 0.01, 0.01)
+    assert [(g.nx, g.ny) for g in grid] == [(3, 1)]
+    t = other_tiling(grid[0], (BRICK,), 0.01)
+    assert t.turned == 2 and not t.unique and not t.exhausted  # two turned, one along
+    # 0.2 x 0.3 cartons: turned, one leaves a 0.1 m strip no carton fills
+    g = region_splits(0.6, 0.3, ((0.2, 0.3, 0.25),), 0.01, 0.01)[0]
+    assert other_tiling(g, ((0.2, 0.3, 0.25),), 0.01).unique
+    # a nearly square carton turned is the same footprint within the tolerance
+    g = Split(0, 0.15, 0.16, 8, 5, 0.0)
+    assert other_tiling(g, ((0.15, 0.16, 0.25),), 0.01).unique
+    # a second listed size of another height does not make up one layer with it ...
+    tall = ((0.2, 0.3, 0.25), (0.1, 0.3, 0.4))
+    g3 = Split(0, 0.2, 0.3, 3, 1, 0.0)
+    assert other_tiling(g3, tall, 0.01).unique
+    # ... one of the same height does: 0.1 x 0.3 cartons tile it otherwise
+    assert other_tiling(g3, ((0.2, 0.3, 0.25), (0.1, 0.3, 0.25)), 0.01).turned > 0
+    # the budget stops the search undecided, and undecided is not unique
+    t = other_tiling(Split(0, 0.15, 0.16, 8, 5, 0.0), ((0.15, 0.16, 0.25),), 0.01, max_states=10)
+    assert t.exhausted and not t.unique and t.states == 11
+
+
+@pytest.mark.parametrize("boxes", [GRID3, MIXED3], ids=["grid", "brick"])
+def test_a_grid_that_the_cartons_can_fill_otherwise_is_not_split(
+        boxes: list[list[float]]) -> None:
+    # no seam shows: a grid laid over the brick pattern would cut both turned tops in two.
+    # The outline cannot tell the two layers apart, so neither is split
+    sim, r = _run(boxes, (BRICK,))
+    assert len(r.surfaces) == 0
+    A = r.ambiguous
+    assert list(A.reason) == [AmbiguityReason.SEVERAL_TILINGS]
+    np.testing.assert_allclose(sorted([A.width[0], A.length[0]]), [0.4, 0.6], atol=0.015)
+    t = A.tests_of(0).of_kind(TestKind.SKU_TILING)
+    assert len(t) == 1 and not t.accepted[0] and t.statistic[0] == 2.0 and t.b[0] == 0
+    j = r.to_json()["ambiguous"][0]
+    assert j["reason"] == "several_tilings"
+    assert any(x["kind"] == "SKU_TILING" for x in j["tests"])
+
+
+def test_a_grid_no_other_tiling_fits_is_split_with_its_tiling_row() -> None:
+    sim, r = _run(FOUR, (SIZE,))
+    m = match_surfaces(r.surfaces, sim.truth)
+    assert m.tp == 4 and m.fp == 0
+    H = r.hypotheses
+    reg = np.flatnonzero((H.att_source == DimensionSource.REGION) & (H.att_support > 0))
+    rows = r.verification.tests.select((r.verification.tests.a == reg[0])
+                                       & (r.verification.tests.kind == TestKind.SKU_TILING))
+    assert len(rows) == 1 and rows.accepted[0] and rows.statistic[0] == 0.0
+
+
+def test_explain_says_a_region_has_another_tiling(tmp_path: Path) -> None:
+    from recorder.mcap.sink import McapRecorder
+    from replay.explain import explain, format_explanation
+
+    sim = scene(MIXED3, distance=1.5, tilt=0.08, bevel=0.0)
+    path = tmp_path / "brick.mcap"
+    with McapRecorder(path) as rec:
+        r = find_graspable_surfaces(sim.scan, Config(**SITE, box_sizes=(BRICK,)), observer=rec)
+    u, v = sim.scan.sensor.project(r.ambiguous.corners[0].mean(0, keepdims=True))[0]
+    d = explain(path, 0, at=f"{int(round(u))},{int(round(v))}")
+    amb = d["at"]["ambiguous"]
+    assert amb["reason"] == "SEVERAL_TILINGS"
+    assert "laid over its outline another way" in amb["reason_text"]
+    tiling = [t for t in amb["tests"] if t["kind"] == "SKU_TILING"]
+    assert len(tiling) == 1 and tiling[0]["statistic"] == 2.0 and not tiling[0]["accepted"]
+    assert "SKU_TILING" in format_explanation(d)

@@ -71,7 +71,7 @@ from boxloc.stages.seams import (
     norm_isf,
     seam_at,
 )
-from boxloc.stages.sizes import distinct, match_size, region_splits
+from boxloc.stages.sizes import distinct, match_size, other_tiling, region_splits
 from boxloc.stages.verify import (
     BOUNDARY_BAND,
     SIDE_CORNERS,
@@ -1244,10 +1244,13 @@ def _plan_split(ctx: _Context, h: int, att: _Attempt, single: set[int]) -> list[
                               [bx * j for j in range(1, sp.ny)])
         evidence.append((z, zc, bool(len(z)) and bool(np.all(z > zc))))
     seen = [i for i, e in enumerate(evidence) if e[2]]
+    tiling = None
     if len(seen) == 1:
-        pick = seen[0]
+        pick = seen[0]  # every cut's seam seen: each cell is one carton, the grid
     elif len(splits) == 1 and id(att) not in single:
         pick = 0
+        # no seam shown: the grid only if no other tiling fits its outline
+        tiling = other_tiling(splits[0], cfg.box_sizes, cfg.size_tolerance)
     else:  # several ways to cut it (one box of a listed size among them), no seam shown
         att.threshold = float(AmbiguityReason.SEVERAL_SPLITS)
         return []
@@ -1255,6 +1258,16 @@ def _plan_split(ctx: _Context, h: int, att: _Attempt, single: set[int]) -> list[
     rows = [TestTable.chi2(TestKind.SKU_SIZE, -1, sp.sku, sp.statistic, 2.0, cfg.alpha),
             TestTable.decision(TestKind.SKU_SPLIT_SEAM, -1, np.arange(len(z)), z, zc,
                                z > zc, cfg.alpha)]
+    if tiling is not None:
+        rows.append(TestTable.decision(
+            TestKind.SKU_TILING, -1, sp.sku,
+            np.nan if tiling.exhausted else float(tiling.turned), 0.0, tiling.unique,
+            cfg.alpha))
+        if not tiling.unique:
+            att.outcome = dataclasses.replace(out, tests=TestTable.concat([out.tests, *rows],
+                                                                          cfg.alpha))
+            att.threshold = float(AmbiguityReason.SEVERAL_TILINGS)
+            return []
     low = _too_low(R, att, ctx, cfg.box_sizes[sp.sku][2])
     if low is not None:
         rows.append(low)
@@ -1328,8 +1341,11 @@ def _split_regions(ctx: _Context, works: list[_VertexWork]) -> tuple[_Context, l
     either orientation; :func:`boxloc.stages.sizes.region_splits`). No grid fits:
     ``NOT_A_MULTIPLE_OF_A_SIZE``. More than one cuts it differently and the range points
     show the seams of exactly one (every cut's groove significant at the seam level), that
-    one; else ``SEVERAL_SPLITS``. The split's SKU_SIZE row and a SKU_SPLIT_SEAM row per
-    cut (b = the cut, x first; the groove there however weak) join the region's tests.
+    one; else ``SEVERAL_SPLITS``. One grid whose cuts show no seam is the split only if
+    no other tiling by the listed cartons fits its outline (a SKU_TILING row,
+    :func:`boxloc.stages.sizes.other_tiling`); else ``SEVERAL_TILINGS``. The split's
+    SKU_SIZE row and a SKU_SPLIT_SEAM row per cut (b = the cut, x first; the groove there
+    however weak) join the region's tests.
 
     Each part becomes a vertex (``parent`` the region's, ``parent_side`` ``SIZE_PART``)
     with one attempt of the part's size (``DimensionSource.SKU_SPLIT``), verified with its

@@ -12,8 +12,10 @@ in the nearer of the two orientations, with sigma = ``Config.size_tolerance`` (S
     T = (U - nx a)^2 / (nx sigma^2) + (V - ny b)^2 / (ny sigma^2)  <=  chi2_{2, 1-alpha}
 
 (each carton's tolerance independent, so n of them in a row add n sigma^2), nx, ny >= 1
-the nearest integers, nx ny >= 2: a multiple (2x1, 3x1, 2x2, ...). Cartons of one layer
-are laid one way; a layer of mixed orientations is not a grid and is not split.
+the nearest integers, nx ny >= 2: a multiple (2x1, 3x1, 2x2, ...). A grid is what the
+extent implies only where no other tiling by the listed cartons fits it
+(:func:`other_tiling`): a layer laid in a brick or pinwheel pattern has the outline of a
+grid too.
 """
 
 from __future__ import annotations
@@ -130,3 +132,139 @@ def distinct(splits: list[Split]) -> list[Split]:
         if not any(s.nx == o.nx and s.ny == o.ny for o in out):
             out.append(s)
     return out
+
+
+#: Most skyline states :func:`other_tiling` visits for one region (a few microseconds
+#: each): a 1.2 x 0.8 m layer of the smallest cartons needs a few hundred.
+MAX_TILING_STATES = 20000
+
+
+@dataclass(frozen=True)
+class Tiling:
+    """Whether a split's grid is the only way to lay listed cartons over its extent.
+
+    Attributes
+    ----------
+    turned : int
+        Cartons laid otherwise than the grid's (turned 90 deg, or of another listed size)
+        in the first other tiling found; 0 where none exists (the grid is the only one).
+    states : int
+        Skyline states the search visited.
+    exhausted : bool
+        The search stopped at its budget before deciding (``turned`` is then 0, and the
+        grid is not shown to be the only tiling).
+    """
+
+    turned: int
+    states: int
+    exhausted: bool
+
+    @property
+    def unique(self) -> bool:
+        """The grid is shown to be the only tiling."""
+        return self.turned == 0 and not self.exhausted
+
+
+class _Exhausted(Exception):
+    """The tiling search hit its budget."""
+
+
+def other_tiling(split: Split, sizes: tuple[tuple[float, float, float], ...],
+                 tolerance: float, max_states: int = MAX_TILING_STATES) -> Tiling:
+    """Another way than ``split``'s grid to lay listed cartons over its extent.
+
+    A grid is what the extent implies only if no other tiling fits it. Cartons of one size
+    in one orientation tile an nx a x ny b rectangle one way, the grid; turned ones can
+    tile it otherwise wherever sums of the two edges agree (a 0.6 x 0.4 m region of
+    0.2 x 0.4 m cartons is three side by side, or two turned across one end and one
+    along). A layer laid so (brick or pinwheel patterns, interlocked within a layer) shows
+    the same outline, and where its seams do not show, a grid laid over it cuts tops in
+    two. So the search looks for any tiling of the grid's nominal extent by the listed
+    footprints, either way round, that is not the grid. Only cartons of the grid's
+    carton's height make up one layer with it: listed heights more than three tolerances
+    apart do not (a height not listed matches any).
+
+    Exhaustive bottom-left fill on a skyline (every tiling places a carton's corner at
+    the lowest, leftmost point left uncovered), footprints other than the grid's tried
+    first, with the dead skylines remembered; two lengths are equal within ``tolerance``.
+    At most ``max_states`` skylines.
+
+    Parameters
+    ----------
+    split : Split
+        The grid (nx x ny cartons of a x b).
+    sizes : tuple of (width, length, height), metres (height NaN: not listed)
+    tolerance : float, metres
+
+    Returns
+    -------
+    Tiling
+    """
+    a, b = split.a, split.b
+    U, V = split.nx * a, split.ny * b
+    h0 = sizes[split.sku][2]
+    feet: list[tuple[float, float]] = []
+    for w, ln, h in sizes:
+        if np.isfinite(h0) and np.isfinite(h) and abs(h - h0) > 3.0 * tolerance:
+            continue  # not of the layer's height
+        for fx, fy in ((w, ln), (ln, w)):
+            if not any(abs(fx - gx) <= tolerance and abs(fy - gy) <= tolerance
+                       for gx, gy in feet):
+                feet.append((fx, fy))
+
+    def grid_like(f: tuple[float, float]) -> bool:
+        return abs(f[0] - a) <= tolerance and abs(f[1] - b) <= tolerance
+
+    feet.sort(key=grid_like)  # the others first: a non-grid tiling is found early
+    smallest = min(min(f) for f in feet)
+    dead: set[tuple[tuple[int, ...], bool]] = set()
+    states = 0
+
+    def fits_into(gap: float) -> bool:  # a gap is filled exactly or has room for a carton
+        return gap <= tolerance or gap >= smallest - tolerance
+
+    def search(sky: tuple[tuple[float, float], ...], turned: int) -> int:
+        """sky: (x start, height) per segment, left to right, ending at U; returns the
+        turned cartons of a non-grid tiling reached from here, 0 if none."""
+        nonlocal states
+        key = (tuple(int(round(v * 1e3)) for s in sky for v in s), turned > 0)
+        if key in dead:
+            return 0
+        states += 1
+        if states > max_states:
+            raise _Exhausted
+        i = min(range(len(sky)), key=lambda k: (sky[k][1], k))
+        x0, y0 = sky[i]
+        if y0 >= V - tolerance:  # every segment at the top: a tiling
+            return turned
+        w = (sky[i + 1][0] if i + 1 < len(sky) else U) - x0
+        for f in feet:
+            fx, fy = f
+            if fx > w + tolerance or y0 + fy > V + tolerance:
+                continue
+            if not fits_into(w - fx) or not fits_into(V - y0 - fy):
+                continue
+            y1 = V if abs(V - y0 - fy) <= tolerance else y0 + fy
+            new = list(sky[:i])
+            if w - fx > tolerance:
+                rest = [(x0, y1), (x0 + fx, y0)]
+            else:
+                rest = [(x0, y1)]
+            new += rest + list(sky[i + 1:])
+            # neighbours of one height are one segment (the left one's start)
+            merged: list[tuple[float, float]] = []
+            for x, y in new:
+                if merged and abs(merged[-1][1] - y) <= tolerance:
+                    continue
+                merged.append((x, y))
+            t = search(tuple(merged), turned + (0 if grid_like(f) else 1))
+            if t:
+                return t
+        dead.add(key)
+        return 0
+
+    try:
+        turned = search(((0.0, 0.0),), 0)
+    except _Exhausted:
+        return Tiling(0, states, True)
+    return Tiling(turned, states, False)
