@@ -291,6 +291,14 @@ def test_other_tiling_finds_turned_cartons_and_proves_a_grid_unique() -> None:
     assert [(g.nx, g.ny) for g in grid] == [(3, 1)]
     t = other_tiling(grid[0], (BRICK,), 0.01)
     assert t.turned == 2 and not t.unique and not t.exhausted  # two turned, one along
+    # a seam seen at one cut leaves the turned pair on the other side; at both, the grid
+    assert not other_tiling(grid[0], (BRICK,), 0.01, seams=([0.2], [])).unique
+    assert not other_tiling(grid[0], (BRICK,), 0.01, seams=([0.4], [])).unique
+    assert other_tiling(grid[0], (BRICK,), 0.01, seams=([0.2, 0.4], [])).unique
+    # along y too: a 0.4 x 0.6 region the other way round
+    g = Split(0, 0.4, 0.2, 1, 3, 0.0)
+    assert not other_tiling(g, (BRICK,), 0.01).unique
+    assert other_tiling(g, (BRICK,), 0.01, seams=([], [0.2, 0.4])).unique
     # 0.2 x 0.3 cartons: turned, one leaves a 0.1 m strip no carton fills
     g = region_splits(0.6, 0.3, ((0.2, 0.3, 0.25),), 0.01, 0.01)[0]
     assert other_tiling(g, ((0.2, 0.3, 0.25),), 0.01).unique

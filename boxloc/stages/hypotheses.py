@@ -1249,8 +1249,13 @@ def _plan_split(ctx: _Context, h: int, att: _Attempt, single: set[int]) -> list[
         pick = seen[0]  # every cut's seam seen: each cell is one carton, the grid
     elif len(splits) == 1 and id(att) not in single:
         pick = 0
-        # no seam shown: the grid only if no other tiling fits its outline
-        tiling = other_tiling(splits[0], cfg.box_sizes, cfg.size_tolerance)
+        # not every seam shown: the grid only if no other tiling fits its outline and the
+        # seams that are
+        sp, (z, zc, _) = splits[0], evidence[0]
+        ok = z > zc
+        seams = ([i * sp.a for i in range(1, sp.nx) if ok[i - 1]],
+                 [j * sp.b for j in range(1, sp.ny) if ok[sp.nx - 2 + j]])
+        tiling = other_tiling(sp, cfg.box_sizes, cfg.size_tolerance, seams=seams)
     else:  # several ways to cut it (one box of a listed size among them), no seam shown
         att.threshold = float(AmbiguityReason.SEVERAL_SPLITS)
         return []

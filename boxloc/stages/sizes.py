@@ -170,7 +170,8 @@ class _Exhausted(Exception):
 
 
 def other_tiling(split: Split, sizes: tuple[tuple[float, float, float], ...],
-                 tolerance: float, max_states: int = MAX_TILING_STATES) -> Tiling:
+                 tolerance: float, max_states: int = MAX_TILING_STATES,
+                 seams: tuple[list[float], list[float]] = ([], [])) -> Tiling:
     """Another way than ``split``'s grid to lay listed cartons over its extent.
 
     A grid is what the extent implies only if no other tiling fits it. Cartons of one size
@@ -187,7 +188,8 @@ def other_tiling(split: Split, sizes: tuple[tuple[float, float, float], ...],
     Exhaustive bottom-left fill on a skyline (every tiling places a carton's corner at
     the lowest, leftmost point left uncovered), footprints other than the grid's tried
     first, with the dead skylines remembered; two lengths are equal within ``tolerance``.
-    At most ``max_states`` skylines.
+    At most ``max_states`` skylines. A seam seen along a whole cut of the grid
+    (``seams``) is a line no carton crosses: only tilings that have it count.
 
     Parameters
     ----------
@@ -195,6 +197,8 @@ def other_tiling(split: Split, sizes: tuple[tuple[float, float, float], ...],
         The grid (nx x ny cartons of a x b).
     sizes : tuple of (width, length, height), metres (height NaN: not listed)
     tolerance : float, metres
+    seams : (list, list) of float, metres
+        The grid's cuts along x and along y (multiples of a and b) where a seam is seen.
 
     Returns
     -------
@@ -244,6 +248,9 @@ def other_tiling(split: Split, sizes: tuple[tuple[float, float, float], ...],
                 continue
             if not fits_into(w - fx) or not fits_into(V - y0 - fy):
                 continue
+            if (any(x0 + tolerance < c < x0 + fx - tolerance for c in seams[0])
+                    or any(y0 + tolerance < c < y0 + fy - tolerance for c in seams[1])):
+                continue  # it would lie across a seam that is seen
             y1 = V if abs(V - y0 - fy) <= tolerance else y0 + fy
             new = list(sky[:i])
             if w - fx > tolerance:
