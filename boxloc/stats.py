@@ -179,6 +179,12 @@ class TestKind(IntEnum):
     #: Rejected leaves the region unsplit (``SEVERAL_TILINGS``): only seams seen at every
     #: cut of a grid show it is the grid (their SKU_SPLIT_SEAM rows)
     SKU_TILING = 37
+    #: verification: a seam crosses verified attempt a's interior where a side of verified
+    #: attempt b, which touches it, runs on into it (a flush neighbour's seam continuing
+    #: straight across two merged tops): the groove z along that whole line of a's points
+    #: (both halves), over its spread along a; critical = z at alpha over the lines a is
+    #: tested at. Accepted where no seam is seen; rejected rejects a (``INTERIOR_SEAM``)
+    VERIFY_SEAM_IN_LINE = 38
 
 
 #: ``TestKind.BUDGET`` rows' ``a``: the stage whose budget it is.
@@ -203,7 +209,7 @@ RELATION: dict[TestKind, str | None] = {
     TestKind.VERIFY_SEAM_SIDE: ">", TestKind.SEAM_PEAK: ">",
     TestKind.VERIFY_CONTINUATION: "<", TestKind.VERIFY_SEAM_CROSSING: "<",
     TestKind.END_EVIDENCE: ">=", TestKind.SKU_SPLIT_SEAM: ">", TestKind.BOX_HEIGHT: ">",
-    TestKind.BUDGET: "<", TestKind.LAYER_HEIGHT: ">",
+    TestKind.BUDGET: "<", TestKind.LAYER_HEIGHT: ">", TestKind.VERIFY_SEAM_IN_LINE: "<=",
 }
 
 _RELATION_OPS = {"<=": operator.le, "<": operator.lt, ">": operator.gt, ">=": operator.ge}

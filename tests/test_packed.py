@@ -16,7 +16,7 @@ from scenes import box, scene
 from boxloc.config import Config
 from boxloc.evaluate.metrics import match_surfaces
 from boxloc.pipeline import find_graspable_surfaces
-from boxloc.products import AmbiguityReason, DimensionSource, Result
+from boxloc.products import AmbiguityReason, DimensionSource, Result, VerifyReason
 from boxloc.simulate import SimulatedScan
 from boxloc.stages.sizes import Split, distinct, match_size, other_tiling, region_splits
 from boxloc.stats import TestKind
@@ -360,3 +360,60 @@ def test_explain_says_a_region_has_another_tiling(tmp_path: Path) -> None:
     tiling = [t for t in amb["tests"] if t["kind"] == "SKU_TILING"]
     assert len(tiling) == 1 and tiling[0]["statistic"] == 2.0 and not tiling[0]["accepted"]
     assert "SKU_TILING" in format_explanation(d)
+
+
+def test_lines_into_finds_a_touching_neighbours_side_running_on_into_a_rectangle() -> None:
+    from types import SimpleNamespace
+
+    from boxloc.stages.hypotheses import _lines_into
+    from boxloc.stages.verify import SIDE_CORNERS, rectangle_corners
+
+    def rect(x0: float, y0: float, w: float, ln: float, z: float = 2.0):  # type: ignore
+        out = SimpleNamespace(plane_normal=np.array([0.0, 0.0, -1.0]),
+                              plane_center=np.array([x0 + w / 2, y0 + ln / 2, z]))
+        return (np.array([x0, y0, z]), np.array([1.0, 0.0, 0.0]), np.array([0.0, 1.0, 0.0]),
+                SimpleNamespace(width=w, length=ln, outcome=out))
+
+    cfg = Config(min_edge=0.15, max_edge=0.6)
+    # j: two 0.2 x 0.3 tops merged; its neighbour beside it in x, a top of the other row
+    rects = [rect(0.0, 0.0, 0.2, 0.6), rect(0.2, 0.0, 0.2, 0.3),
+             rect(1.2, 0.1, 0.2, 0.3),          # across the pallet: not beside
+             rect(0.2, 0.25, 0.2, 0.3, 2.3)]    # beside, but 0.3 m lower: another layer
+    segs, owner = [], []
+    for k, (o, x, y, a) in enumerate(rects):
+        c = rectangle_corners(o, x, y, a.width, a.length)
+        for e0, e1 in SIDE_CORNERS:
+            segs.append((c[e0], c[e1]))
+            owner.append(k)
+    lines = _lines_into(0, rects, np.array(segs), np.array(owner), cfg)
+    assert len(lines) == 1
+    axis, pos, by = lines[0]
+    assert (axis, by) == (1, 1) and pos == pytest.approx(0.3)
+    # the neighbour itself: no side of the merged one runs on into it
+    assert _lines_into(1, rects, np.array(segs), np.array(owner), cfg) == []
+
+
+def test_a_rectangle_over_two_tops_is_rejected_where_a_neighbours_seam_runs_on() -> None:
+    # a development scene (packed seed 2, scene 16): a laser layer of 16 flush cartons of
+    # 0.177 x 0.285 m at 2 m. One rectangle spanned two of them (0.167 x 0.567 m): the seam
+    # between them was too weak for the search anywhere inside, while the neighbours' sides
+    # ran on along it. Tested there, it is seen, and the two tops are found
+    from boxloc.evaluate.matrix_bench import matrix_config
+    from boxloc.evaluate.packed_bench import packed_suite
+    from boxloc.simulate import simulate
+
+    specs = packed_suite(96, 2)
+    assert specs[16].sensor == "laser"
+    sim = simulate(specs[16])
+    r = find_graspable_surfaces(sim.scan, matrix_config(specs)[0])
+    m = match_surfaces(r.surfaces, sim.truth)
+    assert (m.tp, m.fp) == (16, 0)
+    T = r.verification.tests
+    line = T.of_kind(TestKind.VERIFY_SEAM_IN_LINE)
+    hit = line.select(~line.accepted)
+    assert len(hit) >= 1
+    j = int(hit.a[0])
+    assert r.verification.reason[list(r.verification.attempt).index(j)] == \
+        VerifyReason.INTERIOR_SEAM
+    H = r.hypotheses
+    assert max(H.att_width[j], H.att_length[j]) > 0.5  # the two tops together

@@ -67,6 +67,7 @@ from boxloc.stages.seams import (
     SEAM_FLANK,
     SEAM_SCALES,
     face_points,
+    face_spread,
     find_seams,
     norm_isf,
     seam_at,
@@ -81,6 +82,7 @@ from boxloc.stages.verify import (
     face_sigma,
     plane_var,
     rectangle_corners,
+    seam_line,
     tilt_from_up,
     verify,
 )
@@ -804,6 +806,7 @@ def generate_hypotheses(
         works += _work_on(ids, pixels.order(budget.take(ids, V, up), V, up), ctx, pixels)
     pixels.regions(works, ctx)
     ctx, works = _split_regions(ctx, works)
+    _seams_in_line(ctx, works)
     hyps, ver = _assemble(works, ctx.vertices, config, up)
     rows = [TestTable.budget(BUDGET_HYPOTHESES, budget.needed, budget.budget, budget.exhausted,
                              config.alpha),
@@ -1490,6 +1493,115 @@ def _crossings(rects: list[_Rect], config: Config) -> list[tuple[float, int, boo
         worst = float(f[b])
         out.append((worst, int(owner[cand[b]]) if worst > 0 else -1, worst >= 0.5))
     return out
+
+
+def _lines_into(j: int, rects: list[_Rect], segs: np.ndarray, owner: np.ndarray,
+                config: Config) -> list[tuple[int, float, int]]:
+    """The lines across rectangle j along which another verified rectangle's side runs on
+    into it: (axis, position, owner) with axis 1 for a line along j's x (at v = position),
+    0 along its y (at u), one per position (within a point spacing... of ``min_edge`` /
+    100), the first owner.
+
+    A side counts if it is parallel to one of j's axes (within z at alpha of
+    ``angle_tolerance``), on j's plane (point on plane at z at alpha, its ends), at least
+    ``BOUNDARY_BAND`` ``min_edge`` inside j's other sides, and beside j: along the line it
+    does not reach into j's core and its near end lies within that band of j's outline (a
+    touching neighbour in a row, not a box across the pallet).
+    """
+    o, x, y, a = rects[j]
+    out = a.outcome
+    assert out is not None
+    k = math.sqrt(chi2_critical(1.0, config.alpha))
+    mi = BOUNDARY_BAND * config.min_edge
+    sin_tol = math.sin(k * config.angle_tolerance)
+    nf, cf = out.plane_normal, out.plane_center
+    tol_w = k * face_sigma(config, cf) + config.flatness
+    mine = owner != j
+    A, B = segs[mine, 0], segs[mine, 1]
+    own = owner[mine]
+    d = B - A
+    L = np.linalg.norm(d, axis=1)
+    d = d / np.maximum(L, 1e-12)[:, None]
+    on = (np.abs((A - cf) @ nf) <= tol_w) & (np.abs((B - cf) @ nf) <= tol_w)
+    found: list[tuple[int, float, int]] = []
+    for axis, along, across, size, ext in ((1, x, y, a.length, a.width),
+                                          (0, y, x, a.width, a.length)):
+        # a line along `along`, at `pos` across it
+        par = np.abs(d @ across) <= sin_tol
+        pos = (0.5 * (A + B) - o) @ across
+        t0, t1 = (A - o) @ along, (B - o) @ along
+        lo, hi = np.minimum(t0, t1), np.maximum(t0, t1)
+        beside = ((hi <= mi) & (hi >= -mi)) | ((lo >= ext - mi) & (lo <= ext + mi))
+        ok = np.flatnonzero(on & par & beside & (pos > mi) & (pos < size - mi))
+        taken: list[float] = []
+        for i in ok[np.argsort(pos[ok], kind="stable")]:
+            if all(abs(pos[i] - p) > 0.01 * config.min_edge for p in taken):
+                taken.append(float(pos[i]))
+                found.append((axis, float(pos[i]), int(own[i])))
+    return found
+
+
+def _seams_in_line(ctx: _Context, works: list[_VertexWork]) -> None:
+    """Reject a verified rectangle across which a touching neighbour's side runs on as a
+    seam (``VERIFY_SEAM_IN_LINE``, reason ``INTERIOR_SEAM``).
+
+    In a gridded layer the seam between two flush tops runs straight on into the next row.
+    A rectangle over two of them passes the interior's search for a seam anywhere inside
+    (at alpha over all its positions) where that seam is weak, while its neighbours' sides,
+    found from their own edges or seams, show where it must lie. So each line along which a
+    verified neighbour's side runs on into the rectangle (:func:`_lines_into`) is tested
+    there: the groove along the whole line (:func:`boxloc.stages.verify.seam_line`, both
+    halves), over the spread of the statistic along the face (:func:`boxloc.stages.seams.
+    face_spread`, robust), at alpha over the lines tested. Every line's row is recorded.
+    """
+    cfg = ctx.config
+    V = ctx.vertices
+    acc = [(w.vertex, a) for w in works
+           if (a := _accepted(w)) is not None and a.source != DimensionSource.REGION]
+    if len(acc) < 2:
+        return
+    rects: list[_Rect] = [(V.points[h], V.d1[h], V.d2[h], a) for h, a in acc]
+    segs, owner = [], []
+    for j, (o, x, y, a) in enumerate(rects):
+        c = rectangle_corners(o, x, y, a.width, a.length)
+        for e0, e1 in SIDE_CORNERS:
+            segs.append((c[e0], c[e1]))
+            owner.append(j)
+    S, own = np.array(segs), np.array(owner)
+    # each attempt's id, as _assemble numbers them
+    att_id = {id(t): k for k, t in enumerate(t for w in works for t in w.attempts)}
+    vc = ctx.verify_ctx
+    for j, (o, x, y, a) in enumerate(rects):
+        lines = _lines_into(j, rects, S, own, cfg)
+        if not lines:
+            continue
+        out = a.outcome
+        assert out is not None
+        origin, xa, ya, n = _in_plane(Rectangle(-1, o, x, y, np.cross(x, y), np.eye(6)), out)
+        spacing = vc.spacing_at(origin + 0.5 * a.width * xa + 0.5 * a.length * ya)
+        fp = face_points(vc.points, vc.valid, vc.sigma, vc.project, origin, xa, ya, n,
+                         (0.0, a.width), (0.0, a.length), spacing, cfg.alpha,
+                         cfg.noise.row_corr)
+        if not len(fp):
+            continue
+        alpha = cfg.alpha / len(lines)
+        z, zc, b = [], [], []
+        for axis, pos, i in lines:
+            coord, other = (fp.v, fp.u) if axis == 1 else (fp.u, fp.v)
+            size, ext = (a.length, a.width) if axis == 1 else (a.width, a.length)
+            on = (other >= 0) & (other <= ext) & (coord >= 0) & (coord <= size)
+            spread = face_spread(coord[on], fp.w[on], fp.scale, size, spacing, fp.row[on],
+                                 fp.row_corr)
+            zi, ci = seam_line(fp, axis, pos, ext, spacing, alpha, spread=spread)
+            z.append(zi)
+            zc.append(ci)
+            b.append(att_id[id(acc[i][1])])
+        seen = np.array(z) > np.array(zc)
+        row = TestTable.decision(TestKind.VERIFY_SEAM_IN_LINE, -1, b, z, zc, ~seen, cfg.alpha)
+        a.outcome = dataclasses.replace(
+            out, tests=TestTable.concat([out.tests, row], cfg.alpha),
+            accepted=False if seen.any() else out.accepted,
+            reason=VerifyReason.INTERIOR_SEAM if seen.any() else out.reason)
 
 
 def _seams_across(att_rows: list[tuple[int, _Attempt]], vertices: VertexSet,

@@ -340,11 +340,28 @@ def _side_seam(fp: FacePoints, side: int, width: float, length: float, spacing: 
     the weaker half caps the statistic.
     """
     if side < 2:
-        sel = (fp.u >= 0) & (fp.u <= width)
-        coord, along, at, L, sp = fp.v, fp.u, (0.0, length)[side], width, fp.spread[1]
+        return seam_line(fp, 1, (0.0, length)[side], width, spacing, alpha, reach, gaps)
+    return seam_line(fp, 0, (0.0, width)[side - 2], length, spacing, alpha, reach, gaps)
+
+
+def seam_line(fp: FacePoints, axis: int, at: float, L: float, spacing: float, alpha: float,
+              reach: float | None = None, gaps: bool = False,
+              spread: tuple[float, ...] | None = None) -> tuple[float, float]:
+    """Seam statistic along the line ``coord = at`` of a face (coord = u for ``axis`` 0, v
+    for 1), over its points from 0 to ``L`` along the line, and its critical value.
+
+    As :func:`boxloc.stages.seams.seam_at` at ``at`` with ``reach`` and ``gaps``; the
+    statistic is divided by ``spread`` (default ``fp.spread`` along the axis). A seam runs
+    the whole line: both halves must show a groove or gap (a local dent does not), so the
+    weaker half caps the statistic.
+    """
+    if axis == 1:
+        sel = (fp.u >= 0) & (fp.u <= L)
+        coord, along = fp.v, fp.u
     else:
-        sel = (fp.v >= 0) & (fp.v <= length)
-        coord, along, at, L, sp = fp.u, fp.v, (0.0, width)[side - 2], length, fp.spread[0]
+        sel = (fp.v >= 0) & (fp.v <= L)
+        coord, along = fp.u, fp.v
+    sp = fp.spread[axis] if spread is None else spread
     # only the points in the strip seam_at's windows reach: the three searches take them,
     # not the whole face's (the same strips, in the same order)
     _, lo, hi = _seam_at_grid(at, spacing, reach)
