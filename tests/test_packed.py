@@ -365,8 +365,7 @@ def test_explain_says_a_region_has_another_tiling(tmp_path: Path) -> None:
 def test_lines_into_finds_a_touching_neighbours_side_running_on_into_a_rectangle() -> None:
     from types import SimpleNamespace
 
-    from boxloc.stages.hypotheses import _lines_into
-    from boxloc.stages.verify import SIDE_CORNERS, rectangle_corners
+    from boxloc.stages.hypotheses import _lines_into, _side_segments
 
     def rect(x0: float, y0: float, w: float, ln: float, z: float = 2.0):  # type: ignore
         out = SimpleNamespace(plane_normal=np.array([0.0, 0.0, -1.0]),
@@ -379,18 +378,18 @@ def test_lines_into_finds_a_touching_neighbours_side_running_on_into_a_rectangle
     rects = [rect(0.0, 0.0, 0.2, 0.6), rect(0.2, 0.0, 0.2, 0.3),
              rect(1.2, 0.1, 0.2, 0.3),          # across the pallet: not beside
              rect(0.2, 0.25, 0.2, 0.3, 2.3)]    # beside, but 0.3 m lower: another layer
-    segs, owner = [], []
-    for k, (o, x, y, a) in enumerate(rects):
-        c = rectangle_corners(o, x, y, a.width, a.length)
-        for e0, e1 in SIDE_CORNERS:
-            segs.append((c[e0], c[e1]))
-            owner.append(k)
-    lines = _lines_into(0, rects, np.array(segs), np.array(owner), cfg)
+    segs, owner = _side_segments(rects)
+    # the sides of the neighbour beside it, in SIDE_CORNERS order
+    np.testing.assert_allclose(segs[4:8, :, :2], [[[0.2, 0.0], [0.4, 0.0]],
+                                                  [[0.2, 0.3], [0.4, 0.3]],
+                                                  [[0.2, 0.0], [0.2, 0.3]],
+                                                  [[0.4, 0.0], [0.4, 0.3]]])
+    lines = _lines_into(0, rects, segs, owner, cfg)
     assert len(lines) == 1
     axis, pos, by = lines[0]
     assert (axis, by) == (1, 1) and pos == pytest.approx(0.3)
     # the neighbour itself: no side of the merged one runs on into it
-    assert _lines_into(1, rects, np.array(segs), np.array(owner), cfg) == []
+    assert _lines_into(1, rects, segs, owner, cfg) == []
 
 
 def test_a_rectangle_over_two_tops_is_rejected_where_a_neighbours_seam_runs_on() -> None:

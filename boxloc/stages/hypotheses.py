@@ -1495,6 +1495,15 @@ def _crossings(rects: list[_Rect], config: Config) -> list[tuple[float, int, boo
     return out
 
 
+def _side_segments(rects: list[_Rect]) -> tuple[np.ndarray, np.ndarray]:
+    """The four sides of each rectangle: (4n, 2, 3) end points, in ``SIDE_CORNERS``
+    order, and (4n,) the rectangle each belongs to."""
+    segs = [rectangle_corners(o, x, y, a.width, a.length)[list(SIDE_CORNERS)]
+            for o, x, y, a in rects]
+    return (np.concatenate(segs) if segs else np.zeros((0, 2, 3)),
+            np.repeat(np.arange(len(rects)), len(SIDE_CORNERS)))
+
+
 def _lines_into(j: int, rects: list[_Rect], segs: np.ndarray, owner: np.ndarray,
                 config: Config) -> list[tuple[int, float, int]]:
     """The lines across rectangle j along which another verified rectangle's side runs on
@@ -1561,13 +1570,7 @@ def _seams_in_line(ctx: _Context, works: list[_VertexWork]) -> None:
     if len(acc) < 2:
         return
     rects: list[_Rect] = [(V.points[h], V.d1[h], V.d2[h], a) for h, a in acc]
-    segs, owner = [], []
-    for j, (o, x, y, a) in enumerate(rects):
-        c = rectangle_corners(o, x, y, a.width, a.length)
-        for e0, e1 in SIDE_CORNERS:
-            segs.append((c[e0], c[e1]))
-            owner.append(j)
-    S, own = np.array(segs), np.array(owner)
+    S, own = _side_segments(rects)
     # each attempt's id, as _assemble numbers them
     att_id = {id(t): k for k, t in enumerate(t for w in works for t in w.attempts)}
     vc = ctx.verify_ctx
