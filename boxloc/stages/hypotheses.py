@@ -1508,8 +1508,8 @@ def _lines_into(j: int, rects: list[_Rect], segs: np.ndarray, owner: np.ndarray,
                 config: Config) -> list[tuple[int, float, int]]:
     """The lines across rectangle j along which another verified rectangle's side runs on
     into it: (axis, position, owner) with axis 1 for a line along j's x (at v = position),
-    0 along its y (at u), one per position (within a point spacing... of ``min_edge`` /
-    100), the first owner.
+    0 along its y (at u); positions within 1 % of ``min_edge`` are one line, with the first
+    owner.
 
     A side counts if it is parallel to one of j's axes (within z at alpha of
     ``angle_tolerance``), on j's plane (point on plane at z at alpha, its ends), at least
@@ -1562,6 +1562,8 @@ def _seams_in_line(ctx: _Context, works: list[_VertexWork]) -> None:
     there: the groove along the whole line (:func:`boxloc.stages.verify.seam_line`, both
     halves), over the spread of the statistic along the face (:func:`boxloc.stages.seams.
     face_spread`, robust), at alpha over the lines tested. Every line's row is recorded.
+    A part of a split region is not tested (a split is trusted only whole: rejecting one
+    part here would leave the others standing), but its sides are lines for others.
     """
     cfg = ctx.config
     V = ctx.vertices
@@ -1575,6 +1577,8 @@ def _seams_in_line(ctx: _Context, works: list[_VertexWork]) -> None:
     att_id = {id(t): k for k, t in enumerate(t for w in works for t in w.attempts)}
     vc = ctx.verify_ctx
     for j, (o, x, y, a) in enumerate(rects):
+        if a.source == DimensionSource.SKU_SPLIT:
+            continue  # a part stands or falls with its split (its sides are lines, not it)
         lines = _lines_into(j, rects, S, own, cfg)
         if not lines:
             continue
