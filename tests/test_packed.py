@@ -416,3 +416,19 @@ def test_a_rectangle_over_two_tops_is_rejected_where_a_neighbours_seam_runs_on()
         VerifyReason.INTERIOR_SEAM
     H = r.hypotheses
     assert max(H.att_width[j], H.att_length[j]) > 0.5  # the two tops together
+
+
+@pytest.mark.parametrize("kind", [TestKind.VERIFY_SEAM_IN_LINE, TestKind.SKU_TILING])
+def test_an_in_line_seam_or_tiling_decision_that_flips_is_a_flipped_test(
+        kind: TestKind) -> None:
+    from boxloc.stats import TestTable
+    from replay.diff import ItemMatch, flipped_tests
+
+    # attempt 7 of the base is attempt 9 of the candidate; rows pair by attempt, in order
+    maps = {"attempts": ItemMatch(10, 10, pairs=[(7, 9)])}
+    base = TestTable.decision(kind, [7], [0], [4.0], [3.0], [False], 0.01)
+    cand = TestTable.decision(kind, [9], [0], [2.0], [3.0], [True], 0.01)
+    (f,) = flipped_tests("verification", base, cand, maps)
+    assert f.kind == kind.name and not f.base["accepted"] and f.candidate["accepted"]
+    assert flipped_tests("verification", base, base, {"attempts": ItemMatch(
+        10, 10, pairs=[(7, 7)])}) == []
