@@ -70,7 +70,6 @@ from boxloc.stages.seams import (
     face_spread,
     find_seams,
     norm_isf,
-    seam_at,
 )
 from boxloc.stages.sizes import distinct, match_size, other_tiling, region_splits
 from boxloc.stages.verify import (
@@ -1168,20 +1167,32 @@ def _distinct_regions(works: list[_VertexWork], vertices: VertexSet,
 def _cut_evidence(R: Rectangle, att: _Attempt, ctx: _Context, cuts_x: list[float],
                   cuts_y: list[float]) -> tuple[np.ndarray, np.ndarray]:
     """The groove statistic at each implied seam of a region, however weak: (z, critical)
-    of :func:`boxloc.stages.seams.seam_at` at the seam level, the cuts along x then y."""
+    of :func:`boxloc.stages.verify.seam_line` at the seam level, the cuts along x then y.
+
+    As a side's seam is tested: along the whole cut (both halves must show it, so a seam
+    that crosses the cut, between two cartons turned across it, is no seam along it), over
+    the statistic's robust spread along the region (:func:`boxloc.stages.seams.
+    face_spread`: correlated depth noise spreads it beyond N(0, 1))."""
     vc = ctx.verify_ctx
     spacing = vc.spacing_at(R.origin + 0.5 * att.width * R.x_axis + 0.5 * att.length * R.y_axis)
     fp = face_points(vc.points, vc.valid, vc.sigma, vc.project, R.origin, R.x_axis, R.y_axis,
                      R.normal, (0.0, att.width), (0.0, att.length), spacing, ctx.config.alpha,
                      ctx.config.noise.row_corr)
     z, zc = [], []
-    for coord, cuts in ((fp.u, cuts_x), (fp.v, cuts_y)):
+    for axis, cuts, size, ext in ((0, cuts_x, att.width, att.length),
+                                  (1, cuts_y, att.length, att.width)):
+        if not cuts:
+            continue
+        if not len(fp):
+            z += [np.nan] * len(cuts)
+            zc += [np.nan] * len(cuts)
+            continue
+        coord, other = (fp.u, fp.v) if axis == 0 else (fp.v, fp.u)
+        on = (other >= 0) & (other <= ext) & (coord >= 0) & (coord <= size)
+        spread = face_spread(coord[on], fp.w[on], fp.scale, size, spacing, fp.row[on],
+                             fp.row_corr)
         for c in cuts:
-            if len(fp):
-                a, b = seam_at(coord, fp.w, fp.scale, c, spacing, vc.seam_alpha, None, False,
-                               fp.row, fp.row_corr)
-            else:
-                a, b = np.nan, np.nan
+            a, b = seam_line(fp, axis, c, ext, spacing, vc.seam_alpha, spread=spread)
             z.append(a)
             zc.append(b)
     return np.array(z, np.float64), np.array(zc, np.float64)
