@@ -66,7 +66,9 @@ def layer(rng: np.random.Generator, pattern: str) -> tuple[np.ndarray, tuple[flo
 
 
 def run(n: int, seed: int) -> dict[str, Any]:
-    rows = []
+    """Scene k: sensor ``SENSORS[k % 4]``, pattern ``PATTERNS[(k // 4) % 2]``, the rest
+    drawn from (seed, k). Returns the rows per scene and the sums per pattern and sensor."""
+    rows: list[dict[str, Any]] = []
     for k in range(n):
         rng = np.random.default_rng([seed, k])
         sensor = SENSORS[k % len(SENSORS)]
@@ -92,9 +94,9 @@ def run(n: int, seed: int) -> dict[str, Any]:
         print(json.dumps(rows[-1]), flush=True)
     groups: dict[str, dict[str, int]] = defaultdict(lambda: defaultdict(int))
     for row in rows:
-        for g in (f"{row['pattern']}/{row['sensor']}", row["pattern"]):
+        for g in (f"{row['pattern']}/{row['sensor']}", str(row["pattern"])):
             for key in ("tops", "tp", "fp", "reported", "wrong"):
-                groups[g][key] += row[key]
+                groups[g][key] += int(row[key])
             groups[g]["scenes"] += 1
     return {"n": n, "seed": seed, "groups": {g: dict(v) for g, v in sorted(groups.items())},
             "scenes": rows}
