@@ -67,7 +67,6 @@ from boxloc.stages.seams import (
     SEAM_FLANK,
     SEAM_SCALES,
     face_points,
-    face_spread,
     find_seams,
     norm_isf,
 )
@@ -84,6 +83,7 @@ from boxloc.stages.verify import (
     seam_line,
     tilt_from_up,
     verify,
+    whole_face_spread,
 )
 from boxloc.stages.vertices import _skew, append_vertices, normal_covariance
 from boxloc.stats import (
@@ -1187,10 +1187,7 @@ def _cut_evidence(R: Rectangle, att: _Attempt, ctx: _Context, cuts_x: list[float
             z += [np.nan] * len(cuts)
             zc += [np.nan] * len(cuts)
             continue
-        coord, other = (fp.u, fp.v) if axis == 0 else (fp.v, fp.u)
-        on = (other >= 0) & (other <= ext) & (coord >= 0) & (coord <= size)
-        spread = face_spread(coord[on], fp.w[on], fp.scale, size, spacing, fp.row[on],
-                             fp.row_corr)
+        spread = whole_face_spread(fp, axis, size, ext, spacing)
         for c in cuts:
             a, b = seam_line(fp, axis, c, ext, spacing, vc.seam_alpha, spread=spread)
             z.append(a)
@@ -1263,17 +1260,17 @@ def _plan_split(ctx: _Context, h: int, att: _Attempt, single: set[int]) -> list[
         pick = seen[0]  # every cut's seam seen: each cell is one carton, the grid
     elif len(splits) == 1 and id(att) not in single:
         pick = 0
-        # not every seam shown: the grid only if no other tiling fits its outline and the
-        # seams that are
-        sp, (z, zc, _) = splits[0], evidence[0]
-        ok = z > zc
-        seams = ([i * sp.a for i in range(1, sp.nx) if ok[i - 1]],
-                 [j * sp.b for j in range(1, sp.ny) if ok[sp.nx - 2 + j]])
-        tiling = other_tiling(sp, cfg.box_sizes, cfg.size_tolerance, seams=seams)
     else:  # several ways to cut it (one box of a listed size among them), no seam shown
         att.threshold = float(AmbiguityReason.SEVERAL_SPLITS)
         return []
     sp, (z, zc, _) = splits[pick], evidence[pick]
+    if not seen:
+        # not every seam shown: the grid only if no other tiling fits its outline and the
+        # seams that are
+        ok = z > zc
+        seams = ([i * sp.a for i in range(1, sp.nx) if ok[i - 1]],
+                 [j * sp.b for j in range(1, sp.ny) if ok[sp.nx - 2 + j]])
+        tiling = other_tiling(sp, cfg.box_sizes, cfg.size_tolerance, seams=seams)
     rows = [TestTable.chi2(TestKind.SKU_SIZE, -1, sp.sku, sp.statistic, 2.0, cfg.alpha),
             TestTable.decision(TestKind.SKU_SPLIT_SEAM, -1, np.arange(len(z)), z, zc,
                                z > zc, cfg.alpha)]
@@ -1587,7 +1584,7 @@ def _seams_in_line(ctx: _Context, works: list[_VertexWork]) -> None:
     # each attempt's id, as _assemble numbers them
     att_id = {id(t): k for k, t in enumerate(t for w in works for t in w.attempts)}
     vc = ctx.verify_ctx
-    for j, (o, x, y, a) in enumerate(rects):
+    for j, (h, a) in enumerate(acc):
         if a.source == DimensionSource.SKU_SPLIT:
             continue  # a part stands or falls with its split (its sides are lines, not it)
         lines = _lines_into(j, rects, S, own, cfg)
@@ -1595,7 +1592,7 @@ def _seams_in_line(ctx: _Context, works: list[_VertexWork]) -> None:
             continue
         out = a.outcome
         assert out is not None
-        origin, xa, ya, n = _in_plane(Rectangle(-1, o, x, y, np.cross(x, y), np.eye(6)), out)
+        origin, xa, ya, n = _in_plane(align(V, h, ctx.normal_cov), out)
         spacing = vc.spacing_at(origin + 0.5 * a.width * xa + 0.5 * a.length * ya)
         fp = face_points(vc.points, vc.valid, vc.sigma, vc.project, origin, xa, ya, n,
                          (0.0, a.width), (0.0, a.length), spacing, cfg.alpha,
@@ -1605,12 +1602,9 @@ def _seams_in_line(ctx: _Context, works: list[_VertexWork]) -> None:
         alpha = cfg.alpha / len(lines)
         z, zc, b = [], [], []
         for axis, pos, i in lines:
-            coord, other = (fp.v, fp.u) if axis == 1 else (fp.u, fp.v)
             size, ext = (a.length, a.width) if axis == 1 else (a.width, a.length)
-            on = (other >= 0) & (other <= ext) & (coord >= 0) & (coord <= size)
-            spread = face_spread(coord[on], fp.w[on], fp.scale, size, spacing, fp.row[on],
-                                 fp.row_corr)
-            zi, ci = seam_line(fp, axis, pos, ext, spacing, alpha, spread=spread)
+            zi, ci = seam_line(fp, axis, pos, ext, spacing, alpha,
+                               spread=whole_face_spread(fp, axis, size, ext, spacing))
             z.append(zi)
             zc.append(ci)
             b.append(att_id[id(acc[i][1])])

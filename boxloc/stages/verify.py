@@ -929,12 +929,13 @@ def _test_size_sides(fp: FacePoints, hyp: _Hypothesis, sides: _Sides,
                               zz[:, 1], zz[:, 0] > zz[:, 1], hyp.alpha)
 
 
-def _whole_face_spread(fp: FacePoints, hyp: _Hypothesis, coord: np.ndarray, other: np.ndarray,
-                       size: float, ext: float) -> tuple[float, ...]:
-    """:func:`face_spread` along ``coord`` (0 to ``size``) over the face's points, ``other``
-    (across it) within 0 to ``ext``."""
+def whole_face_spread(fp: FacePoints, axis: int, size: float, ext: float, spacing: float
+                      ) -> tuple[float, ...]:
+    """:func:`face_spread` along u (``axis`` 0) or v (1), 0 to ``size``, over the face's
+    points whose other coordinate lies within 0 to ``ext``."""
+    coord, other = (fp.u, fp.v) if axis == 0 else (fp.v, fp.u)
     on = (other >= 0) & (other <= ext) & (coord >= 0) & (coord <= size)
-    return face_spread(coord[on], fp.w[on], fp.scale, size, hyp.spacing, fp.row[on],
+    return face_spread(coord[on], fp.w[on], fp.scale, size, spacing, fp.row[on],
                        fp.row_corr)
 
 
@@ -959,7 +960,8 @@ def _test_seam_interior(fp: FacePoints, hyp: _Hypothesis, correlated: bool = Fal
         return False, [], fp.spread
     mi, width, length = hyp.interior_margin, hyp.width, hyp.length
     int_z, int_crit, spread = [], [], []  # spread: per axis, per scale
-    for coord, other, size, ext in ((fp.u, fp.v, width, length), (fp.v, fp.u, length, width)):
+    for axis, coord, other, size, ext in ((0, fp.u, fp.v, width, length),
+                                          (1, fp.v, fp.u, length, width)):
         lo_hi = (mi, size - mi)
         sel = (other >= mi) & (other <= ext - mi)
         narrow = (size - 2 * mi) / (0.5 * hyp.spacing) + 1 < MIN_SPREAD_POSITIONS or not sel.any()
@@ -970,15 +972,15 @@ def _test_seam_interior(fp: FacePoints, hyp: _Hypothesis, correlated: bool = Fal
         stats: list[tuple[np.ndarray, np.ndarray]] = []  # the second search reuses them
         found = find_seams(c_in, w_in, fp.scale, lo_hi[0], lo_hi[1],
                            hyp.spacing, hyp.interior_alpha, r_in, fp.row_corr,
-                           spread=(_whole_face_spread(fp, hyp, coord, other, size, ext)
+                           spread=(whole_face_spread(fp, axis, size, ext, hyp.spacing)
                                    if correlated and narrow else None), stats=stats)
         if correlated and not narrow and found.z_max > found.critical:
             # measured only where the interior's own spread lets a seam cross: elsewhere the
             # larger spread could only lower the statistic (the row then holds the own's)
             found = find_seams(c_in, w_in, fp.scale, lo_hi[0], lo_hi[1],
                                hyp.spacing, hyp.interior_alpha, r_in, fp.row_corr,
-                               floor_spread=_whole_face_spread(fp, hyp, coord, other,
-                                                               size, ext), stats=stats)
+                               floor_spread=whole_face_spread(fp, axis, size, ext,
+                                                              hyp.spacing), stats=stats)
         # the strongest groove anywhere inside, significant or not (NaN: none measurable)
         int_z.append(found.z_max if np.isfinite(found.z_max) else np.nan)
         int_crit.append(found.critical)
