@@ -300,7 +300,8 @@ def _print_surfaces(result: Any) -> None:
                    "default configuration only (no --set, no --config; the box size range is "
                    "the simulator's); --out gets bench_matrix.json and bench_matrix.txt.")
 @click.option("--packed", is_flag=True,
-              help="Zero-gap, sharp-edged layered pallets for every sensor model of the zoo, "
+              help="Zero-gap, sharp-edged layered pallets for every sensor model of the zoo "
+                   "(--n grid layers, then a third as many basket weaves, reported apart), "
                    "default configuration with and without the scenes' carton list "
                    "(boxloc.evaluate.packed_bench); --out gets bench_packed.json.")
 @click.option("--bare", is_flag=True,

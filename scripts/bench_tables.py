@@ -263,6 +263,12 @@ def reconstruct_command(report: dict[str, Any], kind: Kind) -> str:
                          f"{report['seed']}", *_config_sets(report["config"], set()),
                          "--out DIR"])
     if kind.name == "packed":
+        weave = report.get("suite", {}).get("patterns", {}).get("weave")
+        if weave is not None and weave != (report["n"] // 3) // 4 * 4:  # not the default
+            return (f"python -m boxloc.evaluate.packed_bench --n {report['n']} --interlocked "
+                    f"{weave} --seed {report['seed']} --seeds {seeds} "
+                    f"--jobs {report.get('jobs', 1)} --held-out {report['held_out']['sensor']} "
+                    f"--scan-timeout {report.get('scan_timeout_s', 120):g} --out DIR")
         return (f"boxloc bench --packed --n {report['n']} --seed {report['seed']} "
                 f"--seeds {seeds} --jobs {report.get('jobs', 1)} "
                 f"--held-out {report['held_out']['sensor']} "
@@ -688,6 +694,12 @@ def packed_summary(r: dict[str, Any]) -> str:
                   for s in r["sensors"] if s in gv["sensors"]]
         groups += [(f"**all but {held}**", gv["overall"]["development"]),
                    ("**all sensors**", gv["overall"]["all"])]
+        woven = gv.get("interlocked")
+        if woven is not None:  # basket-weave layers, reported apart
+            groups += [(f"interlocked, {s}" + (" (held out)" if s == held else ""),
+                        woven["sensors"][s]) for s in r["sensors"] if s in woven["sensors"]]
+            groups += [(f"**interlocked, all but {held}**", woven["overall"]["development"]),
+                       ("**interlocked, all sensors**", woven["overall"]["all"])]
         for label, g in groups:
             rows.append([PACKED_VARIANTS.get(v, v), label, num(g.get("n_scans")), counts(g),
                          precision(g), recall(g), _wrong(g),
@@ -697,6 +709,11 @@ def packed_summary(r: dict[str, Any]) -> str:
             "wrong-rectangle rate (count)", "ambiguous regions per scan", "silent scans",
             "height error median / p95 (mm) (n)",
             "reported tops' height source: side / step / sku / none"]
+    pat = r.get("suite", {}).get("patterns", {})
+    woven = (f" The *interlocked* rows are {pat['weave']} more layers of cartons twice as "
+             "long as wide laid as basket weaves (the outline of a grid of the carton, which "
+             "they are not); every other row is the grid layers'."
+             if pat.get("weave") else "")
     note = (f"Layered pallets with no gaps between cartons: {r['n']} scenes (suite seed "
             f"{r['seed']}) over {len(r['sensors'])} sensor models, "
             f"{int(r.get('seeds', {}).get('n', 1))} draw(s) of the random trials. *Without "
@@ -707,7 +724,7 @@ def packed_summary(r: dict[str, Any]) -> str:
             "surface nor a region (to the cell the pallet looks empty). Height errors are over "
             "the true positives whose height came from a visible side or a step to a "
             "neighbour; the sources count every reported top (a *sku* height is the given "
-            "size's).")
+            "size's)." + woven)
     return table(head, rows) + "\n\n" + note
 
 

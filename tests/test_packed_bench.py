@@ -45,10 +45,10 @@ GROUP_KEYS = {
 HEIGHT_BIAS = 0.003
 
 
-def _tiny(n: int = 4) -> list[Any]:
+def _tiny(n: int = 4, interlocked: int = 0) -> list[Any]:
     """Packed scenes at 160 x 120 (same field of view), so a test takes seconds."""
     return [dataclasses.replace(s, width=160, height=120, f=s.f * 160 / s.width)
-            for s in pb.packed_suite(n, 0)]
+            for s in pb.packed_suite(n, 0, interlocked)]
 
 
 def _truths(specs: list[Any]) -> dict[int, tuple[Any, Any]]:
@@ -154,6 +154,54 @@ def test_packed_suite_is_the_matrix_layered_cells() -> None:
     assert pb.packed_suite(0) == []
     with pytest.raises(pb.InputError, match="integer >= 0"):
         pb.packed_suite(-1)
+
+
+def test_interlocked_scenes_follow_the_grids() -> None:
+    specs = pb.packed_suite(5, 3, 3)
+    assert specs[:5] == pb.packed_suite(5, 3)
+    matrix = [s for s in sim.matrix_suite(96, 3) if s.kind == "layered"]
+    assert specs[5:] == [dataclasses.replace(s, pattern="weave") for s in matrix[5:8]]
+    assert [s.pattern for s in specs] == ["grid"] * 5 + ["weave"] * 3
+    assert [pb.default_interlocked(n) for n in (96, 12, 11, 4)] == [32, 4, 0, 0]
+    with pytest.raises(pb.InputError, match="interlocked count must be an integer >= 0"):
+        pb.packed_suite(4, 0, -1)
+
+
+def test_interlocked_layers_are_reported_apart(report: dict[str, Any]) -> None:
+    specs = _tiny(4, 4)
+    r = pb.run_packed_bench(specs=specs, localizer=_oracle(specs), warmup=False,
+                            progress=False)
+    assert r["n"] == 4 and r["suite"]["patterns"] == {"grid": 4, "weave": 4}
+    rows = r["scenes"]
+    assert [row["pattern"] for row in rows] == ["grid"] * 4 + ["weave"] * 4
+    def timeless(g: Any) -> Any:  # a group's figures but its wall times
+        if isinstance(g, dict):
+            return {k: timeless(x) for k, x in g.items() if k != "time"}
+        return g
+
+    # the grid groups are the grid scenes' alone: those of the same four without weaves
+    for v in pb.VARIANTS:
+        g = r["groups"][v]
+        assert timeless(g["overall"]) == timeless(report["groups"][v]["overall"])
+        assert timeless(g["sensors"]) == timeless(report["groups"][v]["sensors"])
+        woven = g["interlocked"]
+        assert woven["overall"]["all"]["n_exposed"] == sum(row["n_exposed"] for row in rows[4:])
+        assert woven["overall"]["all"]["tp"] == _sum(rows[4:], v, "tp")
+        laser = next(row for row in rows[4:] if row["sensor"] == "laser")
+        assert woven["sensors"]["laser"]["wrong_rectangles"] == \
+            laser["runs"][v]["wrong"]["n_wrong"]
+    assert "interlocked" not in report["groups"]["with_sizes"]
+    targets = {t["name"]: t for t in r["targets"]}
+    # the oracle's one rectangle over two tops on laser without sizes: a wrong rectangle
+    t = targets["wrong-rectangle rate on interlocked layers without sizes, every sensor"]
+    assert t["layers"] == "interlocked"
+    assert t["all"]["value"] == 1.0 and t["all"]["where"] == "laser"
+    assert t["all"]["pass"] is False
+    t = targets["wrong-rectangle rate on interlocked layers with sizes, every sensor"]
+    assert t["all"]["value"] == 0.0 and t["all"]["pass"] is True
+    # a suite of grids alone has no such figure
+    gone = {t["name"]: t for t in report["targets"]}
+    assert gone[t["name"]]["all"] == {"value": None, "where": None, "pass": None}
 
 
 def test_the_carton_list_is_the_scenes_sizes_as_a_user_writes_them() -> None:

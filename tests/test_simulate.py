@@ -88,6 +88,7 @@ def test_parse_spec_reads_kind_and_keys() -> None:
 @pytest.mark.parametrize("spec", [
     SceneSpec(), SceneSpec(kind="mixed", seed=12, distance=1.2345678901234, tilt=0.1),
     SceneSpec(kind="touching", noise=NoiseModel(sigma0=0.003), shadows=False, n_boxes=3),
+    SceneSpec(kind="layered", seed=5, pattern="weave"),
 ])
 def test_format_spec_round_trips(spec: SceneSpec) -> None:
     assert parse_spec(format_spec(spec)) == spec
@@ -110,6 +111,9 @@ def test_format_spec_round_trips(spec: SceneSpec) -> None:
     ("pallet:min_edge=0.5,max_edge=0.3", "scene min_edge must be in"),
     ("pallet:noise.k2=-1", "noise parameter k2"),
     ("pallet:kind=mixed", "unknown scene key 'kind'"),
+    ("layered:pattern=herringbone", "scene pattern must be one of grid, weave"),
+    ("pallet:pattern=weave", "scene pattern must be grid unless the kind is layered"),
+    ("layered:pattern=weave,min_edge=0.35", "unless max_edge >= 2 min_edge"),
 ])
 def test_parse_spec_errors_name_the_problem(text: str, match: str) -> None:
     with pytest.raises(InputError, match=match):
@@ -292,6 +296,35 @@ def test_pallet_layers_are_neat() -> None:
     n_top = int((np.round(b[:, 2], 9) == levels[-1]).sum())
     assert t.fully_exposed.sum() <= n_top
     assert not t.fully_exposed[np.round(b[:, 2], 9) < levels[-1]].any()
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2, 3])
+def test_weave_layers_have_a_grids_outline_and_are_no_grid(seed: int) -> None:
+    spec = SceneSpec(kind="layered", seed=seed, pattern="weave")
+    assert "pattern" not in SceneSpec(kind="layered").to_dict()  # old specs' dicts unchanged
+    assert spec.to_dict()["pattern"] == "weave"
+    b = simulate(spec).truth.boxes
+    a = float(np.min(b[:, 3:5]))
+    assert np.allclose(np.sort(b[:, 3:5], 1), [a, 2 * a])  # one carton, twice as long as wide
+    assert np.all(b[:, 6] == 0) and np.ptp(b[:, 5]) == 0
+    for z in np.unique(b[:, 2]):
+        lay = b[b[:, 2] == z]
+        lo = (lay[:, :2] - lay[:, 3:5] / 2).min(axis=0)
+        hi = (lay[:, :2] + lay[:, 3:5] / 2).max(axis=0)
+        ext = hi - lo
+        # zero gaps, no overlap: the cartons fill their outline exactly ...
+        assert np.prod(lay[:, 3:5], axis=1).sum() == pytest.approx(np.prod(ext), rel=1e-9)
+        for i in range(len(lay)):
+            for j in range(i):
+                d = np.abs(lay[i, :2] - lay[j, :2]) - (lay[i, 3:5] + lay[j, 3:5]) / 2
+                assert d.max() >= -1e-9, "two cartons overlap"
+        # ... which is a grid of the carton one way round: (2 nx + 1) a by ny 2a ...
+        nx, ny = (ext[0] / a - 1) / 2, ext[1] / (2 * a)
+        assert nx == pytest.approx(round(nx)) and ny == pytest.approx(round(ny))
+        assert round(nx) >= 1 and round(ny) >= 1
+        # ... but laid with both orientations, one cell of two turned at least
+        turned = int((lay[:, 3] > lay[:, 4]).sum())
+        assert turned >= 2 and turned % 2 == 0 and turned < len(lay)
 
 
 def test_touching_boxes_share_height_and_nearly_touch() -> None:

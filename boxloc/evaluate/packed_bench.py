@@ -7,7 +7,11 @@ layered pallets (``layered``: one carton size per pallet, neighbours touching al
 faces, ``bevel`` 0), scene ``i`` seen by sensor ``SENSORS[i % 4]`` of the zoo. They are
 the ``layered`` cells of :func:`boxloc.simulate.matrix_suite` (the same draws of camera
 height, tilt, resolution, lid bulge, tape and labels), in order, so the matrix bench's
-layered scans are the first ones here.
+layered scans are the first ones here. Those are laid as grids; the next ``layered`` cells
+follow as *interlocked* layers (``pattern="weave"``, a third as many: cartons twice as long
+as wide in a basket weave, the outline of a grid of the carton that they are not, as real
+pallets are laid to interlock). Their figures are reported apart: every target but the two
+of interlocked layers is over the grids.
 
 Each scan (scene and draw of the random trials) is localized in two *variants*:
 ``without_sizes``, the default configuration (``Config()`` with the one site input, the
@@ -45,18 +49,21 @@ milliseconds where named ``*_ms``):
   ``source`` and ``observed`` (the smallest and largest top edge in the scenes' truth)
 - ``sizes``: how the ``with_sizes`` carton list is made: ``source``, ``rounding_m``,
   ``size_tolerance_m`` (the configuration's), ``tolerance_source``
-- ``suite``: ``source`` (the scenes' definition), ``kind``, ``bevel_m``, ``max_gap_m``
+- ``suite``: ``source`` (the scenes' definition), ``kind``, ``bevel_m``, ``max_gap_m``,
+  ``patterns`` (scenes laid as ``grid`` and as ``weave``; ``n`` is the grids')
 - ``held_out``: ``sensor``
 - ``sensors``, ``variants``, ``lids`` (``flat``, ``bulged``): the axes, in order
 - ``seeds``: the draws of the random trials
   (:func:`boxloc.evaluate.scene_bench.draw_figures`, the variants as its methods, per sensor)
-- ``groups``: per variant, figures (see below) for ``overall`` (``development`` and
-  ``all``), ``sensors`` (per sensor; each also has ``held_out``) and ``lids`` (per lid:
-  ``development`` and ``all``)
+- ``groups``: per variant, figures (see below) of the grid layers for ``overall``
+  (``development`` and ``all``), ``sensors`` (per sensor; each also has ``held_out``) and
+  ``lids`` (per lid: ``development`` and ``all``), and, if the suite has interlocked
+  layers, ``interlocked``: their ``overall`` and ``sensors``
 - ``targets``: one row per entry of :data:`PACKED_TARGETS`: ``name``, ``variant``,
   ``key``, ``over`` (``sensor`` or ``overall``), ``op``, ``bound``, ``target`` (text),
-  ``unit``, and per scope (``development``, ``all``) ``value`` (the worst sensor's figure
-  for ``sensor``), ``where`` and ``pass`` (true, false, or null: no data)
+  ``unit``, ``layers`` (``grid`` or ``interlocked``), and per scope (``development``,
+  ``all``) ``value`` (the worst sensor's figure for ``sensor``), ``where`` and ``pass``
+  (true, false, or null: no data)
 - ``timeouts``: one entry per timed-out run: ``scene``, ``trial_seed``, ``sensor``,
   ``variant``, ``spec_text``, ``phase`` (``simulate``, ``localize`` or ``warmup``),
   ``limit_s``
@@ -68,7 +75,8 @@ milliseconds where named ``*_ms``):
 - ``memory``: the workers' peak RSS per run (median and max, MB) and this process's
 - ``scenes``: one deterministic row per scan (scene and draw, in suite order): ``index``,
   ``trial_seed``, ``sensor``, ``held_out``, ``lid``, ``spec``, ``spec_text``,
-  ``n_faces``, ``n_exposed``, ``n_boxes``, ``layers``, ``pixels``, ``sizes_csv`` (the file
+  ``pattern``, ``n_faces``, ``n_exposed``, ``n_boxes``, ``layers``, ``pixels``,
+  ``sizes_csv`` (the file
   given to ``with_sizes``), and ``runs``: per variant ``status`` (``ok``, ``error``,
   ``timeout``), ``error``, ``match`` (:meth:`boxloc.evaluate.metrics.Match.to_dict`),
   ``wrong`` (:meth:`boxloc.evaluate.metrics.WrongRectangles.to_dict`), ``ambiguous``
@@ -190,7 +198,8 @@ TABLE_NAME = "bench_packed.txt"
 @dataclass(frozen=True)
 class PackedTarget:
     """One target of issue 21, point 4: ``key`` of :func:`group_figures` in ``variant``,
-    over every sensor (the worst one's value) or overall."""
+    over every sensor (the worst one's value) or overall, on the grid layers or the
+    interlocked ones (``layers``)."""
 
     name: str
     variant: str
@@ -199,6 +208,7 @@ class PackedTarget:
     op: str
     value: float
     unit: str = ""
+    layers: str = "grid"
 
     def text(self) -> str:
         return f"{self.op} {self.value:g}{(' ' + self.unit) if self.unit else ''}"
@@ -214,33 +224,50 @@ PACKED_TARGETS: tuple[PackedTarget, ...] = (
                  "overall", "height_err_median_mm", "<=", 10.0, "mm"),
     PackedTarget("median height error (side or step), with sizes", "with_sizes", "overall",
                  "height_err_median_mm", "<=", 10.0, "mm"),
+    # an interlocked layer has the outline of a grid: without seams that show, it is one
+    # flat region either way, and a grid laid over it cuts tops in two
+    PackedTarget("wrong-rectangle rate on interlocked layers without sizes, every sensor",
+                 "without_sizes", "sensor", "wrong_rate", "<=", 0.01, layers="interlocked"),
+    PackedTarget("wrong-rectangle rate on interlocked layers with sizes, every sensor",
+                 "with_sizes", "sensor", "wrong_rate", "<=", 0.01, layers="interlocked"),
 )
 
 
 # --- the scenes and the carton list ------------------------------------------------------
 
 
-def packed_suite(n: int, seed: int = 0) -> list[Any]:
-    """The benchmark's scenes: the first ``n`` ``layered`` scenes of ``matrix_suite``.
+def packed_suite(n: int, seed: int = 0, interlocked: int = 0) -> list[Any]:
+    """The benchmark's scenes: the first ``n`` ``layered`` scenes of ``matrix_suite``, laid
+    as grids, then the next ``interlocked`` ones laid as basket weaves
+    (``pattern="weave"``: :func:`boxloc.simulate.layouts._layout_weave`).
 
     Scene ``i`` has sensor ``SENSORS[i % 4]``; ``bevel`` is 0 (sharp edges) and the layout
-    has no gap and no jitter (``layered``). The same (n, seed) gives the same list, and a
-    longer suite starts with the shorter one.
+    has no gap and no jitter (``layered``). The same arguments give the same list, and a
+    longer grid suite starts with the shorter one.
 
     Raises
     ------
     InputError
-        If ``n`` or ``seed`` is not an integer >= 0.
+        If ``n``, ``interlocked`` or ``seed`` is not an integer >= 0.
     """
     from boxloc.simulate import MATRIX_KINDS, SENSORS, matrix_suite
 
-    if isinstance(n, bool) or not isinstance(n, int | np.integer) or n < 0:
-        raise InputError(f"packed suite size must be an integer >= 0, got {n!r}")
+    for name, v in (("size", n), ("interlocked count", interlocked)):
+        if isinstance(v, bool) or not isinstance(v, int | np.integer) or v < 0:
+            raise InputError(f"packed suite {name} must be an integer >= 0, got {v!r}")
+    total = int(n) + int(interlocked)
     per_round = len(SENSORS) * len(MATRIX_KINDS)  # each round of the matrix: one per sensor
-    rounds = math.ceil(int(n) / len(SENSORS))
+    rounds = math.ceil(total / len(SENSORS))
     specs = [s for s in matrix_suite(rounds * per_round, seed) if s.kind == "layered"]
     # the matrix draws no bevel on layered scenes; the replace only makes it this suite's rule
-    return [dataclasses.replace(s, bevel=0.0) for s in specs[: int(n)]]
+    return ([dataclasses.replace(s, bevel=0.0) for s in specs[: int(n)]]
+            + [dataclasses.replace(s, bevel=0.0, pattern="weave") for s in specs[int(n):total]])
+
+
+def default_interlocked(n: int) -> int:
+    """Basket-weave scenes the bench adds to ``n`` grid scenes: a third as many (32 to the
+    default 96), a multiple of the four sensors."""
+    return (int(n) // 3) // 4 * 4
 
 
 def box_sizes_csv(truth: Any, rounding: float = SIZE_ROUNDING) -> str:
@@ -450,6 +477,7 @@ def _meta(sim: Any) -> dict[str, Any]:
             "n_boxes": int(boxes.shape[0]), "layers": int(np.unique(base).shape[0]),
             "pixels": int(h * w), "spec": _spec_dict(spec), "spec_text": _spec_text(spec),
             "lid": "bulged" if float(spec.bulge) > 0 else "flat",
+            "pattern": str(getattr(spec, "pattern", "grid")),
             "sizes_csv": box_sizes_csv(truth) if boxes.shape[0] else None,
             "edge_min": float(np.min(truth.width)) if len(truth) else None,
             "edge_max": float(np.max(truth.length)) if len(truth) else None,
@@ -579,26 +607,37 @@ def group_figures(outs: Sequence[_Outcome]) -> dict[str, Any]:
             "sku_flagged_tp": sum(s.sku_flagged_tp for s in scores)}
 
 
+def _by_sensor(outs: Sequence[_Outcome], sensors: Sequence[str], held_out: str
+               ) -> dict[str, Any]:
+    """``overall`` (``development``, ``all``) and ``sensors`` figures of some runs."""
+    return {
+        "overall": {"development": group_figures([o for o in outs if o.sensor != held_out]),
+                    "all": group_figures(outs)},
+        "sensors": {s: {"held_out": s == held_out,
+                        **group_figures([o for o in outs if o.sensor == s])}
+                    for s in sensors if any(o.sensor == s for o in outs)},
+    }
+
+
 def _groups(outs: Sequence[_Outcome], sensors: Sequence[str], variants: Sequence[str],
             held_out: str) -> dict[str, Any]:
+    """Per variant: the grid layers' figures (``overall``, ``sensors``, ``lids``) and, if
+    the suite has any, the interlocked layers' (``interlocked``: ``overall``, ``sensors``)."""
     out: dict[str, Any] = {}
     for v in variants:
         mine = [o for o in outs if o.variant == v]
-        dev = [o for o in mine if o.sensor != held_out]
+        grid = [o for o in mine if o.meta.get("pattern", "grid") == "grid"]
+        woven = [o for o in mine if o.meta.get("pattern", "grid") != "grid"]
         lids = {}
         for lid in LIDS:
-            sel = [o for o in mine if o.meta.get("lid") == lid]
+            sel = [o for o in grid if o.meta.get("lid") == lid]
             if sel:
                 lids[lid] = {"development": group_figures([o for o in sel
                                                            if o.sensor != held_out]),
                              "all": group_figures(sel)}
-        out[v] = {
-            "overall": {"development": group_figures(dev), "all": group_figures(mine)},
-            "sensors": {s: {"held_out": s == held_out,
-                            **group_figures([o for o in mine if o.sensor == s])}
-                        for s in sensors if any(o.sensor == s for o in mine)},
-            "lids": lids,
-        }
+        out[v] = {**_by_sensor(grid, sensors, held_out), "lids": lids}
+        if woven:
+            out[v]["interlocked"] = _by_sensor(woven, sensors, held_out)
     return out
 
 
@@ -608,8 +647,10 @@ def evaluate_packed_targets(groups: dict[str, Any]) -> list[dict[str, Any]]:
     for t in PACKED_TARGETS:
         row: dict[str, Any] = {"name": t.name, "variant": t.variant, "key": t.key,
                                "over": t.over, "op": t.op, "bound": t.value,
-                               "target": t.text(), "unit": t.unit}
+                               "target": t.text(), "unit": t.unit, "layers": t.layers}
         g = groups.get(t.variant)
+        if g is not None and t.layers != "grid":
+            g = g.get(t.layers)
         for scope in SCOPES:
             row[scope] = ({"value": None, "where": None, "pass": None} if g is None else
                           target_scope(g, t.over, scope, t.key, t.op, t.value))
@@ -635,14 +676,18 @@ def run_packed_bench(
     warmup: bool = True,
     progress: bool = True,
     console: Any = None,
+    interlocked: int | None = None,
 ) -> dict[str, Any]:
     """The packed-layer benchmark, with and without the carton list.
 
     Parameters
     ----------
     n, seed : int
-        The scenes are :func:`packed_suite` ``(n, seed)`` (``n`` scenes in all, sensors in
-        turn: n = 96 is 24 per sensor).
+        The scenes are :func:`packed_suite` ``(n, seed, interlocked)``: ``n`` grid layers,
+        sensors in turn (n = 96 is 24 per sensor), then the interlocked ones.
+    interlocked : int, optional
+        Basket-weave scenes after the grids (default :func:`default_interlocked`: 32 to
+        96), reported apart (``groups[variant]["interlocked"]``).
     out : path, optional
         Directory for ``bench_packed.json`` and ``bench_packed.txt`` (the printed tables).
     jobs : int
@@ -689,7 +734,8 @@ def run_packed_bench(
     if specs is None:
         if isinstance(n, bool) or not isinstance(n, int) or n < 1:
             raise InputError(f"bench needs n >= 1 scenes, got {n!r}")
-        specs = packed_suite(n, seed)
+        specs = packed_suite(n, seed, default_interlocked(n) if interlocked is None
+                             else interlocked)
     specs = list(specs)
     if not specs:
         raise InputError("bench needs at least one scene")
@@ -736,7 +782,8 @@ def run_packed_bench(
                                     describe=describe, summary=summary)
     done = [o for o in outs if o is not None]
     assert len(done) == len(tasks)
-    report = _report(done, specs, cfg, site, n=len(specs), seed=seed, jobs=jobs,
+    report = _report(done, specs, cfg, site, n=sum(str(getattr(s, "pattern", "grid")) == "grid"
+                                                   for s in specs), seed=seed, jobs=jobs,
                      held_out=held_out, scan_timeout=scan_timeout, warmup=warmup,
                      trial_seeds=[d.trial_seed for d in draws], info=info, run_s=run_s,
                      sensors=SENSORS, variants=variants)
@@ -755,7 +802,8 @@ def _parent_meta(spec: Any) -> dict[str, Any]:
         return {"n_faces": 0, "n_exposed": 0, "n_boxes": 0, "layers": 0,
                 "pixels": int(spec.width * spec.height), "spec": _spec_dict(spec),
                 "spec_text": _spec_text(spec),
-                "lid": "bulged" if float(spec.bulge) > 0 else "flat", "sizes_csv": None,
+                "lid": "bulged" if float(spec.bulge) > 0 else "flat",
+                "pattern": str(getattr(spec, "pattern", "grid")), "sizes_csv": None,
                 "edge_min": None, "edge_max": None, "nothing": None}
 
 
@@ -773,7 +821,8 @@ def _report(outs: list[_Outcome], specs: Sequence[Any], cfg: Config, site: dict[
         if key not in by_scan:
             by_scan[key] = {
                 "index": o.index, "trial_seed": o.trial_seed, "sensor": o.sensor,
-                "held_out": o.sensor == held_out, "lid": m.get("lid"), "spec": m.get("spec"),
+                "held_out": o.sensor == held_out, "lid": m.get("lid"),
+                "pattern": m.get("pattern", "grid"), "spec": m.get("spec"),
                 "spec_text": m.get("spec_text"), "n_faces": m.get("n_faces"),
                 "n_exposed": m.get("n_exposed"), "n_boxes": m.get("n_boxes"),
                 "layers": m.get("layers"), "pixels": m.get("pixels"),
@@ -796,8 +845,11 @@ def _report(outs: list[_Outcome], specs: Sequence[Any], cfg: Config, site: dict[
                   "rounding_m": SIZE_ROUNDING, "size_tolerance_m": cfg.size_tolerance,
                   "tolerance_source": "Config() default"},
         "suite": {"source": "the layered scenes of boxloc.simulate.matrix_suite(n, seed), in "
-                            "order (packed_suite)",
-                  "kind": "layered", "bevel_m": 0.0, "max_gap_m": 0.0},
+                            "order, laid as grids, then the next ones laid as basket weaves "
+                            "(packed_suite)",
+                  "kind": "layered", "bevel_m": 0.0, "max_gap_m": 0.0,
+                  "patterns": {p: sum(str(getattr(s, "pattern", "grid")) == p for s in specs)
+                               for p in ("grid", "weave")}},
         "held_out": {"sensor": held_out},
         "sensors": present_s, "variants": list(variants), "lids": list(LIDS),
         "seeds": draw_figures({v: [o for o in outs if o.variant == v] for v in variants},
@@ -855,8 +907,10 @@ def print_packed_report(report: dict[str, Any], console: Any) -> None:
 
     ho = report["held_out"]["sensor"]
     cfg = report["config"]
+    pat = report.get("suite", {}).get("patterns", {})
     print_targets(report, console, (
-        f"boxloc bench --packed: {report['n']} zero-gap sharp-edged layered pallets x "
+        f"boxloc bench --packed: {report['n']} zero-gap sharp-edged layered pallets "
+        f"({pat.get('grid', report['n'])} grids, {pat.get('weave', 0)} basket weaves) x "
         f"{len(report['seeds']['trial_seeds'])} draw(s), seed {report['seed']}, default "
         f"configuration (min_edge {cfg['min_edge']:g} m, max_edge {cfg['max_edge']:g} m), "
         f"with_sizes: + the scene's carton list; held out: {ho}"))
@@ -871,6 +925,13 @@ def print_packed_report(report: dict[str, Any], console: Any) -> None:
         vt.add_row(*_row(f"all, {ho} included", g["overall"]["all"]))
         for lid, fig in g["lids"].items():
             vt.add_row(*_row(f"{lid} lids, all", fig["all"]))
+        woven = g.get("interlocked")
+        if woven is not None:
+            for s, fig in woven["sensors"].items():
+                vt.add_row(*_row(f"interlocked, {s}" + (" (held out)" if fig["held_out"]
+                                                        else ""), fig))
+            vt.add_row(*_row(f"interlocked, all but {ho}", woven["overall"]["development"]))
+            vt.add_row(*_row(f"interlocked, all, {ho} included", woven["overall"]["all"]))
         console.print(vt)
         ov = g["overall"]["all"]
         reasons = ", ".join(f"{k} {c}" for k, c in ov["ambiguous_reasons"].items())
@@ -926,7 +987,9 @@ def main(argv: Sequence[str] | None = None) -> int:
                     "pallets for every sensor of the zoo, default configuration, with and "
                     "without the scene's carton list.")
     ap.add_argument("--n", type=int, default=DEFAULT_N,
-                    help=f"scenes in all, sensors in turn (default {DEFAULT_N})")
+                    help=f"grid scenes, sensors in turn (default {DEFAULT_N})")
+    ap.add_argument("--interlocked", type=int, default=None,
+                    help="basket-weave scenes after them (default a third of --n)")
     ap.add_argument("--seed", type=int, default=0, help="seed of the suite")
     ap.add_argument("--out", type=Path, default=None, help="directory for the report")
     ap.add_argument("--jobs", type=int, default=1, help="worker processes")
@@ -943,7 +1006,7 @@ def main(argv: Sequence[str] | None = None) -> int:
                          held_out=a.held_out,
                          scan_timeout=None if a.scan_timeout == 0 else a.scan_timeout,
                          variants=[v.strip() for v in a.variants.split(",") if v.strip()],
-                         warmup=not a.no_warmup)
+                         warmup=not a.no_warmup, interlocked=a.interlocked)
     except BoxlocError as e:
         print(f"boxloc bench --packed: {str(e).splitlines()[0]}", file=sys.stderr)
         return 2

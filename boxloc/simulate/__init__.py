@@ -66,13 +66,14 @@ from boxloc.simulate.files import (
 )
 from boxloc.simulate.pose import look_down_pose
 from boxloc.simulate.scene import SimulatedScan, simulate, simulate_boxes
-from boxloc.simulate.spec import KINDS, SceneSpec, format_spec, override_spec, parse_spec
+from boxloc.simulate.spec import KINDS, PATTERNS, SceneSpec, format_spec, override_spec, parse_spec
 from boxloc.simulate.suites import MATRIX_KINDS, matrix_suite, scene_suite
 from boxloc.simulate.truth import GroundTruth
 from boxloc.simulate.zoo import SENSORS
 
 __all__ = [
     "KINDS",
+    "PATTERNS",
     "PALLET_SIZE",
     "SceneSpec",
     "GroundTruth",

@@ -3,8 +3,9 @@
 Each layout draws from its own generator (the scene's layout stream), so a layout never
 shifts the pose or the noise. Kinds: ``single``, ``pallet`` and ``partial`` (neat layers,
 part of the top layer unloaded), ``mixed`` (sizes and yaw differ, some stacked),
-``touching`` (a row of boxes with gaps of 0-2 mm), ``layered`` (zero gaps, no jitter), and
-the box-free ``empty`` and ``floor``.
+``touching`` (a row of boxes with gaps of 0-2 mm), ``layered`` (zero gaps, no jitter; laid
+as a grid, or interlocked as a basket weave by ``spec.pattern``), and the box-free ``empty``
+and ``floor``.
 """
 
 from __future__ import annotations
@@ -40,6 +41,8 @@ def _layout(spec: SceneSpec, rng: np.random.Generator) -> np.ndarray:
     if spec.kind == "layered":
         # Zero gaps and no jitter: neighbours touch along whole faces, layer on layer.
         layers = spec.layers if spec.layers is not None else int(rng.integers(2, 4))
+        if spec.pattern == "weave":
+            return _layout_weave(spec, rng, layers)
         return _layout_pallet(dataclasses.replace(spec, max_gap=0.0, jitter=0.0, yaw_jitter=0.0,
                                                   layers=layers), rng, partial=False)
     return np.zeros((0, 7))
@@ -110,6 +113,50 @@ def _layout_pallet(spec: SceneSpec, rng: np.random.Generator, partial: bool) -> 
             n_remove = int(rng.integers(1, len(top)))
             out = np.delete(out, order[:n_remove], axis=0)
     return out
+
+
+def _layout_weave(spec: SceneSpec, rng: np.random.Generator, n_layers: int) -> np.ndarray:
+    """Zero-gap layers of one carton, twice as long as wide (a x 2a), in a basket weave.
+
+    Each layer is nx x ny square cells of two cartons side by side, each cell turned 90 deg
+    at random (at least one per layer), and one column of single cartons along one end:
+    (2 nx + 1) a by ny 2a, the outline of a grid of the carton laid one way, which the
+    layer is not. Real pallets interlock their layers so; a carton list alone cannot tell
+    the two apart, only seams that show can.
+    """
+    a = float(rng.uniform(spec.min_edge, spec.max_edge / 2))
+    h = float(rng.uniform(spec.min_height, spec.max_height))
+    while True:  # at least one cell: shrink the draw until it fits the pallet
+        b = 2 * a
+        nx = int((PALLET_SIZE[0] - a + 1e-9) // b)
+        ny = int((PALLET_SIZE[1] + 1e-9) // b)
+        if (nx >= 1 and ny >= 1) or a <= spec.min_edge:
+            break
+        a = max(spec.min_edge, 0.9 * a)
+    nx, ny = max(nx, 1), max(ny, 1)
+    boxes: list[list[float]] = []
+    for layer in range(n_layers):
+        turned = rng.random((nx, ny)) < 0.5
+        if not turned.any():
+            turned[int(rng.integers(nx)), int(rng.integers(ny))] = True
+        column_first = bool(rng.random() < 0.5)  # the single cartons' end
+        ext_x, ext_y = (2 * nx + 1) * a, ny * b
+        off = rng.uniform(-0.5, 0.5, 2) * 0.5 * np.array(
+            [max(PALLET_SIZE[0] - ext_x, 0.0), max(PALLET_SIZE[1] - ext_y, 0.0)])
+        x0, y0 = off[0] - ext_x / 2 + (a if column_first else 0.0), off[1] - ext_y / 2
+        xc = off[0] - ext_x / 2 + a / 2 if column_first else off[0] + ext_x / 2 - a / 2
+        z = _PALLET_TOP + layer * h + h / 2
+        for j in range(ny):
+            cy = y0 + (j + 0.5) * b
+            for i in range(nx):
+                cx = x0 + (i + 0.5) * b
+                for s in (-0.5, 0.5):
+                    if turned[i, j]:  # two cartons along x, one above the other in y
+                        boxes.append([cx, cy + s * a, z, b, a, h, 0.0])
+                    else:  # two along y, side by side in x
+                        boxes.append([cx + s * a, cy, z, a, b, h, 0.0])
+            boxes.append([xc, cy, z, a, b, h, 0.0])
+    return np.asarray(boxes, dtype=np.float64)
 
 
 def _jitter_in_cell(cx: float, cy: float, z: float, sx: float, sy: float, h: float, g: float,

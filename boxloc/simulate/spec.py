@@ -19,9 +19,14 @@ from boxloc.errors import InputError
 from boxloc.scan import NoiseModel
 from boxloc.simulate.zoo import SENSORS, STEREO_CLASSES
 
-__all__ = ["KINDS", "SceneSpec", "parse_spec", "override_spec", "format_spec"]
+__all__ = ["KINDS", "PATTERNS", "SceneSpec", "parse_spec", "override_spec", "format_spec"]
 
 KINDS = ("single", "pallet", "partial", "mixed", "touching", "empty", "layered", "floor")
+#: How a ``layered`` scene lays its cartons within a layer: every carton the same way
+#: (``grid``), or interlocked (``weave``: cartons twice as long as wide, in square cells of
+#: two, each cell turned at random, and one column of single cartons, so the layer has the
+#: outline of a grid of the carton and is not one).
+PATTERNS = ("grid", "weave")
 
 
 @dataclass(frozen=True)
@@ -95,6 +100,10 @@ class SceneSpec:
         Probability that a box with nothing on it has packing tape along its lid (1-3 mm
         thick), and a label (0.5-2 mm thick). Neither is a box top in the ground truth: the
         pixels that see them belong to the lid under them.
+    pattern : str
+        One of :data:`PATTERNS`, how a ``layered`` scene's layers are laid (``grid`` for
+        every other kind). ``weave`` draws the carton's short edge in [min_edge,
+        max_edge / 2] and its long edge twice that, so it needs max_edge >= 2 min_edge.
     """
 
     kind: str = "pallet"
@@ -126,6 +135,7 @@ class SceneSpec:
     sensor_class: str | None = None
     tape: float = 0.0
     labels: float = 0.0
+    pattern: str = "grid"
 
     def __post_init__(self) -> None:
         if not isinstance(self.noise, NoiseModel):
@@ -189,6 +199,12 @@ class SceneSpec:
                   "one of " + ", ".join(STEREO_CLASSES) + " with sensor=active-stereo, or none")
         check("tape", 0 <= num("tape") <= 1, "in [0, 1]")
         check("labels", 0 <= num("labels") <= 1, "in [0, 1]")
+        check("pattern", self.pattern in PATTERNS, "one of " + ", ".join(PATTERNS))
+        if self.pattern != "grid":
+            check("pattern", self.kind == "layered", "grid unless the kind is layered")
+            check("pattern", self.max_edge >= 2 * self.min_edge,
+                  f"grid unless max_edge >= 2 min_edge (cartons of a {self.pattern} are "
+                  "twice as long as wide)")
 
     def to_dict(self) -> dict[str, Any]:
         """A JSON-ready dict (the noise model nested).
@@ -223,7 +239,7 @@ class SceneSpec:
 
 #: Fields added with the sensor zoo, and their defaults (left out of ``to_dict`` at default).
 _NEW_FIELDS: dict[str, Any] = {"sensor": None, "noise_scale": None, "sensor_class": None,
-                               "tape": 0.0, "labels": 0.0}
+                               "tape": 0.0, "labels": 0.0, "pattern": "grid"}
 
 
 def parse_spec(text: str) -> SceneSpec:
