@@ -22,7 +22,9 @@ allow at most (the parallel run's extra CPU is what keeps it below 2). Both logs
 the same, but for the wall-clock ``/boxloc/timing``. A run of the first W scans alone
 (start-up and one scan per worker) is timed too: taken off the full run, it leaves the
 steady rate of a long stream (``steady_speedup``), which the start-up (about 2 s before
-the workers' first scan, 1 s before a serial run's) does not weigh on.
+the workers' first scan, 1 s before a serial run's) does not weigh on. The runs are made
+:data:`STREAM_ROUNDS` times, serial and parallel in turn, and the figures are the rounds'
+medians, each round's kept beside them.
 """
 
 from __future__ import annotations
@@ -46,6 +48,9 @@ TARGET_BYTES_PER_SCAN = 1_000_000
 #: workers' first scan, ~1 s of it in the serial run too) weighs little against a stream's
 #: steady state (~14 s of scans per worker at 640x480).
 N_STREAM = 32
+#: Rounds of the throughput runs (each: serial, then parallel, with their first scans), the
+#: figures the medians: one round's ratio moved 1.3-1.8 between runs of the same code here.
+STREAM_ROUNDS = 3
 #: The speed-up of ``--workers 2`` over ``--workers 1`` that issue 22 asks for.
 TARGET_SPEEDUP = 1.8
 #: Seconds between two reads of the process tree's CPU times (the last interval of each
@@ -136,8 +141,13 @@ def _messages(path: Path) -> list[tuple[str, int, int, bytes]]:
 
 
 def measure_throughput(scans: list[Any], config: Any, *, workers: tuple[int, ...] = (1, 2),
-                       ) -> dict[str, Any]:
-    """``boxloc run DIR --record LOG --workers W`` on the same scans, for each W in order.
+                       rounds: int = 1) -> dict[str, Any]:
+    """``boxloc run DIR --record LOG --workers W`` on the same scans, for each W in order,
+    ``rounds`` times over.
+
+    The runs of each W alternate within a round, so a neighbour's load that comes and goes
+    falls on both; the figures are the rounds' medians (a machine whose CPU time for fixed
+    work varies by tens of per cent within minutes makes one round a draw).
 
     Parameters
     ----------
@@ -147,29 +157,41 @@ def measure_throughput(scans: list[Any], config: Any, *, workers: tuple[int, ...
         Given to the runs as ``--config``.
     workers : tuple of int
         The ``--workers`` of each run; the first is the reference of ``speedup``.
+    rounds : int
+        Times every run is repeated (>= 1).
 
     Returns
     -------
     dict
-        ``scans``; ``runs`` (per W: ``workers``, ``wall_s``, ``scans_per_s``, ``cpu_s``,
-        ``cpu_per_scan_s``, ``core_share`` = CPU / (wall x W), ``processes``,
-        ``first_scans_wall_s``: a run of the first W scans alone, i.e. start-up and one
-        scan per worker, and ``steady_scans_per_s`` = (N - W) / (wall - that): the rate
-        of a long stream, start-up left out); ``speedup`` (scans/s of the last run over
-        the first's); ``steady_speedup`` (the same of the steady rates);
-        ``cpu_bound_speedup``
-        (W_last x CPU(first) / CPU(last), with W_last the last run's workers);
-        ``same_log`` (every log equal to the first's, but the timing);
-        ``load_average_1min`` (before the runs) and ``cpu_count``.
+        ``scans``; ``rounds``: per round, ``runs`` (per W: ``workers``, ``wall_s``,
+        ``scans_per_s``, ``cpu_s``, ``cpu_per_scan_s``, ``core_share`` = CPU / (wall x W),
+        ``processes``, ``first_scans_wall_s``: a run of the first W scans alone, i.e.
+        start-up and one scan per worker, and ``steady_scans_per_s`` = (N - W) / (wall -
+        that): the rate of a long stream, start-up left out), ``speedup`` (scans/s of the
+        last run over the first's), ``steady_speedup`` (the same of the steady rates) and
+        ``cpu_bound_speedup`` (W_last x CPU(first) / CPU(last), with W_last the last run's
+        workers); ``speedup``, ``steady_speedup`` and ``cpu_bound_speedup``: the medians
+        over the rounds (``speedup_range``, ``steady_speedup_range``: their smallest and
+        largest); ``runs``: the runs of the round whose speedup is the median (the lower
+        middle one of an even count); ``same_log`` (every log equal to the first's, but
+        the timing); ``load_average_1min`` (before the runs) and ``cpu_count``.
 
     Raises
     ------
     RuntimeError
         If a run fails (its last line of stderr).
+    ValueError
+        If ``rounds`` < 1.
     """
+    import statistics
+
     from boxloc.io import write_npz
 
+    if rounds < 1:
+        raise ValueError(f"rounds must be >= 1, got {rounds}")
     load = os.getloadavg()[0] if hasattr(os, "getloadavg") else None
+    logs: list[Any] = []
+    done: list[dict[str, Any]] = []
     with tempfile.TemporaryDirectory(prefix="boxloc-throughput-") as tmp:
         src = Path(tmp) / "scans"
         src.mkdir()
@@ -181,6 +203,7 @@ def measure_throughput(scans: list[Any], config: Any, *, workers: tuple[int, ...
 
         def run(w: int, sources: list[Path], name: str) -> dict[str, Any]:
             log = Path(tmp) / f"{name}.mcap"
+            log.unlink(missing_ok=True)
             r = run_measured([sys.executable, "-m", "boxloc.cli", "run", *map(str, sources),
                               "--record", str(log), "--config", str(cfg), "-q", "--workers",
                               str(w)])
@@ -190,34 +213,56 @@ def measure_throughput(scans: list[Any], config: Any, *, workers: tuple[int, ...
             r["log"] = log
             return r
 
-        runs, logs = [], []
-        for w in workers:
-            r = run(w, [src], f"workers{w}")
-            # start-up and one scan per worker: what the stream's steady state is without
-            first = run(w, files[:w], f"first{w}") if len(files) > w else None
-            steady = None if first is None or r["wall_s"] <= first["wall_s"] else \
-                (len(files) - w) / (r["wall_s"] - first["wall_s"])
-            runs.append({"workers": w, "wall_s": round(r["wall_s"], 3),
-                         "scans_per_s": round(len(scans) / r["wall_s"], 3),
-                         "cpu_s": round(r["cpu_s"], 3),
-                         "cpu_per_scan_s": round(r["cpu_s"] / len(scans), 4),
-                         # the share of its W cores the run got (about 1 on idle cores;
-                         # less when other work competes for them)
-                         "core_share": round(r["cpu_s"] / (r["wall_s"] * w), 3),
-                         "processes": r["processes"],
-                         "first_scans_wall_s": None if first is None else
-                         round(first["wall_s"], 3),
-                         "steady_scans_per_s": None if steady is None else round(steady, 3)})
-            logs.append(_messages(r["log"]))
-    first, last = runs[0], runs[-1]
-    steady = (None if not (first["steady_scans_per_s"] and last["steady_scans_per_s"]) else
-              round(last["steady_scans_per_s"] / first["steady_scans_per_s"], 3))
+        for _ in range(rounds):
+            runs = []
+            for w in workers:
+                r = run(w, [src], f"workers{w}")
+                # start-up and one scan per worker: what the stream's steady state is without
+                first = run(w, files[:w], f"first{w}") if len(files) > w else None
+                steady = None if first is None or r["wall_s"] <= first["wall_s"] else \
+                    (len(files) - w) / (r["wall_s"] - first["wall_s"])
+                runs.append({"workers": w, "wall_s": round(r["wall_s"], 3),
+                             "scans_per_s": round(len(scans) / r["wall_s"], 3),
+                             "cpu_s": round(r["cpu_s"], 3),
+                             "cpu_per_scan_s": round(r["cpu_s"] / len(scans), 4),
+                             # the share of its W cores the run got (about 1 on idle
+                             # cores; less when other work competes for them)
+                             "core_share": round(r["cpu_s"] / (r["wall_s"] * w), 3),
+                             "processes": r["processes"],
+                             "first_scans_wall_s": None if first is None else
+                             round(first["wall_s"], 3),
+                             "steady_scans_per_s": None if steady is None else
+                             round(steady, 3)})
+                logs.append(_messages(r["log"]))
+            first_run, last = runs[0], runs[-1]
+            done.append({
+                "runs": runs,
+                "speedup": round(last["scans_per_s"] / first_run["scans_per_s"], 3),
+                "steady_speedup": (
+                    None if not (first_run["steady_scans_per_s"]
+                                 and last["steady_scans_per_s"]) else
+                    round(last["steady_scans_per_s"] / first_run["steady_scans_per_s"], 3)),
+                "cpu_bound_speedup": round(last["workers"] * first_run["cpu_s"]
+                                           / last["cpu_s"], 3)})
+
+    def median(key: str) -> float | None:
+        vals = [d[key] for d in done if d[key] is not None]
+        return None if not vals else round(float(statistics.median(vals)), 3)
+
+    def span(key: str) -> list[float] | None:
+        vals = [d[key] for d in done if d[key] is not None]
+        return None if not vals else [min(vals), max(vals)]
+
+    order = sorted(range(len(done)), key=lambda i: done[i]["speedup"])
     return {
         "scans": len(scans),
-        "runs": runs,
-        "speedup": round(last["scans_per_s"] / first["scans_per_s"], 3),
-        "steady_speedup": steady,
-        "cpu_bound_speedup": round(last["workers"] * first["cpu_s"] / last["cpu_s"], 3),
+        "rounds": done,
+        "runs": done[order[(len(done) - 1) // 2]]["runs"],
+        "speedup": median("speedup"),
+        "speedup_range": span("speedup"),
+        "steady_speedup": median("steady_speedup"),
+        "steady_speedup_range": span("steady_speedup"),
+        "cpu_bound_speedup": median("cpu_bound_speedup"),
         "same_log": all(x == logs[0] for x in logs[1:]),
         "load_average_1min": None if load is None else round(load, 2),
         "cpu_count": os.cpu_count(),
@@ -268,7 +313,7 @@ def recording_section(ctx: Any) -> dict[str, Any]:
     mcap = measure_overhead(scans, ctx.config)
     rr = measure_rerun_overhead(scans, ctx.config)
     stream = [simulate(spec).scan for spec in ctx.specs[:N_STREAM]]
-    tp = measure_throughput(stream, ctx.config)
+    tp = measure_throughput(stream, ctx.config, rounds=STREAM_ROUNDS)
     fp = matrix_footprint()
     return {
         "scans": len(scans),

@@ -932,9 +932,17 @@ def footprint_summary(r: dict[str, Any], speed: dict[str, Any] | None = None) ->
               "", ""]]
     if runs:
         shares = " / ".join(num(runs[w].get("core_share"), 2) for w in sorted(runs))
+        rounds = len(tp.get("rounds") or [None])
+
+        def fig(key: str) -> str:  # the median, and the rounds' smallest and largest
+            r = tp.get(key + "_range")
+            rng = f" ({_times(r[0])}–{_times(r[1])})" if rounds > 1 and r else ""
+            return _times(tp.get(key)) + rng
+
+        med = f"median of {rounds} rounds: " if rounds > 1 else ""
         rows.append([f"`run --workers 2` / `--workers 1`, scans/s ({tp.get('scans')} scans)",
-                     f"{_times(tp.get('speedup'))} (steady {_times(tp.get('steady_speedup'))};"
-                     f" core shares {shares})", *_goal(sec, "run --workers 2")])
+                     f"{med}{fig('speedup')}, steady {fig('steady_speedup')}; core shares "
+                     f"{shares}", *_goal(sec, "run --workers 2")])
         rows.append(["`--workers 2` log = `--workers 1` log", num(tp.get("same_log")),
                      *_goal(sec, "run --workers 2 log")])
     if speed is not None:

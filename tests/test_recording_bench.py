@@ -8,6 +8,7 @@ made of, not for their values.
 from __future__ import annotations
 
 import sys
+from typing import Any
 
 import pytest
 
@@ -20,8 +21,25 @@ SPEC = "pallet:width=120,height=90,f=100"
 
 def test_throughput_runs_both_worker_counts_on_the_same_scans_and_compares_the_logs() -> None:
     scans = [sim.simulate(SPEC, seed=k).scan for k in (1, 2, 3)]
-    tp = measure_throughput(scans, Config())
-    assert tp["scans"] == 3
+    tp = measure_throughput(scans, Config(), rounds=2)
+    assert tp["scans"] == 3 and len(tp["rounds"]) == 2
+    # the figures are the rounds' medians (of two: their mean), the runs shown the lower one's
+    for key in ("speedup", "steady_speedup", "cpu_bound_speedup"):
+        vals = [r[key] for r in tp["rounds"] if r[key] is not None]
+        if vals:
+            assert tp[key] == pytest.approx(sum(vals) / len(vals), abs=1e-3)
+    assert tp["speedup_range"] == sorted(r["speedup"] for r in tp["rounds"])
+    low = min(tp["rounds"], key=lambda r: r["speedup"])
+    assert tp["runs"] == low["runs"]
+    for rnd in tp["rounds"]:
+        check_round(rnd)
+    assert tp["same_log"] is True
+    with pytest.raises(ValueError, match="rounds must be >= 1"):
+        measure_throughput(scans, Config(), rounds=0)
+
+
+def check_round(tp: dict[str, Any]) -> None:
+    """One round's runs: serial then parallel, each made of what it says."""
     one, two = tp["runs"]
     assert (one["workers"], two["workers"]) == (1, 2)
     # serial: one process; parallel: the parent, the forkserver and its workers at least
@@ -45,7 +63,6 @@ def test_throughput_runs_both_worker_counts_on_the_same_scans_and_compares_the_l
         assert tp["steady_speedup"] == pytest.approx(
             two["steady_scans_per_s"] / one["steady_scans_per_s"], rel=1e-2)
     assert tp["cpu_bound_speedup"] == pytest.approx(2 * one["cpu_s"] / two["cpu_s"], rel=1e-2)
-    assert tp["same_log"] is True
 
 
 def test_a_run_that_fails_is_an_error_with_its_message() -> None:
