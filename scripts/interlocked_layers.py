@@ -30,6 +30,7 @@ from boxloc.config import Config
 from boxloc.evaluate.packed_bench import score_packed
 from boxloc.pipeline import find_graspable_surfaces
 from boxloc.simulate import PALLET_SIZE, SceneSpec, look_down_pose, simulate_boxes
+from boxloc.simulate.layouts import weave_layer
 from boxloc.simulate.zoo import SENSORS
 
 #: Focal length at 640 px per sensor model (the matrix suite's).
@@ -49,20 +50,7 @@ def layer(rng: np.random.Generator, pattern: str) -> tuple[np.ndarray, tuple[flo
         turned[:] = False
     elif not turned.any():
         turned[int(rng.integers(nx)), int(rng.integers(ny))] = True
-    z = PALLET_SIZE[2] + h / 2
-    x0, y0 = -(nx * b + a) / 2, -ny * b / 2
-    boxes = []
-    for j in range(ny):
-        cy = y0 + (j + 0.5) * b
-        for i in range(nx):
-            cx = x0 + (i + 0.5) * b
-            for s in (-0.5, 0.5):
-                if turned[i, j]:  # two cartons along x, stacked in y
-                    boxes.append([cx, cy + s * a, z, b, a, h, 0.0])
-                else:  # two along y, side by side in x
-                    boxes.append([cx + s * a, cy, z, a, b, h, 0.0])
-        boxes.append([x0 + nx * b + a / 2, cy, z, a, b, h, 0.0])
-    return np.array(boxes), (a, b, h)
+    return weave_layer(a, h, turned, PALLET_SIZE[2] + h / 2), (a, b, h)
 
 
 def run(n: int, seed: int) -> dict[str, Any]:

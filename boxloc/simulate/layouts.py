@@ -116,46 +116,65 @@ def _layout_pallet(spec: SceneSpec, rng: np.random.Generator, partial: bool) -> 
 
 
 def _layout_weave(spec: SceneSpec, rng: np.random.Generator, n_layers: int) -> np.ndarray:
-    """Zero-gap layers of one carton, twice as long as wide (a x 2a), in a basket weave.
+    """Zero-gap layers of one carton, twice as long as wide (a x 2a), in a basket weave
+    (:func:`weave_layer`): as many cells as fit the pallet, each turned at random (at least
+    one per layer), the column of single cartons at either end.
 
-    Each layer is nx x ny square cells of two cartons side by side, each cell turned 90 deg
-    at random (at least one per layer), and one column of single cartons along one end:
-    (2 nx + 1) a by ny 2a, the outline of a grid of the carton laid one way, which the
-    layer is not. Real pallets interlock their layers so; a carton list alone cannot tell
-    the two apart, only seams that show can.
+    Real pallets interlock their layers so; a carton list alone cannot tell such a layer
+    from a grid, only seams that show can.
     """
     a = float(rng.uniform(spec.min_edge, spec.max_edge / 2))
     h = float(rng.uniform(spec.min_height, spec.max_height))
     while True:  # at least one cell: shrink the draw until it fits the pallet
-        b = 2 * a
-        nx = int((PALLET_SIZE[0] - a + 1e-9) // b)
-        ny = int((PALLET_SIZE[1] + 1e-9) // b)
+        nx = int((PALLET_SIZE[0] - a + 1e-9) // (2 * a))
+        ny = int((PALLET_SIZE[1] + 1e-9) // (2 * a))
         if (nx >= 1 and ny >= 1) or a <= spec.min_edge:
             break
         a = max(spec.min_edge, 0.9 * a)
     nx, ny = max(nx, 1), max(ny, 1)
-    boxes: list[list[float]] = []
+    layers = []
     for layer in range(n_layers):
         turned = rng.random((nx, ny)) < 0.5
         if not turned.any():
             turned[int(rng.integers(nx)), int(rng.integers(ny))] = True
-        column_first = bool(rng.random() < 0.5)  # the single cartons' end
-        ext_x, ext_y = (2 * nx + 1) * a, ny * b
-        off = rng.uniform(-0.5, 0.5, 2) * 0.5 * np.array(
-            [max(PALLET_SIZE[0] - ext_x, 0.0), max(PALLET_SIZE[1] - ext_y, 0.0)])
-        x0, y0 = off[0] - ext_x / 2 + (a if column_first else 0.0), off[1] - ext_y / 2
-        xc = off[0] - ext_x / 2 + a / 2 if column_first else off[0] + ext_x / 2 - a / 2
-        z = _PALLET_TOP + layer * h + h / 2
-        for j in range(ny):
-            cy = y0 + (j + 0.5) * b
-            for i in range(nx):
-                cx = x0 + (i + 0.5) * b
-                for s in (-0.5, 0.5):
-                    if turned[i, j]:  # two cartons along x, one above the other in y
-                        boxes.append([cx, cy + s * a, z, b, a, h, 0.0])
-                    else:  # two along y, side by side in x
-                        boxes.append([cx + s * a, cy, z, a, b, h, 0.0])
-            boxes.append([xc, cy, z, a, b, h, 0.0])
+        column_first = bool(rng.random() < 0.5)
+        ext = np.array([(2 * nx + 1) * a, ny * 2 * a])
+        off = rng.uniform(-0.5, 0.5, 2) * 0.5 * np.maximum(np.array(PALLET_SIZE[:2]) - ext, 0.0)
+        layers.append(weave_layer(a, h, turned, _PALLET_TOP + layer * h + h / 2,
+                                  (float(off[0]), float(off[1])), column_first))
+    return np.concatenate(layers)
+
+
+def weave_layer(a: float, h: float, turned: np.ndarray, z: float,
+                centre: tuple[float, float] = (0.0, 0.0), column_first: bool = False
+                ) -> np.ndarray:
+    """One zero-gap layer of cartons a x 2a x h laid as a basket weave, (B, 7) base frame.
+
+    ``turned`` (nx, ny) bool: nx x ny square cells of 2a, each of two cartons side by side
+    along x (False) or one above the other in y, their long edges along x (True); then one
+    column of single cartons along y, their long edges along y, after the cells (before
+    them if ``column_first``). The layer is (2 nx + 1) a by 2 ny a, centred on ``centre``
+    (metres), its boxes' centres at height ``z``: the outline of a grid of the carton laid
+    one way (and of no grid of it turned, 2 nx + 1 being odd), which it is only where no
+    cell is turned.
+    """
+    nx, ny = turned.shape
+    b = 2 * a
+    ext_x, ext_y = (2 * nx + 1) * a, ny * b
+    x0 = centre[0] - ext_x / 2 + (a if column_first else 0.0)
+    xc = centre[0] - ext_x / 2 + a / 2 if column_first else centre[0] + ext_x / 2 - a / 2
+    y0 = centre[1] - ext_y / 2
+    boxes: list[list[float]] = []
+    for j in range(ny):
+        cy = y0 + (j + 0.5) * b
+        for i in range(nx):
+            cx = x0 + (i + 0.5) * b
+            for s in (-0.5, 0.5):
+                if turned[i, j]:
+                    boxes.append([cx, cy + s * a, z, b, a, h, 0.0])
+                else:
+                    boxes.append([cx + s * a, cy, z, a, b, h, 0.0])
+        boxes.append([xc, cy, z, a, b, h, 0.0])
     return np.asarray(boxes, dtype=np.float64)
 
 
