@@ -17,10 +17,6 @@ simulated scan (:class:`SimScan`) is made in the worker as well: its spec and se
 not the scan. The parent's share of the work per scan is then reading the source and
 writing the chunk.
 
-Each worker holds up to :data:`DEPTH` scans, the one it runs and the next, and its own
-threads receive the next and send back the last while it runs one: a worker never waits
-for the parent between two scans (the parent may be writing a chunk when one is done).
-
 Bounds and failures:
 
 * At most ``window`` (default ``2 N``) items are held between reading and replaying: one
@@ -30,8 +26,7 @@ Bounds and failures:
   it exactly as a serial run does.
 * A scan whose worker dies (killed, out of memory, a crash in native code) is given to a
   new worker once; after a second loss it becomes a :class:`WorkerLost` error of that scan.
-  The other scans are not touched (one sent to that worker behind it, never started, goes
-  back in line uncounted).
+  The other scans are not touched.
 * Workers ignore SIGINT and SIGTERM: the parent alone decides. When ``stop()`` turns true,
   no new scan is read, and the scans already read are finished and yielded, so the caller
   records everything it started. Closing the generator early (an exception in the caller)
@@ -69,8 +64,8 @@ if TYPE_CHECKING:
     from boxloc.scan import Scan
     from recorder.mcap.sink import EncodedScan
 
-__all__ = ["DEPTH", "Collector", "Encoding", "Job", "RemoteError", "ScanRun", "SimScan",
-           "WorkerLost", "default_workers", "ordered_runs", "run_job", "start_early"]
+__all__ = ["Collector", "Encoding", "Job", "RemoteError", "ScanRun", "SimScan", "WorkerLost",
+           "default_workers", "ordered_runs", "run_job", "start_early"]
 
 #: New workers a scan gets after the one running it died: one, for a loss that was not the
 #: scan's fault (the OOM killer chose it); a scan that kills its worker twice is failed.
@@ -396,62 +391,27 @@ def _lean(scan: Scan) -> Scan:
 
 
 def _worker_main(conn: Connection) -> None:
-    """A worker process: run the scans it is sent, one at a time, in the order sent, until
-    ``None``.
-
-    Two threads keep the pipe moving while the main thread runs a scan: one receives the
-    next scans' bytes as the parent sends them (the parent queues up to :data:`DEPTH` per
-    worker), one sends each result while the next scan runs. Without them a worker waits
-    for the parent twice per scan: to take its result (the parent is writing the previous
-    scan's chunk) and to send the next scan, about 4 % of its time at 640x480 here. A scan
-    is unpickled only when it starts, so a scan that kills its worker (as the OOM killer
-    would) does so as the one running.
-    """
-    import queue
-    import threading
-    from multiprocessing.reduction import ForkingPickler
-
+    """A worker process: run the scans it is sent, one at a time, until ``None``."""
     # The parent alone reacts to Ctrl-C (sent to the whole process group) and SIGTERM: it
     # stops reading scans, and lets the workers finish the ones they have.
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.signal(signal.SIGTERM, signal.SIG_IGN)
-    inbox: queue.SimpleQueue[bytes | None] = queue.SimpleQueue()
-    outbox: queue.SimpleQueue[bytes | None] = queue.SimpleQueue()
-
-    def receive() -> None:
-        while True:
-            try:
-                inbox.put(conn.recv_bytes())
-            except (EOFError, OSError):  # the parent is gone
-                inbox.put(None)
-                return
-
-    def send() -> None:
-        while (data := outbox.get()) is not None:
-            try:
-                conn.send_bytes(data)
-            except (OSError, EOFError):  # the parent is gone
-                return
-
-    threading.Thread(target=receive, daemon=True, name="boxloc-receive").start()
-    sender = threading.Thread(target=send, daemon=True, name="boxloc-send")
-    sender.start()
-    try:
-        while (buf := inbox.get()) is not None:
-            msg = ForkingPickler.loads(buf)
-            if msg is None:
-                break
-            i, job, encoding = msg
-            run = run_job(job, encoding)
-            try:
-                data = bytes(ForkingPickler.dumps((i, run)))
-            except Exception as e:  # noqa: BLE001 - a product that does not pickle: say so
-                data = bytes(ForkingPickler.dumps((i, ScanRun(run.calls[:1], None, _ErrorInfo(
-                    type(e).__name__, f"the scan's products could not be sent: {e}")))))
-            outbox.put(data)
-    finally:
-        outbox.put(None)
-        sender.join()  # every result sent before the worker leaves
+    while True:
+        try:
+            msg = conn.recv()
+        except (EOFError, OSError):  # the parent is gone
+            return
+        if msg is None:
+            return
+        i, job, encoding = msg
+        run = run_job(job, encoding)
+        try:
+            conn.send((i, run))
+        except (OSError, EOFError):
+            return
+        except Exception as e:  # noqa: BLE001 - a product that does not pickle: say so
+            conn.send((i, ScanRun(run.calls[:1], None, _ErrorInfo(
+                type(e).__name__, f"the scan's products could not be sent: {e}"))))
 
 
 # --- the pool -------------------------------------------------------------------------------
@@ -491,16 +451,11 @@ def _context() -> Any:
     return ctx
 
 
-#: Scans a worker holds at most: the one it runs and the next, already sent, so that it
-#: starts the next one the moment it is done (:func:`_worker_main`).
-DEPTH = 2
-
-
 @dataclass
 class _Worker:
     proc: Any
     conn: Connection
-    tasks: deque[int] = field(default_factory=deque)  # sent, in order; the first runs
+    task: int | None = None
 
 
 @dataclass
@@ -513,22 +468,15 @@ class _Pool:
     procs: list[Any] = field(default_factory=list)
 
     def has_room(self) -> bool:
-        """Whether a worker can take a scan now (fewer than :data:`DEPTH`, or room for a
-        new worker)."""
-        return len(self.live) < self.size or any(len(w.tasks) < DEPTH for w in self.live)
+        """Whether a scan sent now would start at once (an idle worker, or room for one)."""
+        return len(self.live) < self.size or any(w.task is None for w in self.live)
 
     def free(self) -> _Worker:
-        """An idle worker, else a new one, else the one with the fewest scans (call only
-        when :meth:`has_room`): every worker runs a scan before any queues a second."""
+        """An idle worker, else a new one (call only when :meth:`has_room`)."""
         for w in self.live:
-            if not w.tasks:
+            if w.task is None:
                 return w
-        if len(self.live) < self.size:
-            return self._start()
-        return min((w for w in self.live if len(w.tasks) < DEPTH), key=lambda w: len(w.tasks))
-
-    def _start(self) -> _Worker:
-        """A new worker process."""
+        assert len(self.live) < self.size
         _pin_threads()
         parent, child = self.ctx.Pipe()
         # Not a daemon: a worker may start processes itself (Config.workers > 1).
@@ -542,7 +490,7 @@ class _Pool:
         return w
 
     def busy(self) -> list[_Worker]:
-        return [w for w in self.live if w.tasks]
+        return [w for w in self.live if w.task is not None]
 
     def retire(self, w: _Worker) -> None:
         """Tell a worker to leave (if it still listens) and forget it."""
@@ -628,18 +576,14 @@ def ordered_runs(items: Iterable[Any], workers: int, *,
             done[i] = None
         return None
 
-    def lost(w: _Worker) -> None:
-        """Worker ``w`` died: the scan it ran goes to a new one, or is failed; the scans
-        queued behind it, never started, go back in line as they were."""
-        i, *queued = w.tasks
-        w.tasks.clear()
+    def lost(w: _Worker, i: int) -> None:
+        """Worker ``w`` died with scan ``i``: give it to a new one, or fail it."""
         tries[i] = tries.get(i, 0) + 1
         pool.retire(w)
         w.proc.join(timeout=5)  # for its exit code
         if w.proc.is_alive():  # its pipe broke, it did not: it cannot be reached any more
             w.proc.kill()
             w.proc.join(timeout=5)
-        retry.extendleft(reversed(queued))
         if tries[i] > retries:
             done[i] = _lost(held[i], w.proc.exitcode, tries[i])
         else:
@@ -649,18 +593,18 @@ def ordered_runs(items: Iterable[Any], workers: int, *,
     finished = False
     try:
         while True:
-            # 1. every worker with room (or room for a new one) gets the next scan
+            # 1. every idle worker (or room for a new one) gets the next scan
             while pool.has_room():
                 i = next_task()
                 if i is None:
                     break
                 w, job = pool.free(), held[i]
-                w.tasks.append(i)
+                w.task = i
                 try:
                     lean = job.scan if isinstance(job.scan, SimScan) else _lean(job.scan)
                     w.conn.send((i, Job(lean, job.config), encoding))
-                except OSError:  # it died
-                    lost(w)
+                except OSError:  # it died between two scans
+                    lost(w, i)
             # 2. the next item in order, as soon as it is there
             if n_out in done:
                 item, run = held.pop(n_out), done.pop(n_out)
@@ -677,15 +621,16 @@ def ordered_runs(items: Iterable[Any], workers: int, *,
             for w in busy:
                 if w.conn not in ready and w.proc.sentinel not in ready:
                     continue
-                i = w.tasks[0]  # results come back in the order the scans were sent
+                i = w.task
+                assert i is not None
                 try:
                     got, run = w.conn.recv()
                 except (EOFError, OSError):
-                    lost(w)
+                    lost(w, i)
                     continue
                 except Exception as e:  # noqa: BLE001 - a result that does not unpickle
                     got, run = i, _failed(held[i], e)
-                w.tasks.popleft()
+                w.task = None
                 done[got] = run
         finished = True
     finally:

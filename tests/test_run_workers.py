@@ -27,7 +27,6 @@ from boxloc.scan import Scan
 from recorder.mcap import channels as C
 from recorder.mcap.log import open_log
 from recorder.stream import (
-    DEPTH,
     Encoding,
     Job,
     RemoteError,
@@ -411,42 +410,6 @@ def test_a_scan_that_kills_its_worker_is_failed_and_the_others_run() -> None:
     assert rb is not None and isinstance(rb.error, WorkerLost)
     assert "died 2 time(s)" in str(rb.error) and "exit code 3" in str(rb.error)
     assert [c[0] for c in rb.calls] == ["on_scan"]  # recorded as a scan with its error
-
-
-def test_a_worker_holds_the_next_scan_while_it_runs_one() -> None:
-    """One worker is sent a second scan before its first is done (DEPTH), so it never
-    waits for the parent between two scans."""
-    assert DEPTH == 2
-    jobs = _jobs(4)
-    read = 0
-
-    def source() -> object:
-        nonlocal read
-        for j in jobs:
-            read += 1
-            yield j
-
-    seen = []
-    for _, run in ordered_runs(source(), 1, window=4):
-        # at the first result: scan 0 done, scan 1 queued, then scan 2 sent at once
-        seen.append(read)
-        assert run is not None and run.error is None
-    assert seen[0] == 3 and seen == [3, 4, 4, 4]
-
-
-def test_a_scan_queued_behind_one_that_kills_its_worker_is_not_charged() -> None:
-    """The scans sent to a worker that dies behind the one it ran never started: they go
-    back in line and are not counted against (with no retry, the killer alone fails)."""
-    a, b, c = _jobs(3)
-    deadly = Job(Scan(range=a.scan.range, sensor=a.scan.sensor, index=a.scan.index,
-                      meta={"x": _ExitOnUnpickle()}), a.config)
-    out = list(ordered_runs([deadly, b, c], 1, retries=0))
-    assert [job.scan.index for job, _ in out] == [a.scan.index, b.scan.index, c.scan.index]
-    (_, ra), (_, rb), (_, rc) = out
-    assert ra is not None and isinstance(ra.error, WorkerLost)
-    assert "died 1 time(s)" in str(ra.error)
-    for r in (rb, rc):
-        assert r is not None and r.error is None and r.result is not None
 
 
 def test_a_scan_goes_to_its_worker_without_its_caches() -> None:
