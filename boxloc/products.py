@@ -121,8 +121,8 @@ class AmbiguityReason(IntEnum):
     #: that carton's listed height above what lies beyond its sides (a bare pallet)
     TOO_LOW_FOR_THE_SIZE = 5
     #: with a carton list: the region is a grid of a listed size, but the cartons can be
-    #: laid over it another way too (turned, a brick or pinwheel pattern), and no seam
-    #: shows the grid's cuts
+    #: laid over it another way too (turned, a brick, pinwheel or basket weave), and its
+    #: seams show neither the grid's cuts nor one other tiling's carton sides
     SEVERAL_TILINGS = 6
 
 

@@ -176,8 +176,9 @@ class TestKind(IntEnum):
     #: b = the grid's listed size): statistic = the cartons laid otherwise (turned, or of
     #: another size) in the first other tiling found, 0 if none, NaN where the search
     #: stopped at its budget (``sizes.MAX_TILING_STATES`` skylines) undecided; critical 0.
-    #: Rejected leaves the region unsplit (``SEVERAL_TILINGS``): only seams seen at every
-    #: cut of a grid show it is the grid (their SKU_SPLIT_SEAM rows)
+    #: Rejected: seams seen at every cut of a grid show it is the grid (their SKU_SPLIT_SEAM
+    #: rows), seams seen along every inner carton side of one tiling show that one
+    #: (SKU_SEEN_TILING); else the region stays unsplit (``SEVERAL_TILINGS``)
     SKU_TILING = 37
     #: verification: a seam crosses verified attempt a's interior where a side of verified
     #: attempt b, which touches it, runs on into it (a flush neighbour's seam continuing
@@ -185,6 +186,14 @@ class TestKind(IntEnum):
     #: (both halves), over its spread along a; critical = z at alpha over the lines a is
     #: tested at. Accepted where no seam is seen; rejected rejects a (``INTERIOR_SEAM``)
     VERIFY_SEAM_IN_LINE = 38
+    #: hypothesis stage, in a flat region's rows, where its grid is not the only tiling of
+    #: its outline (SKU_TILING rejected): the tilings by the listed cartons whose every
+    #: carton side inside the region shows a seam (:func:`boxloc.stages.sizes.
+    #: seen_tilings`; b = the cartons laid otherwise than the grid in the first one, -1 if
+    #: none): statistic = how many (2: two or more; NaN where the search stopped at its
+    #: budget), critical 1. Accepted for exactly one: the region is split into it, its
+    #: sides' grooves in SKU_SPLIT_SEAM rows after the grid's cuts; else ``SEVERAL_TILINGS``
+    SKU_SEEN_TILING = 39
 
 
 #: ``TestKind.BUDGET`` rows' ``a``: the stage whose budget it is.
@@ -210,6 +219,7 @@ RELATION: dict[TestKind, str | None] = {
     TestKind.VERIFY_CONTINUATION: "<", TestKind.VERIFY_SEAM_CROSSING: "<",
     TestKind.END_EVIDENCE: ">=", TestKind.SKU_SPLIT_SEAM: ">", TestKind.BOX_HEIGHT: ">",
     TestKind.BUDGET: "<", TestKind.LAYER_HEIGHT: ">", TestKind.VERIFY_SEAM_IN_LINE: "<=",
+    TestKind.SKU_SEEN_TILING: None,
 }
 
 _RELATION_OPS = {"<=": operator.le, "<": operator.lt, ">": operator.gt, ">=": operator.ge}

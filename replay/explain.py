@@ -109,12 +109,12 @@ _AMBIGUITY_TEXT = {
                                           "above what lies beyond its sides (a bare pallet)",
     AmbiguityReason.SEVERAL_TILINGS: "it is a grid of a listed size, but the cartons can be "
                                      "laid over its outline another way too (turned: a "
-                                     "brick or pinwheel pattern), and no seam shows the "
-                                     "grid's cuts",
+                                     "brick, pinwheel or basket weave), and its seams do "
+                                     "not show which way",
 }
 #: the tests behind an ambiguous region or a box's size and height
 _REGION_TESTS = (TestKind.END_EVIDENCE, TestKind.SKU_SPLIT_SEAM, TestKind.SKU_SIZE,
-                 TestKind.SKU_TILING)
+                 TestKind.SKU_TILING, TestKind.SKU_SEEN_TILING)
 _HEIGHT_TEXT = {HeightSource.SIDE: "from its visible side face",
                 HeightSource.STEP: "from the step down to its neighbour or the layer below",
                 HeightSource.SKU: "the matched carton size's height",

@@ -70,7 +70,14 @@ from boxloc.stages.seams import (
     find_seams,
     norm_isf,
 )
-from boxloc.stages.sizes import distinct, match_size, other_tiling, region_splits
+from boxloc.stages.sizes import (
+    Split,
+    distinct,
+    match_size,
+    other_tiling,
+    region_splits,
+    seen_tilings,
+)
 from boxloc.stages.verify import (
     BOUNDARY_BAND,
     SIDE_CORNERS,
@@ -1164,35 +1171,50 @@ def _distinct_regions(works: list[_VertexWork], vertices: VertexSet,
     return [[(i, a) for i, a, _ in g] for g in groups]
 
 
-def _cut_evidence(R: Rectangle, att: _Attempt, ctx: _Context, cuts_x: list[float],
-                  cuts_y: list[float]) -> tuple[np.ndarray, np.ndarray]:
-    """The groove statistic at each implied seam of a region, however weak: (z, critical)
-    of :func:`boxloc.stages.verify.seam_line` at the seam level, the cuts along x then y.
+_Seam = Callable[[int, float, float, float], tuple[float, float]]
 
-    As a side's seam is tested: along the whole cut (both halves must show it, so a seam
-    that crosses the cut, between two cartons turned across it, is no seam along it), over
-    the statistic's robust spread along the region (:func:`boxloc.stages.seams.
+
+def _region_seams(R: Rectangle, att: _Attempt, ctx: _Context) -> _Seam:
+    """The groove statistic along a line of a region, however weak: ``seam(axis, at,
+    start, end)`` is (z, critical) of :func:`boxloc.stages.verify.seam_line` at the seam
+    level along ``u = at`` (``axis`` 0) or ``v = at`` (1), over the region's points from
+    ``start`` to ``end`` along it (metres in ``R``'s frame); NaN, NaN without points.
+
+    As a side's seam is tested: along the whole line (both halves must show it, so a seam
+    that crosses it, between two cartons turned across it, is no seam along it), over the
+    statistic's robust spread along the whole region (:func:`boxloc.stages.seams.
     face_spread`: correlated depth noise spreads it beyond N(0, 1))."""
     vc = ctx.verify_ctx
     spacing = vc.spacing_at(R.origin + 0.5 * att.width * R.x_axis + 0.5 * att.length * R.y_axis)
     fp = face_points(vc.points, vc.valid, vc.sigma, vc.project, R.origin, R.x_axis, R.y_axis,
                      R.normal, (0.0, att.width), (0.0, att.length), spacing, ctx.config.alpha,
                      ctx.config.noise.row_corr)
-    z, zc = [], []
-    for axis, cuts, size, ext in ((0, cuts_x, att.width, att.length),
-                                  (1, cuts_y, att.length, att.width)):
-        if not cuts:
-            continue
+    spreads: dict[int, tuple[float, ...]] = {}
+    memo: dict[tuple[int, float, float, float], tuple[float, float]] = {}
+
+    def seam(axis: int, at: float, start: float, end: float) -> tuple[float, float]:
         if not len(fp):
-            z += [np.nan] * len(cuts)
-            zc += [np.nan] * len(cuts)
-            continue
-        spread = whole_face_spread(fp, axis, size, ext, spacing)
-        for c in cuts:
-            a, b = seam_line(fp, axis, c, ext, spacing, vc.seam_alpha, spread=spread)
-            z.append(a)
-            zc.append(b)
-    return np.array(z, np.float64), np.array(zc, np.float64)
+            return np.nan, np.nan
+        key = (axis, at, start, end)
+        if key not in memo:
+            if axis not in spreads:
+                size, ext = (att.width, att.length) if axis == 0 else (att.length, att.width)
+                spreads[axis] = whole_face_spread(fp, axis, size, ext, spacing)
+            memo[key] = seam_line(fp, axis, at, end, spacing, vc.seam_alpha,
+                                  spread=spreads[axis], start=start)
+        return memo[key]
+
+    return seam
+
+
+def _cut_evidence(seam: _Seam, att: _Attempt, cuts_x: list[float], cuts_y: list[float]
+                  ) -> tuple[np.ndarray, np.ndarray]:
+    """(z, critical) of ``seam`` (:func:`_region_seams`) along each whole cut of a grid,
+    the cuts along x then y."""
+    zz = [seam(0, c, 0.0, att.length) for c in cuts_x] + \
+        [seam(1, c, 0.0, att.width) for c in cuts_y]
+    return (np.array([p[0] for p in zz], np.float64),
+            np.array([p[1] for p in zz], np.float64))
 
 
 def _too_low(R: Rectangle, att: _Attempt, ctx: _Context, listed: float) -> TestTable | None:
@@ -1249,9 +1271,10 @@ def _plan_split(ctx: _Context, h: int, att: _Attempt, single: set[int]) -> list[
         att.threshold = float(AmbiguityReason.NOT_A_MULTIPLE_OF_A_SIZE)
         return []
     evidence = []
+    seam = _region_seams(R, att, ctx)
     for sp in splits:
         ax, bx = att.width / sp.nx, att.length / sp.ny  # the measured part
-        z, zc = _cut_evidence(R, att, ctx, [ax * i for i in range(1, sp.nx)],
+        z, zc = _cut_evidence(seam, att, [ax * i for i in range(1, sp.nx)],
                               [bx * j for j in range(1, sp.ny)])
         evidence.append((z, zc, bool(len(z)) and bool(np.all(z > zc))))
     seen = [i for i, e in enumerate(evidence) if e[2]]
@@ -1274,16 +1297,21 @@ def _plan_split(ctx: _Context, h: int, att: _Attempt, single: set[int]) -> list[
     rows = [TestTable.chi2(TestKind.SKU_SIZE, -1, sp.sku, sp.statistic, 2.0, cfg.alpha),
             TestTable.decision(TestKind.SKU_SPLIT_SEAM, -1, np.arange(len(z)), z, zc,
                                z > zc, cfg.alpha)]
+    cells: list[tuple[float, float, float, float, frozenset[int]]] | None = None
     if tiling is not None:
         rows.append(TestTable.decision(
             TestKind.SKU_TILING, -1, sp.sku,
             np.nan if tiling.exhausted else float(tiling.turned), 0.0, tiling.unique,
             cfg.alpha))
         if not tiling.unique:
-            att.outcome = dataclasses.replace(out, tests=TestTable.concat([out.tests, *rows],
-                                                                          cfg.alpha))
-            att.threshold = float(AmbiguityReason.SEVERAL_TILINGS)
-            return []
+            # another tiling fits the outline: the layer is the one its seams show, if one
+            cells, seen_rows = _seen_tiling(sp, att, seam, cfg, len(z))
+            rows += seen_rows
+            if cells is None:
+                att.outcome = dataclasses.replace(
+                    out, tests=TestTable.concat([out.tests, *rows], cfg.alpha))
+                att.threshold = float(AmbiguityReason.SEVERAL_TILINGS)
+                return []
     low = _too_low(R, att, ctx, cfg.box_sizes[sp.sku][2])
     if low is not None:
         rows.append(low)
@@ -1293,22 +1321,78 @@ def _plan_split(ctx: _Context, h: int, att: _Attempt, single: set[int]) -> list[
         att.threshold = float(AmbiguityReason.TOO_LOW_FOR_THE_SIZE)
         return []
     att.threshold = np.nan
-    pw, pl = att.width / sp.nx, att.length / sp.ny
+    if cells is None:  # the grid: its parts measured as the region's extent over the count
+        pw, pl = att.width / sp.nx, att.length / sp.ny
+        cells = [(i * pw, j * pl, pw, pl, frozenset(si for si, ok in enumerate(
+            (j > 0, j < sp.ny - 1, i > 0, i < sp.nx - 1)) if ok))
+            for j in range(sp.ny) for i in range(sp.nx)]
     C = vertices.covariances[h]
     origin, x_axis, y_axis, normal = _in_plane(R, out)
     parts: list[_Part] = []
-    for j in range(sp.ny):
-        for i in range(sp.nx):
-            u, v = i * pw, j * pl
-            cov = np.zeros((9, 9))
-            cov[:3, :3] = _corner(C, u, v, cfg.angle_tolerance)
-            cov[3:, 3:] = C[3:, 3:]
-            inner = frozenset(si for si, ok in enumerate(
-                (j > 0, j < sp.ny - 1, i > 0, i < sp.nx - 1)) if ok)
-            parts.append(((origin + u * x_axis + v * y_axis, x_axis, y_axis, normal, cov), h,
-                          _Attempt(DimensionSource.SKU_SPLIT, -1, pw, pl, float(h), np.nan),
-                          inner))
+    for u, v, pw, pl, inner in cells:
+        cov = np.zeros((9, 9))
+        cov[:3, :3] = _corner(C, u, v, cfg.angle_tolerance)
+        cov[3:, 3:] = C[3:, 3:]
+        parts.append(((origin + u * x_axis + v * y_axis, x_axis, y_axis, normal, cov), h,
+                      _Attempt(DimensionSource.SKU_SPLIT, -1, pw, pl, float(h), np.nan),
+                      inner))
     return parts
+
+
+def _seen_tiling(sp: Split, att: _Attempt, seam: _Seam, cfg: Config, n_cuts: int
+                 ) -> tuple[list[tuple[float, float, float, float, frozenset[int]]] | None,
+                            list[TestTable]]:
+    """The cartons of a region whose grid ``sp`` is not the only tiling of its outline, as
+    its seams show them (:func:`boxloc.stages.sizes.seen_tilings`): the one tiling whose
+    every carton side inside the region shows a seam (``seam``, :func:`_region_seams`, at
+    the seam level), in the region's measured frame (the grid's nominal frame stretched to
+    the region's extent). None where no such tiling or several exist.
+
+    Rows: SKU_SEEN_TILING (b = the cartons laid otherwise than the grid in the tiling
+    found, -1 if none; statistic = the tilings found, 2 for two or more, NaN where the
+    search stopped at its budget; critical 1; accepted for exactly one), and for the one
+    found, SKU_SPLIT_SEAM of each carton side inside it (b from ``n_cuts`` on, the grid's
+    cuts before them; in the order the cartons were laid, each carton's sides x = its
+    start, its end, then y = its start, its end, each once).
+    """
+    sx, sy = att.width / (sp.nx * sp.a), att.length / (sp.ny * sp.b)
+
+    def seen(axis: int, at: float, start: float, end: float) -> bool:
+        k = sx if axis == 0 else sy
+        ks = sy if axis == 0 else sx
+        z, zc = seam(axis, at * k, start * ks, end * ks)
+        return bool(z > zc)
+
+    found = seen_tilings(sp, cfg.box_sizes, cfg.size_tolerance, seen)
+    U, V, tol = sp.nx * sp.a, sp.ny * sp.b, cfg.size_tolerance
+    turned = -1
+    if found.tilings:
+        turned = sum(1 for _, _, fx, fy in found.tilings[0]
+                     if abs(fx - sp.a) > tol or abs(fy - sp.b) > tol)
+    stat = np.nan if found.exhausted else float(min(len(found.tilings), 2))
+    rows = [TestTable.decision(TestKind.SKU_SEEN_TILING, -1, turned, stat, 1.0, found.unique,
+                               cfg.alpha)]
+    if not found.unique:
+        return None, rows
+    cells = []
+    sides: list[tuple[int, float, float, float]] = []
+    for x0, y0, fx, fy in found.tilings[0]:
+        x1, y1 = x0 + fx, y0 + fy
+        inner = []
+        for si, ok, side in ((0, y0 > tol, (1, y0, x0, x1)), (1, y1 < V - tol, (1, y1, x0, x1)),
+                             (2, x0 > tol, (0, x0, y0, y1)), (3, x1 < U - tol, (0, x1, y0, y1))):
+            if ok:
+                inner.append(si)
+                if side not in sides:
+                    sides.append(side)
+        cells.append((x0 * sx, y0 * sy, fx * sx, fy * sy, frozenset(inner)))
+    zz = [seam(ax, at * (sx if ax == 0 else sy), a0 * (sy if ax == 0 else sx),
+               a1 * (sy if ax == 0 else sx)) for ax, at, a0, a1 in sides]
+    z = np.array([p[0] for p in zz], np.float64)
+    zc = np.array([p[1] for p in zz], np.float64)
+    rows.append(TestTable.decision(TestKind.SKU_SPLIT_SEAM, -1, n_cuts + np.arange(len(z)),
+                                   z, zc, z > zc, cfg.alpha))
+    return cells, rows
 
 
 def _in_plane(R: Rectangle, out: VerifyOutcome

@@ -15,11 +15,13 @@ in the nearer of the two orientations, with sigma = ``Config.size_tolerance`` (S
 the nearest integers, nx ny >= 2: a multiple (2x1, 3x1, 2x2, ...). A grid is what the
 extent implies only where no other tiling by the listed cartons fits it
 (:func:`other_tiling`): a layer laid in a brick or pinwheel pattern has the outline of a
-grid too.
+grid too. Such a layer is split only where its seams show how it is laid: the one tiling
+whose every carton side inside the region is a seam that shows (:func:`seen_tilings`).
 """
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -206,15 +208,7 @@ def other_tiling(split: Split, sizes: tuple[tuple[float, float, float], ...],
     """
     a, b = split.a, split.b
     U, V = split.nx * a, split.ny * b
-    h0 = sizes[split.sku][2]
-    feet: list[tuple[float, float]] = []
-    for w, ln, h in sizes:
-        if np.isfinite(h0) and np.isfinite(h) and abs(h - h0) > 3.0 * tolerance:
-            continue  # not of the layer's height
-        for fx, fy in ((w, ln), (ln, w)):
-            if not any(abs(fx - gx) <= tolerance and abs(fy - gy) <= tolerance
-                       for gx, gy in feet):
-                feet.append((fx, fy))
+    feet = layer_footprints(split, sizes, tolerance)
 
     def grid_like(f: tuple[float, float]) -> bool:
         return abs(f[0] - a) <= tolerance and abs(f[1] - b) <= tolerance
@@ -275,3 +269,134 @@ def other_tiling(split: Split, sizes: tuple[tuple[float, float, float], ...],
     except _Exhausted:
         return Tiling(0, states, True)
     return Tiling(turned, states, False)
+
+
+#: A carton laid in a region by :func:`seen_tilings`: its corner (x, y) and its extent along
+#: x and y, metres, in the grid's nominal frame (0 to nx a, 0 to ny b).
+Placed = tuple[float, float, float, float]
+
+
+@dataclass(frozen=True)
+class SeenTilings:
+    """The tilings of a region whose every inner carton side is a seam that shows.
+
+    Attributes
+    ----------
+    tilings : list of list of Placed
+        At most ``limit`` of them, in the order found.
+    states : int
+        Skyline states the search visited.
+    exhausted : bool
+        The search stopped at its budget before deciding.
+    """
+
+    tilings: list[list[Placed]]
+    states: int
+    exhausted: bool
+
+    @property
+    def unique(self) -> bool:
+        """Exactly one such tiling, the search complete."""
+        return len(self.tilings) == 1 and not self.exhausted
+
+
+def layer_footprints(split: Split, sizes: tuple[tuple[float, float, float], ...],
+                     tolerance: float) -> list[tuple[float, float]]:
+    """The listed footprints that make up one layer with ``split``'s carton, either way
+    round, each once (two within ``tolerance`` along both axes are one): cartons of its
+    height (listed heights more than three tolerances apart are not; a height not listed
+    matches any)."""
+    h0 = sizes[split.sku][2]
+    feet: list[tuple[float, float]] = []
+    for w, ln, h in sizes:
+        if np.isfinite(h0) and np.isfinite(h) and abs(h - h0) > 3.0 * tolerance:
+            continue  # not of the layer's height
+        for fx, fy in ((w, ln), (ln, w)):
+            if not any(abs(fx - gx) <= tolerance and abs(fy - gy) <= tolerance
+                       for gx, gy in feet):
+                feet.append((fx, fy))
+    return feet
+
+
+def seen_tilings(split: Split, sizes: tuple[tuple[float, float, float], ...],
+                 tolerance: float, seen: Callable[[int, float, float, float], bool],
+                 limit: int = 2, max_states: int = MAX_TILING_STATES) -> SeenTilings:
+    """Every way (up to ``limit``) to lay the listed cartons over ``split``'s extent whose
+    cartons' sides inside it are all seams that show.
+
+    A layer laid otherwise than a grid (a brick, pinwheel or basket weave) has the outline
+    of one, and where another tiling fits, the outline cannot say which it is
+    (:func:`other_tiling`); the seams can. Each carton placed must have a seam along each
+    of its sides that is not on the outline: ``seen(axis, at, start, end)`` says whether
+    the line ``x = at`` (``axis`` 0) or ``y = at`` (1) shows one from ``start`` to ``end``
+    along it, metres in the grid's nominal frame. A carton side is one seam however many
+    neighbours it touches. The search is :func:`other_tiling`'s bottom-left fill on a
+    skyline, every footprint tried, the skylines with no tiling remembered; at most
+    ``max_states`` of them.
+
+    Returns
+    -------
+    SeenTilings
+        Its ``tilings``: one is the region's cartons; none or several, the seams do not say.
+    """
+    U, V = split.nx * split.a, split.ny * split.b
+    feet = layer_footprints(split, sizes, tolerance)
+    smallest = min(min(f) for f in feet)
+    dead: set[tuple[int, ...]] = set()
+    found: list[list[Placed]] = []
+    states = 0
+
+    def fits_into(gap: float) -> bool:
+        return gap <= tolerance or gap >= smallest - tolerance
+
+    def sides_seen(x0: float, y0: float, fx: float, fy: float) -> bool:
+        x1, y1 = x0 + fx, y0 + fy
+        return ((x0 <= tolerance or seen(0, x0, y0, y1))
+                and (x1 >= U - tolerance or seen(0, x1, y0, y1))
+                and (y0 <= tolerance or seen(1, y0, x0, x1))
+                and (y1 >= V - tolerance or seen(1, y1, x0, x1)))
+
+    def search(sky: tuple[tuple[float, float], ...], placed: list[Placed]) -> bool:
+        """Tilings completed from here (into ``found``); True if any."""
+        nonlocal states
+        key = tuple(int(round(v * 1e3)) for sg in sky for v in sg)
+        if key in dead:
+            return False
+        states += 1
+        if states > max_states:
+            raise _Exhausted
+        i = min(range(len(sky)), key=lambda k: (sky[k][1], k))
+        x0, y0 = sky[i]
+        if y0 >= V - tolerance:
+            found.append(list(placed))
+            return True
+        w = (sky[i + 1][0] if i + 1 < len(sky) else U) - x0
+        any_found = False
+        for fx, fy in feet:
+            if fx > w + tolerance or y0 + fy > V + tolerance:
+                continue
+            if not fits_into(w - fx) or not fits_into(V - y0 - fy):
+                continue
+            y1 = V if abs(V - y0 - fy) <= tolerance else y0 + fy
+            x1 = x0 + fx if w - fx > tolerance else x0 + w
+            if not sides_seen(x0, y0, x1 - x0, y1 - y0):
+                continue
+            rest = [(x0, y1), (x1, y0)] if w - fx > tolerance else [(x0, y1)]
+            merged: list[tuple[float, float]] = []
+            for x, y in [*sky[:i], *rest, *sky[i + 1:]]:
+                if merged and abs(merged[-1][1] - y) <= tolerance:
+                    continue
+                merged.append((x, y))
+            if search(tuple(merged), [*placed, (x0, y0, x1 - x0, y1 - y0)]):
+                any_found = True
+            if len(found) >= limit:
+                return True
+        if not any_found:
+            dead.add(key)
+        return any_found
+
+    try:
+        search(((0.0, 0.0),), [])
+    except _Exhausted:
+        return SeenTilings(found, states, True)
+    return SeenTilings(found, states, False)

@@ -346,9 +346,10 @@ def _side_seam(fp: FacePoints, side: int, width: float, length: float, spacing: 
 
 def seam_line(fp: FacePoints, axis: int, at: float, L: float, spacing: float, alpha: float,
               reach: float | None = None, gaps: bool = False,
-              spread: tuple[float, ...] | None = None) -> tuple[float, float]:
+              spread: tuple[float, ...] | None = None, start: float = 0.0
+              ) -> tuple[float, float]:
     """Seam statistic along the line ``coord = at`` of a face (coord = u for ``axis`` 0, v
-    for 1), over its points from 0 to ``L`` along the line, and its critical value.
+    for 1), over its points from ``start`` to ``L`` along the line, and its critical value.
 
     As :func:`boxloc.stages.seams.seam_at` at ``at`` with ``reach`` and ``gaps``; the
     statistic is divided by ``spread`` (default ``fp.spread`` along the axis). A seam runs
@@ -356,10 +357,10 @@ def seam_line(fp: FacePoints, axis: int, at: float, L: float, spacing: float, al
     weaker half caps the statistic.
     """
     if axis == 1:
-        sel = (fp.u >= 0) & (fp.u <= L)
+        sel = (fp.u >= start) & (fp.u <= L)
         coord, along = fp.v, fp.u
     else:
-        sel = (fp.v >= 0) & (fp.v <= L)
+        sel = (fp.v >= start) & (fp.v <= L)
         coord, along = fp.u, fp.v
     sp = fp.spread[axis] if spread is None else spread
     # only the points in the strip seam_at's windows reach: the three searches take them,
@@ -373,7 +374,8 @@ def seam_line(fp: FacePoints, axis: int, at: float, L: float, spacing: float, al
     pre = None if whole is None else (whole[0], whole[1], row[whole[2]])
     zs, zc = seam_at(coord, w, fp.scale, at, spacing, alpha, reach, gaps, row, fp.row_corr, sp,
                      pre)
-    for half in (along < 0.5 * L, along >= 0.5 * L):
+    mid = 0.5 * L if start == 0.0 else 0.5 * (start + L)
+    for half in (along < mid, along >= mid):
         pre_h = None
         if whole is not None and half.any():
             part = half[whole[2]]
