@@ -8,6 +8,7 @@ from __future__ import annotations
 import json
 import math
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -18,7 +19,14 @@ from boxloc.evaluate.metrics import match_surfaces
 from boxloc.pipeline import find_graspable_surfaces
 from boxloc.products import AmbiguityReason, DimensionSource, Result, VerifyReason
 from boxloc.simulate import SimulatedScan
-from boxloc.stages.sizes import Split, distinct, match_size, other_tiling, region_splits
+from boxloc.stages.sizes import (
+    Split,
+    distinct,
+    match_size,
+    other_tiling,
+    region_splits,
+    seen_tilings,
+)
 from boxloc.stats import TestKind
 
 #: The site's carton range: the one site input without a carton list (the largest box is
@@ -342,6 +350,98 @@ def test_a_grid_no_other_tiling_fits_is_split_with_its_tiling_row() -> None:
     rows = r.verification.tests.select((r.verification.tests.a == reg[0])
                                        & (r.verification.tests.kind == TestKind.SKU_TILING))
     assert len(rows) == 1 and rows.accepted[0] and rows.statistic[0] == 0.0
+
+
+def _seams_on(lines: list[tuple[int, float, float, float]]) -> Any:
+    """A seam oracle: True for a span that lies on one of ``lines`` (axis, at, from, to)."""
+    def seen(axis: int, at: float, start: float, end: float) -> bool:
+        return any(ax == axis and abs(at - p) < 1e-6 and start >= lo - 1e-6
+                   and end <= hi + 1e-6 for ax, p, lo, hi in lines)
+    return seen
+
+
+def _seam_stub(lines: list[tuple[int, float, float, float]]) -> Any:
+    """A region's seam statistic (z, critical) that shows a seam on ``lines`` only."""
+    seen = _seams_on(lines)
+    return lambda axis, at, start, end: ((5.0 if seen(axis, at, start, end) else 0.5), 3.0)
+
+
+#: The seams of MIXED3 in its grid's frame (0.6 x 0.4): the column's side, and between
+#: the two turned cartons; and the grid's two cuts.
+WEAVE_SEAMS = [(0, 0.4, 0.0, 0.4), (1, 0.2, 0.0, 0.4)]
+GRID_SEAMS = [(0, 0.2, 0.0, 0.4), (0, 0.4, 0.0, 0.4)]
+
+
+def test_seen_tilings_lays_cartons_only_along_seams_that_show() -> None:
+    g = Split(0, 0.2, 0.4, 3, 1, 0.0)
+    t = seen_tilings(g, (BRICK,), 0.01, _seams_on(WEAVE_SEAMS))
+    assert t.unique
+    (tiling,) = t.tilings
+    np.testing.assert_allclose(sorted(tiling), [(0.0, 0.0, 0.4, 0.2), (0.0, 0.2, 0.4, 0.2),
+                                                (0.4, 0.0, 0.2, 0.4)], atol=1e-9)
+    (grid,) = seen_tilings(g, (BRICK,), 0.01, _seams_on(GRID_SEAMS)).tilings
+    np.testing.assert_allclose(sorted(grid), [(x, 0.0, 0.2, 0.4) for x in (0.0, 0.2, 0.4)],
+                               atol=1e-9)
+    # no seam: no tiling of more than one carton; both seen: the seams cannot say
+    none = seen_tilings(g, (BRICK,), 0.01, _seams_on([]))
+    assert none.tilings == [] and not none.unique
+    both = seen_tilings(g, (BRICK,), 0.01, _seams_on(WEAVE_SEAMS + GRID_SEAMS))
+    assert len(both.tilings) == 2 and not both.unique
+    # a seam along only part of a carton's side is no seam of that side
+    half = [(0, 0.4, 0.0, 0.2), (1, 0.2, 0.0, 0.4)]
+    assert seen_tilings(g, (BRICK,), 0.01, _seams_on(half)).tilings == []
+    cut = seen_tilings(g, (BRICK,), 0.01, _seams_on(WEAVE_SEAMS), max_states=1)
+    assert cut.exhausted and not cut.unique
+
+
+def test_a_region_is_split_into_the_tiling_its_seams_show() -> None:
+    from boxloc.stages.hypotheses import _Attempt, _seen_tiling
+
+    g = Split(0, 0.2, 0.4, 3, 1, 0.0)
+    att = _Attempt(DimensionSource.REGION, -1, 0.612, 0.396, 0.0, np.nan)  # as measured
+    sx, sy = 0.612 / 0.6, 0.396 / 0.4
+    oracle = _seams_on([(0, 0.4 * sx, 0.0, 0.4 * sy), (1, 0.2 * sy, 0.0, 0.4 * sx)])
+    asked = []
+
+    def seam(axis: int, at: float, start: float, end: float) -> tuple[float, float]:
+        asked.append((axis, at, start, end))
+        return (5.0 if oracle(axis, at, start, end) else 0.5), 3.0
+
+    cfg = Config(**SITE, box_sizes=(BRICK,))
+    cells, rows = _seen_tiling(g, att, seam, cfg, 2)
+    assert cells is not None
+    # the cartons in the region's measured frame, with their sides inside it
+    got = sorted((round(u, 4), round(v, 4), round(w, 4), round(ln, 4), tuple(sorted(inner)))
+                 for u, v, w, ln, inner in cells)
+    assert got == [(0.0, 0.0, 0.408, 0.198, (1, 3)), (0.0, 0.198, 0.408, 0.198, (0, 3)),
+                   (0.408, 0.0, 0.204, 0.396, (2,))]
+    seen_row, seams = rows
+    assert seen_row.kind[0] == TestKind.SKU_SEEN_TILING and seen_row.accepted[0]
+    assert seen_row.statistic[0] == 1.0 and seen_row.b[0] == 2  # two cartons turned
+    # each carton's inner sides over their own spans, each once: the turned pair's ends
+    # (two halves of the column's side), the column's side, the seam between the pair
+    assert list(seams.kind) == [TestKind.SKU_SPLIT_SEAM] * 4 and list(seams.b) == [2, 3, 4, 5]
+    assert seams.accepted.all() and (seams.statistic == 5.0).all()
+    # no tiling seen, or two: none taken, and the row says how many
+    for lines, count in (([], 0.0), ([(0, 0.2 * sx, 0.0, 0.4 * sy), (0, 0.4 * sx, 0.0, 0.4 * sy),
+                                       (1, 0.2 * sy, 0.0, 0.4 * sx)], 2.0)):
+        cells, rows = _seen_tiling(g, att, _seam_stub(lines), cfg, 2)
+        assert cells is None and len(rows) == 1
+        assert rows[0].statistic[0] == count and not rows[0].accepted[0]
+
+
+def test_a_brick_layer_whose_seams_show_is_split_into_its_cartons() -> None:
+    # bevelled 2 mm: the seams show along the cartons' sides, and across the turned pair
+    # the grid's cut shows none; the region is laid as its seams say
+    sim = scene(MIXED3, distance=1.5, tilt=0.08, bevel=0.002)
+    r = find_graspable_surfaces(sim.scan, Config(**SITE, box_sizes=(BRICK,)))
+    m = match_surfaces(r.surfaces, sim.truth)
+    assert m.tp == 3 and m.fp == 0 and len(r.ambiguous) == 0
+    T = r.verification.tests
+    row = T.select(T.kind == TestKind.SKU_SEEN_TILING)
+    assert len(row) == 1 and row.accepted[0] and row.statistic[0] == 1.0 and row.b[0] == 2
+    src = [DimensionSource(int(r.hypotheses.att_source[a])) for a in r.surfaces.attempt]
+    assert DimensionSource.SKU_SPLIT in src
 
 
 def test_explain_says_a_region_has_another_tiling(tmp_path: Path) -> None:
