@@ -939,10 +939,11 @@ def footprint_summary(r: dict[str, Any], speed: dict[str, Any] | None = None) ->
             rng = f" ({_times(r[0])}–{_times(r[1])})" if rounds > 1 and r else ""
             return _times(tp.get(key)) + rng
 
-        med = f"median of {rounds} rounds: " if rounds > 1 else ""
+        text = (f"median of {rounds} rounds: {fig('speedup')}, steady "
+                f"{fig('steady_speedup')}; core shares {shares}" if rounds > 1 else
+                f"{fig('speedup')} (steady {fig('steady_speedup')}; core shares {shares})")
         rows.append([f"`run --workers 2` / `--workers 1`, scans/s ({tp.get('scans')} scans)",
-                     f"{med}{fig('speedup')}, steady {fig('steady_speedup')}; core shares "
-                     f"{shares}", *_goal(sec, "run --workers 2")])
+                     text, *_goal(sec, "run --workers 2")])
         rows.append(["`--workers 2` log = `--workers 1` log", num(tp.get("same_log")),
                      *_goal(sec, "run --workers 2 log")])
     if speed is not None:

@@ -774,6 +774,19 @@ def test_speed_and_footprint_tables_come_from_their_reports(speed_checkout: Path
     assert _run(root) == 0 and "| **total** | 99.0 |" in (root / "README.md").read_text()
 
 
+def test_a_throughput_of_several_rounds_shows_its_medians_and_range(
+        speed_checkout: Path, tmp_path: Path) -> None:
+    rep = footprint_report()
+    tp = rep["sections"]["recording"]["throughput"]
+    tp.update({"rounds": [{"runs": tp["runs"]}] * 3, "speedup": 1.704,
+               "speedup_range": [1.582, 2.007], "steady_speedup": 1.86,
+               "steady_speedup_range": [1.741, 2.257]})
+    assert _run(speed_checkout, "--footprint", str(_write(tmp_path / "bench.json", rep))) == 0
+    doc = (speed_checkout / "README.md").read_text()
+    assert ("| `run --workers 2` / `--workers 1`, scans/s (32 scans) | median of 3 rounds: "
+            "1.70× (1.58×–2.01×), steady 1.86× (1.74×–2.26×); core shares 0.60 / 0.65 |") in doc
+
+
 def test_the_footprint_of_the_matrix_is_the_target_row_and_gives_the_channels(
         speed_checkout: Path, tmp_path: Path) -> None:
     rep = footprint_report()
