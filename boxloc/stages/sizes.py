@@ -171,6 +171,47 @@ class _Exhausted(Exception):
     """The tiling search hit its budget."""
 
 
+_Skyline = tuple[tuple[float, float], ...]  # (x start, height) per segment, left to right
+_Move = tuple[tuple[float, float], float, float, _Skyline]
+
+
+def _skyline_moves(sky: _Skyline, feet: list[tuple[float, float]], U: float, V: float,
+                   tolerance: float) -> tuple[float, float, list[_Move]]:
+    """One step of a bottom-left fill of U x V: the lowest, leftmost point left uncovered
+    (x0, y0), and each footprint that can lie with its corner there (a gap it leaves is
+    filled exactly or has room for a carton; lengths equal within ``tolerance``), with the
+    carton's far corner (x1, y1, snapped to a segment's end or the top) and the skyline
+    after it (neighbours of one height are one segment, the left one's start). No moves
+    once every segment is at the top."""
+    i = min(range(len(sky)), key=lambda k: (sky[k][1], k))
+    x0, y0 = sky[i]
+    if y0 >= V - tolerance:
+        return x0, y0, []
+    w = (sky[i + 1][0] if i + 1 < len(sky) else U) - x0
+    smallest = min(min(f) for f in feet)
+
+    def fits_into(gap: float) -> bool:  # a gap is filled exactly or has room for a carton
+        return gap <= tolerance or gap >= smallest - tolerance
+
+    moves: list[_Move] = []
+    for f in feet:
+        fx, fy = f
+        if fx > w + tolerance or y0 + fy > V + tolerance:
+            continue
+        if not fits_into(w - fx) or not fits_into(V - y0 - fy):
+            continue
+        y1 = V if abs(V - y0 - fy) <= tolerance else y0 + fy
+        wide = w - fx > tolerance
+        rest = [(x0, y1), (x0 + fx, y0)] if wide else [(x0, y1)]
+        merged: list[tuple[float, float]] = []
+        for x, y in [*sky[:i], *rest, *sky[i + 1:]]:
+            if merged and abs(merged[-1][1] - y) <= tolerance:
+                continue
+            merged.append((x, y))
+        moves.append((f, x0 + fx if wide else x0 + w, y1, tuple(merged)))
+    return x0, y0, moves
+
+
 def other_tiling(split: Split, sizes: tuple[tuple[float, float, float], ...],
                  tolerance: float, max_states: int = MAX_TILING_STATES,
                  seams: tuple[list[float], list[float]] = ([], [])) -> Tiling:
@@ -214,16 +255,11 @@ def other_tiling(split: Split, sizes: tuple[tuple[float, float, float], ...],
         return abs(f[0] - a) <= tolerance and abs(f[1] - b) <= tolerance
 
     feet.sort(key=grid_like)  # the others first: a non-grid tiling is found early
-    smallest = min(min(f) for f in feet)
     dead: set[tuple[tuple[int, ...], bool]] = set()
     states = 0
 
-    def fits_into(gap: float) -> bool:  # a gap is filled exactly or has room for a carton
-        return gap <= tolerance or gap >= smallest - tolerance
-
-    def search(sky: tuple[tuple[float, float], ...], turned: int) -> int:
-        """sky: (x start, height) per segment, left to right, ending at U; returns the
-        turned cartons of a non-grid tiling reached from here, 0 if none."""
+    def search(sky: _Skyline, turned: int) -> int:
+        """The turned cartons of a non-grid tiling reached from skyline ``sky``, 0 if none."""
         nonlocal states
         key = (tuple(int(round(v * 1e3)) for s in sky for v in s), turned > 0)
         if key in dead:
@@ -231,34 +267,15 @@ def other_tiling(split: Split, sizes: tuple[tuple[float, float, float], ...],
         states += 1
         if states > max_states:
             raise _Exhausted
-        i = min(range(len(sky)), key=lambda k: (sky[k][1], k))
-        x0, y0 = sky[i]
+        x0, y0, moves = _skyline_moves(sky, feet, U, V, tolerance)
         if y0 >= V - tolerance:  # every segment at the top: a tiling
             return turned
-        w = (sky[i + 1][0] if i + 1 < len(sky) else U) - x0
-        for f in feet:
+        for f, _, _, after in moves:
             fx, fy = f
-            if fx > w + tolerance or y0 + fy > V + tolerance:
-                continue
-            if not fits_into(w - fx) or not fits_into(V - y0 - fy):
-                continue
             if (any(x0 + tolerance < c < x0 + fx - tolerance for c in seams[0])
                     or any(y0 + tolerance < c < y0 + fy - tolerance for c in seams[1])):
                 continue  # it would lie across a seam that is seen
-            y1 = V if abs(V - y0 - fy) <= tolerance else y0 + fy
-            new = list(sky[:i])
-            if w - fx > tolerance:
-                rest = [(x0, y1), (x0 + fx, y0)]
-            else:
-                rest = [(x0, y1)]
-            new += rest + list(sky[i + 1:])
-            # neighbours of one height are one segment (the left one's start)
-            merged: list[tuple[float, float]] = []
-            for x, y in new:
-                if merged and abs(merged[-1][1] - y) <= tolerance:
-                    continue
-                merged.append((x, y))
-            t = search(tuple(merged), turned + (0 if grid_like(f) else 1))
+            t = search(after, turned + (0 if grid_like(f) else 1))
             if t:
                 return t
         dead.add(key)
@@ -341,13 +358,9 @@ def seen_tilings(split: Split, sizes: tuple[tuple[float, float, float], ...],
     """
     U, V = split.nx * split.a, split.ny * split.b
     feet = layer_footprints(split, sizes, tolerance)
-    smallest = min(min(f) for f in feet)
     dead: set[tuple[int, ...]] = set()
     found: list[list[Placed]] = []
     states = 0
-
-    def fits_into(gap: float) -> bool:
-        return gap <= tolerance or gap >= smallest - tolerance
 
     def sides_seen(x0: float, y0: float, fx: float, fy: float) -> bool:
         x1, y1 = x0 + fx, y0 + fy
@@ -356,8 +369,8 @@ def seen_tilings(split: Split, sizes: tuple[tuple[float, float, float], ...],
                 and (y0 <= tolerance or seen(1, y0, x0, x1))
                 and (y1 >= V - tolerance or seen(1, y1, x0, x1)))
 
-    def search(sky: tuple[tuple[float, float], ...], placed: list[Placed]) -> bool:
-        """Tilings completed from here (into ``found``); True if any."""
+    def search(sky: _Skyline, placed: list[Placed]) -> bool:
+        """Tilings completed from skyline ``sky`` (into ``found``); True if any."""
         nonlocal states
         key = tuple(int(round(v * 1e3)) for sg in sky for v in sg)
         if key in dead:
@@ -365,29 +378,15 @@ def seen_tilings(split: Split, sizes: tuple[tuple[float, float, float], ...],
         states += 1
         if states > max_states:
             raise _Exhausted
-        i = min(range(len(sky)), key=lambda k: (sky[k][1], k))
-        x0, y0 = sky[i]
+        x0, y0, moves = _skyline_moves(sky, feet, U, V, tolerance)
         if y0 >= V - tolerance:
             found.append(list(placed))
             return True
-        w = (sky[i + 1][0] if i + 1 < len(sky) else U) - x0
         any_found = False
-        for fx, fy in feet:
-            if fx > w + tolerance or y0 + fy > V + tolerance:
-                continue
-            if not fits_into(w - fx) or not fits_into(V - y0 - fy):
-                continue
-            y1 = V if abs(V - y0 - fy) <= tolerance else y0 + fy
-            x1 = x0 + fx if w - fx > tolerance else x0 + w
+        for _, x1, y1, after in moves:
             if not sides_seen(x0, y0, x1 - x0, y1 - y0):
                 continue
-            rest = [(x0, y1), (x1, y0)] if w - fx > tolerance else [(x0, y1)]
-            merged: list[tuple[float, float]] = []
-            for x, y in [*sky[:i], *rest, *sky[i + 1:]]:
-                if merged and abs(merged[-1][1] - y) <= tolerance:
-                    continue
-                merged.append((x, y))
-            if search(tuple(merged), [*placed, (x0, y0, x1 - x0, y1 - y0)]):
+            if search(after, [*placed, (x0, y0, x1 - x0, y1 - y0)]):
                 any_found = True
             if len(found) >= limit:
                 return True
