@@ -263,8 +263,10 @@ def reconstruct_command(report: dict[str, Any], kind: Kind) -> str:
                          f"{report['seed']}", *_config_sets(report["config"], set()),
                          "--out DIR"])
     if kind.name == "packed":
+        from boxloc.evaluate.packed_bench import default_interlocked
+
         weave = report.get("suite", {}).get("patterns", {}).get("weave")
-        if weave is not None and weave != (report["n"] // 3) // 4 * 4:  # not the default
+        if weave is not None and weave != default_interlocked(report["n"]):
             return (f"python -m boxloc.evaluate.packed_bench --n {report['n']} --interlocked "
                     f"{weave} --seed {report['seed']} --seeds {seeds} "
                     f"--jobs {report.get('jobs', 1)} --held-out {report['held_out']['sensor']} "

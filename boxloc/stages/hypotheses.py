@@ -1352,15 +1352,18 @@ def _seen_tiling(sp: Split, att: _Attempt, seam: _Seam, cfg: Config, n_cuts: int
     found, -1 if none; statistic = the tilings found, 2 for two or more, NaN where the
     search stopped at its budget; critical 1; accepted for exactly one), and for the one
     found, SKU_SPLIT_SEAM of each carton side inside it (b from ``n_cuts`` on, the grid's
-    cuts before them; in the order the cartons were laid, each carton's sides x = its
-    start, its end, then y = its start, its end, each once).
+    cuts before them; in the order the cartons were laid, each carton's sides in side
+    order, y = its start, its end, then x = its start, its end, each once).
     """
     sx, sy = att.width / (sp.nx * sp.a), att.length / (sp.ny * sp.b)
 
+    def measured(axis: int, at: float, start: float, end: float) -> tuple[float, float]:
+        """``seam`` along a line given in the grid's nominal frame."""
+        k, ks = (sx, sy) if axis == 0 else (sy, sx)
+        return seam(axis, at * k, start * ks, end * ks)
+
     def seen(axis: int, at: float, start: float, end: float) -> bool:
-        k = sx if axis == 0 else sy
-        ks = sy if axis == 0 else sx
-        z, zc = seam(axis, at * k, start * ks, end * ks)
+        z, zc = measured(axis, at, start, end)
         return bool(z > zc)
 
     found = seen_tilings(sp, cfg.box_sizes, cfg.size_tolerance, seen)
@@ -1386,8 +1389,7 @@ def _seen_tiling(sp: Split, att: _Attempt, seam: _Seam, cfg: Config, n_cuts: int
                 if side not in sides:
                     sides.append(side)
         cells.append((x0 * sx, y0 * sy, fx * sx, fy * sy, frozenset(inner)))
-    zz = [seam(ax, at * (sx if ax == 0 else sy), a0 * (sy if ax == 0 else sx),
-               a1 * (sy if ax == 0 else sx)) for ax, at, a0, a1 in sides]
+    zz = [measured(*side) for side in sides]
     z = np.array([p[0] for p in zz], np.float64)
     zc = np.array([p[1] for p in zz], np.float64)
     rows.append(TestTable.decision(TestKind.SKU_SPLIT_SEAM, -1, n_cuts + np.arange(len(z)),
