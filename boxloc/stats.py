@@ -194,6 +194,13 @@ class TestKind(IntEnum):
     #: budget), critical 1. Accepted for exactly one: the region is split into it, its
     #: sides' grooves in SKU_SPLIT_SEAM rows after the grid's cuts; else ``SEVERAL_TILINGS``
     SKU_SEEN_TILING = 39
+    #: verification: attempt a's face does not run on under something thin lying beyond
+    #: side b (b = side 0-3): statistic = the fraction of the strip beyond the side (the
+    #: VERIFY_CONTINUATION strip) in front of the plane; critical ``RAISED_FRACTION``.
+    #: Rejected where at least that much is, no higher than the flatness prior (the
+    #: strip's median height at most k ``flatness``), and the side is no seam: the edge
+    #: of tape or a label on the lid is no end of the face (reason ``CONTINUES``)
+    VERIFY_RAISED_BEYOND = 40
 
 
 #: ``TestKind.BUDGET`` rows' ``a``: the stage whose budget it is.
@@ -219,7 +226,7 @@ RELATION: dict[TestKind, str | None] = {
     TestKind.VERIFY_CONTINUATION: "<", TestKind.VERIFY_SEAM_CROSSING: "<",
     TestKind.END_EVIDENCE: ">=", TestKind.SKU_SPLIT_SEAM: ">", TestKind.BOX_HEIGHT: ">",
     TestKind.BUDGET: "<", TestKind.LAYER_HEIGHT: ">", TestKind.VERIFY_SEAM_IN_LINE: "<=",
-    TestKind.SKU_SEEN_TILING: None,
+    TestKind.SKU_SEEN_TILING: None, TestKind.VERIFY_RAISED_BEYOND: "<",
 }
 
 _RELATION_OPS = {"<=": operator.le, "<": operator.lt, ">": operator.gt, ">=": operator.ge}
@@ -248,6 +255,8 @@ FURTHER_CONDITIONS: dict[TestKind, tuple[str, str]] = {
     TestKind.VERIFY_PLANE_END: ("", "points in front of the plane, or the strip out of the "
                                     "image"),
     TestKind.BOX_HEIGHT: ("", "under z at alpha times its sigma"),
+    TestKind.VERIFY_RAISED_BEYOND: ("the strip stands higher than the flatness prior (a "
+                                    "taller box beyond), or the side is a seam", ""),
 }
 
 
