@@ -444,6 +444,27 @@ def test_a_brick_layer_whose_seams_show_is_split_into_its_cartons() -> None:
     assert DimensionSource.SKU_SPLIT in src
 
 
+def test_the_edge_of_tape_on_a_lid_is_no_side_of_a_face() -> None:
+    # development draw (packed seed 3, weave scene 43, active stereo at 1 m): a rectangle
+    # over a turned cell took the edge of the tape on the next carton's lid, 0.1 m inside
+    # it, as its fourth side; the strip beyond lies on the tape, a few mm in front
+    from boxloc.evaluate.matrix_bench import matrix_config
+    from boxloc.evaluate.packed_bench import packed_suite, score_packed
+    from boxloc.simulate import simulate
+
+    spec = packed_suite(4, 3, 64)[43]
+    assert spec.pattern == "weave" and spec.sensor == "active-stereo" and spec.tape > 0
+    sim = simulate(spec)
+    r = find_graspable_surfaces(sim.scan, matrix_config([spec])[0])
+    T = r.verification.tests
+    raised = T.select((T.kind == TestKind.VERIFY_RAISED_BEYOND) & ~T.accepted)
+    assert len(raised) >= 1 and (raised.statistic >= 0.5).all()
+    V = r.verification
+    reasons = {int(a): int(x) for a, x in zip(V.attempt, V.reason)}
+    assert all(reasons[int(a)] == VerifyReason.CONTINUES for a in raised.a)
+    assert score_packed(r, sim.truth).wrong.n_wrong == 0
+
+
 def test_explain_says_a_region_has_another_tiling(tmp_path: Path) -> None:
     from recorder.mcap.sink import McapRecorder
     from replay.explain import explain, format_explanation
