@@ -34,6 +34,9 @@ rectangle's plane with their propagated uncertainty (point-on-plane, chi2(1) at 
   counted). Edge evidence alone does not make a side where the plane runs on: sensor
   artefacts (structured-light depth) put short lines of jump edges inside faces, and a
   rectangle cut short there would be accepted first and hide the whole face;
+* ``VERIFY_RAISED_BEYOND`` — nor does it run on under something thin: a side (no seam)
+  beyond which most of that strip lies in front of the plane, no higher than the flatness
+  prior, is the edge of tape or a label on the lid, not the face's end;
 * ``VERIFY_EXPOSED`` — points significantly *in front* of the face's refitted plane
   (something resting on it or hanging over it), counted in the core beyond twice the
   border margin, are not more frequent than points significantly behind it (noise is symmetric,
