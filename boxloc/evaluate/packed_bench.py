@@ -477,7 +477,7 @@ def _meta(sim: Any) -> dict[str, Any]:
             "n_boxes": int(boxes.shape[0]), "layers": int(np.unique(base).shape[0]),
             "pixels": int(h * w), "spec": _spec_dict(spec), "spec_text": _spec_text(spec),
             "lid": "bulged" if float(spec.bulge) > 0 else "flat",
-            "pattern": str(getattr(spec, "pattern", "grid")),
+            "pattern": spec.pattern,
             "sizes_csv": box_sizes_csv(truth) if boxes.shape[0] else None,
             "edge_min": float(np.min(truth.width)) if len(truth) else None,
             "edge_max": float(np.max(truth.length)) if len(truth) else None,
@@ -782,9 +782,9 @@ def run_packed_bench(
                                     describe=describe, summary=summary)
     done = [o for o in outs if o is not None]
     assert len(done) == len(tasks)
-    report = _report(done, specs, cfg, site, n=sum(str(getattr(s, "pattern", "grid")) == "grid"
-                                                   for s in specs), seed=seed, jobs=jobs,
-                     held_out=held_out, scan_timeout=scan_timeout, warmup=warmup,
+    report = _report(done, specs, cfg, site, n=sum(s.pattern == "grid" for s in specs),
+                     seed=seed, jobs=jobs, held_out=held_out, scan_timeout=scan_timeout,
+                     warmup=warmup,
                      trial_seeds=[d.trial_seed for d in draws], info=info, run_s=run_s,
                      sensors=SENSORS, variants=variants)
     write_report(report, out, REPORT_NAME, TABLE_NAME, print_packed_report,
@@ -803,7 +803,7 @@ def _parent_meta(spec: Any) -> dict[str, Any]:
                 "pixels": int(spec.width * spec.height), "spec": _spec_dict(spec),
                 "spec_text": _spec_text(spec),
                 "lid": "bulged" if float(spec.bulge) > 0 else "flat",
-                "pattern": str(getattr(spec, "pattern", "grid")), "sizes_csv": None,
+                "pattern": spec.pattern, "sizes_csv": None,
                 "edge_min": None, "edge_max": None, "nothing": None}
 
 
@@ -811,6 +811,8 @@ def _report(outs: list[_Outcome], specs: Sequence[Any], cfg: Config, site: dict[
             n: int, seed: int, jobs: int, held_out: str, scan_timeout: float | None,
             warmup: bool, trial_seeds: list[int], info: dict[str, Any], run_s: float,
             sensors: Sequence[str], variants: Sequence[str]) -> dict[str, Any]:
+    from boxloc.simulate import PATTERNS
+
     present_s = [s for s in sensors if any(o.sensor == s for o in outs)]
     groups = _groups(outs, present_s, variants, held_out)
     rows: list[dict[str, Any]] = []
@@ -848,8 +850,7 @@ def _report(outs: list[_Outcome], specs: Sequence[Any], cfg: Config, site: dict[
                             "order, laid as grids, then the next ones laid as basket weaves "
                             "(packed_suite)",
                   "kind": "layered", "bevel_m": 0.0, "max_gap_m": 0.0,
-                  "patterns": {p: sum(str(getattr(s, "pattern", "grid")) == p for s in specs)
-                               for p in ("grid", "weave")}},
+                  "patterns": {p: sum(s.pattern == p for s in specs) for p in PATTERNS}},
         "held_out": {"sensor": held_out},
         "sensors": present_s, "variants": list(variants), "lids": list(LIDS),
         "seeds": draw_figures({v: [o for o in outs if o.variant == v] for v in variants},

@@ -381,7 +381,7 @@ def seam_line(fp: FacePoints, axis: int, at: float, L: float, spacing: float, al
     pre = None if whole is None else (whole[0], whole[1], row[whole[2]])
     zs, zc = seam_at(coord, w, fp.scale, at, spacing, alpha, reach, gaps, row, fp.row_corr, sp,
                      pre)
-    mid = 0.5 * L if start == 0.0 else 0.5 * (start + L)
+    mid = 0.5 * (start + L)  # 0.5 * L exactly from 0
     for half in (along < mid, along >= mid):
         pre_h = None
         if whole is not None and half.any():
