@@ -201,6 +201,13 @@ class TestKind(IntEnum):
     #: strip's median height at most k ``flatness``), and the side is no seam: the edge
     #: of tape or a label on the lid is no end of the face (reason ``CONTINUES``)
     VERIFY_RAISED_BEYOND = 40
+    #: verification: how high the strip beyond side b of attempt a stands (b = side 0-3,
+    #: one row per VERIFY_RAISED_BEYOND row): statistic = the median height of the strip's
+    #: points above the face's plane (metres, along its normal; NaN without points, then
+    #: not accepted), critical = k ``flatness``. Accepted where no higher: thin enough to be
+    #: tape or a label, which VERIFY_RAISED_BEYOND needs (with its front fraction) to
+    #: reject the side
+    VERIFY_RAISED_HEIGHT = 41
 
 
 #: ``TestKind.BUDGET`` rows' ``a``: the stage whose budget it is.
@@ -227,6 +234,7 @@ RELATION: dict[TestKind, str | None] = {
     TestKind.END_EVIDENCE: ">=", TestKind.SKU_SPLIT_SEAM: ">", TestKind.BOX_HEIGHT: ">",
     TestKind.BUDGET: "<", TestKind.LAYER_HEIGHT: ">", TestKind.VERIFY_SEAM_IN_LINE: "<=",
     TestKind.SKU_SEEN_TILING: None, TestKind.VERIFY_RAISED_BEYOND: "<",
+    TestKind.VERIFY_RAISED_HEIGHT: "<=",
 }
 
 _RELATION_OPS = {"<=": operator.le, "<": operator.lt, ">": operator.gt, ">=": operator.ge}
@@ -256,7 +264,8 @@ FURTHER_CONDITIONS: dict[TestKind, tuple[str, str]] = {
                                     "image"),
     TestKind.BOX_HEIGHT: ("", "under z at alpha times its sigma"),
     TestKind.VERIFY_RAISED_BEYOND: ("the strip stands higher than the flatness prior (a "
-                                    "taller box beyond), or the side is a seam", ""),
+                                    "taller box beyond: VERIFY_RAISED_HEIGHT rejected), or "
+                                    "the side is a seam", ""),
 }
 
 

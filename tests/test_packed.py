@@ -459,6 +459,13 @@ def test_the_edge_of_tape_on_a_lid_is_no_side_of_a_face() -> None:
     T = r.verification.tests
     raised = T.select((T.kind == TestKind.VERIFY_RAISED_BEYOND) & ~T.accepted)
     assert len(raised) >= 1 and (raised.statistic >= 0.5).all()
+    # each rejection's height row: the strip stood no higher than the flatness prior, and
+    # higher than nothing (tape, a few mm in front of the lid)
+    high = T.select(T.kind == TestKind.VERIFY_RAISED_HEIGHT)
+    for a, b in zip(raised.a, raised.b):
+        h = high.select((high.a == a) & (high.b == b))
+        assert len(h) == 1 and h.accepted[0]
+        assert 0.0 < h.statistic[0] <= h.critical[0]
     V = r.verification
     reasons = {int(a): int(x) for a, x in zip(V.attempt, V.reason)}
     assert all(reasons[int(a)] == VerifyReason.CONTINUES for a in raised.a)

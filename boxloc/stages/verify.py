@@ -1071,7 +1071,7 @@ def _test_continuation(ctx: VerifyContext, fp: FacePoints, hyp: _Hypothesis, fit
         seam: the face may run on out of sight.
     rows : list of TestTable
         VERIFY_SEAM_SIDE for the sides whose plane runs on, if any, then
-        VERIFY_CONTINUATION.
+        VERIFY_CONTINUATION, VERIFY_RAISED_BEYOND and VERIFY_RAISED_HEIGHT.
     """
     m = hyp.margin
     cont, front, _, in_image, height = _beyond_sides(ctx, hyp.origin, hyp.x_axis, hyp.y_axis,
@@ -1111,6 +1111,10 @@ def _test_continuation(ctx: VerifyContext, fp: FacePoints, hyp: _Hypothesis, fit
     ends &= ~raised
     rows.append(TestTable.decision(TestKind.VERIFY_RAISED_BEYOND, hyp.attempt_id, [0, 1, 2, 3],
                                    front, RAISED_FRACTION, ~raised, hyp.alpha))
+    # the height that also decides it, so a post-mortem sees how high the strip stood
+    rows.append(TestTable.decision(TestKind.VERIFY_RAISED_HEIGHT, hyp.attempt_id,
+                                   [0, 1, 2, 3], height, hyp.k * flatness,
+                                   height <= hyp.k * flatness, hyp.alpha))
     return ends, cut, rows
 
 
