@@ -105,6 +105,21 @@ def test_face_extent_runs_to_the_far_sides(single_box):
     assert 0.002 < gx < 0.05 and 0.002 < gy < 0.05
 
 
+def test_face_extent_is_infinite_where_the_face_runs_past_the_reach(single_box):
+    # a face longer than the reach has no end in sight: not an extent of the reach, which
+    # would give a rectangle a side where nothing ends
+    sim, cfg, ctx, frame = single_box
+    o, x, y, n, w, l_ = frame
+    strip = (0.5 * cfg.min_edge, 0.9 * cfg.min_edge)
+    for reach, longer in ((0.6 * w, True), (w + 0.05, False), (w + 0.003, False)):
+        e, _ = face_extent(ctx, o, x, y, n, np.eye(6) * 1e-10, strip, reach, 2.576,
+                           cfg.flatness)
+        if longer:
+            assert e == np.inf
+        else:  # ends inside the reach, even just inside: the gap beyond is looked at too
+            assert abs(e - w) < 0.01
+
+
 def test_face_extent_bridges_dropouts_but_not_holes(single_box):
     sim, cfg, ctx, frame = single_box
     o, x, y, n, w, l_ = frame

@@ -578,11 +578,13 @@ def face_extent(
 ) -> tuple[float, float]:
     """How far a face's plane runs from ``origin`` along ``along``, in a strip beside it.
 
-    The valid pixels of the strip (``strip`` metres across, out to ``reach`` along) are
-    tested against the plane (point-on-plane at ``k``, with the points' noise, the
-    flatness prior and the plane's own uncertainty); the face ends where the points on it
-    first leave a gap of ``EXTENT_GAP_PX`` pixels (dropouts are shorter). The end is
-    placed half a pixel beyond its last point, where the edge stage puts a jump.
+    The valid pixels of the strip (``strip`` metres across, out to ``reach`` along and a
+    gap beyond) are tested against the plane (point-on-plane at ``k``, with the points'
+    noise, the flatness prior and the plane's own uncertainty); the face ends where the
+    points on it first leave a gap of ``EXTENT_GAP_PX`` pixels (dropouts are shorter). The
+    end is placed half a pixel beyond its last point, where the edge stage puts a jump.
+    A face whose points run on past ``reach`` has no end in sight: its extent is not the
+    reach (a rectangle cut there has a side where nothing ends) but infinite.
 
     Parameters
     ----------
@@ -603,16 +605,18 @@ def face_extent(
     Returns
     -------
     extent : float
-        Metres along the axis (NaN: fewer than two points on the plane, or the strip
-        leaves the image).
+        Metres along the axis, at most ``reach`` (NaN: fewer than two points on the plane,
+        or the strip leaves the image; inf: the plane runs on past ``reach``).
     gap : float
         The gap that ends the face there, metres.
     """
-    pix = rectangle_pixels(ctx.project, ctx.valid, origin, along, across, (0.0, reach), strip)
     # metres per pixel along the axis near the vertex, foreshortening included
     near = strip[1]
     step = near / max(ctx.samples_along(origin, origin + near * along), 1.0)
     gap = EXTENT_GAP_PX * step
+    # a gap beyond the reach: a face that ends just inside it shows its end
+    pix = rectangle_pixels(ctx.project, ctx.valid, origin, along, across,
+                           (0.0, reach + gap), strip)
     if pix is None:
         return np.nan, gap
     rr, cc, _ = pix
@@ -628,6 +632,9 @@ def face_extent(
         return np.nan, gap
     jumps = np.flatnonzero(np.diff(t) > gap)
     last = t[jumps[0]] if len(jumps) else t[-1]
+    if last > reach:
+        # the points run on past the reach before a gap ends them: no end in sight
+        return np.inf, gap
     return float(last + 0.5 * step), gap
 
 
