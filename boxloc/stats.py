@@ -208,6 +208,12 @@ class TestKind(IntEnum):
     #: tape or a label, which VERIFY_RAISED_BEYOND needs (with its front fraction) to
     #: reject the side
     VERIFY_RAISED_HEIGHT = 41
+    #: verification: no seam at the middle of attempt a's face along axis b (0: the line
+    #: u = width / 2, 1: v = length / 2), tested where each half could be a box (at least
+    #: ``MIDLINE_HALF`` ``min_edge``; with a carton list, a listed size): statistic = the
+    #: groove z there (NaN: no points), critical = Bonferroni z at alpha over the few
+    #: positions tried. Rejected: two boxes side by side (reason ``INTERIOR_SEAM``)
+    VERIFY_SEAM_MIDLINE = 42
 
 
 #: ``TestKind.BUDGET`` rows' ``a``: the stage whose budget it is.
@@ -234,7 +240,7 @@ RELATION: dict[TestKind, str | None] = {
     TestKind.END_EVIDENCE: ">=", TestKind.SKU_SPLIT_SEAM: ">", TestKind.BOX_HEIGHT: ">",
     TestKind.BUDGET: "<", TestKind.LAYER_HEIGHT: ">", TestKind.VERIFY_SEAM_IN_LINE: "<=",
     TestKind.SKU_SEEN_TILING: None, TestKind.VERIFY_RAISED_BEYOND: "<",
-    TestKind.VERIFY_RAISED_HEIGHT: "<=",
+    TestKind.VERIFY_RAISED_HEIGHT: "<=", TestKind.VERIFY_SEAM_MIDLINE: "<=",
 }
 
 _RELATION_OPS = {"<=": operator.le, "<": operator.lt, ">": operator.gt, ">=": operator.ge}

@@ -542,3 +542,66 @@ def test_a_wall_rising_beyond_a_side_is_no_end_of_a_top(single_box):
     pe = out.tests.of_kind(TestKind.VERIFY_PLANE_END)
     assert 1 in pe.b and not pe.accepted[list(pe.b).index(1)]
     assert out.reason == VerifyReason.BOUNDARY
+
+
+def _midline_hyp(width: float, length: float):
+    from boxloc.stages.verify import _Hypothesis
+    from tests.test_seams import H
+    return _Hypothesis(
+        origin=np.zeros(3), x_axis=np.array([1.0, 0, 0]), y_axis=np.array([0, 1.0, 0]),
+        normal=np.array([0, 0, -1.0]), width=width, length=length,
+        plane_cov=np.eye(6) * 1e-10, centre=np.array([width / 2, length / 2, 0.0]),
+        attempt_id=0, alpha=0.01, seam_alpha=0.01, k=2.58, spacing=H, margin=2 * H,
+        interior_margin=0.075, band=3 * H)
+
+
+def _midline_face(rng, width, length, groove_v=None, depth=0.0015):
+    from boxloc.stages.seams import FacePoints
+    from tests.test_seams import SIGMA, H
+    u, v = np.meshgrid(np.arange(0, width, H), np.arange(0, length, H))
+    u, v = u.ravel(), v.ravel()
+    w = rng.normal(0.0, SIGMA, u.shape)
+    if groove_v is not None:  # behind the plane, across the whole width
+        w -= depth * (np.abs(v - groove_v) <= H)
+    return FacePoints(u, v, w, SIGMA, H, np.zeros(len(u), np.int64), 0.0)
+
+
+def test_a_faint_seam_at_the_middle_of_two_boxes_rejects_the_pair():
+    # two 0.18 x 0.25 m tops end to end, their seam a groove of 0.53 sigma: the interior's
+    # search over every position keeps clear of the sides by half min_edge and reads the
+    # seam over a strip 3 cm wide; the middle's test reads it across the whole width
+    from boxloc.stages.verify import _test_seam_interior, _test_seam_midline
+    hyp = _midline_hyp(0.18, 0.5)
+    rng = np.random.default_rng(7)
+    split = crossed = 0
+    for _ in range(20):
+        fp = _midline_face(rng, 0.18, 0.5, groove_v=0.25, depth=0.0008)
+        crossed += _test_seam_interior(fp, hyp)[0]
+        s, rows = _test_seam_midline(fp, hyp, min_edge=0.15)
+        split += s
+        # only the axis whose halves could be boxes: 0.09 m across is no box
+        assert len(rows) == 1 and list(rows[0].b) == [1]
+        assert rows[0].kind[0] == TestKind.VERIFY_SEAM_MIDLINE
+    assert split >= 15 and crossed <= 2  # 17 and 0 of these 20
+
+
+def test_the_middle_of_one_flat_top_keeps_its_level():
+    from boxloc.stages.verify import _test_seam_midline
+    hyp = _midline_hyp(0.32, 0.5)
+    rng = np.random.default_rng(8)
+    fired = [_test_seam_midline(_midline_face(rng, 0.32, 0.5), hyp, min_edge=0.15)[0]
+             for _ in range(200)]
+    assert sum(fired) <= 8  # two axes at 1 % each: about 4 of 200 by chance (2 here)
+
+
+def test_the_middle_is_tested_only_where_the_halves_could_be_boxes():
+    from boxloc.stages.verify import _test_seam_midline
+    rng = np.random.default_rng(9)
+    hyp = _midline_hyp(0.18, 0.5)
+    fp = _midline_face(rng, 0.18, 0.5, groove_v=0.25)
+    # shorter halves than 0.9 min_edge: nothing tested
+    assert _test_seam_midline(fp, hyp, min_edge=0.3) == (False, [])
+    # with a carton list: only where a half matches a listed size
+    assert _test_seam_midline(fp, hyp, 0.15, ((0.3, 0.4, 0.2),), 0.01) == (False, [])
+    split, rows = _test_seam_midline(fp, hyp, 0.15, ((0.18, 0.25, 0.2),), 0.01)
+    assert split and list(rows[0].b) == [1]
