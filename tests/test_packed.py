@@ -447,7 +447,10 @@ def test_a_brick_layer_whose_seams_show_is_split_into_its_cartons() -> None:
 def test_the_edge_of_tape_on_a_lid_is_no_side_of_a_face() -> None:
     # development draw (packed seed 3, weave scene 43, active stereo at 1 m): a rectangle
     # over a turned cell took the edge of the tape on the next carton's lid, 0.1 m inside
-    # it, as its fourth side; the strip beyond lies on the tape, a few mm in front
+    # it, as its fourth side, until VERIFY_RAISED_BEYOND (the strip beyond lies on the tape,
+    # a few mm in front). Since 855264b that rectangle, 0.50 x 0.60 m, is no candidate: its
+    # length was the extent's reach, not an end. The rule's own test is on a constructed
+    # lid (tests/test_verify.py); here, that the scene keeps no wrong rectangle
     from boxloc.evaluate.matrix_bench import matrix_config
     from boxloc.evaluate.packed_bench import packed_suite, score_packed
     from boxloc.simulate import simulate
@@ -456,19 +459,6 @@ def test_the_edge_of_tape_on_a_lid_is_no_side_of_a_face() -> None:
     assert spec.pattern == "weave" and spec.sensor == "active-stereo" and spec.tape > 0
     sim = simulate(spec)
     r = find_graspable_surfaces(sim.scan, matrix_config([spec])[0])
-    T = r.verification.tests
-    raised = T.select((T.kind == TestKind.VERIFY_RAISED_BEYOND) & ~T.accepted)
-    assert len(raised) >= 1 and (raised.statistic >= 0.5).all()
-    # each rejection's height row: the strip stood no higher than the flatness prior, and
-    # higher than nothing (tape, a few mm in front of the lid)
-    high = T.select(T.kind == TestKind.VERIFY_RAISED_HEIGHT)
-    for a, b in zip(raised.a, raised.b):
-        h = high.select((high.a == a) & (high.b == b))
-        assert len(h) == 1 and h.accepted[0]
-        assert 0.0 < h.statistic[0] <= h.critical[0]
-    V = r.verification
-    reasons = {int(a): int(x) for a, x in zip(V.attempt, V.reason)}
-    assert all(reasons[int(a)] == VerifyReason.CONTINUES for a in raised.a)
     assert score_packed(r, sim.truth).wrong.n_wrong == 0
 
 
@@ -520,11 +510,16 @@ def test_lines_into_finds_a_touching_neighbours_side_running_on_into_a_rectangle
     assert _lines_into(1, rects, segs, owner, cfg) == []
 
 
-def test_a_rectangle_over_two_tops_is_rejected_where_a_neighbours_seam_runs_on() -> None:
+@pytest.mark.parametrize("midline", [True, False])
+def test_a_rectangle_over_two_tops_is_rejected_where_a_neighbours_seam_runs_on(
+        midline: bool, monkeypatch: pytest.MonkeyPatch) -> None:
     # a development scene (packed seed 2, scene 16): a laser layer of 16 flush cartons of
     # 0.177 x 0.285 m at 2 m. One rectangle spanned two of them (0.167 x 0.567 m): the seam
     # between them was too weak for the search anywhere inside, while the neighbours' sides
-    # ran on along it. Tested there, it is seen, and the two tops are found
+    # ran on along it. Tested there, it is seen, and the two tops are found. Since
+    # VERIFY_SEAM_MIDLINE the same seam, at the rectangle's middle, rejects it first; the
+    # in-line test must still do so without it
+    import boxloc.stages.verify as verify_module
     from boxloc.evaluate.matrix_bench import matrix_config
     from boxloc.evaluate.packed_bench import packed_suite
     from boxloc.simulate import simulate
@@ -532,11 +527,13 @@ def test_a_rectangle_over_two_tops_is_rejected_where_a_neighbours_seam_runs_on()
     specs = packed_suite(96, 2)
     assert specs[16].sensor == "laser"
     sim = simulate(specs[16])
+    if not midline:
+        monkeypatch.setattr(verify_module, "MIDLINE_HALF", math.inf)
     r = find_graspable_surfaces(sim.scan, matrix_config(specs)[0])
     m = match_surfaces(r.surfaces, sim.truth)
     assert (m.tp, m.fp) == (16, 0)
     T = r.verification.tests
-    line = T.of_kind(TestKind.VERIFY_SEAM_IN_LINE)
+    line = T.of_kind(TestKind.VERIFY_SEAM_MIDLINE if midline else TestKind.VERIFY_SEAM_IN_LINE)
     hit = line.select(~line.accepted)
     assert len(hit) >= 1
     j = int(hit.a[0])

@@ -605,3 +605,41 @@ def test_the_middle_is_tested_only_where_the_halves_could_be_boxes():
     assert _test_seam_midline(fp, hyp, 0.15, ((0.3, 0.4, 0.2),), 0.01) == (False, [])
     split, rows = _test_seam_midline(fp, hyp, 0.15, ((0.18, 0.25, 0.2),), 0.01)
     assert split and list(rows[0].b) == [1]
+
+
+def test_a_face_runs_on_under_a_thin_strip_lying_beyond_its_side():
+    # a 6 mm strip 8 cm wide along a 0.40 x 0.30 m lid (thick tape, a stack of labels): a
+    # rectangle from the lid's side to the strip's edge has jump edges along that side
+    # and no plane beyond it (the strip is in front), yet the face runs on under it
+    # (VERIFY_RAISED_BEYOND). Until 855264b a development weave scene showed this; a
+    # capped extent no longer makes that rectangle there
+    from tests.scenes import TOP
+    th, tw = 0.006, 0.08
+    strip = [0.0, 0.0, TOP + 0.25 + th / 2, 0.38, tw, th, 0.0]
+    sim = scene([box(0.0, 0.0, 0.40, 0.30, 0.25), strip], distance=1.2, tilt=0.05, seed=4,
+                bevel=0.0)
+    cfg = Config()
+    r = find_graspable_surfaces(sim.scan, cfg)
+    T = sim.truth
+    f = int(np.argmax(T.width * T.length))  # the lid
+    c = np.array(T.corners[f])
+    x, y = c[0] - c[3], c[2] - c[3]
+    w, l_ = float(np.linalg.norm(x)), float(np.linalg.norm(y))
+    n = np.array(T.normals[f])
+    n = n if n[2] < 0 else -n
+    assert w > l_  # the strip runs along x; the rectangle ends at its edge along y
+    ctx = VerifyContext.build(sim.scan, r.edges, cfg, r.hypotheses.up)
+    out = verify(sim.scan, ctx, c[3], x / w, y / l_, n, w, (l_ - tw) / 2, np.eye(6) * 1e-10,
+                 cfg, attempt_id=0)
+    assert out.reason == VerifyReason.CONTINUES
+    t = out.tests
+    assert t.of_kind(TestKind.VERIFY_BOUNDARY).accepted[1]  # the strip's step: jump edges
+    cont = t.of_kind(TestKind.VERIFY_CONTINUATION)
+    assert cont.statistic[1] < 0.2  # no plane beyond: the strip is in front of it
+    raised = t.of_kind(TestKind.VERIFY_RAISED_BEYOND)
+    assert list(~raised.accepted) == [False, True, False, False]
+    assert raised.statistic[1] >= 0.5
+    height = t.of_kind(TestKind.VERIFY_RAISED_HEIGHT)
+    assert height.accepted[1] and 0.003 < height.statistic[1] <= height.critical[1]
+    # beyond the other sides the floor, 0.25 m down: no strip lying there
+    assert (height.statistic[[0, 2, 3]] < -0.2).all()
