@@ -204,9 +204,9 @@ class TestKind(IntEnum):
     #: verification: how high the strip beyond side b of attempt a stands (b = side 0-3,
     #: one row per VERIFY_RAISED_BEYOND row): statistic = the median height of the strip's
     #: points above the face's plane (metres, along its normal; NaN without points, then
-    #: not accepted), critical = k ``flatness``. Accepted where no higher: thin enough to be
-    #: tape or a label, which VERIFY_RAISED_BEYOND needs (with its front fraction) to
-    #: reject the side
+    #: not accepted), critical = k ``flatness``. Accepted where no higher: nothing beyond
+    #: stands taller than tape or a label could (a drop to the floor is accepted too);
+    #: VERIFY_RAISED_BEYOND needs that, with its front fraction, to reject the side
     VERIFY_RAISED_HEIGHT = 41
     #: verification: no seam at the middle of attempt a's face along axis b (0: the line
     #: u = width / 2, 1: v = length / 2), tested where each half could be a box (at least
