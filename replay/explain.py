@@ -68,17 +68,17 @@ from boxloc.stats import (
 )
 
 _NEGATE = {"<=": ">", "<": ">=", ">": "<=", ">=": "<"}
-#: what each verify reason's failing test is
-_REASON_TEST: dict[VerifyReason, TestKind] = {
-    VerifyReason.TILTED: TestKind.VERIFY_TILT,
-    VerifyReason.INTERIOR_EDGES: TestKind.VERIFY_INTERIOR,
-    VerifyReason.BOUNDARY: TestKind.VERIFY_BOUNDARY,
-    VerifyReason.INTERIOR_SEAM: TestKind.VERIFY_SEAM_INTERIOR,
-    VerifyReason.NOT_EXPOSED: TestKind.VERIFY_EXPOSED,
-    VerifyReason.INLIERS: TestKind.VERIFY_INLIERS,
-    VerifyReason.MEAN_OFFSET: TestKind.VERIFY_MEAN,
-    VerifyReason.CONTINUES: TestKind.VERIFY_CONTINUATION,
-    VerifyReason.OUTSIDE_IMAGE: TestKind.VERIFY_CONTINUATION,
+#: what each verify reason's failing test is: the first rejected row of these kinds
+_REASON_TEST: dict[VerifyReason, tuple[TestKind, ...]] = {
+    VerifyReason.TILTED: (TestKind.VERIFY_TILT,),
+    VerifyReason.INTERIOR_EDGES: (TestKind.VERIFY_INTERIOR,),
+    VerifyReason.BOUNDARY: (TestKind.VERIFY_BOUNDARY,),
+    VerifyReason.INTERIOR_SEAM: (TestKind.VERIFY_SEAM_INTERIOR, TestKind.VERIFY_SEAM_MIDLINE),
+    VerifyReason.NOT_EXPOSED: (TestKind.VERIFY_EXPOSED,),
+    VerifyReason.INLIERS: (TestKind.VERIFY_INLIERS,),
+    VerifyReason.MEAN_OFFSET: (TestKind.VERIFY_MEAN,),
+    VerifyReason.CONTINUES: (TestKind.VERIFY_CONTINUATION, TestKind.VERIFY_RAISED_BEYOND),
+    VerifyReason.OUTSIDE_IMAGE: (TestKind.VERIFY_CONTINUATION,),
 }
 #: SEAM_PEAK's b: the axis, and where the search looked (:mod:`boxloc.stages.hypotheses`)
 _SEAM_AXES = ("along x", "along y", "along x, near max_edge", "along y, near max_edge")
@@ -238,8 +238,9 @@ class _Ctx:
                     t["side"] = next(sides, "")
             failed = None
             if reason in _REASON_TEST:
-                failed = next((t for t in tests if t["kind"] == _REASON_TEST[reason].name
-                               and not t["accepted"]), None)
+                kinds = {k.name for k in _REASON_TEST[reason]}
+                failed = next((t for t in tests if t["kind"] in kinds and not t["accepted"]),
+                              None)
             d["verification"] = {
                 "accepted": bool(V.accepted[j]), "reason": reason.name,
                 "failed_test": failed,

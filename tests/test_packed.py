@@ -541,6 +541,15 @@ def test_a_rectangle_over_two_tops_is_rejected_where_a_neighbours_seam_runs_on(
         VerifyReason.INTERIOR_SEAM
     H = r.hypotheses
     assert max(H.att_width[j], H.att_length[j]) > 0.5  # the two tops together
+    if midline:  # explain names the row that rejected it, not the interior's accepted one
+        from types import SimpleNamespace
+
+        from replay.explain import _Ctx
+        rec = SimpleNamespace(products={"hypotheses": H, "verification": r.verification},
+                              scan=sim.scan)
+        ctx = _Ctx("-", rec, matrix_config(specs)[0])
+        failed = ctx.attempt(j)["verification"]["failed_test"]
+        assert failed["kind"] == "VERIFY_SEAM_MIDLINE" and not failed["accepted"]
 
 
 @pytest.mark.parametrize("kind", [TestKind.VERIFY_SEAM_IN_LINE, TestKind.SKU_TILING])
