@@ -1165,16 +1165,16 @@ def _test_continuation(ctx: VerifyContext, fp: FacePoints, hyp: _Hypothesis, fit
     ends &= ~cut
     rows.append(TestTable.decision(TestKind.VERIFY_CONTINUATION, hyp.attempt_id, [0, 1, 2, 3],
                                    cont, min_inlier_fraction, ends, hyp.alpha))
-    raised = np.array([bool(si not in sides.seams and np.isfinite(front[si])
-                            and front[si] >= RAISED_FRACTION
-                            and height[si] <= hyp.k * flatness) for si in range(4)])
+    # no higher than the flatness prior (NaN: no strip, not thin); its row records it, so
+    # a post-mortem sees how high the strip stood
+    thin = height <= hyp.k * flatness
+    seam = np.isin(np.arange(4), list(sides.seams))
+    raised = ~seam & (front >= RAISED_FRACTION) & thin  # NaN front: False
     ends &= ~raised
     rows.append(TestTable.decision(TestKind.VERIFY_RAISED_BEYOND, hyp.attempt_id, [0, 1, 2, 3],
                                    front, RAISED_FRACTION, ~raised, hyp.alpha))
-    # the height that also decides it, so a post-mortem sees how high the strip stood
     rows.append(TestTable.decision(TestKind.VERIFY_RAISED_HEIGHT, hyp.attempt_id,
-                                   [0, 1, 2, 3], height, hyp.k * flatness,
-                                   height <= hyp.k * flatness, hyp.alpha))
+                                   [0, 1, 2, 3], height, hyp.k * flatness, thin, hyp.alpha))
     return ends, cut, rows
 
 
