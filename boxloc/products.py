@@ -644,7 +644,8 @@ class SurfaceSet:
         least ``boxloc.stages.surfaces.MIN_BULGE_POINTS``, not all on one line); a surface
         without one has ``bulge`` 0 and its centre on the points' plane. END_EVIDENCE per
         side of every surface; SKU_SIZE per surface when ``Config.box_sizes`` lists sizes;
-        BOX_HEIGHT per height found; LAYER_HEIGHT per top of a flush layer whose height
+        BOX_HEIGHT per height found; HEIGHT_WITHIN_BOX per height measurement deeper than
+        any carton is tall (not used); LAYER_HEIGHT per top of a flush layer whose height
         was weighed against the layer's smallest side-face height.
     height, height_sigma : (s,) float64
         The box's height (its top above what it stands on) and its standard deviation,

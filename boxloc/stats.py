@@ -214,6 +214,13 @@ class TestKind(IntEnum):
     #: groove z there (NaN: no points), critical = Bonferroni z at alpha over the few
     #: positions tried. Rejected: two boxes side by side (reason ``INTERIOR_SEAM``)
     VERIFY_SEAM_MIDLINE = 42
+    #: height: a measurement of attempt a's box height reaches deeper than any carton is
+    #: tall (b = the side 0-3 of a side face, 4 + the side of a step): statistic = the
+    #: measured height, metres; critical = ``max_edge`` (the longest edge of any box, a site
+    #: fact) plus z at alpha of the measurement's sigma. Only rejected rows are recorded: the
+    #: measurement is a flush stack's side or the drop to the floor beyond the pallet, not
+    #: this box's height, and is not used
+    HEIGHT_WITHIN_BOX = 43
 
 
 #: ``TestKind.BUDGET`` rows' ``a``: the stage whose budget it is.
@@ -241,6 +248,7 @@ RELATION: dict[TestKind, str | None] = {
     TestKind.BUDGET: "<", TestKind.LAYER_HEIGHT: ">", TestKind.VERIFY_SEAM_IN_LINE: "<=",
     TestKind.SKU_SEEN_TILING: None, TestKind.VERIFY_RAISED_BEYOND: "<",
     TestKind.VERIFY_RAISED_HEIGHT: "<=", TestKind.VERIFY_SEAM_MIDLINE: "<=",
+    TestKind.HEIGHT_WITHIN_BOX: "<=",
 }
 
 _RELATION_OPS = {"<=": operator.le, "<": operator.lt, ">": operator.gt, ">=": operator.ge}

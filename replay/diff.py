@@ -775,7 +775,8 @@ def _test_keys(t: TestTable, maps: Mapping[str, Mapping[int, int] | None]) -> di
             x, y = m("vertices", a), m("lines", b)
             key = None if x is None or y is None else (kind, x, y)
         elif kind in (TestKind.END_EVIDENCE, TestKind.SKU_SPLIT_SEAM, TestKind.SKU_SIZE,
-                      TestKind.SKU_TILING, TestKind.SKU_SEEN_TILING):
+                      TestKind.SKU_TILING, TestKind.SKU_SEEN_TILING,
+                      TestKind.HEIGHT_WITHIN_BOX):
             # b: a side, a cut, a listed size: the same on both runs of one attempt
             x = m("attempts", a)
             key = None if x is None else (kind, x, b)

@@ -82,6 +82,35 @@ def test_a_flush_stack_measures_its_whole_height_unless_the_listed_height_says_o
     assert s.sku[0] == 0 and s.height_source[0] == HeightSource.SKU and s.height[0] == 0.2
 
 
+@pytest.mark.parametrize("tilt, kind", [(0.35, "side"), (0.0, "step")])
+def test_a_measurement_deeper_than_any_carton_is_no_height(tilt: float, kind: str) -> None:
+    # three flush 0.3 x 0.4 x 0.15 m cartons: the side face runs 0.45 m down the stack (at
+    # a slant), or the step beyond every side drops 0.45 m to the pallet (from above)
+    from scenes import TOP
+
+    lower = box(0.0, 0.0, 0.3, 0.4, 0.15)
+    stack = [lower] + [[0.0, 0.0, TOP + 0.15 * j + 0.075, 0.3, 0.4, 0.15, 0.0]
+                       for j in (1, 2)]
+    sim = scene(stack, distance=1.5, tilt=tilt, bevel=0.0)
+    # a site whose largest carton edge is 0.6 m: the 0.45 m is reported (one tall carton)
+    r = find_graspable_surfaces(sim.scan, CFG)
+    s = r.surfaces
+    assert len(s) == 1 and abs(s.height[0] - 0.45) <= 0.010
+    assert s.height_source[0] == (HeightSource.SIDE if kind == "side" else HeightSource.STEP)
+    assert len(s.tests.of_kind(TestKind.HEIGHT_WITHIN_BOX)) == 0
+    # where no carton has an edge over 0.4 m, the 0.45 m is a stack's: no height, and the
+    # rows say which measurements reached past the tallest carton
+    r = find_graspable_surfaces(sim.scan, dataclasses.replace(CFG, max_edge=0.4))
+    s = r.surfaces
+    assert len(s) == 1 and s.height_source[0] == HeightSource.NONE and math.isnan(s.height[0])
+    rows = s.tests.of_kind(TestKind.HEIGHT_WITHIN_BOX)
+    assert len(rows) >= 1 and not rows.accepted.any() and (rows.a == s.attempt[0]).all()
+    assert (rows.statistic > rows.critical).all() and (rows.critical > 0.4).all()
+    assert np.all(np.abs(rows.statistic - 0.45) <= 0.015)
+    assert ((rows.b < 4) if kind == "side" else (rows.b >= 4)).any()
+    assert r.to_json()["surfaces"][0]["height_source"] == "none"
+
+
 def _layer_on_a_stack(ledge: float) -> tuple[object, object]:
     """Two 0.3 x 0.4 x 0.2 m cartons A and B 4 mm apart on two others, seen at a slant: A
     is flush with the carton under it, B's stands out by ``ledge`` on every side but the

@@ -16,6 +16,12 @@ Two measurements, per side of the top's rectangle (0-3: v=0, v=length, u=0, u=wi
   ``min_inlier_fraction`` prior) lie on one such surface, significantly below the top,
   counts: a wall or a taller neighbour beyond a side is no step.
 
+No carton is taller than the longest edge of any (``max_edge``, the site's largest box), so
+a measurement significantly deeper than that (z at alpha of its sigma) is no box's height:
+a side face running on down a flush stack, or the step down to the floor beyond the pallet.
+It is not used, and a HEIGHT_WITHIN_BOX row records it (only those rows: the others are the
+BOX_HEIGHT row's). A flush stack shorter than that still reads as one tall carton.
+
 A side face seen gives the height directly. Without one, the step down: the smallest
 step of the four sides, since the nearest surface below is the most likely to be what the
 box stands on (a box on the floor at the pallet's edge sees the floor through its outer
@@ -64,8 +70,8 @@ from boxloc.stats import TestKind, TestTable, chi2_critical
 #: Two reported tops touch (one flush layer, :func:`flush_layers`) within this many point
 #: spacings of each other.
 LAYER_GAP_SPACINGS = 4.0
-#: How far down a side face is searched, as a multiple of ``Config.max_edge`` (cartons are
-#: rarely taller than their longest edge; beyond it lies the rest of a stack).
+#: How far down a side face is searched, as a multiple of ``Config.max_edge``: far enough to
+#: see a face run on past any carton's height (down a flush stack: HEIGHT_WITHIN_BOX).
 SIDE_REACH = 1.5
 
 
@@ -255,9 +261,10 @@ def box_heights(scan_ctx: VerifyContext, surfaces: SurfaceSet, config: Config,
     source : (s,) int8
         :class:`HeightSource`.
     tests : TestTable
-        LAYER_HEIGHT per top of a flush layer but the one whose side measurement is
-        the layer's (:func:`pool_layers`), then BOX_HEIGHT per height (a = attempt, b =
-        source).
+        HEIGHT_WITHIN_BOX per measurement deeper than any carton is tall (rejected; a =
+        attempt, b = the side, 4 + the side for a step), then LAYER_HEIGHT per top of a
+        flush layer but the one whose side measurement is the layer's
+        (:func:`pool_layers`), then BOX_HEIGHT per height (a = attempt, b = source).
     """
     n = len(surfaces)
     height = np.full(n, np.nan)
@@ -266,8 +273,10 @@ def box_heights(scan_ctx: VerifyContext, surfaces: SurfaceSet, config: Config,
     k = math.sqrt(chi2_critical(1.0, config.alpha))
     z_a = float(norm_isf(config.alpha))
     rows: list[tuple[int, int, float, float, bool]] = []
+    too_tall: list[tuple[int, int, float, float, bool]] = []
     for i in range(n):
-        height[i], sigma[i], source[i] = _measure(scan_ctx, surfaces, i, config, k, z_a)
+        height[i], sigma[i], source[i] = _measure(scan_ctx, surfaces, i, config, k, z_a,
+                                                  too_tall)
     layer_rows = pool_layers(height, sigma, source, flush_layers(scan_ctx, surfaces, config),
                              surfaces.attempt, z_a, config.alpha)
     for i in range(n):
@@ -283,17 +292,34 @@ def box_heights(scan_ctx: VerifyContext, surfaces: SurfaceSet, config: Config,
         if source[i] != HeightSource.NONE:
             rows.append((int(surfaces.attempt[i]), int(source[i]), float(height[i]),
                          float(sigma[i]), bool(height[i] > z_a * sigma[i])))
+    tall = TestTable.empty(config.alpha)
+    if too_tall:
+        t = list(zip(*too_tall))
+        tall = TestTable.decision(TestKind.HEIGHT_WITHIN_BOX, t[0], t[1], t[2], t[3], t[4],
+                                  config.alpha)
     if not rows:
-        return height, sigma, source, TestTable.concat([layer_rows], config.alpha)
+        return height, sigma, source, TestTable.concat([tall, layer_rows], config.alpha)
     r = list(zip(*rows))
     tests = TestTable.decision(TestKind.BOX_HEIGHT, r[0], r[1], r[2], r[3], r[4], config.alpha)
-    return height, sigma, source, TestTable.concat([layer_rows, tests], config.alpha)
+    return height, sigma, source, TestTable.concat([tall, layer_rows, tests], config.alpha)
 
 
 def _measure(ctx: VerifyContext, surfaces: SurfaceSet, i: int, config: Config, k: float,
-             z_a: float) -> tuple[float, float, int]:
+             z_a: float, too_tall: list[tuple[int, int, float, float, bool]]
+             ) -> tuple[float, float, int]:
     """Surface i's own height measurement: (height, sigma, :class:`HeightSource`), NaN and
-    NONE where none is significant."""
+    NONE where none is significant and within one carton's height; a HEIGHT_WITHIN_BOX row
+    (a, b, statistic, critical, accepted) is appended to ``too_tall`` for each measurement
+    deeper than that."""
+    a = int(surfaces.attempt[i])
+
+    def one_box(h: float, s: float, b: int) -> bool:
+        crit = config.max_edge + z_a * s
+        if h <= crit:
+            return True
+        too_tall.append((a, b, h, crit, False))
+        return False
+
     C = surfaces.corners[i]
     c, nrm = surfaces.centers[i], surfaces.normals[i]
     x, y = surfaces.x_axis[i], surfaces.y_axis[i]
@@ -303,7 +329,7 @@ def _measure(ctx: VerifyContext, surfaces: SurfaceSet, i: int, config: Config, k
     for si, (ia, ib) in enumerate(SIDE_CORNERS):
         h, s, m = side_height(ctx, C[ia], C[ib], outs[si], -nrm,
                               SIDE_REACH * config.max_edge, k, config.flatness)
-        if np.isfinite(h) and h > z_a * s:
+        if np.isfinite(h) and h > z_a * s and one_box(h, s, si):
             sides.append((m, h, s))
     if sides:
         # the side seen best (most points) gives the height
@@ -313,7 +339,7 @@ def _measure(ctx: VerifyContext, surfaces: SurfaceSet, i: int, config: Config, k
     for si in range(4):
         h, s, m = step_height(ctx, C, si, c, nrm, x, y, w, ln, 0.5 * config.min_edge, k,
                               config.flatness, config.min_inlier_fraction)
-        if np.isfinite(h) and h > z_a * s:
+        if np.isfinite(h) and h > z_a * s and one_box(h, s, 4 + si):
             steps.append((h, s))
     if steps:
         h, s = min(steps)
