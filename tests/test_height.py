@@ -66,6 +66,26 @@ def test_without_a_measurement_the_listed_height_else_none() -> None:
     assert src[0] == HeightSource.SKU and h[0] == 0.25 and sig[0] == CFG.size_tolerance
 
 
+def test_a_measurement_that_agrees_with_the_listed_height_is_combined_with_it() -> None:
+    sim, r = _one_surface(0.35, 0.2)
+    ctx = height_context(sim.scan, CFG, r.hypotheses.up)
+    h0, s0, src0, _ = box_heights(ctx, r.surfaces, CFG)
+    assert src0[0] == HeightSource.SIDE
+    tol = CFG.size_tolerance
+    # a listed 0.21 m agrees: the two weighed by their variances, the source the side's
+    h, sig, src, tests = box_heights(ctx, r.surfaces, CFG, sku_height=np.array([0.21]))
+    w_m, w_s = 1 / s0[0] ** 2, 1 / tol**2
+    assert src[0] == HeightSource.SIDE
+    assert h[0] == pytest.approx((w_m * h0[0] + w_s * 0.21) / (w_m + w_s))
+    assert min(h0[0], 0.21) < h[0] < max(h0[0], 0.21)
+    assert sig[0] == pytest.approx((w_m + w_s) ** -0.5) and sig[0] < min(s0[0], tol)
+    row = tests.of_kind(TestKind.BOX_HEIGHT)
+    assert row.statistic[0] == h[0] and row.critical[0] == sig[0]
+    # a listed 0.3 m does not: the listed height, as the carton's
+    h, sig, src, _ = box_heights(ctx, r.surfaces, CFG, sku_height=np.array([0.3]))
+    assert src[0] == HeightSource.SKU and h[0] == 0.3 and sig[0] == tol
+
+
 def test_a_flush_stack_measures_its_whole_height_unless_the_listed_height_says_otherwise(
         ) -> None:
     from scenes import TOP

@@ -29,8 +29,11 @@ side, the pallet top through the inner ones). Where the matched carton size list
 height, a measurement that differs from it (chi2, 1 dof, with the size tolerance) is not
 this carton's: the side of a stack of them, flush, or the step down to the floor beyond
 the pallet; the listed height is reported instead (``HeightSource.SKU``), as it is where
-nothing is measured. Without a list, such a measurement is reported as it is: from the
-top alone, a flush stack of sharp-edged cartons cannot be told from one tall carton.
+nothing is measured. A measurement that agrees with it is combined with it, each weighed by
+its variance (the size tolerance the listed height's sigma), and keeps its source: a side
+face seen noisily, centimetres off, then moves toward the listed height by its weight.
+Without a list, such a measurement is reported as it is: from the top alone, a flush stack
+of sharp-edged cartons cannot be told from one tall carton.
 
 The reported tops of one flush layer (:func:`flush_layers`: touching, coplanar) stand on
 one support, so their boxes are equally tall. A side face seen runs from the top's edge down
@@ -281,10 +284,17 @@ def box_heights(scan_ctx: VerifyContext, surfaces: SurfaceSet, config: Config,
                              surfaces.attempt, z_a, config.alpha)
     for i in range(n):
         h_sku = sku_height[i] if sku_height is not None else np.nan
-        if np.isfinite(h_sku) and not (
-                source[i] != HeightSource.NONE
-                and (height[i] - h_sku) ** 2 / (sigma[i] ** 2 + config.size_tolerance**2)
-                <= chi2_critical(1.0, config.alpha)):
+        if not np.isfinite(h_sku):
+            pass
+        elif (source[i] != HeightSource.NONE
+              and (height[i] - h_sku) ** 2 / (sigma[i] ** 2 + config.size_tolerance**2)
+              <= chi2_critical(1.0, config.alpha)):
+            # this carton's height measured: the measurement and the listed height, each
+            # weighed by its variance (the tolerance the listed one's sigma)
+            w_m, w_s = 1.0 / sigma[i] ** 2, 1.0 / config.size_tolerance**2
+            height[i] = (w_m * height[i] + w_s * float(h_sku)) / (w_m + w_s)
+            sigma[i] = math.sqrt(1.0 / (w_m + w_s))
+        else:
             # nothing measured, or what was is not this carton's height: the side of a
             # stack of them, or the step down to the floor beyond the pallet
             height[i], source[i] = float(h_sku), HeightSource.SKU
