@@ -645,7 +645,8 @@ class SurfaceSet:
         without one has ``bulge`` 0 and its centre on the points' plane. END_EVIDENCE per
         side of every surface; SKU_SIZE per surface when ``Config.box_sizes`` lists sizes;
         BOX_HEIGHT per height found; HEIGHT_WITHIN_BOX per height measurement deeper than
-        any carton is tall (not used); LAYER_HEIGHT per top of a flush layer whose height
+        any carton is tall (not used); HEIGHT_SKU_AGREEMENT per measured height with a listed
+        one; LAYER_HEIGHT per top of a flush layer whose height
         was weighed against the layer's smallest side-face height.
     height, height_sigma : (s,) float64
         The box's height (its top above what it stands on) and its standard deviation,

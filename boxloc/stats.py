@@ -221,6 +221,12 @@ class TestKind(IntEnum):
     #: measurement is a flush stack's side or the drop to the floor beyond the pallet, not
     #: this box's height, and is not used
     HEIGHT_WITHIN_BOX = 43
+    #: height: attempt a's measured height (b = its source) agrees with its matched
+    #: carton's listed height: statistic = chi2 of their difference over the measurement's
+    #: variance plus the size tolerance squared (1 dof). Accepted: the two are combined,
+    #: each weighed by its variance, and the source kept; rejected: the measurement is not
+    #: this carton's (a stack's side, the floor beyond), and the listed height replaces it
+    HEIGHT_SKU_AGREEMENT = 44
 
 
 #: ``TestKind.BUDGET`` rows' ``a``: the stage whose budget it is.

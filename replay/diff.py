@@ -780,7 +780,8 @@ def _test_keys(t: TestTable, maps: Mapping[str, Mapping[int, int] | None]) -> di
             # b: a side, a cut, a listed size: the same on both runs of one attempt
             x = m("attempts", a)
             key = None if x is None else (kind, x, b)
-        elif kind in (TestKind.BOX_HEIGHT, TestKind.LAYER_HEIGHT):
+        elif kind in (TestKind.BOX_HEIGHT, TestKind.LAYER_HEIGHT,
+                      TestKind.HEIGHT_SKU_AGREEMENT):
             # b (the height's source; the layer mate whose height it took) may change: one
             # row per chosen attempt
             x = m("attempts", a)

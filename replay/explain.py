@@ -398,13 +398,15 @@ class _Ctx:
 
     def height(self, k: int) -> dict[str, Any]:
         """Surface k's box height: value, sigma, source and its BOX_HEIGHT test, after its
-        HEIGHT_WITHIN_BOX rows (measurements deeper than any carton is tall, not used) and
-        its LAYER_HEIGHT test where its flush layer's smallest measurement was weighed."""
+        HEIGHT_WITHIN_BOX rows (measurements deeper than any carton is tall, not used), its
+        LAYER_HEIGHT test where its flush layer's smallest measurement was weighed, and its
+        HEIGHT_SKU_AGREEMENT test where a listed height was weighed."""
         S = self.surfaces
         return {"height_mm": _mm(S.height[k]), "sigma_mm": _mm(S.height_sigma[k]),
                 "source": _name(HeightSource, S.height_source[k]),
                 "tests": _tests(S.tests, [TestKind.HEIGHT_WITHIN_BOX, TestKind.LAYER_HEIGHT,
-                                          TestKind.BOX_HEIGHT], a=int(S.attempt[k]))}
+                                          TestKind.HEIGHT_SKU_AGREEMENT, TestKind.BOX_HEIGHT],
+                                a=int(S.attempt[k]))}
 
     def size(self, k: int) -> dict[str, Any]:
         """Surface k against the carton list: the matched size (row of

@@ -81,9 +81,14 @@ def test_a_measurement_that_agrees_with_the_listed_height_is_combined_with_it() 
     assert sig[0] == pytest.approx((w_m + w_s) ** -0.5) and sig[0] < min(s0[0], tol)
     row = tests.of_kind(TestKind.BOX_HEIGHT)
     assert row.statistic[0] == h[0] and row.critical[0] == sig[0]
+    agree = tests.of_kind(TestKind.HEIGHT_SKU_AGREEMENT)
+    assert len(agree) == 1 and agree.accepted[0] and agree.b[0] == HeightSource.SIDE
+    assert agree.statistic[0] == pytest.approx((h0[0] - 0.21) ** 2 / (s0[0] ** 2 + tol**2))
     # a listed 0.3 m does not: the listed height, as the carton's
-    h, sig, src, _ = box_heights(ctx, r.surfaces, CFG, sku_height=np.array([0.3]))
+    h, sig, src, tests = box_heights(ctx, r.surfaces, CFG, sku_height=np.array([0.3]))
     assert src[0] == HeightSource.SKU and h[0] == 0.3 and sig[0] == tol
+    agree = tests.of_kind(TestKind.HEIGHT_SKU_AGREEMENT)
+    assert len(agree) == 1 and not agree.accepted[0] and agree.statistic[0] > agree.critical[0]
 
 
 def test_a_flush_stack_measures_its_whole_height_unless_the_listed_height_says_otherwise(

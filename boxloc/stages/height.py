@@ -267,7 +267,9 @@ def box_heights(scan_ctx: VerifyContext, surfaces: SurfaceSet, config: Config,
         HEIGHT_WITHIN_BOX per measurement deeper than any carton is tall (rejected; a =
         attempt, b = the side, 4 + the side for a step), then LAYER_HEIGHT per top of a
         flush layer but the one whose side measurement is the layer's
-        (:func:`pool_layers`), then BOX_HEIGHT per height (a = attempt, b = source).
+        (:func:`pool_layers`), then HEIGHT_SKU_AGREEMENT per measured top with a listed
+        height (accepted: combined with it; rejected: the listed height replaces it), then
+        BOX_HEIGHT per height (a = attempt, b = source).
     """
     n = len(surfaces)
     height = np.full(n, np.nan)
@@ -278,50 +280,56 @@ def box_heights(scan_ctx: VerifyContext, surfaces: SurfaceSet, config: Config,
     rows: list[tuple[int, int, float, float, bool]] = []
     too_tall: list[tuple[int, int, float, float, bool]] = []
     for i in range(n):
-        height[i], sigma[i], source[i] = _measure(scan_ctx, surfaces, i, config, k, z_a,
-                                                  too_tall)
+        height[i], sigma[i], source[i], tall_i = _measure(scan_ctx, surfaces, i, config, k,
+                                                          z_a)
+        too_tall += tall_i
     layer_rows = pool_layers(height, sigma, source, flush_layers(scan_ctx, surfaces, config),
                              surfaces.attempt, z_a, config.alpha)
+    agree: list[tuple[int, int, float]] = []  # HEIGHT_SKU_AGREEMENT: a, b, chi2
     for i in range(n):
         h_sku = sku_height[i] if sku_height is not None else np.nan
-        if not np.isfinite(h_sku):
-            pass
-        elif (source[i] != HeightSource.NONE
-              and (height[i] - h_sku) ** 2 / (sigma[i] ** 2 + config.size_tolerance**2)
-              <= chi2_critical(1.0, config.alpha)):
-            # this carton's height measured: the measurement and the listed height, each
-            # weighed by its variance (the tolerance the listed one's sigma)
-            w_m, w_s = 1.0 / sigma[i] ** 2, 1.0 / config.size_tolerance**2
-            height[i] = (w_m * height[i] + w_s * float(h_sku)) / (w_m + w_s)
-            sigma[i] = math.sqrt(1.0 / (w_m + w_s))
-        else:
-            # nothing measured, or what was is not this carton's height: the side of a
-            # stack of them, or the step down to the floor beyond the pallet
-            height[i], source[i] = float(h_sku), HeightSource.SKU
-            sigma[i] = config.size_tolerance
+        if np.isfinite(h_sku):
+            chi2 = (math.inf if source[i] == HeightSource.NONE else
+                    (height[i] - h_sku) ** 2 / (sigma[i] ** 2 + config.size_tolerance**2))
+            if source[i] != HeightSource.NONE:
+                agree.append((int(surfaces.attempt[i]), int(source[i]), float(chi2)))
+            if chi2 <= chi2_critical(1.0, config.alpha):
+                # this carton's height measured: the measurement and the listed height,
+                # each weighed by its variance (the tolerance the listed one's sigma)
+                w_m, w_s = 1.0 / sigma[i] ** 2, 1.0 / config.size_tolerance**2
+                height[i] = (w_m * height[i] + w_s * float(h_sku)) / (w_m + w_s)
+                sigma[i] = math.sqrt(1.0 / (w_m + w_s))
+            else:
+                # nothing measured, or what was is not this carton's height: the side of a
+                # stack of them, or the step down to the floor beyond the pallet
+                height[i], source[i] = float(h_sku), HeightSource.SKU
+                sigma[i] = config.size_tolerance
         if source[i] != HeightSource.NONE:
             rows.append((int(surfaces.attempt[i]), int(source[i]), float(height[i]),
                          float(sigma[i]), bool(height[i] > z_a * sigma[i])))
-    tall = TestTable.empty(config.alpha)
+    tables = [layer_rows]
     if too_tall:
         t = list(zip(*too_tall))
-        tall = TestTable.decision(TestKind.HEIGHT_WITHIN_BOX, t[0], t[1], t[2], t[3], t[4],
-                                  config.alpha)
-    if not rows:
-        return height, sigma, source, TestTable.concat([tall, layer_rows], config.alpha)
-    r = list(zip(*rows))
-    tests = TestTable.decision(TestKind.BOX_HEIGHT, r[0], r[1], r[2], r[3], r[4], config.alpha)
-    return height, sigma, source, TestTable.concat([tall, layer_rows, tests], config.alpha)
+        tables.insert(0, TestTable.decision(TestKind.HEIGHT_WITHIN_BOX, t[0], t[1], t[2], t[3],
+                                            t[4], config.alpha))
+    if agree:
+        g = list(zip(*agree))
+        tables.append(TestTable.chi2(TestKind.HEIGHT_SKU_AGREEMENT, g[0], g[1], g[2], 1.0,
+                                     config.alpha))
+    if rows:
+        r = list(zip(*rows))
+        tables.append(TestTable.decision(TestKind.BOX_HEIGHT, r[0], r[1], r[2], r[3], r[4],
+                                         config.alpha))
+    return height, sigma, source, TestTable.concat(tables, config.alpha)
 
 
 def _measure(ctx: VerifyContext, surfaces: SurfaceSet, i: int, config: Config, k: float,
-             z_a: float, too_tall: list[tuple[int, int, float, float, bool]]
-             ) -> tuple[float, float, int]:
+             z_a: float) -> tuple[float, float, int, list[tuple[int, int, float, float, bool]]]:
     """Surface i's own height measurement: (height, sigma, :class:`HeightSource`), NaN and
-    NONE where none is significant and within one carton's height; a HEIGHT_WITHIN_BOX row
-    (a, b, statistic, critical, accepted) is appended to ``too_tall`` for each measurement
-    deeper than that."""
+    NONE where none is significant and within one carton's height, and a HEIGHT_WITHIN_BOX
+    row (a, b, statistic, critical, accepted) for each measurement deeper than that."""
     a = int(surfaces.attempt[i])
+    too_tall: list[tuple[int, int, float, float, bool]] = []
 
     def one_box(h: float, s: float, b: int) -> bool:
         crit = config.max_edge + z_a * s
@@ -344,7 +352,7 @@ def _measure(ctx: VerifyContext, surfaces: SurfaceSet, i: int, config: Config, k
     if sides:
         # the side seen best (most points) gives the height
         _, h, s = max(sides)
-        return h, s, int(HeightSource.SIDE)
+        return h, s, int(HeightSource.SIDE), too_tall
     steps = []
     for si in range(4):
         h, s, m = step_height(ctx, C, si, c, nrm, x, y, w, ln, 0.5 * config.min_edge, k,
@@ -353,8 +361,8 @@ def _measure(ctx: VerifyContext, surfaces: SurfaceSet, i: int, config: Config, k
             steps.append((h, s))
     if steps:
         h, s = min(steps)
-        return h, s, int(HeightSource.STEP)
-    return np.nan, np.nan, int(HeightSource.NONE)
+        return h, s, int(HeightSource.STEP), too_tall
+    return np.nan, np.nan, int(HeightSource.NONE), too_tall
 
 
 def _rect_gap(a: np.ndarray, b: np.ndarray) -> float:
