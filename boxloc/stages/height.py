@@ -307,20 +307,21 @@ def box_heights(scan_ctx: VerifyContext, surfaces: SurfaceSet, config: Config,
         if source[i] != HeightSource.NONE:
             rows.append((int(surfaces.attempt[i]), int(source[i]), float(height[i]),
                          float(sigma[i]), bool(height[i] > z_a * sigma[i])))
-    tables = [layer_rows]
-    if too_tall:
-        t = list(zip(*too_tall))
-        tables.insert(0, TestTable.decision(TestKind.HEIGHT_WITHIN_BOX, t[0], t[1], t[2], t[3],
-                                            t[4], config.alpha))
-    if agree:
-        g = list(zip(*agree))
-        tables.append(TestTable.chi2(TestKind.HEIGHT_SKU_AGREEMENT, g[0], g[1], g[2], 1.0,
-                                     config.alpha))
-    if rows:
-        r = list(zip(*rows))
-        tables.append(TestTable.decision(TestKind.BOX_HEIGHT, r[0], r[1], r[2], r[3], r[4],
-                                         config.alpha))
-    return height, sigma, source, TestTable.concat(tables, config.alpha)
+    a, b, chi2s = (list(col) for col in zip(*agree)) if agree else ([], [], [])
+    return height, sigma, source, TestTable.concat(
+        [_decisions(TestKind.HEIGHT_WITHIN_BOX, too_tall, config.alpha), layer_rows,
+         TestTable.chi2(TestKind.HEIGHT_SKU_AGREEMENT, a, b, np.asarray(chi2s, np.float64),
+                        1.0, config.alpha),
+         _decisions(TestKind.BOX_HEIGHT, rows, config.alpha)], config.alpha)
+
+
+def _decisions(kind: TestKind, rows: list[tuple[int, int, float, float, bool]],
+               alpha: float) -> TestTable:
+    """Rows (a, b, statistic, critical, accepted) of one kind as a table; empty without."""
+    if not rows:
+        return TestTable.empty(alpha)
+    r = list(zip(*rows))
+    return TestTable.decision(kind, r[0], r[1], r[2], r[3], r[4], alpha)
 
 
 def _measure(ctx: VerifyContext, surfaces: SurfaceSet, i: int, config: Config, k: float,
@@ -442,7 +443,4 @@ def pool_layers(height: np.ndarray, sigma: np.ndarray, source: np.ndarray, layer
             rows.append((int(attempt[i]), int(attempt[g]), z, z_a, take))
             if take:
                 height[i], sigma[i], source[i] = hg, sg, src
-    if not rows:
-        return TestTable.empty(alpha)
-    r = list(zip(*rows))
-    return TestTable.decision(TestKind.LAYER_HEIGHT, r[0], r[1], r[2], r[3], r[4], alpha)
+    return _decisions(TestKind.LAYER_HEIGHT, rows, alpha)
