@@ -995,11 +995,12 @@ def _test_seam_midline(fp: FacePoints, hyp: _Hypothesis, min_edge: float,
     if not len(fp):
         return False, []
     axes, zs, crits = [], [], []
-    for axis, size, other, half in ((0, hyp.width, hyp.length, (0.5 * hyp.width, hyp.length)),
-                                    (1, hyp.length, hyp.width, (hyp.width, 0.5 * hyp.length))):
-        if 0.5 * size < MIDLINE_HALF * min_edge:
+    for axis, size, other in ((0, hyp.width, hyp.length), (1, hyp.length, hyp.width)):
+        half = 0.5 * size  # each half is half x other
+        if half < MIDLINE_HALF * min_edge:
             continue
-        if sizes and not match_size(min(half), max(half), sizes, tolerance, hyp.alpha)[3]:
+        if sizes and not match_size(min(half, other), max(half, other), sizes, tolerance,
+                                    hyp.alpha)[3]:
             continue
         z, c = seam_line(fp, axis, 0.5 * size, other, hyp.spacing, hyp.alpha)
         axes.append(axis)
