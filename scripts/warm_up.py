@@ -1,13 +1,16 @@
 """Compile boxloc's numba kernels into numba's on-disk cache; scripts/setup.sh runs it.
 
-The kernels (``@numba.njit(cache=True)`` in boxloc/stages/edges.py, lines.py, scan_noise.py
-and seams.py, and boxloc/calibrate/noise.py) compile on their first call, about 30 s on one
-core, and are then written to numba's cache: beside the sources
+The kernels (``@kernel`` of :mod:`boxloc.kernels`, in the files of its ``KERNEL_SOURCES``),
+run by numba's JIT, compile on their first call, about 90 s on one core, and are then
+written to numba's cache: beside the sources
 (``boxloc/stages/__pycache__/*.nbi, *.nbc``, and boxloc/calibrate's) for a checkout or an
 editable install, or under
 ``NUMBA_CACHE_DIR`` when that is set (then it must be set the same way when boxloc runs).
 An entry is valid until its source file changes (numba keys it on the file's time stamp and
 size), so after a ``git pull`` that touches a kernel, running set-up again rebuilds it.
+Set-up then compiles the same kernels ahead of time (``scripts/build_kernels.py``), which a
+process running one scan uses instead; this cache serves every other process, and one
+whose ahead-of-time module is missing or stale.
 
 Running the whole pipeline once on a small simulated scan (160 x 120) compiles every kernel
 with the argument types of any scan, since the stages convert their inputs to float64 and
@@ -21,6 +24,7 @@ Usage: python scripts/warm_up.py
 from __future__ import annotations
 
 import dataclasses
+import os
 import sys
 import time
 from typing import Any
@@ -77,6 +81,18 @@ def _noise_kernels() -> None:
     design_effect(np.arange(4) // 2, np.arange(4) % 2, np.array([0.5, 0.5, 0.5, 0.5]))
 
 
+def warm_up_scan() -> Any:
+    """The pipeline's Result on the warm-up's 160 x 120 simulated scan (every kernel)."""
+    from boxloc.config import Config
+    from boxloc.pipeline import find_graspable_surfaces
+    from boxloc.simulate import scene_suite, simulate
+
+    spec = scene_suite(1, 0)[0]
+    spec = dataclasses.replace(spec, width=160, height=120,
+                               f=float(spec.f) * 160 / spec.width)
+    return find_graspable_surfaces(simulate(spec).scan, Config())
+
+
 def warm_up() -> int:
     """Run the pipeline on a 160 x 120 simulated scan; print what was compiled or loaded.
 
@@ -85,15 +101,8 @@ def warm_up() -> int:
     int
         0 when every kernel has compiled code; 1 when one was never called.
     """
-    from boxloc.config import Config
-    from boxloc.pipeline import find_graspable_surfaces
-    from boxloc.simulate import scene_suite, simulate
-
     t0 = time.perf_counter()
-    spec = scene_suite(1, 0)[0]
-    spec = dataclasses.replace(spec, width=160, height=120,
-                               f=float(spec.f) * 160 / spec.width)
-    find_graspable_surfaces(simulate(spec).scan, Config())
+    warm_up_scan()
     _seam_kernels()
     _noise_kernels()
     found = kernels()
@@ -109,4 +118,7 @@ def warm_up() -> int:
 
 
 if __name__ == "__main__":
+    # numba's cache is what this fills: the JIT's kernels, not the ahead-of-time module's
+    # (boxloc.kernels; a process falls back to the cache if it cannot use that module)
+    os.environ["BOXLOC_KERNELS"] = "jit"
     sys.exit(warm_up())

@@ -37,11 +37,11 @@ from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
 from typing import Any
 
-import numba as nb
 import numpy as np
 import numpy.typing as npt
 
 from boxloc.errors import InputError
+from boxloc.kernels import kernel
 from boxloc.scan import NoiseModel, Scan
 
 __all__ = ["plane_residuals", "tile_residuals", "TileResiduals", "estimate_noise", "fit_residuals",
@@ -287,7 +287,7 @@ def _norms(P: np.ndarray) -> np.ndarray:
     return _norms_kernel(np.ascontiguousarray(P, dtype=np.float64))
 
 
-@nb.njit(cache=True)
+@kernel
 def _norms_kernel(P: np.ndarray) -> np.ndarray:
     T, n = P.shape[0], P.shape[1]
     out = np.empty((T, n))
@@ -315,7 +315,7 @@ def _lag_sums(h: np.ndarray, w: np.ndarray, patch: int) -> np.ndarray:
     return out
 
 
-@nb.njit(cache=True)
+@kernel
 def _lag_products(H: np.ndarray, M: np.ndarray, lag: int, along_rows: bool) -> np.ndarray:
     """The pairs of inliers ``lag`` pixels apart in (T, p, p) tiles ``H`` (inliers ``M``),
     along rows or along columns: (3, pairs) of a*b, a*a, b*b in C order of the pairs'
@@ -450,7 +450,7 @@ def _incidence_normals(scan: Scan, valid: np.ndarray, ids: np.ndarray, step: int
     return out
 
 
-@nb.njit(cache=True)
+@kernel
 def _window_points(points: np.ndarray, valid: np.ndarray, r0: np.ndarray, c0: np.ndarray,
                    side: int, stride: int) -> tuple[np.ndarray, np.ndarray]:
     """The incidence windows' points: every ``stride``-th pixel of the ``side`` x ``side``
@@ -581,7 +581,7 @@ def _ray_planes(
     return mean, normal, np.where(ok, h, 0.0), wt, ratio
 
 
-@nb.njit(cache=True)
+@kernel
 def _design(u: np.ndarray, v: np.ndarray, quadratic: bool) -> np.ndarray:
     """The (T, n) coordinates' design matrices, (T, n, 3) ``(u, v, 1)`` or (T, n, 6) ``(u,
     v, 1, u*u, u*v, v*v)``, C-contiguous: ``np.stack`` of those columns, without the
@@ -677,7 +677,7 @@ def stable_order(keys: np.ndarray) -> np.ndarray:
     return np.argsort(keys, kind="stable")
 
 
-@nb.njit(cache=True)
+@kernel
 def _counting_order(keys: np.ndarray, lo: int, span: int) -> np.ndarray:
     """The stable sorting permutation of ``keys`` (all in [lo, lo + span)) by counting."""
     start = np.zeros(span + 1, np.int64)
@@ -701,7 +701,7 @@ def _counting_order(keys: np.ndarray, lo: int, span: int) -> np.ndarray:
 # values (its mean of nothing).
 
 
-@nb.njit(cache=True)
+@kernel
 def _select(a: np.ndarray, k: int, lo: int, hi: int) -> float:
     """The value of rank ``k`` in ``a[lo:hi + 1]`` (no NaN), reordering that range in place
     so that no value before ``k`` is above it and none after below (Hoare's selection, a
@@ -744,7 +744,7 @@ def _select(a: np.ndarray, k: int, lo: int, hi: int) -> float:
 BAND_MIN = 1024
 
 
-@nb.njit(cache=True)
+@kernel
 def _median_inplace(a: np.ndarray, n: int) -> float:
     """``np.median(a[:n])`` bit for bit, reordering ``a[:n]``."""
     if n == 0:
@@ -769,7 +769,7 @@ def _median_inplace(a: np.ndarray, n: int) -> float:
     return (0.0 + m + _least_after(a, k, n_sel)) / 2.0
 
 
-@nb.njit(cache=True)
+@kernel
 def _least_after(a: np.ndarray, k: int, n: int) -> float:
     """The order statistic after rank ``k`` once :func:`_select` has placed it: the least
     of ``a[k + 1:n]``."""
@@ -779,7 +779,7 @@ def _least_after(a: np.ndarray, k: int, n: int) -> float:
     return up
 
 
-@nb.njit(cache=True)
+@kernel
 def _band(a: np.ndarray, n: int, k: int) -> tuple[np.ndarray, int]:
     """The values of ``a[:n]`` (no NaN) between two pivots that likely bracket rank
     ``k``, and how many are below the band (Floyd and Rivest's sampling: the pivots are
@@ -807,13 +807,13 @@ def _band(a: np.ndarray, n: int, k: int) -> tuple[np.ndarray, int]:
     return band[:m], below
 
 
-@nb.njit(cache=True)
+@kernel
 def _median(x: np.ndarray) -> float:
     """``np.median(x)`` of a 1-D float64 array, bit for bit (``x`` is not changed)."""
     return _median_inplace(x.copy(), x.shape[0])
 
 
-@nb.njit(cache=True)
+@kernel
 def _mad(y: np.ndarray) -> float:
     """``np.median(np.abs(y - np.median(y)))`` of a 1-D float64 array, bit for bit."""
     n = y.shape[0]
@@ -824,7 +824,7 @@ def _mad(y: np.ndarray) -> float:
     return _median_inplace(buf, n)
 
 
-@nb.njit(cache=True)
+@kernel
 def _group_medians(x: np.ndarray, order: np.ndarray, starts: np.ndarray, stops: np.ndarray,
                    mad: bool) -> np.ndarray:
     """Per group g, the median of ``x[order[starts[g]:stops[g]]]`` (``mad``: the median of
@@ -845,7 +845,7 @@ def _group_medians(x: np.ndarray, order: np.ndarray, starts: np.ndarray, stops: 
     return out
 
 
-@nb.njit(cache=True)
+@kernel
 def _abs_medians(h: np.ndarray, w: np.ndarray) -> np.ndarray:
     """Per row t of (T, n) ``h``, the median of ``|h[t]|`` over ``w[t] > 0`` (NaN values
     skipped), NaN where none: ``nanmedian_last(np.where(w > 0, np.abs(h), np.nan))`` bit
@@ -869,7 +869,7 @@ def _abs_medians(h: np.ndarray, w: np.ndarray) -> np.ndarray:
     return out
 
 
-@nb.njit(cache=True)
+@kernel
 def _lower_medians(x: np.ndarray, starts: np.ndarray, counts: np.ndarray) -> np.ndarray:
     """The lower median of each group ``x[starts[k]:starts[k] + counts[k]]``, (K,): the
     element of rank (count - 1) // 2 as a sort would place it (NaN last), an order
@@ -887,7 +887,7 @@ def _lower_medians(x: np.ndarray, starts: np.ndarray, counts: np.ndarray) -> np.
     return out
 
 
-@nb.njit(cache=True)
+@kernel
 def _group_distinct(t: np.ndarray, order: np.ndarray, starts: np.ndarray,
                     stops: np.ndarray) -> np.ndarray:
     """Per group g, ``np.unique(t[order[starts[g]:stops[g]]]).size`` (integers)."""
@@ -909,7 +909,7 @@ def _group_distinct(t: np.ndarray, order: np.ndarray, starts: np.ndarray,
     return out
 
 
-@nb.njit(cache=True, error_model="numpy")
+@kernel(error_model="numpy")
 def _floor_kernel(r: np.ndarray, z: np.ndarray, u: np.ndarray) -> float:
     """:func:`quantization_floor` of 1-D float64 ``r``, ``z``, bit for bit, given ``u``,
     ``z`` sorted (NumPy's sort, vectorized, is several times numba's; ``u`` is reused)."""

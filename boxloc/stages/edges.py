@@ -37,11 +37,11 @@ from __future__ import annotations
 import math
 
 import cv2
-import numba as nb
 import numpy as np
 
 from boxloc.config import Config
 from boxloc.distributions import chi2_sf, norm_isf
+from boxloc.kernels import kernel
 from boxloc.products import EdgeKind, EdgeMap
 from boxloc.scan import Scan
 from boxloc.stats import (
@@ -76,7 +76,7 @@ NO_RETURN_PX = 5
 # --- kernels -------------------------------------------------------------------------------
 
 
-@nb.njit(cache=True)
+@kernel
 def _fit(P: np.ndarray, s: int, e: int) -> tuple[np.ndarray, np.ndarray]:
     """Total-least-squares line through P[s:e+1]: centroid, unit direction (s -> e)."""
     n = e - s + 1
@@ -117,7 +117,7 @@ def _fit(P: np.ndarray, s: int, e: int) -> tuple[np.ndarray, np.ndarray]:
     return c, d
 
 
-@nb.njit(cache=True)
+@kernel
 def _within(P: np.ndarray, inv2: np.ndarray, s: int, e: int, c: np.ndarray, d: np.ndarray,
             lim2: float) -> bool:
     """Whether every point of P[s:e+1] lies within normalized distance sqrt(lim2) of line
@@ -136,7 +136,7 @@ def _within(P: np.ndarray, inv2: np.ndarray, s: int, e: int, c: np.ndarray, d: n
     return True
 
 
-@nb.njit(cache=True)
+@kernel
 def _split_merge(P: np.ndarray, S: np.ndarray, thr: np.ndarray, work: np.ndarray
                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Split-and-merge of one scan line into segments.
@@ -249,7 +249,7 @@ def _split_merge(P: np.ndarray, S: np.ndarray, thr: np.ndarray, work: np.ndarray
     return bounds[:nb_], fits[:nb_], fitted[:nb_]
 
 
-@nb.njit(cache=True)
+@kernel
 def _split_at_steps(P: np.ndarray, S: np.ndarray, thr: np.ndarray, work: np.ndarray
                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """:func:`_split_merge` of each piece of the scan line between range steps.
@@ -335,7 +335,7 @@ def _split_at_steps(P: np.ndarray, S: np.ndarray, thr: np.ndarray, work: np.ndar
     return bounds[:m], fits[:m], fitted[:m]
 
 
-@nb.njit(cache=True)
+@kernel
 def _range_on_line(u: np.ndarray, c: np.ndarray, d: np.ndarray) -> float:
     """Range along unit ray u of the point of line (c, d) closest to the ray."""
     # minimize |s u - c - t d|^2 over s, t
@@ -348,7 +348,7 @@ def _range_on_line(u: np.ndarray, c: np.ndarray, d: np.ndarray) -> float:
     return (uc - ud * dc) / den
 
 
-@nb.njit(cache=True)
+@kernel
 def _closest_between(c1, d1, c2, d2):
     """Midpoint of the common perpendicular of two lines."""
     w = c1 - c2
@@ -363,7 +363,7 @@ def _closest_between(c1, d1, c2, d2):
     return 0.5 * (c1 + t1 * d1 + c2 + t2 * d2)
 
 
-@nb.njit(cache=True)
+@kernel
 def _scan_line_edges(
     P: np.ndarray,
     S: np.ndarray,
@@ -630,7 +630,7 @@ def _scan_line_edges(
     return n_out
 
 
-@nb.njit(cache=True)
+@kernel
 def _all_lines(
     P: np.ndarray,
     S: np.ndarray,

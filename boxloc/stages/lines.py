@@ -28,11 +28,11 @@ import math
 from dataclasses import dataclass
 from functools import lru_cache
 
-import numba as nb
 import numpy as np
 from scipy.spatial import cKDTree
 
 from boxloc.config import Config
+from boxloc.kernels import kernel
 from boxloc.products import EdgeMap, LineSet
 from boxloc.scan import Scan
 from boxloc.stats import BUDGET_LINES, TestKind, TestTable, chi2_critical
@@ -156,7 +156,7 @@ def _direction_index(granularity: int, cap_deg: int = _QUIET_CAP_DEG
     return lut, nbr, D
 
 
-@nb.njit(cache=True)
+@kernel
 def _vote_directions(d: np.ndarray, ainv: np.ndarray, k22: float, cap: float,
                      lut: np.ndarray, nbr: np.ndarray, D: np.ndarray) -> np.ndarray:
     """Each direction d_i votes 1 for every cell of its error ellipse around +-d_i
@@ -242,7 +242,7 @@ def _point_on_line_stat(
     return T, t
 
 
-@nb.njit(cache=True)
+@kernel
 def _may_lie_on(P: np.ndarray, tr: np.ndarray, idx: np.ndarray, c: np.ndarray, b: np.ndarray,
                 crit: float) -> np.ndarray:
     """The points of ``idx`` that can pass the point-on-line test at ``crit`` (a cheap,
@@ -306,7 +306,7 @@ def fit_segment(P: np.ndarray, C: np.ndarray) -> tuple[np.ndarray, np.ndarray, n
     return c, b, cov, t
 
 
-@nb.njit(cache=True)
+@kernel
 def _long_groups(t: np.ndarray, gap: float, m_min: int, min_extent: float
                  ) -> tuple[np.ndarray, np.ndarray]:
     """The runs of positions ``t`` (metres along a line) with no gap larger than ``gap``
@@ -567,7 +567,7 @@ def vote_radius_cap(cov_trace: np.ndarray, k2: float, radius: float) -> int:
     return int(min(max(_QUIET_CAP_DEG, math.ceil(need)), _NOISY_CAP_DEG))
 
 
-@nb.njit(cache=True)
+@kernel
 def _live_neighbours(nb: np.ndarray, alive: np.ndarray, i0: int) -> np.ndarray:
     """``nb[alive[nb] & (nb != i0)]``, in one pass: the neighbours no segment took."""
     out = np.empty(nb.shape[0], np.int64)
@@ -580,7 +580,7 @@ def _live_neighbours(nb: np.ndarray, alive: np.ndarray, i0: int) -> np.ndarray:
     return out[:k]
 
 
-@nb.njit(cache=True)
+@kernel
 def _vote_inputs(P: np.ndarray, C: np.ndarray, nb: np.ndarray, i0: int, k2: float,
                  max_radius: float
                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
@@ -652,7 +652,7 @@ def _vote_inputs(P: np.ndarray, C: np.ndarray, nb: np.ndarray, i0: int, k2: floa
     return keep[:m], d[:m], use, np.flatnonzero(use), ainv[:m]
 
 
-@nb.njit(cache=True)
+@kernel
 def _perp(b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Two unit vectors perpendicular to unit b and to each other (as :func:`_perp_basis`)."""
     if abs(b[0]) < 0.9:
@@ -666,7 +666,7 @@ def _perp(b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return e1, e2
 
 
-@nb.njit(cache=True)
+@kernel
 def _hough(P: np.ndarray, C: np.ndarray, nb: np.ndarray, d: np.ndarray, ainv: np.ndarray,
            use: np.ndarray, vi: np.ndarray, i0: int, lut: np.ndarray, nbr: np.ndarray,
            D: np.ndarray, k2: float, m_min: int, cap: float
@@ -769,7 +769,7 @@ def _hough(P: np.ndarray, C: np.ndarray, nb: np.ndarray, d: np.ndarray, ainv: np
     return True, b, anchor, dir_votes, acc2[pa, pc]
 
 
-@nb.njit(cache=True)
+@kernel
 def _on_line_stat(P: np.ndarray, C: np.ndarray, idx: np.ndarray, c: np.ndarray, b: np.ndarray
                   ) -> tuple[np.ndarray, np.ndarray]:
     """chi2(2) statistic of each point ``idx`` against line (c, b), and its position t
@@ -797,7 +797,7 @@ def _on_line_stat(P: np.ndarray, C: np.ndarray, idx: np.ndarray, c: np.ndarray, 
     return T, t
 
 
-@nb.njit(cache=True)
+@kernel
 def _inliers(P: np.ndarray, C: np.ndarray, tr: np.ndarray, live: np.ndarray,
              anchor: np.ndarray, b: np.ndarray, crit: float, m_min: int
              ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

@@ -5,8 +5,9 @@ from __future__ import annotations
 from collections.abc import Callable
 
 import cv2
-import numba as nb
 import numpy as np
+
+from boxloc.kernels import kernel
 
 #: Sub-pixel precision of the polygon's vertices for fillPoly, bits.
 SHIFT = 4
@@ -25,7 +26,7 @@ def _polygon_mask(uv: np.ndarray, shape: tuple[int, int]
     return mask, int(x0), int(y0)
 
 
-@nb.njit(cache=True)
+@kernel
 def _box(uv: np.ndarray, H: int, W: int) -> tuple[int, int, int, int, np.ndarray]:
     """The polygon's bounding box (x0, y0, x1, y1) clipped to the image, and its vertices
     in fillPoly's fixed point relative to (x0, y0) (int32, (k, 2)): the NumPy expressions
@@ -52,7 +53,7 @@ def _box(uv: np.ndarray, H: int, W: int) -> tuple[int, int, int, int, np.ndarray
     return x0, y0, x1, y1, pts
 
 
-@nb.njit(cache=True)
+@kernel
 def _valid_in(mask: np.ndarray, valid: np.ndarray, x0: int, y0: int
               ) -> tuple[np.ndarray, np.ndarray, int]:
     """The valid pixels (rows, cols; row by row, as np.nonzero) of a polygon's mask over its

@@ -22,7 +22,6 @@ from __future__ import annotations
 import dataclasses
 import math
 
-import numba as nb
 import numpy as np
 
 from boxloc.calibrate.noise import (
@@ -42,6 +41,7 @@ from boxloc.calibrate.noise import (
 from boxloc.config import Config
 from boxloc.distributions import chi2_isf, norm_isf, t_sf
 from boxloc.errors import InputError
+from boxloc.kernels import kernel
 from boxloc.products import NOISE_FIELDS, NoiseEstimate, NoiseSource
 from boxloc.scan import NoiseModel, Scan
 from boxloc.stats import TestKind, TestTable
@@ -513,7 +513,7 @@ def design_effect(gy: np.ndarray, gx: np.ndarray, corr: np.ndarray) -> float:
     return 1.0 + float(rho.sum() - np.trace(rho)) / n
 
 
-@nb.njit(cache=True)
+@kernel
 def _correlations(gy: np.ndarray, gx: np.ndarray, c_r: float, c_c: float, c_x: float,
                   p_r: np.ndarray, p_c: np.ndarray) -> np.ndarray:
     """:func:`design_effect`'s (n, n) correlations, bit for bit: ``c * p_r[|dx|] *

@@ -42,11 +42,11 @@ from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 from typing import NamedTuple
 
-import numba as nb
 import numpy as np
 from scipy import special
 
 from boxloc.distributions import norm_isf
+from boxloc.kernels import kernel
 from boxloc.stages.raster import rectangle_pixels
 
 #: Half-width of the groove window, in point spacings (the groove plus the uncertainty of
@@ -192,7 +192,7 @@ def face_points(
 _MEDIAN_BUCKETS = 1024
 
 
-@nb.njit(cache=True)
+@kernel
 def _middle(x: np.ndarray) -> tuple[float, float]:
     """The order statistics x_(m - 1) and x_(m), m = n // 2, of finite x (n >= 2).
 
@@ -241,7 +241,7 @@ def _middle(x: np.ndarray) -> tuple[float, float]:
     return xm1, xm
 
 
-@nb.njit(cache=True)
+@kernel
 def _median(x: np.ndarray) -> float:
     """``np.median(x)`` bit for bit: NaN if any is NaN (or x is empty); else the middle
     order statistic, or the two, through np.mean's sum and count: (0.0 + a) / 1 or
@@ -260,7 +260,7 @@ def _median(x: np.ndarray) -> float:
     return ((0.0 + a) + b) / 2.0
 
 
-@nb.njit(cache=True)
+@kernel
 def _gather(points: np.ndarray, sigma: np.ndarray, flat: np.ndarray, origin: np.ndarray
             ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """``P = points[flat]``, ``s = sigma[flat]`` and ``D = P - origin`` in one pass;
@@ -278,7 +278,7 @@ def _gather(points: np.ndarray, sigma: np.ndarray, flat: np.ndarray, origin: np.
     return P, s, D
 
 
-@nb.njit(cache=True)
+@kernel
 def _near_plane(w: np.ndarray, s: np.ndarray, zc: float) -> tuple[np.ndarray, int]:
     """The points near the given plane, ``|w - median(w)| <= zc s + 3 x 1.4826 x
     median(|w - median(w)|)`` (bool (n,)), and their number."""
@@ -292,7 +292,7 @@ def _near_plane(w: np.ndarray, s: np.ndarray, zc: float) -> tuple[np.ndarray, in
     return on, k
 
 
-@nb.njit(cache=True)
+@kernel
 def _centred(P: np.ndarray, on: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """``Q = P[on]``, its mean c (np.mean's column sums: sequential, from 0.0) and ``Q - c``
     twice: the scatter matrix's two operands as before (one array for both would make
@@ -317,7 +317,7 @@ def _centred(P: np.ndarray, on: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.
     return c, X1, X2
 
 
-@nb.njit(cache=True)
+@kernel
 def _kept(wf: np.ndarray, s: np.ndarray, zc: float, D: np.ndarray, rr: np.ndarray
           ) -> tuple[int, np.ndarray, float, float, np.ndarray, np.ndarray]:
     """The points on the refitted plane, ``|wf| <= zc s``: their number, residuals, the
@@ -381,7 +381,7 @@ def _windows(coord: np.ndarray, w: np.ndarray, centres: np.ndarray, h: float
 _BUCKET_INSERTION = 32
 
 
-@nb.njit(cache=True)
+@kernel
 def _strip_sorted(coord: np.ndarray, w: np.ndarray, row: np.ndarray, lo: float, hi: float
                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray, bool]:
     """The points with ``lo <= coord <= hi``, sorted by ``coord``, with their ``w`` and
@@ -472,7 +472,7 @@ def _near_sorted(coord: np.ndarray, w: np.ndarray, row: np.ndarray, centres: np.
     return cs, ws, rs
 
 
-@nb.njit(cache=True)
+@kernel
 def _sorted_window_sums(cs: np.ndarray, ws: np.ndarray, centres: np.ndarray, los: np.ndarray,
                         his: np.ndarray) -> np.ndarray:
     """:func:`_windows` of points already sorted by their coordinate ``cs``, bit for bit.
@@ -516,7 +516,7 @@ def _sorted_window_sums(cs: np.ndarray, ws: np.ndarray, centres: np.ndarray, los
     return out
 
 
-@nb.njit(cache=True)
+@kernel
 def _sorted_row_sums(cs: np.ndarray, r: np.ndarray, centres: np.ndarray, los: np.ndarray,
                      his: np.ndarray, coefs: np.ndarray, R: int) -> np.ndarray:
     """Per (centre, row) sums of the statistic's weights, (m * R,) float64, of points
@@ -547,7 +547,7 @@ def _sorted_row_sums(cs: np.ndarray, r: np.ndarray, centres: np.ndarray, los: np
     return S
 
 
-@nb.njit(cache=True)
+@kernel
 def _pairwise_sum(a: np.ndarray, lo: int, n: int) -> float:
     """``a[lo:lo + n].sum()`` bit for bit: NumPy's pairwise summation of float64 (eight
     accumulators over blocks of at most 128, halves split at a multiple of 8 above)."""
@@ -580,7 +580,7 @@ def _pairwise_sum(a: np.ndarray, lo: int, n: int) -> float:
     return _pairwise_sum(a, lo, n2) + _pairwise_sum(a, lo + n2, n - n2)
 
 
-@nb.njit(cache=True, error_model="numpy")
+@kernel(error_model="numpy")
 def _row_term_kernel(cs: np.ndarray, row: np.ndarray, centres: np.ndarray, los: np.ndarray,
                      his: np.ndarray, ni: np.ndarray, nl: np.ndarray, nr: np.ndarray
                      ) -> np.ndarray:
@@ -613,7 +613,7 @@ def _row_term_kernel(cs: np.ndarray, row: np.ndarray, centres: np.ndarray, los: 
     return out
 
 
-@nb.njit(cache=True, error_model="numpy")
+@kernel(error_model="numpy")
 def _seam_tail(ni: np.ndarray, si: np.ndarray, nl: np.ndarray, sl: np.ndarray,
                nr: np.ndarray, sr: np.ndarray, rt: np.ndarray, row_corr: float,
                use_rows: bool, scale: float, flank_z: float, flank_cols: float

@@ -67,12 +67,12 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
-import numba as nb
 import numpy as np
 from scipy import special
 
 from boxloc.config import Config
 from boxloc.distributions import binom_isf, binom_sf
+from boxloc.kernels import kernel
 from boxloc.products import EdgeKind, EdgeMap, VerifyReason
 from boxloc.scan import NoiseModel, Scan
 from boxloc.stages.design_effect import exceedance_design_effects, patch_factor
@@ -327,7 +327,7 @@ def _interior_line_span(
     return best, best_p, best_span
 
 
-@nb.njit(cache=True)
+@kernel
 def _n_distinct(x: np.ndarray) -> int:
     """``len(np.unique(x))`` of int64 values."""
     if x.shape[0] == 0:
@@ -535,7 +535,7 @@ def plane_var(plane_cov: np.ndarray, normal: np.ndarray, D: np.ndarray) -> np.nd
     return normal @ So @ normal + np.einsum("ni,ij,nj->n", D, Sn, D)
 
 
-@nb.njit(cache=True)
+@kernel
 def _take_rows(P: np.ndarray, flat: np.ndarray) -> np.ndarray:
     """``P[flat]`` of a (N, 3) array."""
     out = np.empty((flat.shape[0], 3))
@@ -547,7 +547,7 @@ def _take_rows(P: np.ndarray, flat: np.ndarray) -> np.ndarray:
     return out
 
 
-@nb.njit(cache=True)
+@kernel
 def _mix_var(pd: np.ndarray, flat: np.ndarray, norm2: np.ndarray, sigma2: np.ndarray,
              lateral2: np.ndarray) -> np.ndarray:
     """:meth:`VerifyContext.var_along` from the points' products with the direction, element
@@ -561,7 +561,7 @@ def _mix_var(pd: np.ndarray, flat: np.ndarray, norm2: np.ndarray, sigma2: np.nda
     return out
 
 
-@nb.njit(cache=True)
+@kernel
 def _quad_rows(D: np.ndarray, S: np.ndarray) -> np.ndarray:
     """``np.einsum("ni,ij,nj->n", D, S, D)`` bit for bit, without its iterator's per-call
     cost: per row, the terms (D_i S_ij) D_j summed in (i, j) order from 0.0."""

@@ -1,0 +1,271 @@
+"""Compiled kernels: the numba code compiled ahead of time at set-up, or by numba's JIT.
+
+Every numba kernel of boxloc is declared with :func:`kernel` instead of ``numba.njit``.
+Set-up (``scripts/build_kernels.py``) compiles them all ahead of time into one extension
+module, ``boxloc/_kernels_aot*.so``, with numba's own AOT compiler (``numba.pycc``), for
+the argument types the pipeline calls them with. A process that finds that module, built
+from the present sources, calls it and never imports numba: it saves numba's import and
+the loading of every kernel from numba's cache (about 1.5 s before the first scan of a
+process, where the scan itself takes about half a second). Without it (no C compiler at
+set-up, or a source changed since), each kernel is ``numba.njit(cache=True)`` as before.
+
+The compiled code is the same either way: the extension module calls the very kernels
+numba's JIT compiles, and set-up checks that a scan's products are the same bit for bit
+before it keeps the module (``scripts/build_kernels.py``).
+
+A call whose argument types the module was not built for (another dtype, a strided array,
+a read-only one where the kernel writes) would be unsafe there: the module's wrappers do
+not check types. So each kernel's wrapper checks them first (dtype, dimensions, layout,
+writability; scalars by type, as numba's ``typeof`` would see them). A call that matches
+none of its signatures switches the whole process to numba's JIT (with a warning), so that
+kernels calling kernels stay one kind, and the call is compiled as before.
+
+Which one a process uses: ``BOXLOC_KERNELS`` = ``aot`` requires the ahead-of-time module
+(an error if it is missing or stale); ``auto`` uses it when it is there and current;
+``jit`` uses numba's JIT. Unset, the process's own choice (:func:`prefer`) decides, and
+that is ``jit`` unless the process runs one scan: once loaded, numba's JIT code runs a few
+per cent faster than the ahead-of-time module's (on the matrix's scans here about 8 %;
+both are the same LLVM IR, the module's compiled position-independent and not for this
+CPU's every feature), so a process that runs many scans gains more than the second and a
+half it loses at the start. ``boxloc locate`` prefers ``auto``.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import importlib
+import importlib.util
+import json
+import os
+import platform
+import sys
+import warnings
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, TypeVar, overload
+
+import numpy as np
+
+__all__ = ["ENV", "KERNEL_SOURCES", "AotStatus", "aot_status", "kernel", "mode", "prefer",
+           "sources_digest"]
+
+F = TypeVar("F", bound=Callable[..., Any])
+
+#: Environment variable choosing the kernels: ``jit``, ``aot`` or ``auto`` (the default).
+ENV = "BOXLOC_KERNELS"
+#: The files that hold kernels (relative to this package), and this one: the ahead-of-time
+#: module is current while their digest is the one it was built from.
+KERNEL_SOURCES = ("kernels.py", "stages/edges.py", "stages/lines.py", "stages/raster.py",
+                  "stages/scan_noise.py", "stages/seams.py", "stages/verify.py",
+                  "calibrate/noise.py")
+#: The extension module set-up builds, and its description beside it (exports, digest,
+#: versions).
+AOT_MODULE = "boxloc._kernels_aot"
+AOT_STAMP = "_kernels_aot.json"
+#: Argument types a wrapper can check (numba's names): arrays, and these scalars.
+SCALARS = {"int64": (int, np.int64), "float64": (float, np.float64), "bool": (bool, np.bool_)}
+
+
+def sources_digest(root: Path | None = None) -> str:
+    """SHA-256 of :data:`KERNEL_SOURCES` (under ``root``, default this package)."""
+    base = Path(__file__).parent if root is None else root
+    h = hashlib.sha256()
+    for rel in KERNEL_SOURCES:
+        h.update(rel.encode() + b"\0" + (base / rel).read_bytes() + b"\0")
+    return h.hexdigest()
+
+
+def _numba_version() -> str | None:
+    """numba's installed version, from the name of its metadata directory (without
+    importing numba, or importlib.metadata's scan of every distribution: 50 ms)."""
+    spec = importlib.util.find_spec("numba")
+    if spec is None or not spec.origin:
+        return None
+    for d in sorted(Path(spec.origin).parent.parent.glob("numba-*.dist-info")):
+        return d.name[len("numba-"): -len(".dist-info")]
+    return None
+
+
+def build_facts() -> dict[str, Any]:
+    """What an ahead-of-time module must have been built with to be used here, besides
+    the sources: the versions of the compiler and the array ABI, and the machine."""
+    return {"numba": _numba_version(), "numpy": np.__version__,
+            "python": list(sys.version_info[:2]), "machine": platform.machine()}
+
+
+@dataclass(frozen=True)
+class AotStatus:
+    """Whether the ahead-of-time module can be used, and why not."""
+
+    usable: bool
+    reason: str
+    exports: dict[str, list[tuple[str, list[list[Any]]]]] = field(default_factory=dict)
+    module: Any = None
+
+
+def aot_status() -> AotStatus:
+    """Find the ahead-of-time module and check it against the sources and versions."""
+    spec = importlib.util.find_spec(AOT_MODULE)
+    if spec is None or spec.origin is None:
+        return AotStatus(False, "not built (scripts/build_kernels.py)")
+    try:
+        stamp = json.loads(Path(spec.origin).with_name(AOT_STAMP).read_text())
+    except (OSError, ValueError) as e:
+        return AotStatus(False, f"its description is unreadable: {e}")
+    if stamp.get("sources") != sources_digest():
+        return AotStatus(False, "built from other sources (run scripts/build_kernels.py)")
+    facts = build_facts()
+    if stamp.get("facts") != facts:
+        return AotStatus(False, f"built with {stamp.get('facts')}, here {facts}")
+    try:
+        module = importlib.import_module(AOT_MODULE)
+    except ImportError as e:
+        return AotStatus(False, f"does not load: {e}")
+    exports = {q: [(name, spec) for name, spec in sigs]
+               for q, sigs in stamp.get("exports", {}).items()}
+    return AotStatus(True, "current", exports, module)
+
+
+@dataclass
+class _State:
+    mode: str  # "aot" or "jit"
+    status: AotStatus
+    #: every kernel declared so far, by qualified name: (function, numba options)
+    kernels: dict[str, tuple[Callable[..., Any], dict[str, Any]]] = field(default_factory=dict)
+    jit: dict[str, Any] = field(default_factory=dict)  # their numba dispatchers, once JIT
+
+
+_STATE: _State | None = None
+#: The choice where ``BOXLOC_KERNELS`` is unset (:func:`prefer`).
+_DEFAULT = "jit"
+
+
+def prefer(choice: str) -> None:
+    """This process's choice of kernels where ``BOXLOC_KERNELS`` is unset: ``auto``,
+    ``aot`` or ``jit``. Call it before the first kernel is declared (before importing the
+    pipeline); after that it changes nothing."""
+    global _DEFAULT
+    if choice not in ("auto", "aot", "jit"):
+        raise ValueError(f"kernels: auto, aot or jit, got {choice!r}")
+    _DEFAULT = choice
+
+
+def _state() -> _State:
+    global _STATE
+    if _STATE is None:
+        want = os.environ.get(ENV, "").strip().lower() or _DEFAULT
+        if want not in ("auto", "aot", "jit"):
+            raise ValueError(f"{ENV} must be auto, aot or jit, got {want!r}")
+        status = AotStatus(False, f"{ENV}=jit") if want == "jit" else aot_status()
+        if want == "aot" and not status.usable:
+            raise RuntimeError(f"{ENV}=aot, but the ahead-of-time kernels are {status.reason}")
+        _STATE = _State("aot" if status.usable else "jit", status)
+    return _STATE
+
+
+def mode() -> str:
+    """``"aot"`` or ``"jit"``: how this process runs its kernels (``"jit"`` from the first
+    call no ahead-of-time signature matched)."""
+    return _state().mode
+
+
+def _njit(fn: Callable[..., Any], options: dict[str, Any]) -> Any:
+    import numba
+
+    return numba.njit(cache=True, **options)(fn)
+
+
+@overload
+def kernel(fn: F, /) -> F: ...
+@overload
+def kernel(**options: Any) -> Callable[[F], F]: ...
+def kernel(fn: Any = None, /, **options: Any) -> Any:
+    """Declare a numba kernel: ``@kernel`` or ``@kernel(error_model="numpy")``.
+
+    ``options`` are ``numba.njit``'s (``cache=True`` always). Returns the compiled kernel:
+    the ahead-of-time module's, behind a check of the argument types, or numba's
+    dispatcher.
+    """
+    if fn is None:
+        return lambda f: kernel(f, **options)
+    st = _state()
+    qual = f"{fn.__module__}.{fn.__qualname__}"
+    st.kernels[qual] = (fn, options)
+    if st.mode == "jit":
+        st.jit[qual] = _njit(fn, options)
+        return st.jit[qual]
+    return _wrapper(qual, fn, st.status.exports.get(qual, []), st.status.module)
+
+
+def _guard(arg: str, spec: list[Any], consts: dict[str, Any]) -> str:
+    """Python test that ``arg`` has the type ``spec`` (see scripts/build_kernels.py)."""
+    if spec[0] == "array":
+        _, dtype, ndim, layout, readonly = spec
+        dt = f"_dt_{len(consts)}"
+        consts[dt] = np.dtype(dtype)
+        test = (f"isinstance({arg}, _nd) and {arg}.ndim == {int(ndim)} and "
+                f"{arg}.dtype == {dt}")
+        if layout == "C":
+            test += f" and {arg}.flags.c_contiguous"
+        elif layout == "F":
+            test += f" and {arg}.flags.f_contiguous"
+        if not readonly:
+            test += f" and {arg}.flags.writeable"
+        return f"({test})"
+    py, np_type = SCALARS[spec[0]]
+    a, b = f"_py_{len(consts)}", f"_np_{len(consts)}"
+    consts[a], consts[b] = py, np_type
+    return f"(type({arg}) is {a} or type({arg}) is {b})"
+
+
+def _wrapper(qual: str, fn: Callable[..., Any], exports: list[tuple[str, list[list[Any]]]],
+             module: Any) -> Callable[..., Any]:
+    """``fn``'s ahead-of-time exports behind their argument checks; a call that matches
+    none goes to numba's JIT (:func:`_to_jit`)."""
+    params = list(fn.__code__.co_varnames[: fn.__code__.co_argcount])
+    args = ", ".join(params)
+    consts: dict[str, Any] = {"_nd": np.ndarray, "_miss": _miss, "_qual": qual}
+    lines = [f"def {fn.__name__}({args}):"]
+    for k, (name, specs) in enumerate(exports):
+        if len(specs) != len(params):
+            continue
+        consts[f"_f{k}"] = getattr(module, name)
+        test = " and ".join(_guard(p, s, consts) for p, s in zip(params, specs, strict=True))
+        lines += [f"    if {test or 'True'}:", f"        return _f{k}({args})"]
+    lines.append(f"    return _miss(_qual, ({args}{',' if len(params) == 1 else ''}))")
+    exec("\n".join(lines), consts)  # noqa: S102 - generated from the build's own table
+    w = consts[fn.__name__]
+    w.__module__, w.__qualname__, w.__doc__ = fn.__module__, fn.__qualname__, fn.__doc__
+    w.__wrapped__ = fn
+    w._boxloc_kernel = qual
+    return w
+
+
+def _miss(qual: str, args: tuple[Any, ...]) -> Any:
+    """A call no ahead-of-time signature of ``qual`` matches: numba's JIT from now on."""
+    kinds = ", ".join(f"{type(a).__name__}" + (f"[{a.dtype}, {a.ndim}d]"
+                                               if isinstance(a, np.ndarray) else "")
+                      for a in args)
+    warnings.warn(f"boxloc: {qual}({kinds}) is not among the ahead-of-time kernels' "
+                  "signatures; numba's JIT compiles every kernel from now on",
+                  RuntimeWarning, stacklevel=3)
+    return _to_jit()[qual](*args)
+
+
+def _to_jit() -> dict[str, Any]:
+    """Switch the process to numba's JIT: a dispatcher for every kernel, bound wherever a
+    module of boxloc holds its ahead-of-time wrapper (so that a kernel calling a kernel
+    calls a dispatcher)."""
+    st = _state()
+    if st.mode != "jit":
+        st.jit = {q: _njit(fn, opts) for q, (fn, opts) in st.kernels.items()}
+        st.mode = "jit"
+        for name, mod in list(sys.modules.items()):
+            if name.split(".")[0] not in ("boxloc", "recorder", "replay"):
+                continue
+            for attr, val in list(vars(mod).items()):
+                q = getattr(val, "_boxloc_kernel", None)
+                if isinstance(q, str) and q in st.jit and callable(val):
+                    setattr(mod, attr, st.jit[q])
+    return st.jit
