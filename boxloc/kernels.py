@@ -32,9 +32,11 @@ half it loses at the start. ``boxloc locate`` prefers ``auto``.
 
 from __future__ import annotations
 
+import functools
 import hashlib
 import importlib
 import importlib.util
+import inspect
 import json
 import os
 import platform
@@ -198,48 +200,50 @@ def kernel(fn: Any = None, /, **options: Any) -> Any:
     return _wrapper(qual, fn, st.status.exports.get(qual, []), st.status.module)
 
 
-def _guard(arg: str, spec: list[Any], consts: dict[str, Any]) -> str:
-    """Python test that ``arg`` has the type ``spec`` (see scripts/build_kernels.py)."""
-    if spec[0] == "array":
-        _, dtype, ndim, layout, readonly = spec
-        dt = f"_dt_{len(consts)}"
-        consts[dt] = np.dtype(dtype)
-        test = (f"isinstance({arg}, _nd) and {arg}.ndim == {int(ndim)} and "
-                f"{arg}.dtype == {dt}")
-        if layout == "C":
-            test += f" and {arg}.flags.c_contiguous"
-        elif layout == "F":
-            test += f" and {arg}.flags.f_contiguous"
-        if not readonly:
-            test += f" and {arg}.flags.writeable"
-        return f"({test})"
-    py, np_type = SCALARS[spec[0]]
-    a, b = f"_py_{len(consts)}", f"_np_{len(consts)}"
-    consts[a], consts[b] = py, np_type
-    return f"(type({arg}) is {a} or type({arg}) is {b})"
+def _check(spec: list[Any]) -> Callable[[Any], bool]:
+    """Whether an argument has the type ``spec`` (see scripts/build_kernels.py): an array's
+    dtype, dimensions, layout and (where the kernel may write) writability; a scalar's
+    Python or NumPy type, as numba's ``typeof`` would type it."""
+    if spec[0] != "array":
+        kinds = SCALARS[spec[0]]
+        return lambda a: type(a) in kinds
+    _, dtype, ndim, layout, readonly = spec
+    dt, nd = np.dtype(dtype), int(ndim)
+    c_order, f_order, write = layout == "C", layout == "F", not readonly
+
+    def ok(a: Any) -> bool:
+        if not isinstance(a, np.ndarray) or a.ndim != nd or a.dtype != dt:
+            return False
+        flags = a.flags
+        return ((not c_order or flags.c_contiguous) and (not f_order or flags.f_contiguous)
+                and (not write or flags.writeable))
+
+    return ok
 
 
 def _wrapper(qual: str, fn: Callable[..., Any], exports: list[tuple[str, list[list[Any]]]],
              module: Any) -> Callable[..., Any]:
     """``fn``'s ahead-of-time exports behind their argument checks; a call that matches
     none goes to numba's JIT (:func:`_to_jit`)."""
-    params = list(fn.__code__.co_varnames[: fn.__code__.co_argcount])
-    args = ", ".join(params)
-    consts: dict[str, Any] = {"_nd": np.ndarray, "_miss": _miss, "_qual": qual}
-    lines = [f"def {fn.__name__}({args}):"]
-    for k, (name, specs) in enumerate(exports):
-        if len(specs) != len(params):
-            continue
-        consts[f"_f{k}"] = getattr(module, name)
-        test = " and ".join(_guard(p, s, consts) for p, s in zip(params, specs, strict=True))
-        lines += [f"    if {test or 'True'}:", f"        return _f{k}({args})"]
-    lines.append(f"    return _miss(_qual, ({args}{',' if len(params) == 1 else ''}))")
-    exec("\n".join(lines), consts)  # noqa: S102 - generated from the build's own table
-    w = consts[fn.__name__]
-    w.__module__, w.__qualname__, w.__doc__ = fn.__module__, fn.__qualname__, fn.__doc__
-    w.__wrapped__ = fn
-    w._boxloc_kernel = qual
-    return w
+    table = [(getattr(module, name), [_check(s) for s in specs]) for name, specs in exports]
+    signature = inspect.signature(fn)
+    miss = _miss
+
+    @functools.wraps(fn)
+    def call(*args: Any, **kwargs: Any) -> Any:
+        if kwargs:  # the kernel's own parameter names, as numba's dispatcher takes them
+            args = signature.bind(*args, **kwargs).args
+        for export, checks in table:
+            if len(checks) == len(args):
+                for check, a in zip(checks, args, strict=True):
+                    if not check(a):
+                        break
+                else:
+                    return export(*args)
+        return miss(qual, args)
+
+    call._boxloc_kernel = qual  # type: ignore[attr-defined]
+    return call
 
 
 def _miss(qual: str, args: tuple[Any, ...]) -> Any:
