@@ -23,11 +23,11 @@ kernels calling kernels stay one kind, and the call is compiled as before.
 Which one a process uses: ``BOXLOC_KERNELS`` = ``aot`` requires the ahead-of-time module
 (an error if it is missing or stale); ``auto`` uses it when it is there and current;
 ``jit`` uses numba's JIT. Unset, the process's own choice (:func:`prefer`) decides, and
-that is ``jit`` unless the process runs one scan: once loaded, numba's JIT code runs a few
-per cent faster than the ahead-of-time module's (on the matrix's scans here about 8 %;
-both are the same LLVM IR, the module's compiled position-independent and not for this
-CPU's every feature), so a process that runs many scans gains more than the second and a
-half it loses at the start. ``boxloc locate`` prefers ``auto``.
+that is ``jit`` unless the process runs one scan (``boxloc locate`` prefers ``auto``). The
+compiled code runs as fast either way (within this machine's noise, 32 matrix scans), but
+a call costs more: numba's dispatcher checks the arguments in C, the wrappers here in
+Python, about 2-3 microseconds more per call (some 3,000-5,000 calls a 640 x 480 scan). A
+process that runs many scans pays that on each; one that runs one saves its start.
 """
 
 from __future__ import annotations
