@@ -195,11 +195,8 @@ def locate(
     metres, sensor frame. "ambiguous" lists the flat regions the evidence cannot split into
     boxes (not graspable as they are).
     """
-    from boxloc import kernels
     from boxloc.io import read_scan
 
-    # one scan: the ahead-of-time kernels, where set-up built them (no numba to load)
-    kernels.prefer("auto")
     cfg = load_config(config_path, overrides, workers=workers)
     if box_sizes is not None:
         import dataclasses

@@ -20,14 +20,13 @@ writability; scalars by type, as numba's ``typeof`` would see them). A call that
 none of its signatures switches the whole process to numba's JIT (with a warning), so that
 kernels calling kernels stay one kind, and the call is compiled as before.
 
-Which one a process uses: ``BOXLOC_KERNELS`` = ``aot`` requires the ahead-of-time module
-(an error if it is missing or stale); ``auto`` uses it when it is there and current;
-``jit`` uses numba's JIT. Unset, the process's own choice (:func:`prefer`) decides, and
-that is ``jit`` unless the process runs one scan (``boxloc locate`` prefers ``auto``). The
-compiled code runs as fast either way (within this machine's noise, 32 matrix scans), but
-a call costs more: numba's dispatcher checks the arguments in C, the wrappers here in
-Python, about 2-3 microseconds more per call (some 3,000-5,000 calls a 640 x 480 scan). A
-process that runs many scans pays that on each; one that runs one saves its start.
+Which one a process uses: ``BOXLOC_KERNELS`` = ``auto`` (the default) uses the module when
+it is there and current, else numba's JIT; ``aot`` requires the module (an error if it is
+missing or stale); ``jit`` always uses numba's JIT. The compiled code runs as fast either
+way (within this machine's noise, 32 matrix scans alternating), but a call costs a little
+more: numba's dispatcher checks the arguments in C, the wrappers here in Python, 2-3
+microseconds more per call, some 3,000-5,000 calls a 640 x 480 scan (about 1 % of it).
+Against that, every process saves 1.3 s at its start (docs/benchmarks.md, "Start-up").
 """
 
 from __future__ import annotations
@@ -49,7 +48,9 @@ from typing import Any, TypeVar, overload
 
 import numpy as np
 
-__all__ = ["ENV", "KERNEL_SOURCES", "AotStatus", "aot_status", "kernel", "mode", "prefer",
+from boxloc.errors import InputError
+
+__all__ = ["ENV", "KERNEL_SOURCES", "AotStatus", "aot_status", "kernel", "mode",
            "sources_digest"]
 
 F = TypeVar("F", bound=Callable[..., Any])
@@ -139,29 +140,17 @@ class _State:
 
 
 _STATE: _State | None = None
-#: The choice where ``BOXLOC_KERNELS`` is unset (:func:`prefer`).
-_DEFAULT = "jit"
-
-
-def prefer(choice: str) -> None:
-    """This process's choice of kernels where ``BOXLOC_KERNELS`` is unset: ``auto``,
-    ``aot`` or ``jit``. Call it before the first kernel is declared (before importing the
-    pipeline); after that it changes nothing."""
-    global _DEFAULT
-    if choice not in ("auto", "aot", "jit"):
-        raise ValueError(f"kernels: auto, aot or jit, got {choice!r}")
-    _DEFAULT = choice
 
 
 def _state() -> _State:
     global _STATE
     if _STATE is None:
-        want = os.environ.get(ENV, "").strip().lower() or _DEFAULT
+        want = os.environ.get(ENV, "").strip().lower() or "auto"
         if want not in ("auto", "aot", "jit"):
-            raise ValueError(f"{ENV} must be auto, aot or jit, got {want!r}")
+            raise InputError(f"{ENV} must be auto, aot or jit, got {want!r}")
         status = AotStatus(False, f"{ENV}=jit") if want == "jit" else aot_status()
         if want == "aot" and not status.usable:
-            raise RuntimeError(f"{ENV}=aot, but the ahead-of-time kernels are {status.reason}")
+            raise InputError(f"{ENV}=aot, but the ahead-of-time kernels are {status.reason}")
         _STATE = _State("aot" if status.usable else "jit", status)
     return _STATE
 

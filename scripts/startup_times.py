@@ -30,7 +30,6 @@ ROOT = Path(__file__).resolve().parents[1]
 _IN_PROCESS = """
 import json, sys, time
 from boxloc import kernels
-kernels.prefer("auto")
 from boxloc.config import Config
 from boxloc.io import read_scan
 from boxloc.pipeline import find_graspable_surfaces

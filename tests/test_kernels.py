@@ -140,11 +140,22 @@ def test_the_ahead_of_time_kernels_give_the_jits_products(tmp_path: Path) -> Non
     assert aot[0] == jit[0] and aot[0]["surfaces"]
 
 
-def test_a_process_that_states_no_preference_runs_the_jit() -> None:
-    """The pipeline imported as a library (or by `run`, `replay`, `bench`): numba's JIT,
-    whose code runs faster once loaded."""
+def test_the_library_uses_them_too_and_jit_on_request(tmp_path: Path) -> None:
+    """The pipeline imported as a library (or by `run`, `replay`, `bench`) uses the module as
+    `locate` does; BOXLOC_KERNELS=jit keeps numba's JIT (and an unknown choice is refused)."""
+    code = "import boxloc.pipeline\nfrom boxloc import kernels\nprint(kernels.mode())"
     env = {k: v for k, v in os.environ.items() if k != kernels.ENV}
-    r = subprocess.run([sys.executable, "-c", "import boxloc.pipeline\n"
-                        "from boxloc import kernels\nprint(kernels.mode())"],
-                       capture_output=True, text=True, cwd=ROOT, env=env, timeout=300)
-    assert r.returncode == 0 and r.stdout.split() == ["jit"], r.stderr
+    for choice, want in ((None, "aot"), ("jit", "jit"), ("AOT", "aot")):
+        e = env if choice is None else {**env, kernels.ENV: choice}
+        r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                           cwd=ROOT, env=e, timeout=300)
+        assert r.returncode == 0 and r.stdout.split() == [want], (choice, r.stderr)
+    from boxloc.simulate import parse_spec, simulate_to_files
+
+    (path, _), = simulate_to_files(parse_spec("single:seed=2,width=96,height=72,f=90"),
+                                   str(tmp_path / "s.npz"))
+    r = subprocess.run([sys.executable, "-m", "boxloc.cli", "locate", str(path)],
+                       capture_output=True, text=True, cwd=ROOT,
+                       env={**env, kernels.ENV: "fast"}, timeout=300)
+    assert (r.returncode, r.stderr) == (2, "boxloc: error: BOXLOC_KERNELS must be auto, "
+                                           "aot or jit, got 'fast'\n")
