@@ -125,7 +125,7 @@ def aot_status() -> AotStatus:
         module = importlib.import_module(AOT_MODULE)
     except ImportError as e:
         return AotStatus(False, f"does not load: {e}")
-    exports = {q: [(name, spec) for name, spec in sigs]
+    exports = {q: [(name, types) for name, types in sigs]
                for q, sigs in stamp.get("exports", {}).items()}
     return AotStatus(True, "current", exports, module)
 
@@ -255,7 +255,7 @@ def _to_jit() -> dict[str, Any]:
         st.jit = {q: _njit(fn, opts) for q, (fn, opts) in st.kernels.items()}
         st.mode = "jit"
         for name, mod in list(sys.modules.items()):
-            if name.split(".")[0] not in ("boxloc", "recorder", "replay"):
+            if name.split(".")[0] != "boxloc":
                 continue
             for attr, val in list(vars(mod).items()):
                 q = getattr(val, "_boxloc_kernel", None)

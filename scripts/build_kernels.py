@@ -70,12 +70,20 @@ print(kernels.mode(), h.hexdigest())
 """
 
 
+def _base(t: Any) -> Any:
+    """A literal argument's type (a constant a kernel passed a kernel): int64 for an int."""
+    from numba.core import types
+
+    if isinstance(t, types.IntegerLiteral):
+        return types.int64
+    return t.literal_type if isinstance(t, types.Literal) else t
+
+
 def _spec(t: Any) -> list[Any] | None:
     """A numba type as :mod:`boxloc.kernels` checks it, or None if it cannot."""
     from numba.core import types
 
-    if isinstance(t, types.Literal):
-        t = t.literal_type if not isinstance(t, types.IntegerLiteral) else types.int64
+    t = _base(t)
     if isinstance(t, types.Array):
         return ["array", str(t.dtype), t.ndim, t.layout, not t.mutable]
     if t == types.int64:
@@ -97,7 +105,6 @@ def _trampoline(disp: Any, n: int, name: str) -> Any:
 
 def build(out: Path) -> dict[str, Any]:
     """Steps 1-2 into directory ``out``; returns the description (without the digest)."""
-    from numba.core import types
     from numba.pycc import CC
 
     sys.path.insert(0, str(ROOT / "scripts"))
@@ -108,6 +115,7 @@ def build(out: Path) -> dict[str, Any]:
     cc = CC("_kernels_aot")
     cc.output_dir = str(out)
     exports: dict[str, list[tuple[str, list[list[Any]]]]] = {}
+    n_exports = 0
     for qual, disp in sorted(warm_up.kernels().items()):
         seen = []
         for cres in disp.overloads.values():
@@ -119,14 +127,14 @@ def build(out: Path) -> dict[str, Any]:
             if specs in seen:
                 continue
             seen.append(specs)
-            argtys = [types.int64 if isinstance(t, types.IntegerLiteral) else
-                      (t.literal_type if isinstance(t, types.Literal) else t) for t in sig.args]
-            name = f"k{len([e for v in exports.values() for e in v])}_{qual.split('.')[-1]}"
+            argtys = [_base(t) for t in sig.args]
+            name = f"k{n_exports}_{qual.split('.')[-1]}"
+            n_exports += 1
             cc.export(name, sig.return_type(*argtys))(_trampoline(disp, len(argtys), name))
             exports.setdefault(qual, []).append((name, specs))
     t0 = time.perf_counter()
     cc.compile()
-    print(f"build_kernels: {sum(len(v) for v in exports.values())} signatures of "
+    print(f"build_kernels: {n_exports} signatures of "
           f"{len(exports)} kernels compiled in {time.perf_counter() - t0:.0f} s",
           file=sys.stderr)
     return {"exports": exports}

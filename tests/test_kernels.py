@@ -159,3 +159,33 @@ def test_the_library_uses_them_too_and_jit_on_request(tmp_path: Path) -> None:
                        env={**env, kernels.ENV: "fast"}, timeout=300)
     assert (r.returncode, r.stderr) == (2, "boxloc: error: BOXLOC_KERNELS must be auto, "
                                            "aot or jit, got 'fast'\n")
+
+
+def test_a_call_the_module_was_not_built_for_switches_the_process_to_the_jit() -> None:
+    """A float32 array for a float64 kernel: a warning, numba's JIT from then on for every
+    kernel (bound in the modules, so that kernels calling kernels compile), the right
+    value; the pipeline still runs."""
+    code = """
+import warnings, numpy as np
+from boxloc import kernels
+import boxloc.stages.seams as S
+from boxloc.pipeline import find_graspable_surfaces
+from boxloc.config import Config
+from boxloc.simulate import parse_spec, simulate
+assert kernels.mode() == "aot"
+x = np.arange(7, dtype=np.float32)[::-1]
+with warnings.catch_warnings(record=True) as w:
+    warnings.simplefilter("always")
+    m = S._median(x)
+r = find_graspable_surfaces(simulate(parse_spec("single:seed=2,width=96,height=72,f=90")).scan,
+                            Config())
+print(m == np.median(x), kernels.mode(), type(S._median).__name__, len(w),
+      "float32" in str(w[0].message), len(r.surfaces))
+"""
+    env = {k: v for k, v in os.environ.items() if k != kernels.ENV}
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT,
+                       env=env, timeout=600)
+    assert r.returncode == 0, r.stderr
+    same, mode, kind, n_warn, named, n_surf = r.stdout.split()
+    assert (same, mode, kind, n_warn, named) == ("True", "jit", "CPUDispatcher", "1", "True")
+    assert int(n_surf) >= 1

@@ -165,6 +165,7 @@ def test_provenance_metadata_and_attachments(log_path: Path) -> None:
                 "sensor", "sensor_hash", "host", "layout_version", "schema_version"):
         assert run.get(key), key
     assert run["git_dirty"] in ("true", "false", "unknown")
+    assert run["kernels"] in ("aot", "jit") and run["numba"]
     assert log.config == Config(alpha=0.02)
     assert run["config_hash"] == Config(alpha=0.02).hash
     assert json.loads(run["sensor"]) == make_scan(0).sensor.to_dict()

@@ -159,6 +159,17 @@ def git_info() -> tuple[str, str]:
     return _GIT
 
 
+def _kernels() -> dict[str, str]:
+    """How this process runs the kernels (the same products either way; the first scan's
+    time differs): ``aot`` or ``jit``, and numba's version. ``unknown`` for a boxloc
+    without :mod:`boxloc.kernels` (an older revision under ``replay --rev``)."""
+    try:
+        from boxloc import kernels
+    except ImportError:
+        return {"kernels": "unknown", "numba": "unknown"}
+    return {"kernels": kernels.mode(), "numba": kernels.build_facts()["numba"] or "none"}
+
+
 def provenance(config: Config, sensor: SensorModel | None, session: str,
                part: int) -> dict[str, str]:
     """The ``boxloc.run`` metadata record: what made this log and how to redo it."""
@@ -178,6 +189,7 @@ def provenance(config: Config, sensor: SensorModel | None, session: str,
         "platform": platform.platform(),
         "python": platform.python_version(),
         "numpy": np.__version__,
+        **_kernels(),
         "mcap": getattr(mcap, "__version__", "unknown"),
         "protobuf": google.protobuf.__version__,
         "session": session,
