@@ -14,9 +14,10 @@ cache (:mod:`boxloc.kernels`): about 1.5 s less before its first scan. The steps
    (``error_model``), and its callees with theirs. Generic code for the machine's
    architecture (``pycc``'s default), so the module runs on any CPU of it.
 3. Check the module: the warm-up scan with it (``BOXLOC_KERNELS=aot``, in a new process)
-   must give products identical, bit for bit, to the JIT's. Only then are the module and
-   its description (``boxloc/_kernels_aot.json``: the exports' argument types, the digest
-   of the kernels' sources, the versions) moved into place.
+   must give products identical, bit for bit, to the JIT's
+   (:func:`boxloc.products.products_equal`). Only then are the module and its description
+   (``boxloc/_kernels_aot.json``: the exports' argument types, the digest of the kernels'
+   sources, the versions) moved into place.
 
 Needs a C compiler and Python's headers (Debian: gcc, python3-dev). Without them, or on
 any failure, it says why and exits 1, and boxloc keeps numba's JIT and cache: set-up goes
@@ -32,6 +33,7 @@ from __future__ import annotations
 import hashlib
 import json
 import os
+import pickle
 import shutil
 import subprocess
 import sys
@@ -41,32 +43,16 @@ from pathlib import Path
 from typing import Any
 
 ROOT = Path(__file__).resolve().parents[1]
-#: The scan the check runs, and the products it compares (printed as one digest).
+#: The check: the warm-up scan's Result and the kernels' mode, pickled to a file of ours
+#: for :func:`boxloc.products.products_equal` in the parent.
 _CHECK = """
-import hashlib, sys
+import pickle, sys
 sys.path.insert(0, {scripts!r})
-import numpy as np
 from warm_up import warm_up_scan
-r = warm_up_scan()
-h = hashlib.sha256()
-def add(x):
-    if isinstance(x, np.ndarray):
-        h.update(str(x.dtype).encode() + str(x.shape).encode()); h.update(x.tobytes())
-    elif hasattr(x, '__dataclass_fields__'):
-        for k in x.__dataclass_fields__:
-            if k != 'timing_ms':
-                add(getattr(x, k))
-    elif isinstance(x, (list, tuple)):
-        for y in x:
-            add(y)
-    elif isinstance(x, dict):
-        for k in sorted(x):
-            add(k); add(x[k])
-    else:
-        h.update(repr(x).encode())
-add(r)
 from boxloc import kernels
-print(kernels.mode(), h.hexdigest())
+r = warm_up_scan()
+with open({out!r}, "wb") as f:
+    pickle.dump((kernels.mode(), r), f)
 """
 
 
@@ -140,16 +126,19 @@ def build(out: Path) -> dict[str, Any]:
     return {"exports": exports}
 
 
-def _check(env: dict[str, str], extra_path: Path | None = None) -> str:
-    """The check scan's mode and digest in a new process with ``env``."""
-    code = _CHECK.format(scripts=str(ROOT / "scripts"))
+def _check(env: dict[str, str], out: Path, extra_path: Path | None = None
+           ) -> tuple[str, Any]:
+    """The check scan's kernels' mode and Result, from a new process with ``env``."""
+    code = _CHECK.format(scripts=str(ROOT / "scripts"), out=str(out))
     if extra_path is not None:  # the candidate module, before it is moved into place
         code = f"import boxloc; boxloc.__path__.insert(0, {str(extra_path)!r})\n" + code
     r = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True,
                        cwd=ROOT, timeout=900)
     if r.returncode != 0:
         raise SystemExit(f"build_kernels: the check scan failed:\n{r.stderr[-2000:]}")
-    return r.stdout.strip().splitlines()[-1]
+    with open(out, "rb") as f:
+        mode, result = pickle.load(f)  # noqa: S301 - written just now by our own process
+    return str(mode), result
 
 
 def main() -> int:
@@ -159,6 +148,7 @@ def main() -> int:
         (out / "exports.json").write_text(json.dumps(desc))
         return 0
     from boxloc import kernels
+    from boxloc.products import products_equal
 
     if "--if-stale" in sys.argv[1:]:
         status = kernels.aot_status()
@@ -193,11 +183,12 @@ def main() -> int:
         shutil.copy2(so[0], cand / so[0].name)
         (cand / kernels.AOT_STAMP).write_text(json.dumps(stamp))
         base = {k: v for k, v in os.environ.items() if k != "BOXLOC_BUILD_STEP"}
-        jit = _check({**base, kernels.ENV: "jit"})
-        aot = _check({**base, kernels.ENV: "aot"}, cand)
-        if aot.split()[0] != "aot" or jit.split()[1] != aot.split()[1]:
-            print(f"build_kernels: not kept: the check scan gave {aot} with the module and "
-                  f"{jit} with numba's JIT", file=sys.stderr)
+        _, jit = _check({**base, kernels.ENV: "jit"}, Path(tmp) / "jit.pkl")
+        mode, aot = _check({**base, kernels.ENV: "aot"}, Path(tmp) / "aot.pkl", cand)
+        differ = products_equal(jit, aot)
+        if mode != "aot" or differ:
+            print(f"build_kernels: not kept: with the module ({mode}) the check scan's "
+                  f"products differ from the JIT's in {differ[:8]}", file=sys.stderr)
             return 1
         shutil.copy2(so[0], pkg / (so[0].name + ".tmp"))
         os.replace(pkg / (so[0].name + ".tmp"), pkg / so[0].name)
