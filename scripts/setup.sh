@@ -29,6 +29,10 @@ if [ ! -x "$VENV/bin/python" ]; then
 fi
 "$VENV/bin/python" -m pip install -q --upgrade pip >/dev/null
 "$VENV/bin/python" -m pip install -q -e "$ROOT[test]"
+# Byte-compile boxloc's own modules, as pip does for an installed wheel: an editable install
+# otherwise compiles each of them from source at every start where bytecode may not be
+# written (PYTHONDONTWRITEBYTECODE, a read-only checkout): 0.3 s of every `boxloc locate`.
+"$VENV/bin/python" -m compileall -q "$ROOT/boxloc" "$ROOT/recorder" "$ROOT/replay" >/dev/null
 # Compile the numba kernels now (about 11 s), into numba's cache beside the sources, or under
 # NUMBA_CACHE_DIR when set (set it the same way for boxloc then): the first scan after set-up
 # is as fast as the second. A no-op, bar 2 s, while the cache matches the sources.

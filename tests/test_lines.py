@@ -28,6 +28,66 @@ def test_hemisphere_tessellation_counts(g, n):
     assert (D[:, 2] >= -1e-9).all()
 
 
+def _subdivided_by_loop(granularity: int) -> np.ndarray:
+    """The tessellation as first written: a loop over the faces, midpoints numbered as met."""
+    t = (1.0 + 5**0.5) / 2.0
+    v = [(-1, t, 0), (1, t, 0), (-1, -t, 0), (1, -t, 0), (0, -1, t), (0, 1, t),
+         (0, -1, -t), (0, 1, -t), (t, 0, -1), (t, 0, 1), (-t, 0, -1), (-t, 0, 1)]
+    faces = [(0, 11, 5), (0, 5, 1), (0, 1, 7), (0, 7, 10), (0, 10, 11), (1, 5, 9), (5, 11, 4),
+             (11, 10, 2), (10, 7, 6), (7, 1, 8), (3, 9, 4), (3, 4, 2), (3, 2, 6), (3, 6, 8),
+             (3, 8, 9), (4, 9, 5), (2, 4, 11), (6, 2, 10), (8, 6, 7), (9, 8, 1)]
+    verts = [np.array(p, float) / np.linalg.norm(p) for p in v]
+    for _ in range(granularity):
+        cache: dict[tuple[int, int], int] = {}
+
+        def mid(a: int, b: int, cache: dict[tuple[int, int], int] = cache) -> int:
+            key = (min(a, b), max(a, b))
+            if key not in cache:
+                m = verts[a] + verts[b]
+                verts.append(m / np.linalg.norm(m))
+                cache[key] = len(verts) - 1
+            return cache[key]
+
+        nf = []
+        for a, b, c in faces:
+            ab, bc, ca = mid(a, b), mid(b, c), mid(c, a)
+            nf += [(a, ab, ca), (b, bc, ab), (c, ca, bc), (ab, bc, ca)]
+        faces = nf
+    V = np.array(verts)
+    eps = 1e-9
+    keep = (V[:, 2] > eps) | (
+        (np.abs(V[:, 2]) <= eps) & ((V[:, 0] > eps) | ((np.abs(V[:, 0]) <= eps) & (V[:, 1] > 0)))
+    )
+    return V[keep]
+
+
+@pytest.mark.parametrize("g", range(7))
+def test_hemisphere_directions_are_the_loops_bit_for_bit(g: int) -> None:
+    """The vectorized subdivision numbers and computes every direction as the loop did: the
+    cells' order and bits decide the votes' ties."""
+    a, b = hemisphere_directions(g), _subdivided_by_loop(g)
+    assert a.shape == b.shape
+    assert np.array_equal(a.view(np.uint64), b.view(np.uint64))
+
+
+@pytest.mark.parametrize("g", range(2, 7))
+def test_direction_lut_is_every_bins_nearest_cell(g: int) -> None:
+    """The lookup table built from its upper half equals querying every bin's nearest cell,
+    for every granularity the config allows."""
+    import math
+
+    from boxloc.stages.lines import _LUT_AZIMUTH, _LUT_POLAR, _direction_lut
+
+    _, _, hemi, tree, lut = _direction_lut(g)
+    th = (np.arange(_LUT_POLAR) + 0.5) * math.pi / _LUT_POLAR
+    ph = (np.arange(_LUT_AZIMUTH) + 0.5) * 2 * math.pi / _LUT_AZIMUTH
+    T, F = np.meshgrid(th, ph, indexing="ij")
+    q = np.stack([np.sin(T) * np.cos(F), np.sin(T) * np.sin(F), np.cos(T)], -1).reshape(-1, 3)
+    every = hemi[tree.query(q)[1]].reshape(_LUT_POLAR, _LUT_AZIMUTH)
+    assert lut.dtype == np.int32
+    np.testing.assert_array_equal(lut, every)
+
+
 def _edge_map(P: np.ndarray, sigma: float) -> EdgeMap:
     n = len(P)
     return EdgeMap(

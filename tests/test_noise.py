@@ -13,6 +13,7 @@ from real_data import MOSD
 
 from boxloc.calibrate.noise import (
     estimate_noise,
+    nnls_few,
     noise_toml,
     plane_residuals,
     quantization_floor,
@@ -504,3 +505,27 @@ def test_design_matrices_are_numpys_stack() -> None:
     assert _same(_design(u, v, False), np.stack([u, v, one], -1))
     assert _same(_design(u, v, True), np.stack([u, v, one, u * u, u * v, v * v], -1))
     assert _design(u, v, True).flags.c_contiguous
+
+
+@pytest.mark.parametrize("seed", range(40))
+def test_nnls_few_is_scipys_nnls(seed: int) -> None:
+    """The exact small solver finds scipy.optimize.nnls's minimum: random problems of 1-4
+    unknowns, most of them (32 of 40) with the optimum on the boundary (some x_j = 0)."""
+    from scipy.optimize import nnls
+
+    rng = np.random.default_rng(seed)
+    n = 1 + seed % 4
+    A = rng.normal(size=(12, n)) * rng.uniform(0.1, 10.0, n)
+    b = A @ rng.normal(size=n) + 0.1 * rng.normal(size=12)
+    x, ref = nnls_few(A, b), nnls(A, b)[0]
+    assert np.all(x >= 0)
+    np.testing.assert_allclose(x, ref, rtol=1e-9, atol=1e-12)
+    assert np.linalg.norm(A @ x - b) <= np.linalg.norm(A @ ref - b) * (1 + 1e-12)
+
+
+def test_nnls_few_edges() -> None:
+    """All-zero optimum (b opposite every column), and too many unknowns refused."""
+    A = np.ones((5, 2))
+    np.testing.assert_array_equal(nnls_few(A, -np.ones(5)), [0.0, 0.0])
+    with pytest.raises(ValueError, match="at most 6"):
+        nnls_few(np.ones((9, 7)), np.ones(9))

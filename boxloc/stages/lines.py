@@ -66,6 +66,10 @@ def hemisphere_directions(granularity: int) -> np.ndarray:
 
     Granularity 0..6 gives 6, 21, 81, 321, 1281, 5121, 20481 directions (z >= 0, with
     only half of the equator kept), as in Dalitz et al., IPOL 2017.
+
+    Each level splits every face in four at its edges' normalized midpoints; a midpoint is
+    numbered where its edge first occurs (faces in order, edges ab, bc, ca), as a loop over
+    the faces would number it (``tests/test_lines.py`` holds that loop: the same bits).
     """
     t = (1.0 + 5**0.5) / 2.0
     v = [(-1, t, 0), (1, t, 0), (-1, -t, 0), (1, -t, 0), (0, -1, t), (0, 1, t),
@@ -73,25 +77,22 @@ def hemisphere_directions(granularity: int) -> np.ndarray:
     f = [(0, 11, 5), (0, 5, 1), (0, 1, 7), (0, 7, 10), (0, 10, 11), (1, 5, 9), (5, 11, 4),
          (11, 10, 2), (10, 7, 6), (7, 1, 8), (3, 9, 4), (3, 4, 2), (3, 2, 6), (3, 6, 8),
          (3, 8, 9), (4, 9, 5), (2, 4, 11), (6, 2, 10), (8, 6, 7), (9, 8, 1)]
-    verts = [np.array(p, float) / np.linalg.norm(p) for p in v]
-    faces = f
+    V = np.array([np.array(p, float) / np.linalg.norm(p) for p in v])
+    F = np.array(f, np.int64)
     for _ in range(granularity):
-        cache: dict[tuple[int, int], int] = {}
-
-        def mid(a: int, b: int, cache: dict[tuple[int, int], int] = cache) -> int:
-            key = (min(a, b), max(a, b))
-            if key not in cache:
-                m = verts[a] + verts[b]
-                verts.append(m / np.linalg.norm(m))
-                cache[key] = len(verts) - 1
-            return cache[key]
-
-        nf = []
-        for a, b, c in faces:
-            ab, bc, ca = mid(a, b), mid(b, c), mid(c, a)
-            nf += [(a, ab, ca), (b, bc, ab), (c, ca, bc), (ab, bc, ca)]
-        faces = nf
-    V = np.array(verts)
+        n = len(V)
+        E = F[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2)
+        key = np.minimum(E[:, 0], E[:, 1]) * n + np.maximum(E[:, 0], E[:, 1])
+        _, first, inv = np.unique(key, return_index=True, return_inverse=True)
+        rank = np.empty(len(first), np.int64)
+        rank[np.argsort(first, kind="stable")] = np.arange(len(first))
+        m = V[E[first, 0]] + V[E[first, 1]]
+        V = np.concatenate([V, np.empty((len(first), 3))])
+        V[n + rank] = m / np.linalg.norm(m, axis=1)[:, None]
+        mid = (n + rank[inv]).reshape(-1, 3)  # each face's ab, bc, ca
+        a, b, c = F.T
+        ab, bc, ca = mid.T
+        F = np.stack([a, ab, ca, b, bc, ab, c, ca, bc, ab, bc, ca], 1).reshape(-1, 3)
     eps = 1e-9
     keep = (V[:, 2] > eps) | (
         (np.abs(V[:, 2]) <= eps) & ((V[:, 0] > eps) | ((np.abs(V[:, 0]) <= eps) & (V[:, 1] > 0)))
@@ -116,10 +117,15 @@ def _direction_lut(granularity: int
     tree = cKDTree(both)
     th = (np.arange(_LUT_POLAR) + 0.5) * math.pi / _LUT_POLAR
     ph = (np.arange(_LUT_AZIMUTH) + 0.5) * 2 * math.pi / _LUT_AZIMUTH
-    T, F = np.meshgrid(th, ph, indexing="ij")
+    # Query the upper half of the bins only (half the time): a lower bin is an upper one's
+    # antipode (polar pi - theta, azimuth + pi), whose nearest cell is the antipodal one,
+    # the same hemisphere cell. Its coordinates are the antipode's only to rounding, so
+    # tests/test_lines.py checks the table against querying every bin, granularities 2-6.
+    T, F = np.meshgrid(th[: _LUT_POLAR // 2], ph, indexing="ij")
     q = np.stack([np.sin(T) * np.cos(F), np.sin(T) * np.sin(F), np.cos(T)], -1).reshape(-1, 3)
-    lut = hemi[tree.query(q)[1]].reshape(_LUT_POLAR, _LUT_AZIMUTH).astype(np.int32)
-    return D, both, hemi, tree, lut
+    upper = hemi[tree.query(q)[1]].reshape(_LUT_POLAR // 2, _LUT_AZIMUTH)
+    lut = np.concatenate([upper, np.roll(upper[::-1], _LUT_AZIMUTH // 2, axis=1)])
+    return D, both, hemi, tree, lut.astype(np.int32)
 
 
 @lru_cache(maxsize=64)
