@@ -343,6 +343,10 @@ def run(sources: tuple[str, ...], count: int, seed: int | None, record: str | No
     """
     from recorder.stream import default_workers, ordered_runs, start_early
 
+    if (workers or default_workers()) > 1:
+        # The workers' server imports the pipeline (a second) while this process reads the
+        # config and opens the sources; unused if there turns out to be one scan.
+        start_early()
     rerun_target = normalize_rerun(rerun)
     cfg = load_config(config_path, overrides)
     sizes, attachments = _box_sizes(box_sizes)
@@ -360,9 +364,7 @@ def run(sources: tuple[str, ...], count: int, seed: int | None, record: str | No
     n_workers = default_workers() if workers == 0 else workers
     if total is not None:  # no worker to start for fewer scans; one scan runs in here
         n_workers = max(1, min(n_workers, total))
-    if n_workers > 1:
-        start_early()  # the workers' pipeline imports while the recorder imports here
-    else:
+    if n_workers == 1:
         from boxloc.pipeline import find_graspable_surfaces
         from boxloc.stages.scan_noise import fit_warning
     from boxloc.observer import FanOut
