@@ -11,6 +11,8 @@ from boxloc.config import Config
 from boxloc.products import EdgeMap, products_equal
 from boxloc.scan import PinholeModel, Scan
 from boxloc.stages.lines import (
+    ICOSAHEDRON_FACES,
+    ICOSAHEDRON_VERTICES,
     find_lines,
     fit_segment,
     hemisphere_directions,
@@ -30,13 +32,8 @@ def test_hemisphere_tessellation_counts(g, n):
 
 def _subdivided_by_loop(granularity: int) -> np.ndarray:
     """The tessellation as first written: a loop over the faces, midpoints numbered as met."""
-    t = (1.0 + 5**0.5) / 2.0
-    v = [(-1, t, 0), (1, t, 0), (-1, -t, 0), (1, -t, 0), (0, -1, t), (0, 1, t),
-         (0, -1, -t), (0, 1, -t), (t, 0, -1), (t, 0, 1), (-t, 0, -1), (-t, 0, 1)]
-    faces = [(0, 11, 5), (0, 5, 1), (0, 1, 7), (0, 7, 10), (0, 10, 11), (1, 5, 9), (5, 11, 4),
-             (11, 10, 2), (10, 7, 6), (7, 1, 8), (3, 9, 4), (3, 4, 2), (3, 2, 6), (3, 6, 8),
-             (3, 8, 9), (4, 9, 5), (2, 4, 11), (6, 2, 10), (8, 6, 7), (9, 8, 1)]
-    verts = [np.array(p, float) / np.linalg.norm(p) for p in v]
+    faces = list(ICOSAHEDRON_FACES)
+    verts = [np.array(p, float) / np.linalg.norm(p) for p in ICOSAHEDRON_VERTICES]
     for _ in range(granularity):
         cache: dict[tuple[int, int], int] = {}
 

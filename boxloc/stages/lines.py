@@ -60,6 +60,18 @@ MAX_VOTERS = 300
 VOTE_RADIUS_EDGES = 3.0
 
 
+_T = (1.0 + 5**0.5) / 2.0
+#: The icosahedron the direction tessellation subdivides: its 12 vertices (not normalized)
+#: and its 20 faces (vertex indices), in the order that numbers the directions.
+ICOSAHEDRON_VERTICES = ((-1, _T, 0), (1, _T, 0), (-1, -_T, 0), (1, -_T, 0), (0, -1, _T),
+                        (0, 1, _T), (0, -1, -_T), (0, 1, -_T), (_T, 0, -1), (_T, 0, 1),
+                        (-_T, 0, -1), (-_T, 0, 1))
+ICOSAHEDRON_FACES = ((0, 11, 5), (0, 5, 1), (0, 1, 7), (0, 7, 10), (0, 10, 11), (1, 5, 9),
+                     (5, 11, 4), (11, 10, 2), (10, 7, 6), (7, 1, 8), (3, 9, 4), (3, 4, 2),
+                     (3, 2, 6), (3, 6, 8), (3, 8, 9), (4, 9, 5), (2, 4, 11), (6, 2, 10),
+                     (8, 6, 7), (9, 8, 1))
+
+
 @lru_cache(maxsize=8)
 def hemisphere_directions(granularity: int) -> np.ndarray:
     """Unit directions of a subdivided icosahedron on the upper hemisphere, (n, 3).
@@ -71,14 +83,8 @@ def hemisphere_directions(granularity: int) -> np.ndarray:
     numbered where its edge first occurs (faces in order, edges ab, bc, ca), as a loop over
     the faces would number it (``tests/test_lines.py`` holds that loop: the same bits).
     """
-    t = (1.0 + 5**0.5) / 2.0
-    v = [(-1, t, 0), (1, t, 0), (-1, -t, 0), (1, -t, 0), (0, -1, t), (0, 1, t),
-         (0, -1, -t), (0, 1, -t), (t, 0, -1), (t, 0, 1), (-t, 0, -1), (-t, 0, 1)]
-    f = [(0, 11, 5), (0, 5, 1), (0, 1, 7), (0, 7, 10), (0, 10, 11), (1, 5, 9), (5, 11, 4),
-         (11, 10, 2), (10, 7, 6), (7, 1, 8), (3, 9, 4), (3, 4, 2), (3, 2, 6), (3, 6, 8),
-         (3, 8, 9), (4, 9, 5), (2, 4, 11), (6, 2, 10), (8, 6, 7), (9, 8, 1)]
-    V = np.array([np.array(p, float) / np.linalg.norm(p) for p in v])
-    F = np.array(f, np.int64)
+    V = np.array([np.array(p, float) / np.linalg.norm(p) for p in ICOSAHEDRON_VERTICES])
+    F = np.array(ICOSAHEDRON_FACES, np.int64)
     for _ in range(granularity):
         n = len(V)
         E = F[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2)
