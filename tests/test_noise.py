@@ -521,6 +521,8 @@ def test_nnls_few_is_scipys_nnls(seed: int) -> None:
     assert np.all(x >= 0)
     np.testing.assert_allclose(x, ref, rtol=1e-9, atol=1e-12)
     assert np.linalg.norm(A @ x - b) <= np.linalg.norm(A @ ref - b) * (1 + 1e-12)
+    # the fallback, where no optimality check passes: the best feasible support, the same x
+    np.testing.assert_array_equal(nnls_few(A, b, rtol=-np.inf), x)
 
 
 def test_nnls_few_edges() -> None:

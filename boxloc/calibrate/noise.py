@@ -1290,7 +1290,7 @@ def _incidence_exponent(
     return float(-(x @ yv) / (x @ x))
 
 
-def nnls_few(A: np.ndarray, b: np.ndarray) -> np.ndarray:
+def nnls_few(A: np.ndarray, b: np.ndarray, rtol: float = 1e-10) -> np.ndarray:
     """Non-negative least squares, ``argmin ||A x - b||`` over ``x >= 0``, exactly, for a
     few unknowns: the least-squares solution on the support where it is optimal.
 
@@ -1307,16 +1307,17 @@ def nnls_few(A: np.ndarray, b: np.ndarray) -> np.ndarray:
     ----------
     A : (m, n) float64, n <= 6 (2**n supports)
     b : (m,) float64
+    rtol : float
+        A gradient component within ``rtol`` of its scale (``|A|^T |b|``) is zero.
 
     Returns
     -------
     x : (n,) float64, x >= 0
     """
-    m, n = A.shape
+    n = A.shape[1]
     if n > 6:
         raise ValueError(f"nnls_few: {n} unknowns, at most 6")
-    # a gradient component this small is zero, to rounding
-    tol = 1e-10 * (np.abs(A).T @ np.abs(b)) + 1e-300
+    tol = rtol * (np.abs(A).T @ np.abs(b)) + 1e-300
     best, best_r = np.zeros(n), float(b @ b)
     if (A.T @ b <= tol).all():  # x = 0 is optimal
         return best
