@@ -1,4 +1,4 @@
-"""Imported by the forkserver of :mod:`recorder.stream` only: load the numba kernels once.
+"""Imported by the forkserver of :mod:`recorder.stream` only: warm the workers' first scan.
 
 Importing this module runs the pipeline on a small simulated scan (160 x 120), which loads
 every kernel's compiled code from numba's cache (about half a second) where the kernels are

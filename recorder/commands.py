@@ -343,7 +343,8 @@ def run(sources: tuple[str, ...], count: int, seed: int | None, record: str | No
     """
     from recorder.stream import default_workers, ordered_runs, start_early
 
-    if (workers or default_workers()) > 1:
+    n_workers = workers or default_workers()  # 0: one per CPU
+    if n_workers > 1:
         # The workers' server imports the pipeline (a second) while this process reads the
         # config and opens the sources; unused if there turns out to be one scan.
         start_early()
@@ -361,7 +362,6 @@ def run(sources: tuple[str, ...], count: int, seed: int | None, record: str | No
         configs = [dataclasses.replace(c, box_sizes=sizes) for c in configs]
     totals = [src.total for src in opened]
     total = None if None in totals else sum(t for t in totals if t is not None)
-    n_workers = default_workers() if workers == 0 else workers
     if total is not None:  # no worker to start for fewer scans; one scan runs in here
         n_workers = max(1, min(n_workers, total))
     if n_workers == 1:
