@@ -12,11 +12,13 @@ Set-up then compiles the same kernels ahead of time (``scripts/build_kernels.py`
 process running one scan uses instead; this cache serves every other process, and one
 whose ahead-of-time module is missing or stale.
 
-Running the whole pipeline once on a small simulated scan (160 x 120) compiles every kernel
-with the argument types of any scan, since the stages convert their inputs to float64 and
-int64 arrays first; then the first ``boxloc locate`` after set-up loads compiled code, as the
-second does. Exit status 1 if a kernel was never called (a new kernel the scan here does not
-reach: make it reach it).
+It first saves the line stage's direction tables
+(:func:`boxloc.stages.lines.save_direction_tables`), which a process's first scan would
+otherwise build. Running the whole pipeline once on a small simulated scan (160 x 120)
+compiles every kernel with the argument types of any scan, since the stages convert their
+inputs to float64 and int64 arrays first; then the first ``boxloc locate`` after set-up
+loads compiled code, as the second does. Exit status 1 if a kernel was never called (a new
+kernel the scan here does not reach: make it reach it).
 
 Usage: python scripts/warm_up.py
 """
@@ -101,6 +103,12 @@ def warm_up() -> int:
     int
         0 when every kernel has compiled code; 1 when one was never called.
     """
+    from boxloc.stages.lines import default_direction_tables, save_direction_tables
+
+    t0 = time.perf_counter()
+    path = save_direction_tables()
+    print(f"warm-up: the Hough direction tables of {len(default_direction_tables())} vote "
+          f"caps saved to {path} in {time.perf_counter() - t0:.1f} s", file=sys.stderr)
     t0 = time.perf_counter()
     warm_up_scan()
     _seam_kernels()

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import math
 
 import numpy as np
 import pytest
@@ -32,8 +33,11 @@ def test_hemisphere_tessellation_counts(g, n):
 
 def _subdivided_by_loop(granularity: int) -> np.ndarray:
     """The tessellation as first written: a loop over the faces, midpoints numbered as met."""
+    def unit(p: np.ndarray) -> np.ndarray:  # IEEE operations in order: the same bits anywhere
+        return p / math.sqrt(p[0] * p[0] + p[1] * p[1] + p[2] * p[2])
+
     faces = list(ICOSAHEDRON_FACES)
-    verts = [np.array(p, float) / np.linalg.norm(p) for p in ICOSAHEDRON_VERTICES]
+    verts = [unit(np.array(p, float)) for p in ICOSAHEDRON_VERTICES]
     for _ in range(granularity):
         cache: dict[tuple[int, int], int] = {}
 
@@ -41,7 +45,7 @@ def _subdivided_by_loop(granularity: int) -> np.ndarray:
             key = (min(a, b), max(a, b))
             if key not in cache:
                 m = verts[a] + verts[b]
-                verts.append(m / np.linalg.norm(m))
+                verts.append(unit(m))
                 cache[key] = len(verts) - 1
             return cache[key]
 
@@ -71,8 +75,6 @@ def test_hemisphere_directions_are_the_loops_bit_for_bit(g: int) -> None:
 def test_direction_lut_is_every_bins_nearest_cell(g: int) -> None:
     """The lookup table built from its upper half equals querying every bin's nearest cell,
     for every granularity the config allows."""
-    import math
-
     from boxloc.stages.lines import _LUT_AZIMUTH, _LUT_POLAR, _direction_lut
 
     _, _, hemi, tree, lut = _direction_lut(g)
@@ -83,6 +85,64 @@ def test_direction_lut_is_every_bins_nearest_cell(g: int) -> None:
     every = hemi[tree.query(q)[1]].reshape(_LUT_POLAR, _LUT_AZIMUTH)
     assert lut.dtype == np.int32
     np.testing.assert_array_equal(lut, every)
+
+
+def _same_tables(a: tuple[np.ndarray, ...], b: tuple[np.ndarray, ...]) -> bool:
+    return all(x.dtype == y.dtype and np.array_equal(x, y) for x, y in zip(a, b, strict=True))
+
+
+def test_saved_direction_tables_are_the_built_ones(tmp_path, monkeypatch) -> None:
+    """Set-up's saved tables are read back bit for bit, for every vote cap the default
+    configuration can use, and nothing is built where they are."""
+    from boxloc.stages import lines as L
+
+    pairs = L.default_direction_tables()
+    # every cap from the quiet to the noisy one; the noisiest one level coarser
+    assert sorted(c for _, c in pairs) == list(range(L._QUIET_CAP_DEG, L._NOISY_CAP_DEG + 1))
+    assert (4, L._QUIET_CAP_DEG) in pairs and (3, L._NOISY_CAP_DEG) in pairs
+    some = [(4, L._QUIET_CAP_DEG), (4, L._QUIET_CAP_DEG + 1), (3, L._NOISY_CAP_DEG)]
+    path = L.save_direction_tables(tmp_path / "t.npz", some)
+    monkeypatch.setattr(L, "DIRECTION_TABLES", path)
+    for g, cap in some:
+        saved = L._saved_direction_index(g, cap)
+        assert saved is not None and _same_tables(saved, L.build_direction_index(g, cap))
+    assert L._saved_direction_index(4, L._QUIET_CAP_DEG + 2) is None  # a cap not saved
+    L._direction_index.cache_clear()
+    try:
+        def no_build(*args: object) -> None:
+            raise AssertionError("built, not read")
+
+        monkeypatch.setattr(L, "build_direction_index", no_build)
+        L._direction_index(*some[0])
+    finally:
+        L._direction_index.cache_clear()
+
+
+@pytest.mark.parametrize("damage", ["stale", "truncated", "missing"])
+def test_direction_tables_are_built_where_the_saved_ones_cannot_serve(tmp_path, monkeypatch,
+                                                                      damage) -> None:
+    """A file from other code (its stamp), a damaged one or none: the tables are built, the
+    same as ever."""
+    from boxloc.stages import lines as L
+
+    path = L.save_direction_tables(tmp_path / "t.npz", [(2, L._QUIET_CAP_DEG)])
+    if damage == "stale":
+        with np.load(path) as z:
+            arrays = {k: z[k] for k in z.files}
+        arrays["stamp"] = np.array("0" * 16)
+        np.savez(path, **arrays)
+    elif damage == "truncated":
+        path.write_bytes(path.read_bytes()[:1000])
+    else:
+        path.unlink()
+    monkeypatch.setattr(L, "DIRECTION_TABLES", path)
+    assert L._saved_direction_index(2, L._QUIET_CAP_DEG) is None
+    L._direction_index.cache_clear()
+    try:
+        assert _same_tables(L._direction_index(2, L._QUIET_CAP_DEG),
+                            L.build_direction_index(2, L._QUIET_CAP_DEG))
+    finally:
+        L._direction_index.cache_clear()
 
 
 def _edge_map(P: np.ndarray, sigma: float) -> EdgeMap:
@@ -145,8 +205,6 @@ def test_the_trials_are_olsons_count_in_all():
     # p_success is the chance that each line of m_min points is hit: log(1 - P) /
     # log(1 - m_min / N) draws in all, however many lines are found on the way (a run of
     # that many failures after the last line found drew 109 on seed 0)
-    import math
-
     for seed in range(3):
         P, s = _lines_and_clutter(seed)
         L = find_lines(_scan(), _edge_map(P, s), config=Config(), rng=np.random.default_rng(0))

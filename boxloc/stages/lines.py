@@ -24,9 +24,13 @@ count for the points no line has taken yet.
 
 from __future__ import annotations
 
+import hashlib
 import math
+import zipfile
 from dataclasses import dataclass
 from functools import lru_cache
+from pathlib import Path
+from typing import Any, cast
 
 import numpy as np
 from scipy.spatial import cKDTree
@@ -72,6 +76,14 @@ ICOSAHEDRON_FACES = ((0, 11, 5), (0, 5, 1), (0, 1, 7), (0, 7, 10), (0, 10, 11), 
                      (8, 6, 7), (9, 8, 1))
 
 
+def _unit_rows(m: np.ndarray) -> np.ndarray:
+    """The rows of (n, 3) ``m`` over their lengths, by element-wise operations only: the same
+    bits on every CPU. (``np.linalg.norm`` of one vector is BLAS's dot, which fuses multiply
+    and add where the CPU can: on an AVX-512 machine the directions differed in the last bit
+    from another machine's.)"""
+    return m / np.sqrt(m[:, 0] * m[:, 0] + m[:, 1] * m[:, 1] + m[:, 2] * m[:, 2])[:, None]
+
+
 @lru_cache(maxsize=8)
 def hemisphere_directions(granularity: int) -> np.ndarray:
     """Unit directions of a subdivided icosahedron on the upper hemisphere, (n, 3).
@@ -83,7 +95,7 @@ def hemisphere_directions(granularity: int) -> np.ndarray:
     numbered where its edge first occurs (faces in order, edges ab, bc, ca), as a loop over
     the faces would number it (``tests/test_lines.py`` holds that loop: the same bits).
     """
-    V = np.array([np.array(p, float) / np.linalg.norm(p) for p in ICOSAHEDRON_VERTICES])
+    V = _unit_rows(np.array(ICOSAHEDRON_VERTICES, float))
     F = np.array(ICOSAHEDRON_FACES, np.int64)
     for _ in range(granularity):
         n = len(V)
@@ -94,7 +106,7 @@ def hemisphere_directions(granularity: int) -> np.ndarray:
         rank[np.argsort(first, kind="stable")] = np.arange(len(first))
         m = V[E[first, 0]] + V[E[first, 1]]
         V = np.concatenate([V, np.empty((len(first), 3))])
-        V[n + rank] = m / np.linalg.norm(m, axis=1)[:, None]
+        V[n + rank] = _unit_rows(m)
         mid = (n + rank[inv]).reshape(-1, 3)  # each face's ab, bc, ca
         a, b, c = F.T
         ab, bc, ca = mid.T
@@ -138,7 +150,74 @@ def _direction_lut(granularity: int
 def _direction_index(granularity: int, cap_deg: int = _QUIET_CAP_DEG
                      ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Lookup structures for voting on the tessellation, for votes of at most ``cap_deg``
-    degrees radius.
+    degrees radius: :func:`build_direction_index`'s, read from :data:`DIRECTION_TABLES`
+    where set-up saved them for this code (the same arrays, bit for bit), else built."""
+    saved = _saved_direction_index(granularity, cap_deg)
+    return saved if saved is not None else build_direction_index(granularity, cap_deg)
+
+
+#: The direction tables a default configuration can use, saved at set-up
+#: (:func:`save_direction_tables`, run by ``scripts/warm_up.py``): a process's first scan
+#: reads them (about 1 ms) instead of building them (40-100 ms, most of the first scan's
+#: extra time in the line stage). Not in git; a missing or stale file is built around.
+DIRECTION_TABLES = Path(__file__).resolve().parent.parent / "_direction_tables.npz"
+
+
+def _tables_stamp() -> str:
+    """What the saved tables were computed by: this module's source and NumPy's and SciPy's
+    versions (the kd-tree's nearest cells and the subdivision's rounding are theirs)."""
+    import scipy
+
+    h = hashlib.sha256(Path(__file__).read_bytes())
+    h.update(f"{np.__version__} {scipy.__version__}".encode())
+    return h.hexdigest()[:16]
+
+
+def _saved_direction_index(granularity: int, cap_deg: int
+                           ) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+    """The tables for (granularity, cap) from :data:`DIRECTION_TABLES`, or None where the
+    file is missing, unreadable, stale or without them."""
+    key = f"{granularity}_{cap_deg}"
+    try:
+        with np.load(DIRECTION_TABLES, allow_pickle=False) as z:
+            if f"nbr_{key}" not in z.files or str(z["stamp"]) != _tables_stamp():
+                return None
+            return z[f"lut_{granularity}"], z[f"nbr_{key}"], z[f"dirs_{granularity}"]
+    except (OSError, ValueError, KeyError, zipfile.BadZipFile):
+        return None
+
+
+def default_direction_tables(granularity: int | None = None) -> list[tuple[int, int]]:
+    """The (granularity, cap) pairs the line stage can ask for at ``granularity`` (the
+    config's default when None): every whole-degree vote cap from the quiet to the noisy
+    one, each at its :func:`vote_granularity`."""
+    g = Config().direction_granularity if granularity is None else granularity
+    caps = range(_QUIET_CAP_DEG, _NOISY_CAP_DEG + 1)
+    return sorted({(vote_granularity(g, c), c) for c in caps})
+
+
+def save_direction_tables(path: Path | None = None,
+                          pairs: list[tuple[int, int]] | None = None) -> Path:
+    """Build the direction tables of ``pairs`` (:func:`default_direction_tables` when None)
+    and save them, with their :func:`_tables_stamp`, to ``path`` (:data:`DIRECTION_TABLES`
+    when None), written whole to a temporary file and renamed. Returns the path."""
+    path = DIRECTION_TABLES if path is None else Path(path)
+    arrays: dict[str, np.ndarray] = {"stamp": np.array(_tables_stamp())}
+    for g, cap in default_direction_tables() if pairs is None else pairs:
+        lut, nbr, D = build_direction_index(g, cap)
+        arrays[f"lut_{g}"], arrays[f"dirs_{g}"], arrays[f"nbr_{g}_{cap}"] = lut, D, nbr
+    tmp = path.with_name(path.name + ".tmp")
+    with open(tmp, "wb") as f:
+        # uncompressed: read in about a millisecond (NumPy's stubs type a keyword as allow_pickle)
+        cast(Any, np.savez)(f, **arrays)
+    tmp.replace(path)
+    return path
+
+
+def build_direction_index(granularity: int, cap_deg: int = _QUIET_CAP_DEG
+                          ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Build the lookup structures for voting on the tessellation, for votes of at most
+    ``cap_deg`` degrees radius.
 
     Returns
     -------
