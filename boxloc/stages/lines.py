@@ -158,7 +158,7 @@ def _direction_index(granularity: int, cap_deg: int = _QUIET_CAP_DEG
 
 #: The direction tables a default configuration can use, saved at set-up
 #: (:func:`save_direction_tables`, run by ``scripts/warm_up.py``): a process's first scan
-#: reads them (about 1 ms) instead of building them (40-100 ms, most of the first scan's
+#: reads them (about 2 ms) instead of building them (40-100 ms, most of the first scan's
 #: extra time in the line stage). Not in git; a missing or stale file is built around.
 DIRECTION_TABLES = Path(__file__).resolve().parent.parent / "_direction_tables.npz"
 
@@ -187,11 +187,11 @@ def _saved_direction_index(granularity: int, cap_deg: int
         return None
 
 
-def default_direction_tables(granularity: int | None = None) -> list[tuple[int, int]]:
-    """The (granularity, cap) pairs the line stage can ask for at ``granularity`` (the
-    config's default when None): every whole-degree vote cap from the quiet to the noisy
-    one, each at its :func:`vote_granularity`."""
-    g = Config().direction_granularity if granularity is None else granularity
+def default_direction_tables() -> list[tuple[int, int]]:
+    """The (granularity, cap) pairs the line stage can ask for at the config's default
+    granularity: every whole-degree vote cap from the quiet to the noisy one, each at its
+    :func:`vote_granularity`."""
+    g = Config().direction_granularity
     caps = range(_QUIET_CAP_DEG, _NOISY_CAP_DEG + 1)
     return sorted({(vote_granularity(g, c), c) for c in caps})
 
