@@ -38,9 +38,16 @@ RAY_CACHE_PIXELS = 1920 * 1080
 @functools.lru_cache(maxsize=2)
 def _pinhole_rays(fx: float, fy: float, cx: float, cy: float, width: int,
                   height: int) -> np.ndarray:
-    v, u = np.mgrid[0:height, 0:width].astype(np.float64)
-    d = np.stack([(u - cx) / fx, (v - cy) / fy, np.ones_like(u)], -1)
-    d /= np.linalg.norm(d, axis=-1, keepdims=True)
+    # each ray's length from its column's and row's terms, element-wise: the operations of
+    # ``d / np.linalg.norm(d, axis=-1)`` over d = (x, y, 1), in their order (the same bits,
+    # tests/test_scan.py), without the (H, W) grids and temporaries (27 -> 6 ms at 640x480)
+    x = (np.arange(width, dtype=np.float64) - cx) / fx
+    y = (np.arange(height, dtype=np.float64) - cy) / fy
+    n = np.sqrt((x * x)[None, :] + (y * y)[:, None] + 1.0)
+    d = np.empty((height, width, 3))
+    np.divide(x[None, :], n, out=d[..., 0])
+    np.divide(y[:, None], n, out=d[..., 1])
+    np.divide(1.0, n, out=d[..., 2])
     d.flags.writeable = False
     return d
 
@@ -99,8 +106,8 @@ class PinholeModel:
         """Unit rays, shape (H, W, 3), float64, read-only.
 
         Cached per model up to :data:`RAY_CACHE_PIXELS`: a stream of scans from one camera
-        builds them once (12 ms at 640x480, four times that at 1280x960, otherwise paid on
-        every scan). Larger images build them each time, so that a huge scan's rays (400 MB
+        builds them once (6 ms at 640x480, 17 ms at 1280x960, otherwise paid on every
+        scan). Larger images build them each time, so that a huge scan's rays (400 MB
         at 4096x4096) do not stay alive beside its pipeline.
         """
         args = (self.fx, self.fy, self.cx, self.cy, self.width, self.height)
