@@ -53,6 +53,14 @@ class DimensionSource(IntEnum):
     REGION = 5
     #: one part of a flat region split at the seams a listed carton size implies
     SKU_SPLIT = 6
+    #: the listed cartons lining one side of a flat region that did not verify whole (it
+    #: runs out of sight, or a far side shows no end): the side's length, seen from corner
+    #: to end, is n of one listed edge and no other sum of listed edges
+    #: (:func:`boxloc.stages.sizes.row_cartons`), so the cartons reach that size's depth
+    #: into it. Verified as a region with that far side on the size's evidence, then split
+    #: like one; never a surface, and never reported as ambiguous (its far side is the
+    #: list's, not the scan's)
+    ROW = 7
 
 
 class VerifyReason(IntEnum):
@@ -435,8 +443,11 @@ class HypothesisSet:
         :class:`AmbiguityReason` it was left ambiguous for (NaN: split). With a carton list
         a region's split is tried from up to four of its vertices in turn; each one tried
         records its own reason, and where a later one splits it, the first found becomes
-        the -1 (:func:`boxloc.stages.hypotheses._split_regions`). A SKU_SPLIT
-        attempt's ``att_support`` is the region's hypothesis.
+        the -1 (:func:`boxloc.stages.hypotheses._split_regions`). A ROW attempt (the
+        cartons lining one side of a region that did not verify whole) is one too, but is
+        never reported ambiguous; -1 also marks two rows at one corner that disagree on
+        its carton (``SEVERAL_TILINGS``). A SKU_SPLIT attempt's ``att_support`` is the
+        region's (or row's) hypothesis.
     up : (3,) float64
         The up direction the tilt prior and the pick order used (see :mod:`boxloc.stages.up`).
     tests : TestTable

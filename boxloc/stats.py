@@ -227,6 +227,21 @@ class TestKind(IntEnum):
     #: each weighed by its variance, and the source kept; rejected: the measurement is not
     #: this carton's (a stack's side, the floor beyond), and the listed height replaces it
     HEIGHT_SKU_AGREEMENT = 44
+    #: hypothesis stage, with a carton list, at vertex a's flat region that did not
+    #: verify whole: the listed cartons lining its side along arm b (0 = x, 1 = y), seen
+    #: from the corner to the region's end (:func:`boxloc.stages.sizes.row_cartons`):
+    #: statistic = the ways listed edges add up to the side's length (2: two or more; NaN
+    #: where the search stopped at its budget), critical 1. Accepted where exactly one way
+    #: of one edge, of one depth: a ROW attempt of those cartons is verified
+    SKU_ROW = 45
+    #: hypothesis stage, with a carton list, right after an accepted SKU_ROW row of
+    #: vertex a: the side ends at a corner that was seen, the vertex nearest the side's
+    #: end whose arms run back along the side and on along a's other arm (b = that vertex,
+    #: -1 if none, then statistic inf): statistic = chi2 (2 dof) of its position in a's
+    #: plane against the side's end, over both corners' covariances plus the row's length
+    #: tolerance (n ``size_tolerance``^2 along the side); critical at alpha. Rejected: no
+    #: ROW (the side may end at the image's border, or on noise)
+    ROW_END = 46
 
 
 #: ``TestKind.BUDGET`` rows' ``a``: the stage whose budget it is.

@@ -25,6 +25,7 @@ from boxloc.stages.sizes import (
     match_size,
     other_tiling,
     region_splits,
+    row_cartons,
     seen_tilings,
 )
 from boxloc.stats import TestKind
@@ -154,6 +155,67 @@ def test_size_chi2_and_grids() -> None:
     # two grids of one size that cut differently stay two
     assert len(distinct(region_splits(1.2, 0.8, ((0.4, 0.6, 0.3),), 0.01, 0.01))) == 1
     assert len(distinct(region_splits(1.2, 1.2, ((0.4, 0.6, 0.3),), 0.01, 0.01))) == 2
+
+
+def test_row_cartons_says_what_lines_a_side_only_where_one_sum_fits() -> None:
+    S = ((0.25, 0.4, 0.25),)
+    r = row_cartons(0.752, S, 0.01, 0.01)
+    assert r.unique and (r.sku, r.n, r.along, r.depth) == (0, 3, 0.25, 0.4)
+    assert r.statistic == pytest.approx(0.002**2 / (3 * 0.01**2))
+    r = row_cartons(0.8, S, 0.01, 0.01)  # two long edges: the cartons reach 0.25 in
+    assert r.unique and (r.n, r.along, r.depth) == (2, 0.4, 0.25)
+    # one sum, but of both edges: they may lie in either order, so no depth is said
+    r = row_cartons(0.65, S, 0.01, 0.01)
+    assert (r.ways, r.unique) == (1, False)
+    # two sums: 0.4 is two short edges or one long one
+    r = row_cartons(0.4, ((0.2, 0.4, 0.25),), 0.01, 0.01)
+    assert (r.ways, r.unique) == (2, False)
+    # no sum: 0.55 m is 50 mm off two short edges, beyond the tolerance's reach
+    assert row_cartons(0.55, S, 0.01, 0.01).ways == 0
+    # an edge two listed sizes share, of different depths
+    r = row_cartons(0.75, ((0.25, 0.4, 0.25), (0.25, 0.3, 0.25)), 0.01, 0.01)
+    assert (r.ways, r.unique) == (1, False)
+    # the budget stops the search undecided, and undecided is not unique
+    r = row_cartons(0.75, S, 0.01, 0.01, max_states=2)
+    assert r.exhausted and not r.unique
+
+
+def test_a_layer_running_out_of_sight_is_split_along_its_seen_side() -> None:
+    # three 0.25 x 0.4 m cartons across, four deep, the far ones out of the image: the
+    # region never verifies whole; its near side, corner to corner, is three short edges
+    layer = [box(x, y, 0.25, 0.4, 0.25) for x in (-0.25, 0.0, 0.25) for y in (0, 0.4, 0.8, 1.2)]
+    sim = scene(layer, distance=1.0, tilt=0.08, bevel=0.0)
+    r0 = find_graspable_surfaces(sim.scan, Config(**SITE))
+    assert len(r0.surfaces) == 0 and len(r0.ambiguous) == 0  # nothing to say without sizes
+    r = find_graspable_surfaces(sim.scan, Config(**SITE, box_sizes=((0.25, 0.4, 0.25),)))
+    m = match_surfaces(r.surfaces, sim.truth)
+    assert (m.tp, m.fp) == (3, 0) and (m.tp_iou > 0.9).all() and len(r.ambiguous) == 0
+    H = r.hypotheses
+    rows = np.flatnonzero((H.att_source == DimensionSource.ROW) & (H.att_support > 0))
+    assert len(rows) == 1 and H.att_support[rows[0]] == 3  # one row, split in three
+    assert (H.att_source[r.surfaces.attempt] == DimensionSource.SKU_SPLIT).all()
+    assert (H.att_support[r.surfaces.attempt] == H.att_hypothesis[rows[0]]).all()
+    # the row's side: one sum of listed edges, and a corner seen at its far end
+    h = H.att_hypothesis[rows[0]]
+    assert H.tests.select((H.tests.a == h) & (H.tests.kind == TestKind.SKU_ROW)).accepted.any()
+    end = H.tests.select((H.tests.a == h) & (H.tests.kind == TestKind.ROW_END))
+    assert end.accepted.any() and (end.b[end.accepted] >= 0).all()
+    # each carton's far side is the list's, its others the scan's
+    ev = r.surfaces.tests.of_kind(TestKind.END_EVIDENCE)
+    assert ev.accepted.all() and set(ev.statistic) == {1.0, 3.0}
+
+
+def test_two_rows_at_one_corner_must_lay_its_carton_alike() -> None:
+    from boxloc.stages.hypotheses import _Attempt, _same_corner_carton
+    cfg = Config(**SITE, box_sizes=((0.25, 0.4, 0.25),))
+    # along x three short edges (the corner's carton 0.25 along x, 0.4 deep) ...
+    a = _Attempt(DimensionSource.ROW, -1, 0.75, 0.4, 0.0, math.nan, inner=frozenset({1}))
+    # ... along y two long edges (0.25 deep along x, 0.4 along y): the same carton
+    b = _Attempt(DimensionSource.ROW, -1, 0.25, 0.8, 0.0, math.nan, inner=frozenset({3}))
+    assert _same_corner_carton(a, b, cfg)
+    # along y three short edges: 0.4 along x, where the other row put 0.25
+    c = _Attempt(DimensionSource.ROW, -1, 0.4, 0.75, 0.0, math.nan, inner=frozenset({3}))
+    assert not _same_corner_carton(a, c, cfg)
 
 
 def test_locate_box_sizes_end_to_end(tmp_path: Path) -> None:

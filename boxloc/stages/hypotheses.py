@@ -76,6 +76,7 @@ from boxloc.stages.sizes import (
     match_size,
     other_tiling,
     region_splits,
+    row_cartons,
     seen_tilings,
 )
 from boxloc.stages.verify import (
@@ -152,6 +153,8 @@ class _Attempt:
     support: float
     threshold: float
     outcome: VerifyOutcome | None = None
+    #: sides (0-3) a listed carton's size puts inside the flat region: a ROW's far side
+    inner: frozenset[int] = frozenset()
 
 
 @dataclass
@@ -424,6 +427,9 @@ def dimensions_from_region(R: Rectangle, ctx: _Context, work: _VertexWork) -> li
     ambiguous, or split at the seams a listed carton size implies (:func:`_split_regions`).
     FACE_EXTENT rows with b = 2 (x), 3 (y) record the extents where one is longer than
     ``max_edge``.
+
+    With a carton list, ROW candidates follow (:func:`dimensions_from_rows`), tried only
+    where the whole region does not verify.
     """
     cfg = ctx.config
     k = math.sqrt(chi2_critical(1.0, cfg.alpha))
@@ -444,10 +450,53 @@ def dimensions_from_region(R: Rectangle, ctx: _Context, work: _VertexWork) -> li
     ends = np.isfinite(ext_a) & (ext_a >= lo) & (ext_a < reach - gap_a)
     work.tests.append(TestTable.decision(TestKind.FACE_EXTENT, R.vertex, [2, 3], ext_a, gap_a,
                                          ends, cfg.alpha))
-    if not ends.all():
+    region = ([_Attempt(DimensionSource.REGION, -1, float(ext_a[0]), float(ext_a[1]), 0.0,
+                        np.nan)] if ends.all() else [])
+    return region + dimensions_from_rows(R, ctx, work, ext_a, ends)
+
+
+def dimensions_from_rows(R: Rectangle, ctx: _Context, work: _VertexWork, ext: np.ndarray,
+                         ends: np.ndarray) -> list[_Attempt]:
+    """With a carton list, the row of listed cartons along each arm of R whose flat region
+    ends along it (``ends``, :func:`dimensions_from_region`'s extents ``ext``), where the
+    list says what lines that side (:func:`boxloc.stages.sizes.row_cartons`).
+
+    A layer cut off by the image's border, or one whose far sides the sensor smears, does
+    not verify whole; but a side seen from R's corner to the layer's end is lined by
+    cartons whose edges add up to it, and where only n of one listed edge do, those
+    cartons reach the listed depth into the layer: a rectangle of the side's length by
+    that depth (``DimensionSource.ROW``), with its far side (``inner``) on the size's
+    evidence. Its other three sides need the scan's: the row's end at the side's far
+    corner most of all, which a side cut short by the border does not have. Each arm's
+    decision is an SKU_ROW row. The region must reach the depth along the other arm (or
+    not end along it within reach).
+    """
+    cfg = ctx.config
+    if not cfg.box_sizes:
         return []
-    return [_Attempt(DimensionSource.REGION, -1, float(ext_a[0]), float(ext_a[1]), 0.0,
-                     np.nan)]
+    out = []
+    z = math.sqrt(chi2_critical(1.0, cfg.alpha)) * cfg.size_tolerance
+    for arm in (0, 1):
+        if not ends[arm]:
+            continue
+        row = row_cartons(float(ext[arm]), cfg.box_sizes, cfg.size_tolerance, cfg.alpha)
+        stat = np.nan if row.exhausted else float(min(row.ways, 2))
+        work.tests.append(TestTable.decision(TestKind.SKU_ROW, R.vertex, arm, stat, 1.0,
+                                             row.unique, cfg.alpha))
+        other = ext[1 - arm]
+        if not row.unique or (ends[1 - arm] and not other >= row.depth - z):
+            continue
+        L = float(ext[arm])
+        end = _row_end(R, ctx, arm, L, row.n)
+        work.tests.append(end)
+        if not end.accepted[0]:
+            continue
+        w, ln, inner = (L, row.depth, 1) if arm == 0 else (row.depth, L, 3)
+        if not _in_image(ctx.scan, rectangle_corners(R.origin, R.x_axis, R.y_axis, w, ln)):
+            continue
+        out.append(_Attempt(DimensionSource.ROW, -1, w, ln, 0.0, np.nan,
+                            inner=frozenset({inner})))
+    return out
 
 
 def _seam_peaks(R: Rectangle, ctx: _Context, work: _VertexWork, px: np.ndarray,
@@ -684,17 +733,77 @@ def _search_region(item: tuple[int, Rectangle], ctx: _Context) -> _Piece:
     work = _VertexWork(vertex=i)
     if _too_tilted(R, ctx) is not None:  # recorded by the vertex's own search
         return work, R, False
+    whole = False
     for att in dimensions_from_region(R, ctx, work):
-        _verify(R, att, ctx)
+        if att.source == DimensionSource.ROW and whole:
+            break  # rows stand in for a region that does not verify whole
+        _verify(R, att, ctx, att.inner)
         work.pixels += _verified_pixels(R, att, ctx)
         out = att.outcome
         assert out is not None
         if out.accepted:  # a verified region larger than a box is never a surface
+            whole = att.source == DimensionSource.REGION
             att.outcome = dataclasses.replace(out, accepted=False,
                                               reason=VerifyReason.AMBIGUOUS)
-            att.threshold = float(AmbiguityReason.LARGER_THAN_MAX_BOX)
+            att.threshold = float(AmbiguityReason.LARGER_THAN_MAX_BOX if whole
+                                  else np.nan)
         work.attempts.append(att)
+    rows = [a for a in work.attempts if a.source == DimensionSource.ROW
+            and a.outcome is not None and a.outcome.reason == VerifyReason.AMBIGUOUS]
+    if len(rows) == 2 and not _same_corner_carton(rows[0], rows[1], ctx.config):
+        for a in rows:  # the two rows lay the corner's carton differently: neither holds
+            a.support, a.threshold = -1.0, float(AmbiguityReason.SEVERAL_TILINGS)
     return work, R, False
+
+
+def _row_end(R: Rectangle, ctx: _Context, arm: int, L: float, n: int) -> TestTable:
+    """The ROW_END row of R's side along ``arm`` (0: x, 1: y), ``L`` metres and ``n``
+    cartons long: whether a vertex stands at its far end, a corner of the region that was
+    seen (its arms back along the side and on along R's other arm, within 60 degrees as
+    for a diagonal vertex), by the chi-square of its position in R's plane."""
+    V, cfg = ctx.vertices, ctx.config
+    along, other = (R.x_axis, R.y_axis) if arm == 0 else (R.y_axis, R.x_axis)
+    idx = np.array([j for j in range(len(V)) if j != R.vertex], np.int64)
+    if len(idx):
+        back = ((V.d1[idx] @ along < -0.5) & (V.d2[idx] @ other > 0.5)) | (
+            (V.d2[idx] @ along < -0.5) & (V.d1[idx] @ other > 0.5))
+        idx = idx[back]
+    if not len(idx):
+        return TestTable.chi2(TestKind.ROW_END, R.vertex, -1, np.inf, 2.0, cfg.alpha)
+    D = V.points[idx] - (R.origin + L * along)
+    S = V.covariances[idx][:, :3, :3] + V.covariances[R.vertex][:3, :3]
+    var_a = np.einsum("i,nij,j->n", along, S, along) + n * cfg.size_tolerance**2
+    var_o = np.einsum("i,nij,j->n", other, S, other)
+    T = (D @ along) ** 2 / var_a + (D @ other) ** 2 / np.maximum(var_o, 1e-30)
+    k = int(np.argmin(T))
+    return TestTable.chi2(TestKind.ROW_END, R.vertex, int(idx[k]), float(T[k]), 2.0,
+                          cfg.alpha)
+
+
+#: Pixels inside the image's border every corner of a ROW must project: a side that runs
+#: to the border ends there in the scan, not necessarily on the pallet, and the cartons at
+#: its end may run on out of sight.
+ROW_BORDER_PX = 3.0
+
+
+def _in_image(scan: Scan, corners: np.ndarray) -> bool:
+    """Whether every corner (k, 3) projects ``ROW_BORDER_PX`` or more inside the image."""
+    uv = scan.sensor.project(corners)
+    H, W = scan.shape[:2]
+    m = ROW_BORDER_PX
+    return bool(np.isfinite(uv).all() and (uv[:, 0] >= m).all() and (uv[:, 0] <= W - 1 - m).all()
+                and (uv[:, 1] >= m).all() and (uv[:, 1] <= H - 1 - m).all())
+
+
+def _same_corner_carton(a: _Attempt, b: _Attempt, cfg: Config) -> bool:
+    """Whether the rows along R's two arms (``a`` along x, ``b`` along y) put the same
+    carton at R's corner: a's (one listed edge along x, its depth along y) is b's (its
+    depth along x, one listed edge along y) within ``3 size_tolerance``."""
+    tol = cfg.size_tolerance
+    ra = row_cartons(a.width, cfg.box_sizes, tol, cfg.alpha)
+    rb = row_cartons(b.length, cfg.box_sizes, tol, cfg.alpha)
+    ax, by = ra.along, rb.along
+    return abs(ax - b.width) <= 3.0 * tol and abs(a.length - by) <= 3.0 * tol
 
 
 def _add_region(work: _VertexWork, region: _VertexWork) -> None:
@@ -734,7 +843,8 @@ def _verify(R: Rectangle, att: _Attempt, ctx: _Context,
     att.outcome = verify(ctx.scan, ctx.verify_ctx, R.origin, R.x_axis, R.y_axis, R.normal,
                          att.width, att.length, R.plane_cov, ctx.config, attempt_id=-1,
                          size_sides=size_sides, family=family,
-                         region=att.source == DimensionSource.REGION, region_sides=outline)
+                         region=att.source in (DimensionSource.REGION, DimensionSource.ROW),
+                         region_sides=outline)
 
 
 def _verified_pixels(R: Rectangle, att: _Attempt, ctx: _Context) -> float:
@@ -1155,8 +1265,9 @@ def _distinct_regions(works: list[_VertexWork], vertices: VertexSet,
 
     for w in works:
         for a in w.attempts:
-            if (a.source != DimensionSource.REGION or a.outcome is None
-                    or a.outcome.reason != VerifyReason.AMBIGUOUS):
+            if (a.source not in (DimensionSource.REGION, DimensionSource.ROW)
+                    or a.outcome is None or a.outcome.reason != VerifyReason.AMBIGUOUS
+                    or a.support < 0):  # two rows at one corner that disagree
                 continue
             i = w.vertex
             c = rectangle_corners(vertices.points[i], vertices.d1[i], vertices.d2[i],
@@ -1217,7 +1328,8 @@ def _cut_evidence(seam: _Seam, att: _Attempt, cuts_x: list[float], cuts_y: list[
             np.array([p[1] for p in zz], np.float64))
 
 
-def _too_low(R: Rectangle, att: _Attempt, ctx: _Context, listed: float) -> TestTable | None:
+def _too_low(R: Rectangle, att: _Attempt, ctx: _Context, listed: float,
+             skip: frozenset[int] = frozenset()) -> TestTable | None:
     """Whether a region stands at least a listed carton's height above what lies beyond
     its sides, as a layer of those cartons must (a bare pallet, 0.144 m above the floor,
     is a flat region of about a multiple of many sizes).
@@ -1229,7 +1341,8 @@ def _too_low(R: Rectangle, att: _Attempt, ctx: _Context, listed: float) -> TestT
     ``PALLET_HEIGHT``, plus them: its layer stands on a pallet, higher above the floor
     than the pallet alone), rejected if the region is too low, so a bare pallet is not
     split into cartons. None where no step is seen (a wall or a taller neighbour beyond
-    every side, or the pallet on a stand).
+    every side, or the pallet on a stand). Sides in ``skip`` (a row's far side, inside
+    the layer) are not looked beyond.
     """
     cfg = ctx.config
     out = att.outcome
@@ -1238,7 +1351,8 @@ def _too_low(R: Rectangle, att: _Attempt, ctx: _Context, listed: float) -> TestT
     C = rectangle_corners(R.origin, R.x_axis, R.y_axis, att.width, att.length)
     steps = [step_height(ctx.verify_ctx, C, si, out.plane_center, out.plane_normal, R.x_axis,
                          R.y_axis, att.width, att.length, 0.5 * cfg.min_edge, k,
-                         cfg.flatness, cfg.min_inlier_fraction)[:2] for si in range(4)]
+                         cfg.flatness, cfg.min_inlier_fraction)[:2]
+             for si in range(4) if si not in skip]
     seen = [(h, s) for h, s in steps if np.isfinite(h)]
     if not seen:
         return None
@@ -1265,8 +1379,10 @@ def _plan_split(ctx: _Context, h: int, att: _Attempt, single: set[int]) -> list[
     out = att.outcome
     assert out is not None
     R = align(vertices, h, ctx.normal_cov)
+    # a row of one carton is one (its depth is the list's): a split of 1 x 1
     splits = distinct(region_splits(att.width, att.length, cfg.box_sizes,
-                                    cfg.size_tolerance, cfg.alpha))
+                                    cfg.size_tolerance, cfg.alpha,
+                                    multiples_only=att.source != DimensionSource.ROW))
     if not splits:
         att.threshold = float(AmbiguityReason.NOT_A_MULTIPLE_OF_A_SIZE)
         return []
@@ -1312,7 +1428,7 @@ def _plan_split(ctx: _Context, h: int, att: _Attempt, single: set[int]) -> list[
                     out, tests=TestTable.concat([out.tests, *rows], cfg.alpha))
                 att.threshold = float(AmbiguityReason.SEVERAL_TILINGS)
                 return []
-    low = _too_low(R, att, ctx, cfg.box_sizes[sp.sku][2])
+    low = _too_low(R, att, ctx, cfg.box_sizes[sp.sku][2], skip=att.inner)
     if low is not None:
         rows.append(low)
     att.outcome = dataclasses.replace(out, tests=TestTable.concat([out.tests, *rows],
@@ -1326,6 +1442,8 @@ def _plan_split(ctx: _Context, h: int, att: _Attempt, single: set[int]) -> list[
         cells = [(i * pw, j * pl, pw, pl, frozenset(si for si, ok in enumerate(
             (j > 0, j < sp.ny - 1, i > 0, i < sp.nx - 1)) if ok))
             for j in range(sp.ny) for i in range(sp.nx)]
+    if att.inner:  # a row's far side is each of its cartons' far side: the list's cut
+        cells = [(*c[:4], c[4] | att.inner) for c in cells]
     C = vertices.covariances[h]
     origin, x_axis, y_axis, normal = _in_plane(R, out)
     parts: list[_Part] = []

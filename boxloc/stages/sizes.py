@@ -21,6 +21,7 @@ whose every carton side inside the region is a seam that shows (:func:`seen_tili
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 from dataclasses import dataclass
 
@@ -134,6 +135,107 @@ def distinct(splits: list[Split]) -> list[Split]:
         if not any(s.nx == o.nx and s.ny == o.ny for o in out):
             out.append(s)
     return out
+
+
+@dataclass(frozen=True)
+class Row:
+    """The listed cartons along one side of a flat region, seen from corner to end.
+
+    Attributes
+    ----------
+    ways : int
+        Distinct ways the listed cartons' edges add up to the side's length (counts of
+        each edge length; 2 stands for two or more). Only one way, all of one edge, says
+        what lies along the side.
+    exhausted : bool
+        The search stopped at its budget before deciding.
+    sku : int
+        The row of ``Config.box_sizes`` of the cartons, -1 where the side does not say
+        (not exactly one way; one way of mixed edges, which can lie in any order; or an
+        edge shared by listed sizes of different depths).
+    along, depth : float
+        A carton's extent along the side and across it, metres (NaN without ``sku``).
+    n : int
+        Cartons along the side (0 without ``sku``).
+    statistic : float
+        Chi-square (1 dof) of the side's length against ``n`` ``along`` (n tolerances
+        added), NaN without ``sku``.
+    """
+
+    ways: int
+    exhausted: bool
+    sku: int = -1
+    along: float = np.nan
+    depth: float = np.nan
+    n: int = 0
+    statistic: float = np.nan
+
+    @property
+    def unique(self) -> bool:
+        """The side's length says which cartons line it."""
+        return self.sku >= 0
+
+
+def row_cartons(length: float, sizes: tuple[tuple[float, float, float], ...],
+                tolerance: float, alpha: float, max_states: int = 20000) -> Row:
+    """The cartons lining a side of a flat region of ``length`` metres, seen whole (from a
+    corner to the region's end), where the listed sizes say (:class:`Row`).
+
+    Every carton touching the side lies with one of its edges along it, so the side is a
+    sum of listed edge lengths. Where exactly one sum fits (counts of each distinct edge,
+    by chi-square at alpha, 1 dof, each carton's tolerance independent), every term is
+    the same edge, and that edge belongs to listed sizes of one depth, the side is lined
+    by ``n`` such cartons and they reach that depth into the region: a row of them, whose
+    far side no seam need show. Any other fit, or a second one, leaves the side unsaid.
+    Edges within ``tolerance`` are one. At most ``max_states`` partial sums are visited.
+    """
+    crit = chi2_critical(1.0, alpha)
+    edges: list[float] = []
+    depths: list[list[tuple[int, float]]] = []
+    for j, (w, ln, _) in enumerate(sizes):
+        for d, e in ((w, ln), (ln, w)):
+            k = next((i for i, x in enumerate(edges) if abs(x - d) <= tolerance), None)
+            if k is None:
+                edges.append(float(d))
+                depths.append([])
+                k = len(edges) - 1
+            depths[k].append((j, float(e)))
+    fits: list[tuple[int, ...]] = []
+    states = 0
+
+    def search(i: int, counts: tuple[int, ...], total: float, n: int) -> None:
+        nonlocal states
+        states += 1
+        if states > max_states:
+            raise _Exhausted
+        if i == len(edges):
+            if n and (length - total) ** 2 / (n * tolerance**2) <= crit:
+                fits.append(counts)
+            return
+        c = 0
+        # more of edge i only while the sum can still come back within the test's reach
+        while total + c * edges[i] <= length + math.sqrt(crit * (n + c + 1)) * tolerance:
+            search(i + 1, (*counts, c), total + c * edges[i], n + c)
+            if len(fits) > 1:
+                return
+            c += 1
+
+    try:
+        search(0, (), 0.0, 0)
+    except _Exhausted:
+        return Row(ways=min(len(fits), 2), exhausted=True)
+    if len(fits) != 1:
+        return Row(ways=len(fits), exhausted=False)
+    used = [i for i, c in enumerate(fits[0]) if c]
+    if len(used) != 1:
+        return Row(ways=1, exhausted=False)
+    k = used[0]
+    d, n = edges[k], fits[0][k]
+    if any(abs(e - depths[k][0][1]) > tolerance for _, e in depths[k]):
+        return Row(ways=1, exhausted=False)
+    sku, e = depths[k][0]
+    return Row(ways=1, exhausted=False, sku=sku, along=d, depth=e, n=n,
+               statistic=(length - n * d) ** 2 / (n * tolerance**2))
 
 
 #: Most skyline states :func:`other_tiling` visits for one region (a few microseconds

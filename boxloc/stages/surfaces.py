@@ -51,12 +51,13 @@ MIN_BULGE_POINTS = 16
 def _plane_attempt(hypotheses: HypothesisSet, j: int) -> int:
     """The attempt whose refitted plane surface attempt ``j`` lies in: for a part of a
     split region (SKU_SPLIT, whose ``att_support`` is the region's hypothesis), the
-    region's REGION attempt that was split (``att_support`` > 0); else ``j``."""
+    region's REGION (or ROW) attempt that was split (``att_support`` > 0); else ``j``."""
     H = hypotheses
     if H.att_source[j] != DimensionSource.SKU_SPLIT:
         return j
     r = np.flatnonzero((H.att_hypothesis == int(H.att_support[j]))
-                       & (H.att_source == DimensionSource.REGION) & (H.att_support > 0))
+                       & np.isin(H.att_source, (DimensionSource.REGION, DimensionSource.ROW))
+                       & (H.att_support > 0))
     return int(r[0]) if len(r) else j
 
 
