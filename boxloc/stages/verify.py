@@ -357,15 +357,20 @@ def _side_seam(fp: FacePoints, side: int, width: float, length: float, spacing: 
 
 def seam_line(fp: FacePoints, axis: int, at: float, L: float, spacing: float, alpha: float,
               reach: float | None = None, gaps: bool = False,
-              spread: tuple[float, ...] | None = None, start: float = 0.0
-              ) -> tuple[float, float]:
+              spread: tuple[float, ...] | None = None, start: float = 0.0,
+              halves: bool = False) -> tuple[float, float]:
     """Seam statistic along the line ``coord = at`` of a face (coord = u for ``axis`` 0, v
     for 1), over its points from ``start`` to ``L`` along the line, and its critical value.
 
     As :func:`boxloc.stages.seams.seam_at` at ``at`` with ``reach`` and ``gaps``; the
     statistic is divided by ``spread`` (default ``fp.spread`` along the axis). A seam runs
-    the whole line: both halves must show a groove or gap (a local dent does not), so the
-    weaker half caps the statistic.
+    the whole line: both halves must show a groove or gap (a local dent does not), so a
+    half that shows none (z <= 0) caps the statistic. With ``halves``, each half must
+    show its share of the seam: the statistic is capped at sqrt(2) times the weaker
+    half's (a groove along the whole line gives each half about 1/sqrt(2) of the whole
+    line's z; one along half of it gives the other half nothing, and the whole line
+    still about 1/sqrt(2) of that half's z, which a deep groove lifts past the critical
+    value: a cut laid across a turned carton's middle and on along a true seam).
     """
     if axis == 1:
         sel = (fp.u >= start) & (fp.u <= L)
@@ -395,6 +400,8 @@ def seam_line(fp: FacePoints, axis: int, at: float, L: float, spacing: float, al
                         gaps, row[half], fp.row_corr, sp, pre_h)
         if zh <= 0:
             zs = min(zs, zh)
+        elif halves:
+            zs = min(zs, math.sqrt(2.0) * zh)
     return zs, zc
 
 
