@@ -61,6 +61,11 @@ class DimensionSource(IntEnum):
     #: like one; never a surface, and never reported as ambiguous (its far side is the
     #: list's, not the scan's)
     ROW = 7
+    #: half of a candidate that failed because a seam showed at its middle
+    #: (VERIFY_SEAM_MIDLINE rejected along that axis: two boxes side by side): the box at
+    #: the vertex ends at that seam, so the half next to it is tried next, within the
+    #: vertex's budget
+    MIDLINE = 8
 
 
 class VerifyReason(IntEnum):

@@ -382,3 +382,40 @@ def test_explain_at_a_side_face_says_its_vertex_was_tilted(tall_box_at_an_angle,
             rf"from up \(a side face\): HYPOTHESIS_TILT {i},-1: [\d.]+ > 0.7854: REJECTED",
             a["why"]) is not None)
     assert any(said), said
+
+
+def test_a_candidate_with_a_seam_at_its_middle_is_followed_by_its_half(monkeypatch):
+    # a 0.6 x 0.4 candidate whose middle along x shows a seam (two boxes side by side):
+    # the 0.3 x 0.4 half at the vertex is verified next, before the other candidates
+    import boxloc.stages.hypotheses as hyp
+    from boxloc.stages.verify import _failed
+
+    seen: list[tuple[float, float, DimensionSource]] = []
+
+    def fake_verify(R, att, ctx, size_sides=frozenset(), family=1):
+        seen.append((att.width, att.length, att.source))
+        if att.width > 0.5:  # the pair: its midline along x rejects it
+            mid = TestTable.decision(TestKind.VERIFY_SEAM_MIDLINE, -1, [0, 1], [4.7, 1.0],
+                                     [2.9, 2.9], [False, True], 0.01)
+            att.outcome = _failed(VerifyReason.INTERIOR_SEAM, [mid], 0.01)
+        else:
+            att.outcome = _outcome([], accepted=att.width == 0.3)
+
+    monkeypatch.setattr(hyp, "_verify", fake_verify)
+    monkeypatch.setattr(hyp, "_verified_pixels", lambda R, att, ctx: 0.0)
+    work = hyp._VertexWork(vertex=0)
+    cands = [hyp._Attempt(DimensionSource.VERTICES, 1, 0.6, 0.4, 0.0, 0.0),
+             hyp._Attempt(DimensionSource.EDGES, -1, 0.2, 0.4, 0.0, 0.0)]
+    ok, tried = hyp._try_in_turn(None, None, work, cands, 6)  # type: ignore[arg-type]
+    assert ok and tried == 2
+    assert seen == [(0.6, 0.4, DimensionSource.VERTICES), (0.3, 0.4, DimensionSource.MIDLINE)]
+    half = work.attempts[1]
+    assert (half.support, half.threshold) == (4.7, 2.9)  # the midline's z and critical
+    # within the budget: with one verification left, the half is not tried
+    seen.clear()
+    cands = [hyp._Attempt(DimensionSource.VERTICES, 1, 0.6, 0.4, 0.0, 0.0)]
+    ok, tried = hyp._try_in_turn(None, None, hyp._VertexWork(vertex=0), cands, 1)  # type: ignore[arg-type]
+    assert not ok and tried == 1 and len(seen) == 1
+    # a candidate rejected otherwise (its midline shows nothing) is not halved
+    assert hyp._midline_half(hyp._Attempt(DimensionSource.EDGES, -1, 0.6, 0.4, 0.0, 0.0,
+                                          outcome=_outcome([], accepted=False))) is None

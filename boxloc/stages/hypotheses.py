@@ -818,9 +818,14 @@ def _try_in_turn(R: Rectangle, ctx: _Context, work: _VertexWork, cands: list[_At
                  budget: int, same: float = -1.0) -> tuple[bool, int]:
     """Verify candidates in order until one is accepted or ``budget`` were verified; a
     candidate within ``same`` metres of one already tried in both dimensions is skipped.
-    Returns whether one was accepted, and how many were verified."""
+    Returns whether one was accepted, and how many were verified.
+
+    A candidate rejected for a seam at its middle (:func:`_midline_half`) is followed by
+    its half at the vertex, before the rest."""
     tried = 0
-    for att in cands:
+    queue = deque(cands)
+    while queue:
+        att = queue.popleft()
         if tried >= budget:
             break
         if any(abs(att.width - a.width) <= same and abs(att.length - a.length) <= same
@@ -832,7 +837,29 @@ def _try_in_turn(R: Rectangle, ctx: _Context, work: _VertexWork, cands: list[_At
         work.attempts.append(att)
         if att.outcome is not None and att.outcome.accepted:
             return True, tried
+        half = _midline_half(att)
+        if half is not None:
+            queue.appendleft(half)
     return False, tried
+
+
+def _midline_half(att: _Attempt) -> _Attempt | None:
+    """The half at the vertex of a candidate whose verification found a seam at its middle
+    (VERIFY_SEAM_MIDLINE rejected along x, y or both: two boxes, or four, side by side):
+    that seam is the box's far side, as significant as the test that rejected the whole.
+    Its own verification tests it as a side. None where no midline row rejected."""
+    out = att.outcome
+    if out is None or out.reason != VerifyReason.INTERIOR_SEAM:
+        return None
+    rows = out.tests.of_kind(TestKind.VERIFY_SEAM_MIDLINE)
+    split = rows.b[~rows.accepted]
+    if not len(split):
+        return None
+    w = 0.5 * att.width if 0 in split else att.width
+    ln = 0.5 * att.length if 1 in split else att.length
+    k = int(np.argmax(np.where(rows.accepted, -np.inf, rows.statistic - rows.critical)))
+    return _Attempt(DimensionSource.MIDLINE, -1, w, ln, float(rows.statistic[k]),
+                    float(rows.critical[k]))
 
 
 def _verify(R: Rectangle, att: _Attempt, ctx: _Context,
