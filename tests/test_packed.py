@@ -207,15 +207,47 @@ def test_a_layer_running_out_of_sight_is_split_along_its_seen_side() -> None:
 
 def test_two_rows_at_one_corner_must_lay_its_carton_alike() -> None:
     from boxloc.stages.hypotheses import _Attempt, _same_corner_carton
-    cfg = Config(**SITE, box_sizes=((0.25, 0.4, 0.25),))
-    # along x three short edges (the corner's carton 0.25 along x, 0.4 deep) ...
-    a = _Attempt(DimensionSource.ROW, -1, 0.75, 0.4, 0.0, math.nan, inner=frozenset({1}))
-    # ... along y two long edges (0.25 deep along x, 0.4 along y): the same carton
-    b = _Attempt(DimensionSource.ROW, -1, 0.25, 0.8, 0.0, math.nan, inner=frozenset({3}))
-    assert _same_corner_carton(a, b, cfg)
-    # along y three short edges: 0.4 along x, where the other row put 0.25
-    c = _Attempt(DimensionSource.ROW, -1, 0.4, 0.75, 0.0, math.nan, inner=frozenset({3}))
-    assert not _same_corner_carton(a, c, cfg)
+
+    def row(carton: tuple[float, float]) -> _Attempt:
+        return _Attempt(DimensionSource.ROW, -1, 0.75, 0.4, 0.0, math.nan, carton=carton)
+
+    # along x three short edges put a carton 0.25 along x, 0.4 deep at the corner; along y
+    # two long edges put 0.25 deep along x, 0.4 along y: the same carton
+    assert _same_corner_carton(row((0.25, 0.4)), row((0.252, 0.398)), 0.01)
+    # along y three short edges would put 0.4 along x, where the other row put 0.25
+    assert not _same_corner_carton(row((0.25, 0.4)), row((0.4, 0.25)), 0.01)
+
+
+def test_a_row_needs_a_corner_seen_at_its_far_end() -> None:
+    from types import SimpleNamespace
+
+    from boxloc.products import VertexSet
+    from boxloc.stages.hypotheses import Rectangle, _row_end
+    from boxloc.stats import TestTable
+
+    def vertices(far_d2: tuple[float, float, float]) -> VertexSet:
+        # R at the origin, arms +x and +y; a second corner 0.75 m along x, arms -x and d2
+        cov = np.eye(9) * 1e-6
+        return VertexSet(points=np.array([[0.0, 0, 1.5], [0.752, 0.001, 1.5]]),
+                         d1=np.array([[1.0, 0, 0], [-1.0, 0, 0]]),
+                         d2=np.array([[0, 1.0, 0], far_d2]),
+                         normals=np.array([[0, 0, -1.0]] * 2), covariances=np.stack([cov, cov]),
+                         line_a=np.zeros(2, np.int32), line_b=np.ones(2, np.int32),
+                         tests=TestTable.empty(0.01))
+    R = Rectangle(0, np.array([0.0, 0, 1.5]), np.array([1.0, 0, 0]), np.array([0, 1.0, 0]),
+                  np.array([0, 0, -1.0]), np.eye(6) * 1e-6)
+    cfg = Config(**SITE)
+    end = _row_end(R, SimpleNamespace(vertices=vertices((0, 1.0, 0)), config=cfg), 0, 0.75, 3)
+    assert end.accepted[0] and end.b[0] == 1 and end.dof[0] == 2
+    # 2 mm off along the side (3 cartons' tolerance), 1 mm across: inside chi2(2)
+    assert end.statistic[0] < 1.0
+    # a corner turned the other way (its arm runs off the side, not along R's other arm)
+    # is not this side's end
+    end = _row_end(R, SimpleNamespace(vertices=vertices((0, -1.0, 0)), config=cfg), 0, 0.75, 3)
+    assert not end.accepted[0] and end.b[0] == -1 and np.isinf(end.statistic[0])
+    # nor is one far from the side's end
+    end = _row_end(R, SimpleNamespace(vertices=vertices((0, 1.0, 0)), config=cfg), 0, 0.5, 2)
+    assert not end.accepted[0]
 
 
 def test_locate_box_sizes_end_to_end(tmp_path: Path) -> None:

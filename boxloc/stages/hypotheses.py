@@ -155,6 +155,8 @@ class _Attempt:
     outcome: VerifyOutcome | None = None
     #: sides (0-3) a listed carton's size puts inside the flat region: a ROW's far side
     inner: frozenset[int] = frozenset()
+    #: a ROW's carton at the vertex: its extent along x and along y, metres
+    carton: tuple[float, float] = (np.nan, np.nan)
 
 
 @dataclass
@@ -494,8 +496,9 @@ def dimensions_from_rows(R: Rectangle, ctx: _Context, work: _VertexWork, ext: np
         w, ln, inner = (L, row.depth, 1) if arm == 0 else (row.depth, L, 3)
         if not _in_image(ctx.scan, rectangle_corners(R.origin, R.x_axis, R.y_axis, w, ln)):
             continue
+        carton = (row.along, row.depth) if arm == 0 else (row.depth, row.along)
         out.append(_Attempt(DimensionSource.ROW, -1, w, ln, 0.0, np.nan,
-                            inner=frozenset({inner})))
+                            inner=frozenset({inner}), carton=carton))
     return out
 
 
@@ -750,7 +753,8 @@ def _search_region(item: tuple[int, Rectangle], ctx: _Context) -> _Piece:
         work.attempts.append(att)
     rows = [a for a in work.attempts if a.source == DimensionSource.ROW
             and a.outcome is not None and a.outcome.reason == VerifyReason.AMBIGUOUS]
-    if len(rows) == 2 and not _same_corner_carton(rows[0], rows[1], ctx.config):
+    if len(rows) == 2 and not _same_corner_carton(rows[0], rows[1],
+                                                  ctx.config.size_tolerance):
         for a in rows:  # the two rows lay the corner's carton differently: neither holds
             a.support, a.threshold = -1.0, float(AmbiguityReason.SEVERAL_TILINGS)
     return work, R, False
@@ -795,15 +799,10 @@ def _in_image(scan: Scan, corners: np.ndarray) -> bool:
                 and (uv[:, 1] >= m).all() and (uv[:, 1] <= H - 1 - m).all())
 
 
-def _same_corner_carton(a: _Attempt, b: _Attempt, cfg: Config) -> bool:
-    """Whether the rows along R's two arms (``a`` along x, ``b`` along y) put the same
-    carton at R's corner: a's (one listed edge along x, its depth along y) is b's (its
-    depth along x, one listed edge along y) within ``3 size_tolerance``."""
-    tol = cfg.size_tolerance
-    ra = row_cartons(a.width, cfg.box_sizes, tol, cfg.alpha)
-    rb = row_cartons(b.length, cfg.box_sizes, tol, cfg.alpha)
-    ax, by = ra.along, rb.along
-    return abs(ax - b.width) <= 3.0 * tol and abs(a.length - by) <= 3.0 * tol
+def _same_corner_carton(a: _Attempt, b: _Attempt, tol: float) -> bool:
+    """Whether two rows from one vertex put the same carton at its corner (their
+    ``carton`` extents along x and y within ``3 tol``)."""
+    return bool(np.all(np.abs(np.subtract(a.carton, b.carton)) <= 3.0 * tol))
 
 
 def _add_region(work: _VertexWork, region: _VertexWork) -> None:
