@@ -235,12 +235,13 @@ class TestKind(IntEnum):
     #: of one edge, of one depth: a ROW attempt of those cartons is verified
     SKU_ROW = 45
     #: hypothesis stage, with a carton list, right after an accepted SKU_ROW row of
-    #: vertex a: the side ends at a corner that was seen, the vertex nearest the side's
-    #: end whose arms run back along the side and on along a's other arm (b = that vertex,
-    #: -1 if none, then statistic inf): statistic = chi2 (2 dof) of its position in a's
-    #: plane against the side's end, over both corners' covariances plus the row's length
-    #: tolerance (n ``size_tolerance``^2 along the side); critical at alpha. Rejected: no
-    #: ROW (the side may end at the image's border, or on noise)
+    #: vertex a whose depth the region reaches: the side ends at a corner that was seen,
+    #: the vertex nearest the side's end whose arms run back along the side and on along
+    #: a's other arm (b = that vertex, -1 if none, then statistic inf): statistic = chi2
+    #: (2 dof) of its position in a's plane against the side's end, over both corners'
+    #: covariances plus the row's length tolerance (n ``size_tolerance``^2 along the
+    #: side); critical at alpha. Rejected: no ROW (the side may end at the image's border,
+    #: or on noise)
     ROW_END = 46
 
 

@@ -768,7 +768,7 @@ def _test_keys(t: TestTable, maps: Mapping[str, Mapping[int, int] | None]) -> di
                           TestKind.SURFACE_BULGE)):
             x = m("attempts", a)
             key = None if x is None else (kind, x)
-        elif kind in (TestKind.SEAM_PEAK, TestKind.FACE_EXTENT):
+        elif kind in (TestKind.SEAM_PEAK, TestKind.FACE_EXTENT, TestKind.SKU_ROW):
             x = m("hypotheses", a)
             key = None if x is None else (kind, x, b)
         elif kind == TestKind.BOX_CORNER:
@@ -786,7 +786,7 @@ def _test_keys(t: TestTable, maps: Mapping[str, Mapping[int, int] | None]) -> di
             # row per chosen attempt
             x = m("attempts", a)
             key = None if x is None else (kind, x)
-        elif kind == TestKind.NEIGHBOUR_CORNER:
+        elif kind in (TestKind.NEIGHBOUR_CORNER, TestKind.ROW_END):
             # b is a vertex id of its own version: rows follow the parent, in order
             x = m("hypotheses", a)
             key = None if x is None else (kind, x)

@@ -684,3 +684,18 @@ def test_an_in_line_seam_or_tiling_decision_that_flips_is_a_flipped_test(
     assert f.kind == kind.name and not f.base["accepted"] and f.candidate["accepted"]
     assert flipped_tests("verification", base, base, {"attempts": ItemMatch(
         10, 10, pairs=[(7, 7)])}) == []
+
+
+@pytest.mark.parametrize("kind", [TestKind.SKU_ROW, TestKind.ROW_END])
+def test_a_row_decision_that_flips_is_a_flipped_test(kind: TestKind) -> None:
+    from boxloc.stats import TestTable
+    from replay.diff import ItemMatch, flipped_tests
+
+    # vertex 3 of the base is vertex 5 of the candidate: its row's decisions pair by it
+    # (SKU_ROW by arm b; ROW_END in order, its b being a vertex of each run's own)
+    maps = {"hypotheses": ItemMatch(8, 8, pairs=[(3, 5)])}
+    base = TestTable.decision(kind, [3], [1], [1.0], [1.0], [True], 0.01)
+    cand = TestTable.decision(kind, [5], [1 if kind == TestKind.SKU_ROW else 6], [2.0],
+                              [1.0], [False], 0.01)
+    (f,) = flipped_tests("hypotheses", base, cand, maps)
+    assert f.kind == kind.name and f.base["accepted"] and not f.candidate["accepted"]
