@@ -163,9 +163,11 @@ def _direction_index(granularity: int, cap_deg: int = _QUIET_CAP_DEG
 DIRECTION_TABLES = Path(__file__).resolve().parent.parent / "_direction_tables.npz"
 
 
+@lru_cache(maxsize=1)
 def _tables_stamp() -> str:
     """What the saved tables were computed by: this module's source and NumPy's and SciPy's
-    versions (the kd-tree's nearest cells and the subdivision's rounding are theirs)."""
+    versions (the kd-tree's nearest cells and the subdivision's rounding are theirs). Once
+    per process: every vote cap's first use compares it."""
     import scipy
 
     h = hashlib.sha256(Path(__file__).read_bytes())
