@@ -137,6 +137,9 @@ class AmbiguityReason(IntEnum):
     #: laid over it another way too (turned, a brick, pinwheel or basket weave), and its
     #: seams show neither the grid's cuts nor one other tiling's carton sides
     SEVERAL_TILINGS = 6
+    #: n (2, 3, ...) of a verified box beside it in its plane (``REPEATS_NEIGHBOUR``):
+    #: as many cartons of that size whose seams the range points do not show, or one box
+    MULTIPLE_OF_A_NEIGHBOUR = 7
 
 
 class NoiseSource(IntEnum):

@@ -243,6 +243,12 @@ class TestKind(IntEnum):
     #: side); critical at alpha. Rejected: no ROW (the side may end at the image's border,
     #: or on noise)
     ROW_END = 46
+    #: hypothesis stage, at the end: verified rectangle a (an attempt) against the verified
+    #: rectangle b (an attempt) in its plane that it is the best multiple of: statistic =
+    #: chi2 (2 dof) of its sides (p, q) against b's (u, n v), n = round(q / v) >= 2, over
+    #: ``size_tolerance`` per measured side; critical at alpha. Accepted: a is n of b, and
+    #: is left ambiguous (``MULTIPLE_OF_A_NEIGHBOUR``), not reported
+    REPEATS_NEIGHBOUR = 47
 
 
 #: ``TestKind.BUDGET`` rows' ``a``: the stage whose budget it is.

@@ -111,6 +111,10 @@ _AMBIGUITY_TEXT = {
                                      "laid over its outline another way too (turned: a "
                                      "brick, pinwheel or basket weave), and its seams do "
                                      "not show which way",
+    AmbiguityReason.MULTIPLE_OF_A_NEIGHBOUR: "it is two or more of a box found beside it in "
+                                             "its plane (REPEATS_NEIGHBOUR): as many "
+                                             "cartons whose seams the range points do not "
+                                             "show, or one box",
 }
 #: the tests behind an ambiguous region or a box's size and height
 _REGION_TESTS = (TestKind.END_EVIDENCE, TestKind.SKU_SPLIT_SEAM, TestKind.SKU_SIZE,

@@ -71,6 +71,87 @@ def test_touching_boxes_without_a_seam_are_one_ambiguous_region_without_sizes(
     assert {"kind", "statistic", "dof", "critical", "decision"} <= set(amb["tests"][0])
 
 
+def test_a_rectangle_twice_a_box_beside_it_is_left_ambiguous_without_sizes(
+        tmp_path: Path) -> None:
+    from recorder.mcap.sink import McapRecorder
+    from replay.explain import explain, format_explanation
+
+    # two flush 0.2 x 0.25 cartons with no seam (0.4 x 0.25, below max_edge: it verifies
+    # like one box) and a third in line with them at the same height, 15 mm apart (its
+    # sides all jumps): the pair is twice that box beside it, so it is not reported; the
+    # single one is
+    boxes = [box(-0.2, 0.0, 0.2, 0.25, 0.25), box(0.0, 0.0, 0.2, 0.25, 0.25),
+             box(0.215, 0.0, 0.2, 0.25, 0.25)]
+    sim = scene(boxes, distance=1.5, tilt=0.08, bevel=0.0)
+    path = tmp_path / "pair.mcap"
+    with McapRecorder(path) as rec:
+        r = find_graspable_surfaces(sim.scan, Config(**SITE), observer=rec)
+    m = match_surfaces(r.surfaces, sim.truth)
+    assert (m.tp, m.fp) == (1, 0)
+    A = r.ambiguous
+    assert len(A) == 1 and A.reason[0] == AmbiguityReason.MULTIPLE_OF_A_NEIGHBOUR
+    # its outline within the 15 mm gap (the largest of its duplicates is kept)
+    np.testing.assert_allclose([A.width[0], A.length[0]], [0.25, 0.4], atol=0.02)
+    rows = A.tests_of(0).of_kind(TestKind.REPEATS_NEIGHBOUR)
+    assert len(rows) == 1 and rows.accepted[0] and rows.statistic[0] <= rows.critical[0]
+    # b is the box it repeats (the single one, verified from one of its corners; within
+    # the gap, which some rectangles take in)
+    b = int(rows.b[0])
+    np.testing.assert_allclose(sorted([r.hypotheses.att_width[b], r.hypotheses.att_length[b]]),
+                               [0.2, 0.25], atol=0.02)
+    # the box it repeats was tested against nothing smaller; the pair's duplicates (the
+    # same pair from its other corners) are not reported twice
+    T = r.verification.tests.of_kind(TestKind.REPEATS_NEIGHBOUR)
+    assert int(r.surfaces.attempt[0]) not in set(T.a.tolist())
+    # explain --at the region says why, with the row
+    u, v = sim.scan.sensor.project(A.corners[0].mean(0, keepdims=True))[0]
+    d = explain(path, 0, at=f"{int(round(u))},{int(round(v))}")
+    amb = d["at"]["ambiguous"]
+    assert amb["reason"] == "MULTIPLE_OF_A_NEIGHBOUR" and "beside it" in amb["reason_text"]
+    assert [t["kind"] for t in amb["tests"]].count("REPEATS_NEIGHBOUR") == 1
+    assert "REPEATS_NEIGHBOUR" in format_explanation(d)
+
+
+def test_a_box_as_large_as_two_is_reported_where_the_small_one_is_not_beside_it() -> None:
+    # the same three, the single one 0.1 m off the pair's line: not a neighbour in a grid
+    # (a mixed pile's boxes that happen to stand level), so the pair is one box
+    boxes = [box(-0.2, 0.0, 0.2, 0.25, 0.25), box(0.0, 0.0, 0.2, 0.25, 0.25),
+             box(0.215, 0.1, 0.2, 0.25, 0.25)]
+    sim = scene(boxes, distance=1.5, tilt=0.08, bevel=0.0)
+    r = find_graspable_surfaces(sim.scan, Config(**SITE))
+    assert len(r.surfaces) == 2 and len(r.ambiguous) == 0
+    T = r.verification.tests.of_kind(TestKind.REPEATS_NEIGHBOUR)
+    assert len(T) == 0  # no neighbour beside it: nothing to test
+
+
+def test_beside_is_a_grid_neighbour_touching_a_side_level_with_its_end() -> None:
+    from boxloc.stages.hypotheses import _Attempt, _beside
+
+    def rect(u: float, v: float, w: float, ln: float) -> Any:
+        return (np.array([u, v, 2.0]), np.array([1.0, 0.0, 0.0]), np.array([0.0, 1.0, 0.0]),
+                _Attempt(DimensionSource.VERTICES, -1, w, ln, 0.0, 0.0))
+
+    a = rect(0.0, 0.0, 0.2, 0.4)
+    assert _beside(a, rect(0.205, 0.0, 0.2, 0.2), 0.02)  # right of it, level with v = 0
+    assert _beside(a, rect(0.205, 0.2, 0.2, 0.2), 0.02)  # level with v = 0.4
+    assert _beside(a, rect(0.0, 0.41, 0.2, 0.2), 0.02)  # above it
+    assert _beside(a, rect(-0.2, 0.0, 0.2, 0.2), 0.02)  # left of it
+    assert not _beside(a, rect(0.205, 0.1, 0.2, 0.2), 0.02)  # level with neither end
+    assert not _beside(a, rect(0.3, 0.0, 0.2, 0.2), 0.02)  # 0.1 m away
+    assert not _beside(a, rect(0.0, 0.0, 0.2, 0.2), 0.02)  # inside it
+
+
+def test_repeats_is_chi2_of_the_sides_against_n_of_a_neighbours() -> None:
+    from boxloc.stages.hypotheses import _repeats
+
+    assert _repeats(0.25, 0.40, 0.25, 0.20, 0.01) == (0.0, 2)
+    assert _repeats(0.25, 0.60, 0.20, 0.25, 0.01) == pytest.approx(
+        (0.05 ** 2 / 2e-4 + 0.1 ** 2 / (5 * 1e-4), 2))
+    T, n = _repeats(0.2, 0.61, 0.2, 0.2, 0.01)
+    assert n == 3 and T == pytest.approx(0.01 ** 2 / (10 * 1e-4))
+    assert _repeats(0.2, 0.25, 0.2, 0.2, 0.01) == (math.inf, 0)  # one, not a multiple
+
+
 @pytest.mark.parametrize("boxes", [TWO, FOUR], ids=["two", "four"])
 def test_with_sizes_the_region_is_split_into_the_right_boxes(boxes: list[list[float]]) -> None:
     sim, r = _run(boxes, (SIZE,))
@@ -670,7 +751,8 @@ def test_a_rectangle_over_two_tops_is_rejected_where_a_neighbours_seam_runs_on(
         assert failed["kind"] == "VERIFY_SEAM_MIDLINE" and not failed["accepted"]
 
 
-@pytest.mark.parametrize("kind", [TestKind.VERIFY_SEAM_IN_LINE, TestKind.SKU_TILING])
+@pytest.mark.parametrize("kind", [TestKind.VERIFY_SEAM_IN_LINE, TestKind.SKU_TILING,
+                                  TestKind.REPEATS_NEIGHBOUR])
 def test_an_in_line_seam_or_tiling_decision_that_flips_is_a_flipped_test(
         kind: TestKind) -> None:
     from boxloc.stats import TestTable

@@ -36,7 +36,7 @@ REGION_TEST_KINDS = (TestKind.VERIFY_INTERIOR, TestKind.VERIFY_BOUNDARY,
                      TestKind.VERIFY_SEAM_SIDE, TestKind.VERIFY_SEAM_INTERIOR,
                      TestKind.VERIFY_CONTINUATION, TestKind.VERIFY_PLANE_END, TestKind.SKU_SIZE,
                      TestKind.SKU_SPLIT_SEAM, TestKind.SKU_TILING, TestKind.SKU_SEEN_TILING,
-                     TestKind.BOX_HEIGHT)
+                     TestKind.BOX_HEIGHT, TestKind.REPEATS_NEIGHBOUR)
 
 #: END_EVIDENCE's statistic: the evidence of a side's end.
 EVIDENCE_NONE, EVIDENCE_EDGES, EVIDENCE_SEAM, EVIDENCE_SIZE, EVIDENCE_REGION = 0, 1, 2, 3, 4

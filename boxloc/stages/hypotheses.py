@@ -949,6 +949,7 @@ def generate_hypotheses(
     pixels.regions(works, ctx)
     ctx, works = _split_regions(ctx, works)
     _seams_in_line(ctx, works)
+    _multiples_of_neighbours(ctx, works)
     hyps, ver = _assemble(works, ctx.vertices, config, up)
     rows = [TestTable.budget(BUDGET_HYPOTHESES, budget.needed, budget.budget, budget.exhausted,
                              config.alpha),
@@ -1853,6 +1854,139 @@ def _seams_in_line(ctx: _Context, works: list[_VertexWork]) -> None:
             out, tests=TestTable.concat([out.tests, row], cfg.alpha),
             accepted=False if seen.any() else out.accepted,
             reason=VerifyReason.INTERIOR_SEAM if seen.any() else out.reason)
+
+
+def _repeats(p: float, q: float, u: float, v: float, tol: float) -> tuple[float, int]:
+    """chi2 (2 dof) of a rectangle's sides (p, q) against (u, n v), n = round(q / v) >= 2,
+    each measured side with standard deviation ``tol``; (inf, 0) where n < 2."""
+    n = int(round(q / v)) if v > 0 else 0
+    if n < 2:
+        return math.inf, 0
+    return ((p - u) ** 2 / (2.0 * tol * tol) + (q - n * v) ** 2 / ((1 + n * n) * tol * tol),
+            n)
+
+
+def _beside(a: _Rect, b: _Rect, d: float) -> bool:
+    """Whether rectangle b lies beside rectangle a as a neighbour in a layer's grid: it
+    touches one of a's sides (within ``d`` metres, overlapping it along that side by more
+    than ``d``) and starts or ends level with one of the ends of that side (within ``d``).
+    The rectangles are (origin, x, y, attempt), their axes parallel or crossed."""
+    o, x, y, att = a
+    W, L = att.width, att.length
+    c = rectangle_corners(b[0], b[1], b[2], b[3].width, b[3].length) - o
+    u, v = c @ x, c @ y
+    u0, u1, v0, v1 = u.min(), u.max(), v.min(), v.max()
+    along_v = min(v1, L) - max(v0, 0.0) > d and (abs(v0) <= d or abs(v1 - L) <= d)
+    along_u = min(u1, W) - max(u0, 0.0) > d and (abs(u0) <= d or abs(u1 - W) <= d)
+    return bool(((abs(u0 - W) <= d or abs(u1) <= d) and along_v)
+                or ((abs(v0 - L) <= d or abs(v1) <= d) and along_u))
+
+
+def _multiples_of_neighbours(ctx: _Context, works: list[_VertexWork]) -> None:
+    """Leave ambiguous a verified rectangle that is n >= 2 of another verified rectangle
+    in its plane (``REPEATS_NEIGHBOUR``; a REGION attempt, ``MULTIPLE_OF_A_NEIGHBOUR``).
+
+    Cartons of one size lie side by side on a pallet layer. Where the noise hides their
+    seams, a rectangle over two or three of them has every side's evidence and an
+    interior whose tests cannot tell a seam from none: it verifies like one box. A
+    carton of that size found beside it, with its own sides' evidence, is the scan's
+    own carton list (:func:`_multiples_as_regions` uses a given one): the rectangle is n
+    of those as well as one box, and the robot must not grip it as one. Its sides (p, q)
+    are tested against (u, n v) of each such neighbour (either way round; chi2 over the
+    ``size_tolerance`` of each measured side, 2 dof, at alpha): the row of the best match
+    is recorded (b = that neighbour's attempt) whether or not it matches. Neighbours are
+    the accepted rectangles that are not regions, rows or a split's parts, on the
+    rectangle's plane (centre and normal, z at alpha, as :func:`_lines_into`), and not
+    themselves a multiple: rectangles are taken smallest first. A neighbour must lie beside
+    the rectangle as in a grid (:func:`_beside`, within z at alpha of ``size_tolerance``):
+    boxes of a mixed pile that happen to stand level and measure about half of another
+    are not cartons of one layer (development matrix seed 1: five true tops lost so, for
+    four false ones, before this condition).
+    """
+    cfg = ctx.config
+    acc = [a for w in works if (a := _accepted(w)) is not None
+           and a.source not in (DimensionSource.REGION, DimensionSource.ROW)]
+    if len(acc) < 2:
+        return
+    vertex = {id(a): w.vertex for w in works for a in w.attempts}
+    V = ctx.vertices
+
+    def rect(a: _Attempt) -> _Rect:
+        h = vertex[id(a)]
+        return V.points[h], V.d1[h], V.d2[h], a
+
+    acc.sort(key=lambda a: a.width * a.length)
+    att_id = {id(t): k for k, t in enumerate(t for w in works for t in w.attempts)}
+    k = math.sqrt(chi2_critical(1.0, cfg.alpha))
+    sin_tol = math.sin(k * cfg.angle_tolerance)
+    crit = chi2_critical(2.0, cfg.alpha)
+    near = k * cfg.size_tolerance
+    units: list[_Attempt] = []
+    multiples: list[tuple[int, _Attempt]] = []
+    for a in acc:
+        out = a.outcome
+        assert out is not None
+        nf, cf = out.plane_normal, out.plane_center
+        tol_w = k * face_sigma(cfg, cf) + cfg.flatness
+        best, by = math.inf, -1
+        ra = rect(a)
+        for u in units:
+            uo = u.outcome
+            assert uo is not None
+            if (np.linalg.norm(np.cross(uo.plane_normal, nf)) > sin_tol
+                    or abs(float((uo.plane_center - cf) @ nf)) > tol_w
+                    or not _beside(ra, rect(u), near)):
+                continue
+            for p, q in ((a.width, a.length), (a.length, a.width)):
+                for s, t in ((u.width, u.length), (u.length, u.width)):
+                    T, _ = _repeats(p, q, s, t, cfg.size_tolerance)
+                    if T < best:
+                        best, by = T, att_id[id(u)]
+        if by < 0:
+            units.append(a)
+            continue
+        row = TestTable.chi2(TestKind.REPEATS_NEIGHBOUR, -1, by, best, 2.0, cfg.alpha)
+        a.outcome = dataclasses.replace(out, tests=TestTable.concat([out.tests, row],
+                                                                    cfg.alpha))
+        if best > crit or a.source == DimensionSource.SKU_SPLIT:
+            units.append(a)  # a split's part stands or falls with its split
+            continue
+        a.outcome = dataclasses.replace(a.outcome, accepted=False,
+                                        reason=VerifyReason.AMBIGUOUS)
+        a.source, a.support = DimensionSource.REGION, 0.0
+        a.threshold = float(AmbiguityReason.MULTIPLE_OF_A_NEIGHBOUR)
+        multiples.append((vertex[id(a)], a))
+    regions = [(w.vertex, a) for w in works for a in w.attempts
+               if a.source == DimensionSource.REGION and a.support == 0
+               and a.outcome is not None and a.outcome.reason == VerifyReason.AMBIGUOUS
+               and all(a is not m for _, m in multiples)]
+    _one_per_region(multiples, regions, ctx.vertices, cfg.min_edge)
+
+
+def _one_per_region(multiples: list[tuple[int, _Attempt]],
+                    regions: list[tuple[int, _Attempt]], vertices: VertexSet,
+                    min_edge: float) -> None:
+    """Mark duplicates (``support`` -1) among the multiples of a neighbour that overlap
+    one another or a flat region left ambiguous: all taken largest first, a multiple is
+    a duplicate if its centre lies inside one kept or it holds a kept one's centre
+    (beyond ``BOUNDARY_BAND`` ``min_edge`` of the sides). Overlapping multiples of one
+    carton (two of three in a row, each way) are one region to fall back on."""
+    mi = BOUNDARY_BAND * min_edge
+    kept: list[tuple[int, _Attempt, np.ndarray]] = []
+    mine = {id(a) for _, a in multiples}
+
+    def inside(c: np.ndarray, i: int, a: _Attempt) -> bool:
+        d = c - vertices.points[i]
+        u, v = d @ vertices.d1[i], d @ vertices.d2[i]
+        return bool(mi < u < a.width - mi and mi < v < a.length - mi)
+
+    for i, a in sorted(multiples + regions, key=lambda r: -r[1].width * r[1].length):
+        c = rectangle_corners(vertices.points[i], vertices.d1[i], vertices.d2[i],
+                              a.width, a.length).mean(0)
+        if id(a) in mine and any(inside(c, j, b) or inside(cb, i, a) for j, b, cb in kept):
+            a.support = -1.0
+        else:
+            kept.append((i, a, c))
 
 
 def _seams_across(att_rows: list[tuple[int, _Attempt]], vertices: VertexSet,
