@@ -66,6 +66,14 @@ class DimensionSource(IntEnum):
     #: the vertex ends at that seam, so the half next to it is tried next, within the
     #: vertex's budget
     MIDLINE = 8
+    #: one part of a flat region split, without a carton list, at the seams a carton size
+    #: the scan shows implies (``SEEN_CARTON``: a verified box that a rectangle beside it
+    #: repeats, and another of its size apart from it), as SKU_SPLIT with a listed size
+    SEEN_SPLIT = 9
+
+
+#: The parts of a split flat region: by a listed size, or by a size the scan shows.
+SPLIT_SOURCES = (DimensionSource.SKU_SPLIT, DimensionSource.SEEN_SPLIT)
 
 
 class VerifyReason(IntEnum):

@@ -249,6 +249,14 @@ class TestKind(IntEnum):
     #: ``size_tolerance`` per measured side; critical at alpha. Accepted: a is n of b, and
     #: is left ambiguous (``MULTIPLE_OF_A_NEIGHBOUR``), not reported
     REPEATS_NEIGHBOUR = 47
+    #: hypothesis stage, without a carton list: a carton size the scan shows, the size of
+    #: verified box a (an attempt) that a rectangle beside it repeats (REPEATS_NEIGHBOUR
+    #: accepted with b = a): statistic = the verified boxes of that size (each side within
+    #: ``size_tolerance``) apart from one another (centres more than half its short side
+    #: apart), critical 2. Accepted: b is its index in the scan's own carton list, by which
+    #: the flat regions are then split as by a listed one (SEEN_SPLIT parts; the SKU_*
+    #: rows' b index it); rejected (b = -1): one box of a size is no list
+    SEEN_CARTON = 48
 
 
 #: ``TestKind.BUDGET`` rows' ``a``: the stage whose budget it is.
@@ -276,7 +284,7 @@ RELATION: dict[TestKind, str | None] = {
     TestKind.BUDGET: "<", TestKind.LAYER_HEIGHT: ">", TestKind.VERIFY_SEAM_IN_LINE: "<=",
     TestKind.SKU_SEEN_TILING: None, TestKind.VERIFY_RAISED_BEYOND: "<",
     TestKind.VERIFY_RAISED_HEIGHT: "<=", TestKind.VERIFY_SEAM_MIDLINE: "<=",
-    TestKind.HEIGHT_WITHIN_BOX: "<=",
+    TestKind.HEIGHT_WITHIN_BOX: "<=", TestKind.SEEN_CARTON: ">=",
 }
 
 _RELATION_OPS = {"<=": operator.le, "<": operator.lt, ">": operator.gt, ">=": operator.ge}

@@ -781,9 +781,9 @@ def _test_keys(t: TestTable, maps: Mapping[str, Mapping[int, int] | None]) -> di
             x = m("attempts", a)
             key = None if x is None else (kind, x, b)
         elif kind in (TestKind.BOX_HEIGHT, TestKind.LAYER_HEIGHT,
-                      TestKind.HEIGHT_SKU_AGREEMENT):
-            # b (the height's source; the layer mate whose height it took) may change: one
-            # row per chosen attempt
+                      TestKind.HEIGHT_SKU_AGREEMENT, TestKind.SEEN_CARTON):
+            # b (the height's source; the layer mate whose height it took; a seen carton's
+            # index in the scan's list) may change: one row per attempt
             x = m("attempts", a)
             key = None if x is None else (kind, x)
         elif kind in (TestKind.NEIGHBOUR_CORNER, TestKind.ROW_END):

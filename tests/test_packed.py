@@ -110,6 +110,33 @@ def test_a_rectangle_twice_a_box_beside_it_is_left_ambiguous_without_sizes(
     assert amb["reason"] == "MULTIPLE_OF_A_NEIGHBOUR" and "beside it" in amb["reason_text"]
     assert [t["kind"] for t in amb["tests"]].count("REPEATS_NEIGHBOUR") == 1
     assert "REPEATS_NEIGHBOUR" in format_explanation(d)
+    # one box of that size is no carton list: the pair is not split by it
+    seen = r.hypotheses.tests.of_kind(TestKind.SEEN_CARTON)
+    assert len(seen) >= 1 and not seen.accepted.any() and (seen.b == -1).all()
+
+
+def test_a_carton_the_scan_shows_twice_splits_the_rectangle_of_two_beside_it() -> None:
+    # the flush pair of the test above, and two single cartons of its half's size in line
+    # beside it: that size is seen twice, apart (SEEN_CARTON), so it is the scan's own
+    # carton list, and the pair is split by it as by a listed size into its two tops
+    boxes = [box(-0.2, 0.0, 0.2, 0.25, 0.25), box(0.0, 0.0, 0.2, 0.25, 0.25),
+             box(0.215, 0.0, 0.2, 0.25, 0.25), box(0.43, 0.0, 0.2, 0.25, 0.25)]
+    sim = scene(boxes, distance=1.5, tilt=0.08, bevel=0.0)
+    r = find_graspable_surfaces(sim.scan, Config(**SITE))
+    m = match_surfaces(r.surfaces, sim.truth)
+    assert (m.tp, m.fp) == (4, 0) and len(r.ambiguous) == 0
+    H = r.hypotheses
+    src = [DimensionSource(int(H.att_source[j])) for j in r.surfaces.attempt]
+    assert src.count(DimensionSource.SEEN_SPLIT) == 2
+    seen = H.tests.of_kind(TestKind.SEEN_CARTON)
+    assert len(seen) >= 1 and seen.accepted.any()
+    k = int(np.flatnonzero(seen.accepted)[0])
+    assert seen.statistic[k] >= 2 and int(seen.b[k]) == 0
+    j = int(seen.a[k])
+    np.testing.assert_allclose(sorted([H.att_width[j], H.att_length[j]]), [0.2, 0.25],
+                               atol=0.02)
+    # nothing of the user's: no listed carton matched, none flagged
+    assert (r.surfaces.sku == -1).all() and not r.surfaces.sku_flagged.any()
 
 
 def test_a_box_as_large_as_two_is_reported_where_the_small_one_is_not_beside_it() -> None:
@@ -752,7 +779,7 @@ def test_a_rectangle_over_two_tops_is_rejected_where_a_neighbours_seam_runs_on(
 
 
 @pytest.mark.parametrize("kind", [TestKind.VERIFY_SEAM_IN_LINE, TestKind.SKU_TILING,
-                                  TestKind.REPEATS_NEIGHBOUR])
+                                  TestKind.REPEATS_NEIGHBOUR, TestKind.SEEN_CARTON])
 def test_an_in_line_seam_or_tiling_decision_that_flips_is_a_flipped_test(
         kind: TestKind) -> None:
     from boxloc.stats import TestTable

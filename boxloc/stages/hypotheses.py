@@ -52,6 +52,7 @@ from scipy.spatial import cKDTree
 from boxloc.config import Config
 from boxloc.distributions import poisson_isf
 from boxloc.products import (
+    SPLIT_SOURCES,
     AmbiguityReason,
     DimensionSource,
     EdgeMap,
@@ -195,6 +196,9 @@ class _Context:
     edge_cov: np.ndarray
     edge_tree: cKDTree | None
     verify_ctx: VerifyContext
+    #: ``config.box_sizes`` is the scan's own carton list (:func:`_seen_cartons`), not the
+    #: user's: a split's parts are SEEN_SPLIT
+    seen_sizes: bool = False
 
     @classmethod
     def build(cls, scan: Scan, edges: EdgeMap, vertices: VertexSet, config: Config,
@@ -864,7 +868,7 @@ def _midline_half(att: _Attempt) -> _Attempt | None:
 def _verify(R: Rectangle, att: _Attempt, ctx: _Context,
             size_sides: frozenset[int] = frozenset(), family: int = 1) -> None:
     # a part's sides that are not cuts lie on its region's verified outline
-    outline = (frozenset(range(4)) - size_sides if att.source == DimensionSource.SKU_SPLIT
+    outline = (frozenset(range(4)) - size_sides if att.source in SPLIT_SOURCES
                else frozenset())
     att.outcome = verify(ctx.scan, ctx.verify_ctx, R.origin, R.x_axis, R.y_axis, R.normal,
                          att.width, att.length, R.plane_cov, ctx.config, attempt_id=-1,
@@ -949,13 +953,21 @@ def generate_hypotheses(
     pixels.regions(works, ctx)
     ctx, works = _split_regions(ctx, works)
     _seams_in_line(ctx, works)
-    _multiples_of_neighbours(ctx, works)
+    seen = _multiples_of_neighbours(ctx, works)
+    sizes, seen_rows = _seen_cartons(ctx, works, seen)
+    if sizes:
+        # the flat regions split by the scan's own cartons, as by a carton list
+        listed = dataclasses.replace(ctx, config=dataclasses.replace(config, box_sizes=sizes),
+                                     seen_sizes=True)
+        ctx, works = _split_regions(listed, works, convert=False)
+        ctx = dataclasses.replace(ctx, config=config, seen_sizes=False)
     hyps, ver = _assemble(works, ctx.vertices, config, up)
     rows = [TestTable.budget(BUDGET_HYPOTHESES, budget.needed, budget.budget, budget.exhausted,
                              config.alpha),
             TestTable.budget(BUDGET_HYPOTHESIS_WORK, pixels.spent, pixels.budget,
                              pixels.exhausted, config.alpha)]
-    hyps = dataclasses.replace(hyps, tests=TestTable.concat([hyps.tests, *rows], config.alpha))
+    hyps = dataclasses.replace(hyps, tests=TestTable.concat([hyps.tests, seen_rows, *rows],
+                                                            config.alpha))
     return ctx.vertices, hyps, ver
 
 
@@ -1488,7 +1500,8 @@ def _plan_split(ctx: _Context, h: int, att: _Attempt, single: set[int]) -> list[
         cov[:3, :3] = _corner(C, u, v, cfg.angle_tolerance)
         cov[3:, 3:] = C[3:, 3:]
         parts.append(((origin + u * x_axis + v * y_axis, x_axis, y_axis, normal, cov), h,
-                      _Attempt(DimensionSource.SKU_SPLIT, -1, pw, pl, float(h), np.nan),
+                      _Attempt(DimensionSource.SEEN_SPLIT if ctx.seen_sizes
+                               else DimensionSource.SKU_SPLIT, -1, pw, pl, float(h), np.nan),
                       inner))
     return parts
 
@@ -1589,10 +1602,15 @@ def _same_rectangle(vertices: VertexSet, a: tuple[int, _Attempt], b: tuple[int, 
     return bool((d.min(axis=1) <= tol).all())
 
 
-def _split_regions(ctx: _Context, works: list[_VertexWork]) -> tuple[_Context, list[_VertexWork]]:
+def _split_regions(ctx: _Context, works: list[_VertexWork], convert: bool = True
+                   ) -> tuple[_Context, list[_VertexWork]]:
     """Split each verified flat region at the seams a listed carton size implies.
 
-    Without ``Config.box_sizes`` every region stays ambiguous (``LARGER_THAN_MAX_BOX``).
+    Without ``Config.box_sizes`` every region stays ambiguous (``LARGER_THAN_MAX_BOX``),
+    unless the scan shows its cartons (:func:`_seen_cartons`): then this runs again with
+    that list (``ctx.seen_sizes``; ``convert`` False: a verified rectangle that is a
+    multiple of a seen carton is a region only where it lies beside one,
+    :func:`_multiples_of_neighbours`), and the parts are SEEN_SPLIT.
     With them, the region's extent is tested against every listed size's grids (nx x ny,
     either orientation; :func:`boxloc.stages.sizes.region_splits`). No grid fits:
     ``NOT_A_MULTIPLE_OF_A_SIZE``. More than one cuts it differently and the range points
@@ -1623,7 +1641,7 @@ def _split_regions(ctx: _Context, works: list[_VertexWork]) -> tuple[_Context, l
     becomes the duplicate.
     """
     cfg = ctx.config
-    single = _multiples_as_regions(works, cfg)
+    single = _multiples_as_regions(works, cfg) if convert else set()
     groups = _distinct_regions(works, ctx.vertices, cfg.min_edge)
     if not groups or not cfg.box_sizes:
         return ctx, works
@@ -1825,7 +1843,7 @@ def _seams_in_line(ctx: _Context, works: list[_VertexWork]) -> None:
     att_id = {id(t): k for k, t in enumerate(t for w in works for t in w.attempts)}
     vc = ctx.verify_ctx
     for j, (h, a) in enumerate(acc):
-        if a.source == DimensionSource.SKU_SPLIT:
+        if a.source in SPLIT_SOURCES:
             continue  # a part stands or falls with its split (its sides are lines, not it)
         lines = _lines_into(j, rects, S, own, cfg)
         if not lines:
@@ -1882,7 +1900,7 @@ def _beside(a: _Rect, b: _Rect, d: float) -> bool:
                 or ((abs(v0 - L) <= d or abs(v1) <= d) and along_u))
 
 
-def _multiples_of_neighbours(ctx: _Context, works: list[_VertexWork]) -> None:
+def _multiples_of_neighbours(ctx: _Context, works: list[_VertexWork]) -> list[_Attempt]:
     """Leave ambiguous a verified rectangle that is n >= 2 of another verified rectangle
     in its plane (``REPEATS_NEIGHBOUR``; a REGION attempt, ``MULTIPLE_OF_A_NEIGHBOUR``).
 
@@ -1897,7 +1915,9 @@ def _multiples_of_neighbours(ctx: _Context, works: list[_VertexWork]) -> None:
     is recorded (b = that neighbour's attempt) whether or not it matches. Neighbours are
     the accepted rectangles that are not regions, rows or a split's parts, on the
     rectangle's plane (centre and normal, z at alpha, as :func:`_lines_into`), and not
-    themselves a multiple: rectangles are taken smallest first. A neighbour must lie beside
+    themselves a multiple: rectangles are taken smallest first. Returns the neighbour each
+    multiple repeats (its best match), in order, for :func:`_seen_cartons`. A neighbour
+    must lie beside
     the rectangle as in a grid (:func:`_beside`, within z at alpha of ``size_tolerance``):
     boxes of a mixed pile that happen to stand level and measure about half of another
     are not cartons of one layer (development matrix seed 1: five true tops lost so, for
@@ -1907,8 +1927,9 @@ def _multiples_of_neighbours(ctx: _Context, works: list[_VertexWork]) -> None:
     acc = [a for w in works if (a := _accepted(w)) is not None
            and a.source not in (DimensionSource.REGION, DimensionSource.ROW)]
     if len(acc) < 2:
-        return
+        return []
     vertex = {id(a): w.vertex for w in works for a in w.attempts}
+    seen: list[_Attempt] = []
     V = ctx.vertices
 
     def rect(a: _Attempt) -> _Rect:
@@ -1928,7 +1949,7 @@ def _multiples_of_neighbours(ctx: _Context, works: list[_VertexWork]) -> None:
         assert out is not None
         nf, cf = out.plane_normal, out.plane_center
         tol_w = k * face_sigma(cfg, cf) + cfg.flatness
-        best, by = math.inf, -1
+        best, by, unit_of = math.inf, -1, a
         ra = rect(a)
         for u in units:
             uo = u.outcome
@@ -1941,14 +1962,14 @@ def _multiples_of_neighbours(ctx: _Context, works: list[_VertexWork]) -> None:
                 for s, t in ((u.width, u.length), (u.length, u.width)):
                     T, _ = _repeats(p, q, s, t, cfg.size_tolerance)
                     if T < best:
-                        best, by = T, att_id[id(u)]
+                        best, by, unit_of = T, att_id[id(u)], u
         if by < 0:
             units.append(a)
             continue
         row = TestTable.chi2(TestKind.REPEATS_NEIGHBOUR, -1, by, best, 2.0, cfg.alpha)
         a.outcome = dataclasses.replace(out, tests=TestTable.concat([out.tests, row],
                                                                     cfg.alpha))
-        if best > crit or a.source == DimensionSource.SKU_SPLIT:
+        if best > crit or a.source in SPLIT_SOURCES:
             units.append(a)  # a split's part stands or falls with its split
             continue
         a.outcome = dataclasses.replace(a.outcome, accepted=False,
@@ -1956,11 +1977,67 @@ def _multiples_of_neighbours(ctx: _Context, works: list[_VertexWork]) -> None:
         a.source, a.support = DimensionSource.REGION, 0.0
         a.threshold = float(AmbiguityReason.MULTIPLE_OF_A_NEIGHBOUR)
         multiples.append((vertex[id(a)], a))
+        seen.append(unit_of)
     regions = [(w.vertex, a) for w in works for a in w.attempts
                if a.source == DimensionSource.REGION and a.support == 0
                and a.outcome is not None and a.outcome.reason == VerifyReason.AMBIGUOUS
                and all(a is not m for _, m in multiples)]
     _one_per_region(multiples, regions, ctx.vertices, cfg.min_edge)
+    return seen
+
+
+def _seen_cartons(ctx: _Context, works: list[_VertexWork], repeated: list[_Attempt]
+                  ) -> tuple[tuple[tuple[float, float, float], ...], TestTable]:
+    """The scan's own carton list: the sizes of the boxes that a rectangle beside them
+    repeats (``repeated``, :func:`_multiples_of_neighbours`), each where at least two
+    verified boxes of it lie apart (``SEEN_CARTON``). Empty with a carton list (the user's
+    is the list).
+
+    One box and a rectangle of twice its size beside it leave the two readings open (the
+    rectangle is ambiguous); a second box of that size elsewhere makes the size the
+    layer's carton. On the development matrix (seeds 1-2) a list from one box each time
+    split true tops into halves or slivers where that box was itself a false half of a
+    lid or measured 2-3 cm off (14 false surfaces in four scans).
+
+    Returns
+    -------
+    sizes : tuple of (short, long, NaN)
+        Metres, as ``Config.box_sizes`` (no height).
+    rows : TestTable
+        One SEEN_CARTON row per distinct size (a = its first box's attempt).
+    """
+    cfg = ctx.config
+    if cfg.box_sizes or not repeated:
+        return (), TestTable.empty(cfg.alpha)
+    V = ctx.vertices
+    tol = cfg.size_tolerance
+    att_id = {id(t): k for k, t in enumerate(t for w in works for t in w.attempts)}
+    boxes = [(w.vertex, a) for w in works if (a := _accepted(w)) is not None
+             and a.source not in (DimensionSource.REGION, DimensionSource.ROW)]
+    sizes: list[tuple[float, float, float]] = []
+    tried: list[tuple[float, float]] = []
+    a_, b_, n_ = [], [], []
+    for u in repeated:
+        s, t = min(u.width, u.length), max(u.width, u.length)
+        if any(abs(s - p) <= tol and abs(t - q) <= tol for p, q in tried):
+            continue
+        tried.append((s, t))
+        apart: list[np.ndarray] = []
+        for h, a in boxes:
+            if (abs(min(a.width, a.length) - s) > tol
+                    or abs(max(a.width, a.length) - t) > tol):
+                continue
+            c = rectangle_corners(V.points[h], V.d1[h], V.d2[h], a.width, a.length).mean(0)
+            if all(np.linalg.norm(c - o) > 0.5 * s for o in apart):
+                apart.append(c)
+        a_.append(att_id[id(u)])
+        n_.append(float(len(apart)))
+        b_.append(len(sizes) if len(apart) >= 2 else -1)
+        if len(apart) >= 2:
+            sizes.append((s, t, math.nan))
+    rows = TestTable.decision(TestKind.SEEN_CARTON, a_, b_, n_, [2.0] * len(n_),
+                              [n >= 2 for n in n_], cfg.alpha)
+    return tuple(sizes), rows
 
 
 def _one_per_region(multiples: list[tuple[int, _Attempt]],

@@ -30,6 +30,7 @@ import numpy as np
 
 from boxloc.config import Config
 from boxloc.products import (
+    SPLIT_SOURCES,
     DimensionSource,
     HypothesisSet,
     Selection,
@@ -50,10 +51,10 @@ MIN_BULGE_POINTS = 16
 
 def _plane_attempt(hypotheses: HypothesisSet, j: int) -> int:
     """The attempt whose refitted plane surface attempt ``j`` lies in: for a part of a
-    split region (SKU_SPLIT, whose ``att_support`` is the region's hypothesis), the
+    split region (SKU_SPLIT or SEEN_SPLIT, whose ``att_support`` is the region's hypothesis), the
     region's REGION (or ROW) attempt that was split (``att_support`` > 0); else ``j``."""
     H = hypotheses
-    if H.att_source[j] != DimensionSource.SKU_SPLIT:
+    if H.att_source[j] not in SPLIT_SOURCES:
         return j
     r = np.flatnonzero((H.att_hypothesis == int(H.att_support[j]))
                        & np.isin(H.att_source, (DimensionSource.REGION, DimensionSource.ROW))
@@ -167,7 +168,7 @@ def make_surfaces(
         cov[3:, 3:] = K.T @ Sn @ K + float(y @ Sd1 @ y + x @ Sd2 @ x) * np.outer(nf, nf)
         # what shows each side is the box's end
         tests.append(end_evidence(verification.tests.select(verification.tests.a == j), j,
-                                  hypotheses.att_source[j] == DimensionSource.SKU_SPLIT))
+                                  hypotheses.att_source[j] in SPLIT_SOURCES))
         q = selection.Q[k, k]
         score = float(q / max(config.mdl_k1 * selection.n_points[k], 1e-12))
         rows.append((h, j, c, nf, x, y, w, ln, corners, score, cov, bulge))
