@@ -953,8 +953,8 @@ def generate_hypotheses(
     pixels.regions(works, ctx)
     ctx, works = _split_regions(ctx, works)
     _seams_in_line(ctx, works)
-    seen = _multiples_of_neighbours(ctx, works)
-    sizes, seen_rows = _seen_cartons(ctx, works, seen)
+    repeated = _multiples_of_neighbours(ctx, works)
+    sizes, seen_rows = _seen_cartons(ctx, works, repeated)
     if sizes:
         # the flat regions split by the scan's own cartons, as by a carton list
         listed = dataclasses.replace(ctx, config=dataclasses.replace(config, box_sizes=sizes),
@@ -1288,6 +1288,31 @@ def _multiples_as_regions(works: list[_VertexWork], config: Config) -> set[int]:
     return single
 
 
+def _attempt_ids(works: list[_VertexWork]) -> dict[int, int]:
+    """Each attempt's id (by ``id`` of the object) as :func:`_assemble` numbers them."""
+    return {id(t): k for k, t in enumerate(t for w in works for t in w.attempts)}
+
+
+def _verified_boxes(works: list[_VertexWork]) -> list[tuple[int, _Attempt]]:
+    """(vertex, attempt) of each vertex's accepted rectangle that is not a region or row."""
+    return [(w.vertex, a) for w in works if (a := _accepted(w)) is not None
+            and a.source not in (DimensionSource.REGION, DimensionSource.ROW)]
+
+
+def _centre(vertices: VertexSet, i: int, a: _Attempt) -> np.ndarray:
+    """The centre of attempt a's rectangle at vertex i, (3,) metres."""
+    return rectangle_corners(vertices.points[i], vertices.d1[i], vertices.d2[i],
+                             a.width, a.length).mean(0)
+
+
+def _in_core(vertices: VertexSet, c: np.ndarray, i: int, a: _Attempt, margin: float) -> bool:
+    """Whether point c lies inside attempt a's rectangle at vertex i, ``margin`` metres
+    clear of its sides."""
+    d = c - vertices.points[i]
+    u, v = d @ vertices.d1[i], d @ vertices.d2[i]
+    return bool(margin < u < a.width - margin and margin < v < a.length - margin)
+
+
 def _distinct_regions(works: list[_VertexWork], vertices: VertexSet,
                       min_edge: float) -> list[list[tuple[int, _Attempt]]]:
     """The verified flat regions (``VerifyReason.AMBIGUOUS`` REGION attempts), grouped by
@@ -1296,12 +1321,6 @@ def _distinct_regions(works: list[_VertexWork], vertices: VertexSet,
     which are marked duplicates (``support`` -1). Each is a (vertex, attempt) pair."""
     groups: list[list[tuple[int, _Attempt, np.ndarray]]] = []
     mi = BOUNDARY_BAND * min_edge
-
-    def inside(c: np.ndarray, i: int, a: _Attempt) -> bool:
-        d = c - vertices.points[i]
-        u, v = d @ vertices.d1[i], d @ vertices.d2[i]
-        return bool(mi < u < a.width - mi and mi < v < a.length - mi)
-
     for w in works:
         for a in w.attempts:
             if (a.source not in (DimensionSource.REGION, DimensionSource.ROW)
@@ -1309,10 +1328,9 @@ def _distinct_regions(works: list[_VertexWork], vertices: VertexSet,
                     or a.support < 0):  # two rows at one corner that disagree
                 continue
             i = w.vertex
-            c = rectangle_corners(vertices.points[i], vertices.d1[i], vertices.d2[i],
-                                  a.width, a.length).mean(0)
-            g = next((g for g in groups if inside(c, g[0][0], g[0][1])
-                      and inside(g[0][2], i, a)), None)
+            c = _centre(vertices, i, a)
+            g = next((g for g in groups if _in_core(vertices, c, g[0][0], g[0][1], mi)
+                      and _in_core(vertices, g[0][2], i, a, mi)), None)
             if g is None:
                 groups.append([(i, a, c)])
             else:
@@ -1839,8 +1857,7 @@ def _seams_in_line(ctx: _Context, works: list[_VertexWork]) -> None:
         return
     rects: list[_Rect] = [(V.points[h], V.d1[h], V.d2[h], a) for h, a in acc]
     S, own = _side_segments(rects)
-    # each attempt's id, as _assemble numbers them
-    att_id = {id(t): k for k, t in enumerate(t for w in works for t in w.attempts)}
+    att_id = _attempt_ids(works)
     vc = ctx.verify_ctx
     for j, (h, a) in enumerate(acc):
         if a.source in SPLIT_SOURCES:
@@ -1915,48 +1932,42 @@ def _multiples_of_neighbours(ctx: _Context, works: list[_VertexWork]) -> list[_A
     is recorded (b = that neighbour's attempt) whether or not it matches. Neighbours are
     the accepted rectangles that are not regions, rows or a split's parts, on the
     rectangle's plane (centre and normal, z at alpha, as :func:`_lines_into`), and not
-    themselves a multiple: rectangles are taken smallest first. Returns the neighbour each
-    multiple repeats (its best match), in order, for :func:`_seen_cartons`. A neighbour
-    must lie beside
-    the rectangle as in a grid (:func:`_beside`, within z at alpha of ``size_tolerance``):
-    boxes of a mixed pile that happen to stand level and measure about half of another
-    are not cartons of one layer (development matrix seed 1: five true tops lost so, for
-    four false ones, before this condition).
+    themselves a multiple: rectangles are taken smallest first. A neighbour must lie
+    beside the rectangle as in a grid (:func:`_beside`, within z at alpha of
+    ``size_tolerance``): boxes of a mixed pile that happen to stand level and measure
+    about half of another are not cartons of one layer (development matrix seed 1: five
+    true tops lost so, for four false ones, before this condition).
+
+    Returns the neighbour each multiple repeats (its best match), in order, for
+    :func:`_seen_cartons`.
     """
     cfg = ctx.config
-    acc = [a for w in works if (a := _accepted(w)) is not None
-           and a.source not in (DimensionSource.REGION, DimensionSource.ROW)]
-    if len(acc) < 2:
+    boxes = sorted(_verified_boxes(works), key=lambda b: b[1].width * b[1].length)
+    if len(boxes) < 2:
         return []
-    vertex = {id(a): w.vertex for w in works for a in w.attempts}
-    seen: list[_Attempt] = []
     V = ctx.vertices
-
-    def rect(a: _Attempt) -> _Rect:
-        h = vertex[id(a)]
-        return V.points[h], V.d1[h], V.d2[h], a
-
-    acc.sort(key=lambda a: a.width * a.length)
-    att_id = {id(t): k for k, t in enumerate(t for w in works for t in w.attempts)}
+    rect = {id(a): (V.points[h], V.d1[h], V.d2[h], a) for h, a in boxes}
+    att_id = _attempt_ids(works)
     k = math.sqrt(chi2_critical(1.0, cfg.alpha))
     sin_tol = math.sin(k * cfg.angle_tolerance)
     crit = chi2_critical(2.0, cfg.alpha)
     near = k * cfg.size_tolerance
     units: list[_Attempt] = []
     multiples: list[tuple[int, _Attempt]] = []
-    for a in acc:
+    repeated: list[_Attempt] = []
+    for h, a in boxes:
         out = a.outcome
         assert out is not None
         nf, cf = out.plane_normal, out.plane_center
         tol_w = k * face_sigma(cfg, cf) + cfg.flatness
         best, by, unit_of = math.inf, -1, a
-        ra = rect(a)
+        ra = rect[id(a)]
         for u in units:
             uo = u.outcome
             assert uo is not None
             if (np.linalg.norm(np.cross(uo.plane_normal, nf)) > sin_tol
                     or abs(float((uo.plane_center - cf) @ nf)) > tol_w
-                    or not _beside(ra, rect(u), near)):
+                    or not _beside(ra, rect[id(u)], near)):
                 continue
             for p, q in ((a.width, a.length), (a.length, a.width)):
                 for s, t in ((u.width, u.length), (u.length, u.width)):
@@ -1976,14 +1987,14 @@ def _multiples_of_neighbours(ctx: _Context, works: list[_VertexWork]) -> list[_A
                                         reason=VerifyReason.AMBIGUOUS)
         a.source, a.support = DimensionSource.REGION, 0.0
         a.threshold = float(AmbiguityReason.MULTIPLE_OF_A_NEIGHBOUR)
-        multiples.append((vertex[id(a)], a))
-        seen.append(unit_of)
+        multiples.append((h, a))
+        repeated.append(unit_of)
     regions = [(w.vertex, a) for w in works for a in w.attempts
                if a.source == DimensionSource.REGION and a.support == 0
                and a.outcome is not None and a.outcome.reason == VerifyReason.AMBIGUOUS
                and all(a is not m for _, m in multiples)]
-    _one_per_region(multiples, regions, ctx.vertices, cfg.min_edge)
-    return seen
+    _one_per_region(multiples, regions, V, cfg.min_edge)
+    return repeated
 
 
 def _seen_cartons(ctx: _Context, works: list[_VertexWork], repeated: list[_Attempt]
@@ -2011,9 +2022,8 @@ def _seen_cartons(ctx: _Context, works: list[_VertexWork], repeated: list[_Attem
         return (), TestTable.empty(cfg.alpha)
     V = ctx.vertices
     tol = cfg.size_tolerance
-    att_id = {id(t): k for k, t in enumerate(t for w in works for t in w.attempts)}
-    boxes = [(w.vertex, a) for w in works if (a := _accepted(w)) is not None
-             and a.source not in (DimensionSource.REGION, DimensionSource.ROW)]
+    att_id = _attempt_ids(works)
+    boxes = _verified_boxes(works)
     sizes: list[tuple[float, float, float]] = []
     tried: list[tuple[float, float]] = []
     a_, b_, n_ = [], [], []
@@ -2027,7 +2037,7 @@ def _seen_cartons(ctx: _Context, works: list[_VertexWork], repeated: list[_Attem
             if (abs(min(a.width, a.length) - s) > tol
                     or abs(max(a.width, a.length) - t) > tol):
                 continue
-            c = rectangle_corners(V.points[h], V.d1[h], V.d2[h], a.width, a.length).mean(0)
+            c = _centre(V, h, a)
             if all(np.linalg.norm(c - o) > 0.5 * s for o in apart):
                 apart.append(c)
         a_.append(att_id[id(u)])
@@ -2051,16 +2061,10 @@ def _one_per_region(multiples: list[tuple[int, _Attempt]],
     mi = BOUNDARY_BAND * min_edge
     kept: list[tuple[int, _Attempt, np.ndarray]] = []
     mine = {id(a) for _, a in multiples}
-
-    def inside(c: np.ndarray, i: int, a: _Attempt) -> bool:
-        d = c - vertices.points[i]
-        u, v = d @ vertices.d1[i], d @ vertices.d2[i]
-        return bool(mi < u < a.width - mi and mi < v < a.length - mi)
-
     for i, a in sorted(multiples + regions, key=lambda r: -r[1].width * r[1].length):
-        c = rectangle_corners(vertices.points[i], vertices.d1[i], vertices.d2[i],
-                              a.width, a.length).mean(0)
-        if id(a) in mine and any(inside(c, j, b) or inside(cb, i, a) for j, b, cb in kept):
+        c = _centre(vertices, i, a)
+        if id(a) in mine and any(_in_core(vertices, c, j, b, mi)
+                                 or _in_core(vertices, cb, i, a, mi) for j, b, cb in kept):
             a.support = -1.0
         else:
             kept.append((i, a, c))
