@@ -251,11 +251,12 @@ class TestKind(IntEnum):
     REPEATS_NEIGHBOUR = 47
     #: hypothesis stage, without a carton list: a carton size the scan shows, the size of
     #: verified box a (an attempt) that a rectangle beside it repeats (REPEATS_NEIGHBOUR
-    #: accepted with b = a): statistic = the verified boxes of that size (each side within
-    #: ``size_tolerance``) apart from one another (centres more than half its short side
-    #: apart), critical 2. Accepted: b is its index in the scan's own carton list, by which
-    #: the flat regions are then split as by a listed one (SEEN_SPLIT parts; the SKU_*
-    #: rows' b index it); rejected (b = -1): one box of a size is no list
+    #: accepted with b = a) or that lies beside a flat region left ambiguous: statistic =
+    #: the verified boxes of that size (each side within ``size_tolerance``) apart from
+    #: one another (centres more than half its short side apart), critical 2. Accepted: b
+    #: is its index in the scan's own carton list, by which the flat regions are then
+    #: split as by a listed one (SEEN_SPLIT parts; the SKU_* rows' b index it); rejected
+    #: (b = -1): one box of a size is no list
     SEEN_CARTON = 48
 
 

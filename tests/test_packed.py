@@ -139,6 +139,23 @@ def test_a_carton_the_scan_shows_twice_splits_the_rectangle_of_two_beside_it() -
     assert (r.surfaces.sku == -1).all() and not r.surfaces.sku_flagged.any()
 
 
+def test_a_carton_seen_twice_beside_a_flat_region_splits_it() -> None:
+    # three flush cartons with no seam (0.6 x 0.25 m, longer than max_edge: a flat region,
+    # no rectangle) and two single cartons in line beside them: the size is seen twice
+    # beside the region (no multiple was verified), and the region is split into its tops
+    boxes = ([box(x, 0.0, 0.2, 0.25, 0.25) for x in (-0.4, -0.2, 0.0)]
+             + [box(0.215, 0.0, 0.2, 0.25, 0.25), box(0.43, 0.0, 0.2, 0.25, 0.25)])
+    sim = scene(boxes, distance=1.5, tilt=0.08, bevel=0.0)
+    r = find_graspable_surfaces(sim.scan, Config(**SITE))
+    m = match_surfaces(r.surfaces, sim.truth)
+    assert (m.tp, m.fp) == (5, 0) and len(r.ambiguous) == 0
+    H = r.hypotheses
+    src = [DimensionSource(int(H.att_source[j])) for j in r.surfaces.attempt]
+    assert src.count(DimensionSource.SEEN_SPLIT) == 3
+    assert len(r.verification.tests.of_kind(TestKind.REPEATS_NEIGHBOUR)) == 0
+    assert H.tests.of_kind(TestKind.SEEN_CARTON).accepted.any()
+
+
 def test_a_box_as_large_as_two_is_reported_where_the_small_one_is_not_beside_it() -> None:
     # the same three, the single one 0.1 m off the pair's line: not a neighbour in a grid
     # (a mixed pile's boxes that happen to stand level), so the pair is one box

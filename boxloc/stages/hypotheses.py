@@ -1938,8 +1938,9 @@ def _multiples_of_neighbours(ctx: _Context, works: list[_VertexWork]) -> list[_A
     about half of another are not cartons of one layer (development matrix seed 1: five
     true tops lost so, for four false ones, before this condition).
 
-    Returns the neighbour each multiple repeats (its best match), in order, for
-    :func:`_seen_cartons`.
+    Returns the neighbour each multiple repeats (its best match), in order, then each box
+    beside a flat region left ambiguous (not a multiple) in its plane, as
+    :func:`_beside` finds it: the candidates of :func:`_seen_cartons`.
     """
     cfg = ctx.config
     boxes = sorted(_verified_boxes(works), key=lambda b: b[1].width * b[1].length)
@@ -1994,15 +1995,28 @@ def _multiples_of_neighbours(ctx: _Context, works: list[_VertexWork]) -> list[_A
                and a.outcome is not None and a.outcome.reason == VerifyReason.AMBIGUOUS
                and all(a is not m for _, m in multiples)]
     _one_per_region(multiples, regions, V, cfg.min_edge)
+    # a flat region left ambiguous beside boxes of its plane may be made of them too
+    for h, r in regions:
+        ro = r.outcome
+        assert ro is not None
+        rr = (V.points[h], V.d1[h], V.d2[h], r)
+        tol_w = k * face_sigma(cfg, ro.plane_center) + cfg.flatness
+        for u in units:
+            uo = u.outcome
+            assert uo is not None
+            if (np.linalg.norm(np.cross(uo.plane_normal, ro.plane_normal)) <= sin_tol
+                    and abs(float((uo.plane_center - ro.plane_center) @ ro.plane_normal)) <= tol_w
+                    and _beside(rr, rect[id(u)], near)):
+                repeated.append(u)
     return repeated
 
 
 def _seen_cartons(ctx: _Context, works: list[_VertexWork], repeated: list[_Attempt]
                   ) -> tuple[tuple[tuple[float, float, float], ...], TestTable]:
     """The scan's own carton list: the sizes of the boxes that a rectangle beside them
-    repeats (``repeated``, :func:`_multiples_of_neighbours`), each where at least two
-    verified boxes of it lie apart (``SEEN_CARTON``). Empty with a carton list (the user's
-    is the list).
+    repeats, or that lie beside a flat region left ambiguous in their plane (``repeated``,
+    :func:`_multiples_of_neighbours`), each where at least two verified boxes of it lie
+    apart (``SEEN_CARTON``). Empty with a carton list (the user's is the list).
 
     One box and a rectangle of twice its size beside it leave the two readings open (the
     rectangle is ambiguous); a second box of that size elsewhere makes the size the
