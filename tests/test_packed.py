@@ -46,6 +46,11 @@ def _run(boxes: list[list[float]], sizes: tuple[tuple[float, float, float], ...]
     return sim, find_graspable_surfaces(sim.scan, Config(**SITE, box_sizes=sizes))
 
 
+def _sources(r: Result) -> list[DimensionSource]:
+    """Where each reported surface's dimensions came from."""
+    return [DimensionSource(int(r.hypotheses.att_source[j])) for j in r.surfaces.attempt]
+
+
 @pytest.mark.parametrize("boxes, extent", [(TWO, (0.4, 0.6)), (FOUR, (0.6, 0.8))],
                          ids=["two", "four"])
 def test_touching_boxes_without_a_seam_are_one_ambiguous_region_without_sizes(
@@ -121,13 +126,11 @@ def test_a_carton_the_scan_shows_twice_splits_the_rectangle_of_two_beside_it() -
     # carton list, and the pair is split by it as by a listed size into its two tops
     boxes = [box(-0.2, 0.0, 0.2, 0.25, 0.25), box(0.0, 0.0, 0.2, 0.25, 0.25),
              box(0.215, 0.0, 0.2, 0.25, 0.25), box(0.43, 0.0, 0.2, 0.25, 0.25)]
-    sim = scene(boxes, distance=1.5, tilt=0.08, bevel=0.0)
-    r = find_graspable_surfaces(sim.scan, Config(**SITE))
+    sim, r = _run(boxes)
     m = match_surfaces(r.surfaces, sim.truth)
     assert (m.tp, m.fp) == (4, 0) and len(r.ambiguous) == 0
     H = r.hypotheses
-    src = [DimensionSource(int(H.att_source[j])) for j in r.surfaces.attempt]
-    assert src.count(DimensionSource.SEEN_SPLIT) == 2
+    assert _sources(r).count(DimensionSource.SEEN_SPLIT) == 2
     seen = H.tests.of_kind(TestKind.SEEN_CARTON)
     assert len(seen) >= 1 and seen.accepted.any()
     k = int(np.flatnonzero(seen.accepted)[0])
@@ -145,13 +148,11 @@ def test_a_carton_seen_twice_beside_a_flat_region_splits_it() -> None:
     # beside the region (no multiple was verified), and the region is split into its tops
     boxes = ([box(x, 0.0, 0.2, 0.25, 0.25) for x in (-0.4, -0.2, 0.0)]
              + [box(0.215, 0.0, 0.2, 0.25, 0.25), box(0.43, 0.0, 0.2, 0.25, 0.25)])
-    sim = scene(boxes, distance=1.5, tilt=0.08, bevel=0.0)
-    r = find_graspable_surfaces(sim.scan, Config(**SITE))
+    sim, r = _run(boxes)
     m = match_surfaces(r.surfaces, sim.truth)
     assert (m.tp, m.fp) == (5, 0) and len(r.ambiguous) == 0
     H = r.hypotheses
-    src = [DimensionSource(int(H.att_source[j])) for j in r.surfaces.attempt]
-    assert src.count(DimensionSource.SEEN_SPLIT) == 3
+    assert _sources(r).count(DimensionSource.SEEN_SPLIT) == 3
     assert len(r.verification.tests.of_kind(TestKind.REPEATS_NEIGHBOUR)) == 0
     assert H.tests.of_kind(TestKind.SEEN_CARTON).accepted.any()
 
@@ -161,8 +162,7 @@ def test_a_box_as_large_as_two_is_reported_where_the_small_one_is_not_beside_it(
     # (a mixed pile's boxes that happen to stand level), so the pair is one box
     boxes = [box(-0.2, 0.0, 0.2, 0.25, 0.25), box(0.0, 0.0, 0.2, 0.25, 0.25),
              box(0.215, 0.1, 0.2, 0.25, 0.25)]
-    sim = scene(boxes, distance=1.5, tilt=0.08, bevel=0.0)
-    r = find_graspable_surfaces(sim.scan, Config(**SITE))
+    sim, r = _run(boxes)
     assert len(r.surfaces) == 2 and len(r.ambiguous) == 0
     T = r.verification.tests.of_kind(TestKind.REPEATS_NEIGHBOUR)
     assert len(T) == 0  # no neighbour beside it: nothing to test
@@ -659,8 +659,7 @@ def test_a_brick_layer_whose_seams_show_is_split_into_its_cartons() -> None:
     T = r.verification.tests
     row = T.select(T.kind == TestKind.SKU_SEEN_TILING)
     assert len(row) == 1 and row.accepted[0] and row.statistic[0] == 1.0 and row.b[0] == 2
-    src = [DimensionSource(int(r.hypotheses.att_source[a])) for a in r.surfaces.attempt]
-    assert DimensionSource.SKU_SPLIT in src
+    assert DimensionSource.SKU_SPLIT in _sources(r)
 
 
 #: A 0.8 x 0.8 m layer of BRICK cartons: a turned pair in one quarter, the rest laid as the

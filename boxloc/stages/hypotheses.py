@@ -1953,23 +1953,25 @@ def _multiples_of_neighbours(ctx: _Context, works: list[_VertexWork]) -> list[_A
     sin_tol = math.sin(k * cfg.angle_tolerance)
     crit = chi2_critical(2.0, cfg.alpha)
     near = k * cfg.size_tolerance
-    units: list[_Attempt] = []
-    multiples: list[tuple[int, _Attempt]] = []
-    repeated: list[_Attempt] = []
-    for h, a in boxes:
+
+    def neighbours(h: int, a: _Attempt, of: list[_Attempt]) -> list[_Attempt]:
+        """The boxes of ``of`` beside attempt a's rectangle at vertex h, in its plane."""
         out = a.outcome
         assert out is not None
         nf, cf = out.plane_normal, out.plane_center
         tol_w = k * face_sigma(cfg, cf) + cfg.flatness
+        ra = (V.points[h], V.d1[h], V.d2[h], a)
+        return [u for u in of if u.outcome is not None
+                and np.linalg.norm(np.cross(u.outcome.plane_normal, nf)) <= sin_tol
+                and abs(float((u.outcome.plane_center - cf) @ nf)) <= tol_w
+                and _beside(ra, rect[id(u)], near)]
+
+    units: list[_Attempt] = []
+    multiples: list[tuple[int, _Attempt]] = []
+    repeated: list[_Attempt] = []
+    for h, a in boxes:
         best, by, unit_of = math.inf, -1, a
-        ra = rect[id(a)]
-        for u in units:
-            uo = u.outcome
-            assert uo is not None
-            if (np.linalg.norm(np.cross(uo.plane_normal, nf)) > sin_tol
-                    or abs(float((uo.plane_center - cf) @ nf)) > tol_w
-                    or not _beside(ra, rect[id(u)], near)):
-                continue
+        for u in neighbours(h, a, units):
             for p, q in ((a.width, a.length), (a.length, a.width)):
                 for s, t in ((u.width, u.length), (u.length, u.width)):
                     T, _ = _repeats(p, q, s, t, cfg.size_tolerance)
@@ -1978,6 +1980,8 @@ def _multiples_of_neighbours(ctx: _Context, works: list[_VertexWork]) -> list[_A
         if by < 0:
             units.append(a)
             continue
+        out = a.outcome
+        assert out is not None
         row = TestTable.chi2(TestKind.REPEATS_NEIGHBOUR, -1, by, best, 2.0, cfg.alpha)
         a.outcome = dataclasses.replace(out, tests=TestTable.concat([out.tests, row],
                                                                     cfg.alpha))
@@ -1997,17 +2001,7 @@ def _multiples_of_neighbours(ctx: _Context, works: list[_VertexWork]) -> list[_A
     _one_per_region(multiples, regions, V, cfg.min_edge)
     # a flat region left ambiguous beside boxes of its plane may be made of them too
     for h, r in regions:
-        ro = r.outcome
-        assert ro is not None
-        rr = (V.points[h], V.d1[h], V.d2[h], r)
-        tol_w = k * face_sigma(cfg, ro.plane_center) + cfg.flatness
-        for u in units:
-            uo = u.outcome
-            assert uo is not None
-            if (np.linalg.norm(np.cross(uo.plane_normal, ro.plane_normal)) <= sin_tol
-                    and abs(float((uo.plane_center - ro.plane_center) @ ro.plane_normal)) <= tol_w
-                    and _beside(rr, rect[id(u)], near)):
-                repeated.append(u)
+        repeated += neighbours(h, r, units)
     return repeated
 
 
