@@ -151,6 +151,18 @@ def _layer_on_a_stack(ledge: float) -> tuple[object, object]:
     return sim, find_graspable_surfaces(sim.scan, CFG)
 
 
+def test_a_side_face_hidden_below_by_a_neighbour_across_a_gap_is_no_height() -> None:
+    # 15 mm between 0.25 m cartons, seen at a slant: the face across the gap shows its top
+    # 79 mm, then the neighbour's edge hides it. That run is no height (it had been every
+    # top's, the flush layer's smallest); what else is seen gives 0.25 m
+    boxes = [box(-0.1675, 0.0, 0.32, 0.4, 0.25), box(0.1675, 0.0, 0.32, 0.4, 0.25),
+             box(0.0, 0.415, 0.3, 0.4, 0.25)]
+    r = find_graspable_surfaces(scene(boxes, distance=1.5, tilt=0.2, bevel=0.0).scan, CFG)
+    s = r.surfaces
+    assert len(s) == 3
+    assert np.all(np.abs(s.height - 0.25) <= 0.010), s.height
+
+
 def test_a_flush_layer_takes_its_smallest_height_measurement() -> None:
     # A's side runs down the stack (0.4 m); B's ends on the ledge at its foot (0.2 m): one
     # layer, one support, so A takes B's height, and a LAYER_HEIGHT row says so

@@ -9,7 +9,9 @@ Two measurements, per side of the top's rectangle (0-3: v=0, v=length, u=0, u=wi
   down from the edge without a gap of ``EXTENT_GAP_PX`` samples to where the face meets
   what the box stands on (a concave crease: beyond it the points leave the plane). The
   height is how far down the run reaches, half a sample beyond its last point, as the
-  face's extent is measured along an arm (:func:`boxloc.stages.verify.face_extent`).
+  face's extent is measured along an arm (:func:`boxloc.stages.verify.face_extent`). A
+  run whose end shows no foot, where the rays just beyond it meet something in front of
+  the face and higher up (a neighbour across a narrow gap hides the rest), is no height.
 * **step** (:func:`step_height`) — the points in a strip beyond the side, on the plane
   parallel to the top (a neighbour's top, the layer below, the pallet, the floor): the
   median of their depth below the top's plane. Only a strip whose points mostly (the
@@ -105,7 +107,8 @@ def side_height(ctx: VerifyContext, a: np.ndarray, b: np.ndarray, out: np.ndarra
     -------
     height : float
         Metres down the face to its end; NaN where the face is not seen (it faces away
-        from the sensor, or fewer than ``MIN_LINE_POINTS`` points lie on it near the edge).
+        from the sensor, or fewer than ``MIN_LINE_POINTS`` points lie on it near the edge)
+        or hidden below its run by something in front of it.
     sigma : float
         Its standard deviation, metres: one sample down the face.
     n : int
@@ -167,7 +170,20 @@ def side_height(ctx: VerifyContext, a: np.ndarray, b: np.ndarray, out: np.ndarra
         if mad <= k * float(np.sqrt(np.median(var[foot]))):  # a surface parallel to the top
             s2 = (math.pi / 2) * mad**2 / int(foot.sum()) + flatness**2
             return med, float(math.sqrt(s2)), n
-    # no foot seen: the run's end, within a sample
+    # no foot seen. Where the rays just past the run's end meet something nearer than the
+    # face, and higher up than the run reached (a neighbour in front of the face across a
+    # gap hides the rest of it), the face runs on unseen: its run is no height
+    ray = P / np.linalg.norm(P, axis=1)[:, None]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        X = (float(a @ out) / (ray @ out))[:, None] * ray - a  # each ray on the face's plane
+    sp, tp = X @ along, X @ down
+    past = ((tp > last) & (tp <= last + EXTENT_GAP_PX * step) & (sp > 2 * spacing)
+            & (sp < L - 2 * spacing) & (dist > 0))
+    if past.sum() >= MIN_LINE_POINTS:
+        hidden = (t[past] < 0.5 * last) & (tp[past] - t[past] > k * np.sqrt(var[past]))
+        if hidden.mean() > 0.5:
+            return np.nan, np.nan, 0
+    # the run's end, within a sample
     return float(last), float(math.hypot(step / math.sqrt(3.0), flatness)), n
 
 
