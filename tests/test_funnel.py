@@ -301,3 +301,52 @@ def test_a_scan_without_stage_products_counts_its_misses_as_none() -> None:
     assert f["stages"]["found"] == 2 and f["stages"]["none"] == len(ex) - 2
     assert f["faces"] == len(ex)
     assert r["timing"]["funnel_ms"]["total"] == 0.0
+
+
+# --- the vertex normals' calibration ------------------------------------------------------
+
+
+def _rotated(vertices: Any, angle: float) -> Any:
+    """The vertices with d1 and d2 (and so the normal) turned by ``angle`` about d1."""
+    d1, d2 = vertices.d1, vertices.d2
+    n = np.cross(d1, d2)
+    d2r = np.cos(angle) * d2 + np.sin(angle) * n
+    return dataclasses.replace(vertices, d2=d2r, normals=np.cross(d1, d2r))
+
+
+def test_a_vertex_normal_off_by_k_sigma_scores_k_squared(single: tuple[Any, Any]) -> None:
+    s, r = single
+    V = r.vertices
+    base = fn.vertex_normal_chi2(V, s.truth)
+    assert base.size >= 1 and np.all(np.isfinite(base))
+    # put the true normal on the vertex nearest an exposed corner, then turn it by 10 sigma
+    exposed = np.flatnonzero(s.truth.fully_exposed)
+    corners = s.truth.corners[exposed].reshape(-1, 3)
+    i = int(np.argmin(np.linalg.norm(V.points[:, None] - corners[None], axis=-1).min(axis=1)))
+    Vi = dataclasses.replace(V, **{f: getattr(V, f)[i:i + 1] for f in
+                                   ("points", "d1", "d2", "normals", "covariances",
+                                    "line_a", "line_b")})
+    f = s.truth.normals[exposed[np.argmax(np.abs(s.truth.normals[exposed] @ Vi.normals[0]))]]
+    f = f * np.sign(f @ Vi.normals[0])
+    d1 = Vi.d1[0] - (Vi.d1[0] @ f) * f
+    d1 /= np.linalg.norm(d1)
+    exact = dataclasses.replace(Vi, d1=d1[None], d2=np.cross(f, d1)[None], normals=f[None])
+    assert fn.vertex_normal_chi2(exact, s.truth)[0] == pytest.approx(0.0, abs=1e-9)
+    from boxloc.stages.vertices import normal_covariance
+    Sn = normal_covariance(exact)[0]
+    axis = np.cross(f, d1)  # turning about d1 moves the normal along d2
+    # the standard deviation along that axis given the other (the Mahalanobis scale)
+    B = np.stack([d1, axis])
+    sigma = float(1.0 / np.sqrt(np.linalg.inv(B @ Sn @ B.T)[1, 1]))
+    turned = _rotated(exact, 10.0 * sigma)
+    assert fn.vertex_normal_chi2(turned, s.truth)[0] == pytest.approx(100.0, rel=0.05)
+
+
+def test_vertices_far_from_every_exposed_corner_do_not_count(single: tuple[Any, Any]) -> None:
+    s, r = single
+    far = dataclasses.replace(r.vertices, points=r.vertices.points + 0.5)
+    assert fn.vertex_normal_chi2(far, s.truth).size == 0
+    assert fn.vertex_normal_figures([]) == {"n": 0, "median": None, "beyond_p99": None}
+    fig = fn.vertex_normal_figures([0.5, 1.0, 20.0, 30.0])
+    assert fig["n"] == 4 and fig["median"] == pytest.approx(10.5)
+    assert fig["beyond_p99"] == pytest.approx(0.5)

@@ -55,7 +55,8 @@ __all__ = [
     "LINE_DIST", "LINE_OVERLAP", "VERTEX_DIST", "FLUSH_ANGLE_DEG", "FLUSH_STEP", "IOU_MIN",
     "MAX_PLANE_OFFSET", "LossStage",
     "STAGE_NAMES", "NO_PRODUCTS", "FaceLosses", "loss_stages", "sides_shown",
-    "separable_faces", "funnel_figures",
+    "separable_faces", "funnel_figures", "vertex_normal_chi2", "vertex_normal_figures",
+    "CHI2_2_MEDIAN", "CHI2_2_P99",
 ]
 
 #: Edge pixels within this many pixels (a square window) of the projected side count as
@@ -536,6 +537,74 @@ def loss_stages(result: Any, truth: Any, sensor: Any, *, match: Match | None = N
         best_reason=best_reason, best_source=best_source,
         separable=(separable_faces(truth, sensor, exposed, flush_seams_show=flush_seams_show)
                    if separable is None else np.asarray(separable, dtype=bool)))
+
+
+def vertex_normal_chi2(vertices: Any, truth: Any) -> np.ndarray:
+    """How far each vertex's normal is from its true face's, over its own covariance.
+
+    A calibration check of the statistic every coplanarity test in the hypothesis stage
+    rests on. A vertex counts where it lies within :data:`VERTEX_DIST` of a corner of a
+    fully exposed face and its normal is within 45 degrees of that face's (a side face's
+    vertex at the same corner is another face's); of several such faces, the one whose
+    normal is nearest. The error is the true normal's component across the vertex's, and
+    the statistic its Mahalanobis square under :func:`boxloc.stages.vertices.normal_covariance`
+    (rank 2): chi2(2) if the lines' covariances are the true ones.
+
+    Parameters
+    ----------
+    vertices : VertexSet
+        ``result.vertices`` (``points``, ``normals``, ``d1``, ``d2``, ``covariances``).
+    truth : GroundTruth-like
+        ``corners``, ``normals`` and ``fully_exposed`` of the faces.
+
+    Returns
+    -------
+    chi2 : (k,) float64
+        One per vertex that counts, in vertex order.
+    """
+    from boxloc.stages.vertices import normal_covariance
+
+    pts = np.asarray(vertices.points, dtype=np.float64).reshape(-1, 3)
+    exposed = np.flatnonzero(np.asarray(truth.fully_exposed, dtype=bool))
+    if not pts.shape[0] or not exposed.size:
+        return np.zeros(0)
+    corners = np.asarray(truth.corners, dtype=np.float64).reshape(-1, 4, 3)[exposed]
+    fn = np.asarray(truth.normals, dtype=np.float64).reshape(-1, 3)[exposed]
+    vn = np.asarray(vertices.normals, dtype=np.float64).reshape(-1, 3)
+    near = np.linalg.norm(pts[:, None, None, :] - corners[None], axis=-1).min(axis=2)
+    cos = np.abs(vn @ fn.T)  # (V, n)
+    cos = np.where(near <= VERTEX_DIST, cos, -1.0)
+    face = np.argmax(cos, axis=1)
+    keep = cos[np.arange(len(pts)), face] >= math.cos(math.radians(45.0))
+    if not keep.any():
+        return np.zeros(0)
+    S = normal_covariance(vertices)[keep]
+    n, f = vn[keep], fn[face[keep]]
+    f = f * np.sign(np.einsum("ij,ij->i", n, f))[:, None]
+    # in a basis across the vertex's normal (the covariance's rank-2 part: a pseudo-inverse
+    # in 3-D would blow up the rounding along n)
+    a = np.cross(n, np.where(np.abs(n[:, :1]) < 0.9, [[1.0, 0.0, 0.0]], [[0.0, 1.0, 0.0]]))
+    a /= np.linalg.norm(a, axis=1, keepdims=True)
+    B = np.stack([a, np.cross(n, a)], axis=1)  # (k, 2, 3)
+    e = np.einsum("nij,nj->ni", B, f)
+    S2 = np.einsum("nij,njk,nlk->nil", B, S, B)
+    return np.einsum("ni,nij,nj->n", e, np.linalg.inv(S2), e)
+
+
+#: The chi2(2) quantiles :func:`vertex_normal_figures` compares with: the median, and the
+#: value a calibrated statistic passes 1 % of the time.
+CHI2_2_MEDIAN = 2.0 * math.log(2.0)
+CHI2_2_P99 = -2.0 * math.log(0.01)
+
+
+def vertex_normal_figures(chi2: Sequence[float] | np.ndarray) -> dict[str, Any]:
+    """Pool :func:`vertex_normal_chi2` over scans: ``n``, ``median`` (chi2(2): 1.386) and
+    ``beyond_p99``, the fraction beyond chi2(2)'s 99th percentile (calibrated: 0.01);
+    null medians and rates without a vertex."""
+    x = np.asarray(chi2, dtype=np.float64)
+    return {"n": int(x.size),
+            "median": float(np.median(x)) if x.size else None,
+            "beyond_p99": float(np.mean(x > CHI2_2_P99)) if x.size else None}
 
 
 # --- pooled over scans ----------------------------------------------------------------------

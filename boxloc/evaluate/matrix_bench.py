@@ -109,11 +109,15 @@ from boxloc import __version__
 from boxloc.config import Config
 from boxloc.errors import InputError
 from boxloc.evaluate.funnel import (
+    CHI2_2_MEDIAN,
+    CHI2_2_P99,
     NO_PRODUCTS,
     STAGE_NAMES,
     funnel_figures,
     loss_stages,
     separable_faces,
+    vertex_normal_chi2,
+    vertex_normal_figures,
 )
 from boxloc.evaluate.metrics import Match, aggregate_matches, prf
 from boxloc.evaluate.scene_bench import (
@@ -301,6 +305,8 @@ def _funnel(result: Any, sim: Any, match: Match | None, separable: list[bool]
     try:
         fl = loss_stages(result, sim.truth, sim.scan.sensor, match=match,
                          separable=separable).to_dict()
+        fl["vertex_normal_chi2"] = [round(float(v), 4)
+                                    for v in vertex_normal_chi2(result.vertices, sim.truth)]
     except Exception as e:  # noqa: BLE001 - a diagnostic's crash must not lose the scan
         return {"error": _err(e)}, None
     return fl, (time.perf_counter() - t0) * 1e3
@@ -401,6 +407,8 @@ def group_figures(outs: Sequence[_Outcome]) -> dict[str, Any]:
     agg = aggregate_matches(o.match for o in outs if o.match is not None)
     funnel = funnel_figures(_scan_funnel(o) for o in outs)
     funnel["funnel_errors"] = sum(o.funnel is not None and "error" in o.funnel for o in outs)
+    funnel["vertex_normals"] = vertex_normal_figures(
+        [v for o in outs if o.funnel is not None for v in o.funnel.get("vertex_normal_chi2", [])])
     return {"n_scenes": len({o.index for o in outs}), **agg,
             "errors": sum(o.status == "error" for o in outs),
             "timeouts": sum(o.status == "timeout" for o in outs),
@@ -813,6 +821,16 @@ def funnel_line(fig: dict[str, Any]) -> str:
             + (f", funnel errors {f['funnel_errors']}" if f.get("funnel_errors") else ""))
 
 
+def vertex_normal_line(fig: dict[str, Any]) -> str:
+    """One group's vertex-normal calibration
+    (:func:`boxloc.evaluate.funnel.vertex_normal_figures`)."""
+    v = (fig.get("funnel") or {}).get("vertex_normals")
+    if not v or not v["n"]:
+        return "no vertex at an exposed top's corner"
+    return (f"{v['n']} vertices: median {v['median']:.2f}, "
+            f"beyond the 1 % value {v['beyond_p99']:.3f}")
+
+
 def print_funnel(report: dict[str, Any], console: Any) -> None:
     """The loss line of every sensor and of both overall scopes."""
     from rich.markup import escape
@@ -826,6 +844,11 @@ def print_funnel(report: dict[str, Any], console: Any) -> None:
     width = max(len(name) for name, _ in rows)
     for name, fig in rows:
         console.print(escape(f"  {name:<{width}}  {funnel_line(fig)}"), soft_wrap=True)
+    console.print(escape(
+        "vertex normals at a true top's corner against its normal, over their covariance "
+        f"(chi2(2) if calibrated: median {CHI2_2_MEDIAN:.2f}, 1 % beyond {CHI2_2_P99:.2f}):"))
+    for name, fig in rows:
+        console.print(escape(f"  {name:<{width}}  {vertex_normal_line(fig)}"), soft_wrap=True)
 
 
 def print_targets(report: dict[str, Any], console: Any, title: str) -> None:
