@@ -466,6 +466,27 @@ def matrix_cells(r: dict[str, Any]) -> str:
     return table(["sensor/kind", *MATRIX_HEAD[1:]], _matrix_rows(rows))
 
 
+def matrix_normals(r: dict[str, Any]) -> str:
+    """The vertex normals' calibration per sensor: chi2(2) of each normal's error over its
+    own covariance at a true top's corner (``funnel.vertex_normals``)."""
+    from boxloc.evaluate.funnel import CHI2_2_MEDIAN, CHI2_2_P99
+
+    held = r["held_out"]["sensor"]
+    g = r["groups"]
+    groups = [(s + (" (held out)" if s == held else ""), g["sensors"][s]) for s in r["sensors"]
+              if s in g["sensors"]]
+    groups += [(f"**all but {held}**", g["overall"]["development"]),
+               ("**all sensors**", g["overall"]["all"])]
+    rows = []
+    for label, fig in groups:
+        v = (fig.get("funnel") or {}).get("vertex_normals") or {}
+        rows.append([label, num(v.get("n")), num(v.get("median"), 2),
+                     num(v.get("beyond_p99"), 3)])
+    rows.append(["calibrated (chi2(2))", "", f"{CHI2_2_MEDIAN:.2f}", "0.010"])
+    return table(["sensor", "vertices at a true top's corner", "median chi2",
+                  f"beyond {CHI2_2_P99:.2f} (chi2(2)'s 1 % value)"], rows)
+
+
 def _stage_table(stages: dict[str, Any], methods: dict[str, dict[str, Any]]) -> str:
     names: list[str] = []
     for m in methods.values():
@@ -984,7 +1005,8 @@ def footprint_channels(r: dict[str, Any], **_uses: Any) -> str:
 
 RENDERERS: dict[str, dict[str, Callable[..., str]]] = {
     "matrix": {"summary": matrix_summary, "targets": matrix_targets, "kinds": matrix_kinds,
-               "cells": matrix_cells, "stages": matrix_stages},
+               "cells": matrix_cells, "stages": matrix_stages,
+               "normals": matrix_normals},
     "real": {"summary": real_summary, "targets": real_targets, "draws": real_draws,
              "inputs": real_inputs, "stages": real_stages},
     "sim": {"summary": sim_summary, "kinds": sim_kinds, "draws": sim_draws,

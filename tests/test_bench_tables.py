@@ -279,6 +279,18 @@ def test_tables_are_generated_from_the_reports(checkout: Path, tmp_path: Path) -
     assert "No report yet" not in bench
 
 
+def test_the_vertex_normals_table_shows_each_sensor_against_chi2() -> None:
+    rep = copy.deepcopy(matrix_report())
+    rep["groups"]["sensors"]["laser"]["funnel"] = {
+        "vertex_normals": {"n": 40, "median": 4.6, "beyond_p99": 0.275}}
+    out = bt.matrix_normals(rep)
+    assert "| laser | 40 | 4.60 | 0.275 |" in out
+    # a group without vertices (or a report from before the check) shows empty cells
+    assert "| tof (held out) | – | – | – |" in out
+    # the reference row: chi2(2)'s median and 1 % tail
+    assert "| calibrated (chi2(2)) |  | 1.39 | 0.010 |" in out and "beyond 9.21" in out
+
+
 def test_committed_copies_are_trimmed_and_stamped(checkout: Path, tmp_path: Path) -> None:
     assert _ingest_all(checkout, tmp_path) == 0
     results = checkout / "docs" / "results"
