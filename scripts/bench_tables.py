@@ -468,8 +468,10 @@ def matrix_cells(r: dict[str, Any]) -> str:
 
 def matrix_normals(r: dict[str, Any]) -> str:
     """The vertex normals' calibration per sensor: chi2(2) of each normal's error over its
-    own covariance at a true top's corner (``funnel.vertex_normals``)."""
-    from boxloc.evaluate.funnel import CHI2_2_MEDIAN, CHI2_2_P99
+    own covariance at a true top's corner (``funnel.vertex_normals``); and of the lines
+    along the tops' sides, their direction out of the top's plane over its sigma, N(0, 1),
+    jump and crease lines apart (``funnel.line_directions``)."""
+    from boxloc.evaluate.funnel import CHI2_2_MEDIAN, CHI2_2_P99, LINE_GROUPS, Z_MEDIAN, Z_P99
 
     held = r["held_out"]["sensor"]
     g = r["groups"]
@@ -479,12 +481,20 @@ def matrix_normals(r: dict[str, Any]) -> str:
                ("**all sensors**", g["overall"]["all"])]
     rows = []
     for label, fig in groups:
-        v = (fig.get("funnel") or {}).get("vertex_normals") or {}
-        rows.append([label, num(v.get("n")), num(v.get("median"), 2),
-                     num(v.get("beyond_p99"), 3)])
-    rows.append(["calibrated (chi2(2))", "", f"{CHI2_2_MEDIAN:.2f}", "0.010"])
-    return table(["sensor", "vertices at a true top's corner", "median chi2",
-                  f"beyond {CHI2_2_P99:.2f} (chi2(2)'s 1 % value)"], rows)
+        f = fig.get("funnel") or {}
+        v = f.get("vertex_normals") or {}
+        row = [label, num(v.get("n")), num(v.get("median"), 2), num(v.get("beyond_p99"), 3)]
+        for kind in LINE_GROUPS:
+            g = (f.get("line_directions") or {}).get(kind) or {}
+            row += [num(g.get("n")), num(g.get("median_abs"), 2), num(g.get("beyond_p99"), 3)]
+        rows.append(row)
+    rows.append(["calibrated", "", f"{CHI2_2_MEDIAN:.2f}", "0.010",
+                 *(["", f"{Z_MEDIAN:.2f}", "0.010"] * len(LINE_GROUPS))])
+    head = ["sensor", "vertices at a true top's corner", "median chi2(2)",
+            f"beyond {CHI2_2_P99:.2f}"]
+    for kind in LINE_GROUPS:
+        head += [f"{kind} lines along its sides", "median abs(z)", f"beyond {Z_P99:.2f}"]
+    return table(head, rows)
 
 
 def _stage_table(stages: dict[str, Any], methods: dict[str, dict[str, Any]]) -> str:

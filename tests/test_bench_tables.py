@@ -282,13 +282,16 @@ def test_tables_are_generated_from_the_reports(checkout: Path, tmp_path: Path) -
 def test_the_vertex_normals_table_shows_each_sensor_against_chi2() -> None:
     rep = copy.deepcopy(matrix_report())
     rep["groups"]["sensors"]["laser"]["funnel"] = {
-        "vertex_normals": {"n": 40, "median": 4.6, "beyond_p99": 0.275}}
+        "vertex_normals": {"n": 40, "median": 4.6, "beyond_p99": 0.275},
+        "line_directions": {"jump": {"n": 12, "median_abs": 1.67, "beyond_p99": 0.39},
+                            "crease": {"n": 30, "median_abs": 0.41, "beyond_p99": 0.0}}}
     out = bt.matrix_normals(rep)
-    assert "| laser | 40 | 4.60 | 0.275 |" in out
+    assert "| laser | 40 | 4.60 | 0.275 | 12 | 1.67 | 0.390 | 30 | 0.41 | 0.000 |" in out
     # a group without vertices (or a report from before the check) shows empty cells
-    assert "| tof (held out) | – | – | – |" in out
-    # the reference row: chi2(2)'s median and 1 % tail
-    assert "| calibrated (chi2(2)) |  | 1.39 | 0.010 |" in out and "beyond 9.21" in out
+    assert "| tof (held out) | – | – | – | – | – | – | – | – | – |" in out
+    # the reference row: chi2(2)'s and N(0, 1)'s medians and 1 % tails
+    assert "| calibrated |  | 1.39 | 0.010 |  | 0.67 | 0.010 |  | 0.67 | 0.010 |" in out
+    assert "beyond 9.21" in out and "beyond 2.58" in out and "jump lines" in out
 
 
 def test_committed_copies_are_trimmed_and_stamped(checkout: Path, tmp_path: Path) -> None:

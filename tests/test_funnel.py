@@ -350,3 +350,45 @@ def test_vertices_far_from_every_exposed_corner_do_not_count(single: tuple[Any, 
     fig = fn.vertex_normal_figures([0.5, 1.0, 20.0, 30.0])
     assert fig["n"] == 4 and fig["median"] == pytest.approx(10.5)
     assert fig["beyond_p99"] == pytest.approx(0.5)
+
+
+# --- the lines' direction calibration -------------------------------------------------------
+
+
+def _one_line_along(lines: Any, a: np.ndarray, b: np.ndarray, turn: np.ndarray | None = None
+                    ) -> Any:
+    """``lines``' first line moved onto the segment a-b (its covariance and kind kept),
+    its direction turned by the vector ``turn`` (then renormalized) if given."""
+    d = (b - a) / np.linalg.norm(b - a)
+    if turn is not None:
+        d = (d + turn) / np.linalg.norm(d + turn)
+    one = {f: getattr(lines, f)[:1].copy() for f in
+           ("points", "directions", "covariances", "starts", "ends", "kinds")}
+    one.update(points=(0.5 * (a + b))[None], directions=d[None], starts=a[None],
+               ends=b[None])
+    return dataclasses.replace(lines, **one)
+
+
+def test_a_line_turned_out_of_the_top_by_k_sigma_scores_k(single: tuple[Any, Any]) -> None:
+    s, r = single
+    z, kinds = fn.line_direction_z(r.lines, s.truth)
+    assert z.size >= 2 and np.all(np.isfinite(z)) and kinds.shape == z.shape
+    C, n = s.truth.corners[0], s.truth.normals[0] / np.linalg.norm(s.truth.normals[0])
+    on = _one_line_along(r.lines, C[0], C[1])
+    assert fn.line_direction_z(on, s.truth)[0] == pytest.approx([0.0], abs=1e-9)
+    sigma = float(np.sqrt(n @ on.covariances[0, 3:, 3:] @ n))
+    turned = _one_line_along(r.lines, C[0], C[1], turn=5.0 * sigma * n)
+    assert abs(fn.line_direction_z(turned, s.truth)[0][0]) == pytest.approx(5.0, rel=0.02)
+    # a line across the top (not along a side) and one far off it do not count
+    across = _one_line_along(r.lines, C[0], C[2])
+    far = _one_line_along(r.lines, C[0] + 0.3 * n, C[1] + 0.3 * n)
+    assert fn.line_direction_z(across, s.truth)[0].size == 0
+    assert fn.line_direction_z(far, s.truth)[0].size == 0
+
+
+def test_line_direction_figures_pool_jump_and_crease_lines_apart() -> None:
+    fig = fn.line_direction_figures([0.1, -3.0, 0.5, 2.0, -0.2], [1, 1, 2, 3, 4])
+    assert fig["jump"] == {"n": 2, "median_abs": pytest.approx(1.55), "beyond_p99": 0.5}
+    assert fig["crease"] == {"n": 2, "median_abs": pytest.approx(1.25), "beyond_p99": 0.0}
+    assert fn.line_direction_figures([], [])["jump"] == {
+        "n": 0, "median_abs": None, "beyond_p99": None}

@@ -48,7 +48,7 @@ from typing import Any
 import numpy as np
 
 from boxloc.evaluate.metrics import Match, match_surfaces, rect_iou_matrix
-from boxloc.products import DimensionSource, VerifyReason
+from boxloc.products import DimensionSource, EdgeKind, VerifyReason
 
 __all__ = [
     "EDGE_TOL_PX", "SIDE_SHOWN", "SIDE_SAMPLES", "SIDE_SPAN", "MIN_SIDES", "LINE_ANGLE_DEG",
@@ -56,6 +56,7 @@ __all__ = [
     "MAX_PLANE_OFFSET", "LossStage",
     "STAGE_NAMES", "NO_PRODUCTS", "FaceLosses", "loss_stages", "sides_shown",
     "separable_faces", "funnel_figures", "vertex_normal_chi2", "vertex_normal_figures",
+    "line_direction_z", "line_direction_figures", "LINE_GROUPS", "Z_MEDIAN", "Z_P99",
     "CHI2_2_MEDIAN", "CHI2_2_P99",
 ]
 
@@ -400,10 +401,16 @@ def separable_faces(truth: Any, sensor: Any, faces: Sequence[int] | np.ndarray |
 
 def _lines_along(lines: Any, corners: np.ndarray) -> np.ndarray:
     """(F, 4) bool: side k of face f has a 3D line along it (see the module docstring)."""
+    return _line_side_pairs(lines, corners).any(axis=0).reshape(corners.shape[0], 4)
+
+
+def _line_side_pairs(lines: Any, corners: np.ndarray) -> np.ndarray:
+    """(L, 4F) bool: line l lies along side k of face f (index 4f + k), within
+    :data:`LINE_ANGLE_DEG` and :data:`LINE_DIST` and overlapping :data:`LINE_OVERLAP`."""
     F = corners.shape[0]
     dirs = np.asarray(lines.directions, dtype=np.float64).reshape(-1, 3)
     if F == 0 or dirs.shape[0] == 0:
-        return np.zeros((F, 4), dtype=bool)
+        return np.zeros((dirs.shape[0], 4 * F), dtype=bool)
     a = corners.reshape(-1, 3)
     b = np.roll(corners, -1, axis=1).reshape(-1, 3)
     length = np.linalg.norm(b - a, axis=1)  # (K,)
@@ -420,8 +427,7 @@ def _lines_along(lines: Any, corners: np.ndarray) -> np.ndarray:
     e = np.einsum("lkc,kc->lk", le[:, None, :] - a[None], d)
     lo, hi = np.minimum(s, e), np.maximum(s, e)
     overlap = np.minimum(hi, length[None]) - np.maximum(lo, 0.0)
-    ok = parallel & (perp <= LINE_DIST) & (overlap > LINE_OVERLAP * length[None])
-    return ok.any(axis=0).reshape(F, 4)
+    return parallel & (perp <= LINE_DIST) & (overlap > LINE_OVERLAP * length[None])
 
 
 def _attempt_corners(hyps: Any) -> tuple[np.ndarray, np.ndarray]:
@@ -605,6 +611,79 @@ def vertex_normal_figures(chi2: Sequence[float] | np.ndarray) -> dict[str, Any]:
     return {"n": int(x.size),
             "median": float(np.median(x)) if x.size else None,
             "beyond_p99": float(np.mean(x > CHI2_2_P99)) if x.size else None}
+
+
+#: Line kinds :func:`line_direction_figures` pools apart: jump lines (a depth
+#: discontinuity, the edge on the nearer surface) and crease lines (a fold, either way).
+LINE_GROUPS: dict[str, tuple[int, ...]] = {
+    "jump": (EdgeKind.JUMP,), "crease": (EdgeKind.CREASE_CONVEX, EdgeKind.CREASE_CONCAVE)}
+#: |z| a calibrated N(0, 1) statistic exceeds half the time, and 1 % of the time.
+Z_MEDIAN = 0.6744897501960817
+Z_P99 = 2.5758293035489004
+
+
+def line_direction_z(lines: Any, truth: Any) -> tuple[np.ndarray, np.ndarray]:
+    """How far each line along a true top's side leaves the top's plane, over its sigma.
+
+    The vertex normals are cross products of line directions, so a line direction's error
+    out of the face's plane is what turns a normal. A line counts where it lies along a
+    side of a fully exposed face as the funnel's ``lines`` stage counts it
+    (:data:`LINE_ANGLE_DEG`, :data:`LINE_DIST`, :data:`LINE_OVERLAP`); of several faces,
+    the one whose side is nearest in angle. The statistic is the direction's component
+    along the face's normal over its standard deviation under the line's direction
+    covariance: N(0, 1) if that covariance is the true one (a true side lies in the plane).
+
+    Parameters
+    ----------
+    lines : LineSet
+        ``result.lines`` (``points``, ``directions``, ``starts``, ``ends``,
+        ``covariances``, ``kinds``).
+    truth : GroundTruth-like
+        ``corners``, ``normals`` and ``fully_exposed`` of the faces.
+
+    Returns
+    -------
+    z : (k,) float64
+        One per line that counts, in line order.
+    kinds : (k,) uint8
+        Their :class:`~boxloc.products.EdgeKind` (the support's majority).
+    """
+    exposed = np.flatnonzero(np.asarray(truth.fully_exposed, dtype=bool))
+    dirs = np.asarray(lines.directions, dtype=np.float64).reshape(-1, 3)
+    if not dirs.shape[0] or not exposed.size:
+        return np.zeros(0), np.zeros(0, np.uint8)
+    corners = np.asarray(truth.corners, dtype=np.float64).reshape(-1, 4, 3)[exposed]
+    pairs = _line_side_pairs(lines, corners)  # (L, 4F)
+    a = corners.reshape(-1, 3)
+    side = np.roll(corners, -1, axis=1).reshape(-1, 3) - a
+    side /= np.maximum(np.linalg.norm(side, axis=1), 1e-12)[:, None]
+    cos = np.where(pairs, np.abs(dirs @ side.T), -1.0)
+    best = np.argmax(cos, axis=1)
+    keep = cos[np.arange(len(dirs)), best] >= 0.0
+    if not keep.any():
+        return np.zeros(0), np.zeros(0, np.uint8)
+    fn = np.asarray(truth.normals, dtype=np.float64).reshape(-1, 3)[exposed]
+    n = fn[best[keep] // 4]
+    n /= np.linalg.norm(n, axis=1, keepdims=True)
+    Sd = np.asarray(lines.covariances, dtype=np.float64).reshape(-1, 6, 6)[keep, 3:, 3:]
+    var = np.einsum("ni,nij,nj->n", n, Sd, n)
+    z = np.einsum("ni,ni->n", dirs[keep], n) / np.sqrt(np.maximum(var, 1e-300))
+    return z, np.asarray(lines.kinds, dtype=np.uint8).reshape(-1)[keep]
+
+
+def line_direction_figures(z: Sequence[float] | np.ndarray, kinds: Sequence[int] | np.ndarray
+                           ) -> dict[str, Any]:
+    """Pool :func:`line_direction_z` over scans, per :data:`LINE_GROUPS`: ``n``, the median
+    |z| (N(0, 1): 0.674) and ``beyond_p99``, the fraction with |z| beyond 2.576 (0.01)."""
+    az = np.abs(np.asarray(z, dtype=np.float64).reshape(-1))
+    k = np.asarray(kinds, dtype=np.int64).reshape(-1)
+    out: dict[str, Any] = {}
+    for name, members in LINE_GROUPS.items():
+        x = az[np.isin(k, members)]
+        out[name] = {"n": int(x.size),
+                     "median_abs": float(np.median(x)) if x.size else None,
+                     "beyond_p99": float(np.mean(x > Z_P99)) if x.size else None}
+    return out
 
 
 # --- pooled over scans ----------------------------------------------------------------------

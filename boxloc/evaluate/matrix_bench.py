@@ -114,6 +114,8 @@ from boxloc.evaluate.funnel import (
     NO_PRODUCTS,
     STAGE_NAMES,
     funnel_figures,
+    line_direction_figures,
+    line_direction_z,
     loss_stages,
     separable_faces,
     vertex_normal_chi2,
@@ -307,6 +309,9 @@ def _funnel(result: Any, sim: Any, match: Match | None, separable: list[bool]
                          separable=separable).to_dict()
         fl["vertex_normal_chi2"] = [round(float(v), 4)
                                     for v in vertex_normal_chi2(result.vertices, sim.truth)]
+        z, kinds = line_direction_z(result.lines, sim.truth)
+        fl["line_direction_z"] = [round(float(v), 4) for v in z]
+        fl["line_kinds"] = [int(k) for k in kinds]
     except Exception as e:  # noqa: BLE001 - a diagnostic's crash must not lose the scan
         return {"error": _err(e)}, None
     return fl, (time.perf_counter() - t0) * 1e3
@@ -409,6 +414,9 @@ def group_figures(outs: Sequence[_Outcome]) -> dict[str, Any]:
     funnel["funnel_errors"] = sum(o.funnel is not None and "error" in o.funnel for o in outs)
     funnel["vertex_normals"] = vertex_normal_figures(
         [v for o in outs if o.funnel is not None for v in o.funnel.get("vertex_normal_chi2", [])])
+    fls = [o.funnel for o in outs if o.funnel is not None and "line_direction_z" in o.funnel]
+    funnel["line_directions"] = line_direction_figures(
+        [v for f in fls for v in f["line_direction_z"]], [k for f in fls for k in f["line_kinds"]])
     return {"n_scenes": len({o.index for o in outs}), **agg,
             "errors": sum(o.status == "error" for o in outs),
             "timeouts": sum(o.status == "timeout" for o in outs),
@@ -827,8 +835,14 @@ def vertex_normal_line(fig: dict[str, Any]) -> str:
     v = (fig.get("funnel") or {}).get("vertex_normals")
     if not v or not v["n"]:
         return "no vertex at an exposed top's corner"
-    return (f"{v['n']} vertices: median {v['median']:.2f}, "
-            f"beyond the 1 % value {v['beyond_p99']:.3f}")
+    out = (f"{v['n']} vertices: median {v['median']:.2f}, "
+           f"beyond the 1 % value {v['beyond_p99']:.3f}")
+    lines = (fig.get("funnel") or {}).get("line_directions") or {}
+    for name, g in lines.items():
+        if g["n"]:
+            out += (f"; {name} lines {g['n']}: median |z| {g['median_abs']:.2f}, "
+                    f"beyond 2.58 {g['beyond_p99']:.3f}")
+    return out
 
 
 def print_funnel(report: dict[str, Any], console: Any) -> None:
@@ -846,7 +860,9 @@ def print_funnel(report: dict[str, Any], console: Any) -> None:
         console.print(escape(f"  {name:<{width}}  {funnel_line(fig)}"), soft_wrap=True)
     console.print(escape(
         "vertex normals at a true top's corner against its normal, over their covariance "
-        f"(chi2(2) if calibrated: median {CHI2_2_MEDIAN:.2f}, 1 % beyond {CHI2_2_P99:.2f}):"))
+        f"(chi2(2) if calibrated: median {CHI2_2_MEDIAN:.2f}, 1 % beyond {CHI2_2_P99:.2f}); "
+        "lines along its sides out of its plane, over their sigma (N(0, 1) if calibrated: "
+        "median |z| 0.67, 1 % beyond 2.58):"))
     for name, fig in rows:
         console.print(escape(f"  {name:<{width}}  {vertex_normal_line(fig)}"), soft_wrap=True)
 
