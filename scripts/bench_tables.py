@@ -485,8 +485,8 @@ def matrix_normals(r: dict[str, Any]) -> str:
         v = f.get("vertex_normals") or {}
         row = [label, num(v.get("n")), num(v.get("median"), 2), num(v.get("beyond_p99"), 3)]
         for kind in LINE_GROUPS:
-            g = (f.get("line_directions") or {}).get(kind) or {}
-            row += [num(g.get("n")), num(g.get("median_abs"), 2), num(g.get("beyond_p99"), 3)]
+            lg = (f.get("line_directions") or {}).get(kind) or {}
+            row += [num(lg.get("n")), num(lg.get("median_abs"), 2), num(lg.get("beyond_p99"), 3)]
         rows.append(row)
     rows.append(["calibrated", "", f"{CHI2_2_MEDIAN:.2f}", "0.010",
                  *(["", f"{Z_MEDIAN:.2f}", "0.010"] * len(LINE_GROUPS))])

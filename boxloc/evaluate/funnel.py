@@ -607,10 +607,15 @@ def vertex_normal_figures(chi2: Sequence[float] | np.ndarray) -> dict[str, Any]:
     """Pool :func:`vertex_normal_chi2` over scans: ``n``, ``median`` (chi2(2): 1.386) and
     ``beyond_p99``, the fraction beyond chi2(2)'s 99th percentile (calibrated: 0.01);
     null medians and rates without a vertex."""
-    x = np.asarray(chi2, dtype=np.float64)
+    return _tail_figures(np.asarray(chi2, dtype=np.float64), CHI2_2_P99, "median")
+
+
+def _tail_figures(x: np.ndarray, limit: float, median_key: str) -> dict[str, Any]:
+    """``n``, the median (under ``median_key``) and the fraction beyond ``limit`` of x;
+    null figures for none."""
     return {"n": int(x.size),
-            "median": float(np.median(x)) if x.size else None,
-            "beyond_p99": float(np.mean(x > CHI2_2_P99)) if x.size else None}
+            median_key: float(np.median(x)) if x.size else None,
+            "beyond_p99": float(np.mean(x > limit)) if x.size else None}
 
 
 #: Line kinds :func:`line_direction_figures` pools apart: jump lines (a depth
@@ -677,13 +682,8 @@ def line_direction_figures(z: Sequence[float] | np.ndarray, kinds: Sequence[int]
     |z| (N(0, 1): 0.674) and ``beyond_p99``, the fraction with |z| beyond 2.576 (0.01)."""
     az = np.abs(np.asarray(z, dtype=np.float64).reshape(-1))
     k = np.asarray(kinds, dtype=np.int64).reshape(-1)
-    out: dict[str, Any] = {}
-    for name, members in LINE_GROUPS.items():
-        x = az[np.isin(k, members)]
-        out[name] = {"n": int(x.size),
-                     "median_abs": float(np.median(x)) if x.size else None,
-                     "beyond_p99": float(np.mean(x > Z_P99)) if x.size else None}
-    return out
+    return {name: _tail_figures(az[np.isin(k, members)], Z_P99, "median_abs")
+            for name, members in LINE_GROUPS.items()}
 
 
 # --- pooled over scans ----------------------------------------------------------------------

@@ -113,6 +113,8 @@ from boxloc.evaluate.funnel import (
     CHI2_2_P99,
     NO_PRODUCTS,
     STAGE_NAMES,
+    Z_MEDIAN,
+    Z_P99,
     funnel_figures,
     line_direction_figures,
     line_direction_z,
@@ -841,7 +843,7 @@ def vertex_normal_line(fig: dict[str, Any]) -> str:
     for name, g in lines.items():
         if g["n"]:
             out += (f"; {name} lines {g['n']}: median |z| {g['median_abs']:.2f}, "
-                    f"beyond 2.58 {g['beyond_p99']:.3f}")
+                    f"beyond {Z_P99:.2f} {g['beyond_p99']:.3f}")
     return out
 
 
@@ -862,7 +864,7 @@ def print_funnel(report: dict[str, Any], console: Any) -> None:
         "vertex normals at a true top's corner against its normal, over their covariance "
         f"(chi2(2) if calibrated: median {CHI2_2_MEDIAN:.2f}, 1 % beyond {CHI2_2_P99:.2f}); "
         "lines along its sides out of its plane, over their sigma (N(0, 1) if calibrated: "
-        "median |z| 0.67, 1 % beyond 2.58):"))
+        f"median |z| {Z_MEDIAN:.2f}, 1 % beyond {Z_P99:.2f}):"))
     for name, fig in rows:
         console.print(escape(f"  {name:<{width}}  {vertex_normal_line(fig)}"), soft_wrap=True)
 
