@@ -428,14 +428,19 @@ MATRIX_HEAD = ["", "scans", "exposed tops", "TP / FP / FN", "precision", "recall
                "no-box scans with 0 surfaces", "false edge points per pixel (no box)"]
 
 
-def matrix_summary(r: dict[str, Any]) -> str:
+def _sensor_groups(r: dict[str, Any]) -> list[tuple[str, dict[str, Any]]]:
+    """The matrix report's groups per sensor (the held-out one marked), then both overall
+    scopes, with their row labels."""
     held = r["held_out"]["sensor"]
     g = r["groups"]
     rows = [(s + (" (held out)" if s == held else ""), g["sensors"][s]) for s in r["sensors"]
             if s in g["sensors"]]
-    rows += [(f"**all but {held}**", g["overall"]["development"]),
-             ("**all sensors**", g["overall"]["all"])]
-    return table(["sensor", *MATRIX_HEAD[1:-1]], _matrix_rows(rows, edges=False))
+    return rows + [(f"**all but {held}**", g["overall"]["development"]),
+                   ("**all sensors**", g["overall"]["all"])]
+
+
+def matrix_summary(r: dict[str, Any]) -> str:
+    return table(["sensor", *MATRIX_HEAD[1:-1]], _matrix_rows(_sensor_groups(r), edges=False))
 
 
 def matrix_targets(r: dict[str, Any]) -> str:
@@ -473,14 +478,8 @@ def matrix_normals(r: dict[str, Any]) -> str:
     jump and crease lines apart (``funnel.line_directions``)."""
     from boxloc.evaluate.funnel import CHI2_2_MEDIAN, CHI2_2_P99, LINE_GROUPS, Z_MEDIAN, Z_P99
 
-    held = r["held_out"]["sensor"]
-    g = r["groups"]
-    groups = [(s + (" (held out)" if s == held else ""), g["sensors"][s]) for s in r["sensors"]
-              if s in g["sensors"]]
-    groups += [(f"**all but {held}**", g["overall"]["development"]),
-               ("**all sensors**", g["overall"]["all"])]
     rows = []
-    for label, fig in groups:
+    for label, fig in _sensor_groups(r):
         f = fig.get("funnel") or {}
         v = f.get("vertex_normals") or {}
         row = [label, num(v.get("n")), num(v.get("median"), 2), num(v.get("beyond_p99"), 3)]
