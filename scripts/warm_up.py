@@ -18,7 +18,9 @@ otherwise build. Running the whole pipeline once on a small simulated scan (160 
 compiles every kernel with the argument types of any scan, since the stages convert their
 inputs to float64 and int64 arrays first; then the first ``boxloc locate`` after set-up
 loads compiled code, as the second does. Exit status 1 if a kernel was never called (a new
-kernel the scan here does not reach: make it reach it).
+kernel the scan here does not reach: make it reach it). A kernel called only by others whose
+entries are current while its own are not (a source changed and restored) is not a new
+kernel: its source's entries are removed and the warm-up runs again, once.
 
 Usage: python scripts/warm_up.py
 """
@@ -27,8 +29,10 @@ from __future__ import annotations
 
 import dataclasses
 import os
+import subprocess
 import sys
 import time
+from pathlib import Path
 from typing import Any
 
 
@@ -119,10 +123,41 @@ def warm_up() -> int:
     idle = sorted(n for n, k in found.items() if not k.signatures and not _cached(k))
     print(f"warm-up: {len(found)} numba kernels, {compiled} compiled and cached, {loaded} "
           f"loaded from the cache, in {time.perf_counter() - t0:.1f} s", file=sys.stderr)
+    if idle and not os.environ.get(_RETRY):
+        # numba keys a cache entry on its source file's stamp, per kernel: after a source is
+        # changed and restored, a caller's entry can be current and its callees' not, and a
+        # process that loads the caller never compiles them. Drop those files' entries and
+        # warm up again in a new process (this one has loaded the callers).
+        stale = _cache_files([found[n] for n in idle])
+        for f in stale:
+            f.unlink(missing_ok=True)
+        print(f"warm-up: {', '.join(idle)} not cached beside their callers: "
+              f"{len(stale)} cache files of their sources removed, warming up again",
+              file=sys.stderr)
+        return subprocess.run([sys.executable, *sys.argv], env={**os.environ, _RETRY: "1"},
+                              check=False).returncode
     if idle:
         print(f"warm-up: never called, so not cached: {', '.join(idle)}", file=sys.stderr)
         return 1
     return 0
+
+
+#: Set in the second warm-up a stale cache asks for (there is no third).
+_RETRY = "BOXLOC_WARM_UP_RETRY"
+
+
+def _cache_files(dispatchers: list[Any]) -> list[Path]:
+    """numba's cache files (index and data) of every kernel in the source files that hold
+    these dispatchers."""
+    out: set[Path] = set()
+    for k in dispatchers:
+        try:  # numba's private API, as _cached: where this kernel's entries are written
+            where = Path(k._cache._cache_path)
+        except Exception:  # noqa: BLE001 - nothing to remove then; the retry says so
+            continue
+        stem = Path(k.py_func.__code__.co_filename).stem
+        out.update(p for p in where.glob(f"{stem}.*") if p.suffix in (".nbi", ".nbc"))
+    return sorted(out)
 
 
 if __name__ == "__main__":
