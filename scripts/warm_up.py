@@ -35,6 +35,9 @@ import time
 from pathlib import Path
 from typing import Any
 
+#: Set in the second warm-up a stale cache asks for (there is no third).
+_RETRY = "BOXLOC_WARM_UP_RETRY"
+
 
 def kernels() -> dict[str, Any]:
     """Every numba dispatcher in the loaded boxloc modules, by qualified name."""
@@ -140,10 +143,6 @@ def warm_up() -> int:
         print(f"warm-up: never called, so not cached: {', '.join(idle)}", file=sys.stderr)
         return 1
     return 0
-
-
-#: Set in the second warm-up a stale cache asks for (there is no third).
-_RETRY = "BOXLOC_WARM_UP_RETRY"
 
 
 def _cache_files(dispatchers: list[Any]) -> list[Path]:

@@ -47,6 +47,7 @@ from typing import Any
 
 import numpy as np
 
+from boxloc.distributions import norm_isf
 from boxloc.evaluate.metrics import Match, match_surfaces, rect_iou_matrix
 from boxloc.products import DimensionSource, EdgeKind, VerifyReason
 
@@ -401,16 +402,17 @@ def separable_faces(truth: Any, sensor: Any, faces: Sequence[int] | np.ndarray |
 
 def _lines_along(lines: Any, corners: np.ndarray) -> np.ndarray:
     """(F, 4) bool: side k of face f has a 3D line along it (see the module docstring)."""
-    return _line_side_pairs(lines, corners).any(axis=0).reshape(corners.shape[0], 4)
+    return (_line_side_pairs(lines, corners) >= 0.0).any(axis=0).reshape(corners.shape[0], 4)
 
 
 def _line_side_pairs(lines: Any, corners: np.ndarray) -> np.ndarray:
-    """(L, 4F) bool: line l lies along side k of face f (index 4f + k), within
-    :data:`LINE_ANGLE_DEG` and :data:`LINE_DIST` and overlapping :data:`LINE_OVERLAP`."""
+    """(L, 4F): |cos| of the angle between line l and side k of face f (index 4f + k)
+    where the line lies along that side (within :data:`LINE_ANGLE_DEG` and
+    :data:`LINE_DIST`, overlapping :data:`LINE_OVERLAP` of it); -1 elsewhere."""
     F = corners.shape[0]
     dirs = np.asarray(lines.directions, dtype=np.float64).reshape(-1, 3)
     if F == 0 or dirs.shape[0] == 0:
-        return np.zeros((dirs.shape[0], 4 * F), dtype=bool)
+        return np.full((dirs.shape[0], 4 * F), -1.0)
     a = corners.reshape(-1, 3)
     b = np.roll(corners, -1, axis=1).reshape(-1, 3)
     length = np.linalg.norm(b - a, axis=1)  # (K,)
@@ -419,7 +421,8 @@ def _line_side_pairs(lines: Any, corners: np.ndarray) -> np.ndarray:
     lp = np.asarray(lines.points, dtype=np.float64).reshape(-1, 3)
     ls = np.asarray(lines.starts, dtype=np.float64).reshape(-1, 3)
     le = np.asarray(lines.ends, dtype=np.float64).reshape(-1, 3)
-    parallel = np.abs(dirs @ d.T) >= math.cos(math.radians(LINE_ANGLE_DEG))  # (L, K)
+    cos = np.abs(dirs @ d.T)  # (L, K)
+    parallel = cos >= math.cos(math.radians(LINE_ANGLE_DEG))
     r = mid[None, :, :] - lp[:, None, :]  # (L, K, 3)
     along = np.einsum("lkc,lc->lk", r, dirs)
     perp = np.linalg.norm(r - along[..., None] * dirs[:, None, :], axis=-1)
@@ -427,7 +430,8 @@ def _line_side_pairs(lines: Any, corners: np.ndarray) -> np.ndarray:
     e = np.einsum("lkc,kc->lk", le[:, None, :] - a[None], d)
     lo, hi = np.minimum(s, e), np.maximum(s, e)
     overlap = np.minimum(hi, length[None]) - np.maximum(lo, 0.0)
-    return parallel & (perp <= LINE_DIST) & (overlap > LINE_OVERLAP * length[None])
+    along_side = parallel & (perp <= LINE_DIST) & (overlap > LINE_OVERLAP * length[None])
+    return np.where(along_side, cos, -1.0)
 
 
 def _attempt_corners(hyps: Any) -> tuple[np.ndarray, np.ndarray]:
@@ -623,8 +627,8 @@ def _tail_figures(x: np.ndarray, limit: float, median_key: str) -> dict[str, Any
 LINE_GROUPS: dict[str, tuple[int, ...]] = {
     "jump": (EdgeKind.JUMP,), "crease": (EdgeKind.CREASE_CONVEX, EdgeKind.CREASE_CONCAVE)}
 #: |z| a calibrated N(0, 1) statistic exceeds half the time, and 1 % of the time.
-Z_MEDIAN = 0.6744897501960817
-Z_P99 = 2.5758293035489004
+Z_MEDIAN = float(norm_isf(0.25))
+Z_P99 = float(norm_isf(0.005))
 
 
 def line_direction_z(lines: Any, truth: Any) -> tuple[np.ndarray, np.ndarray]:
@@ -658,11 +662,7 @@ def line_direction_z(lines: Any, truth: Any) -> tuple[np.ndarray, np.ndarray]:
     if not dirs.shape[0] or not exposed.size:
         return np.zeros(0), np.zeros(0, np.uint8)
     corners = np.asarray(truth.corners, dtype=np.float64).reshape(-1, 4, 3)[exposed]
-    pairs = _line_side_pairs(lines, corners)  # (L, 4F)
-    a = corners.reshape(-1, 3)
-    side = np.roll(corners, -1, axis=1).reshape(-1, 3) - a
-    side /= np.maximum(np.linalg.norm(side, axis=1), 1e-12)[:, None]
-    cos = np.where(pairs, np.abs(dirs @ side.T), -1.0)
+    cos = _line_side_pairs(lines, corners)  # (L, 4F)
     best = np.argmax(cos, axis=1)
     keep = cos[np.arange(len(dirs)), best] >= 0.0
     if not keep.any():

@@ -414,11 +414,12 @@ def group_figures(outs: Sequence[_Outcome]) -> dict[str, Any]:
     agg = aggregate_matches(o.match for o in outs if o.match is not None)
     funnel = funnel_figures(_scan_funnel(o) for o in outs)
     funnel["funnel_errors"] = sum(o.funnel is not None and "error" in o.funnel for o in outs)
+    fls = [o.funnel for o in outs if o.funnel is not None]
     funnel["vertex_normals"] = vertex_normal_figures(
-        [v for o in outs if o.funnel is not None for v in o.funnel.get("vertex_normal_chi2", [])])
-    fls = [o.funnel for o in outs if o.funnel is not None and "line_direction_z" in o.funnel]
+        [v for f in fls for v in f.get("vertex_normal_chi2", [])])
     funnel["line_directions"] = line_direction_figures(
-        [v for f in fls for v in f["line_direction_z"]], [k for f in fls for k in f["line_kinds"]])
+        [v for f in fls for v in f.get("line_direction_z", [])],
+        [k for f in fls for k in f.get("line_kinds", [])])
     return {"n_scenes": len({o.index for o in outs}), **agg,
             "errors": sum(o.status == "error" for o in outs),
             "timeouts": sum(o.status == "timeout" for o in outs),
