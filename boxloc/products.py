@@ -61,10 +61,10 @@ class DimensionSource(IntEnum):
     #: like one; never a surface, and never reported as ambiguous (its far side is the
     #: list's, not the scan's)
     ROW = 7
-    #: half of a candidate that failed because a seam showed at its middle
-    #: (VERIFY_SEAM_MIDLINE rejected along that axis: two boxes side by side): the box at
-    #: the vertex ends at that seam, so the half next to it is tried next, within the
-    #: vertex's budget
+    #: half (or third) of a candidate that failed because a seam showed at its middle (or
+    #: seams at its thirds: VERIFY_SEAM_MIDLINE rejected along that axis, two or three
+    #: boxes side by side): the box at the vertex ends at the nearest seam, so the part
+    #: next to it is tried next, within the vertex's budget
     MIDLINE = 8
     #: one part of a flat region split, without a carton list, at the seams a carton size
     #: the scan shows implies (``SEEN_CARTON``: a verified box that a rectangle beside it

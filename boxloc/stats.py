@@ -208,11 +208,13 @@ class TestKind(IntEnum):
     #: stands taller than tape or a label could (a drop to the floor is accepted too);
     #: VERIFY_RAISED_BEYOND needs that, with its front fraction, to reject the side
     VERIFY_RAISED_HEIGHT = 41
-    #: verification: no seam at the middle of attempt a's face along axis b (0: the line
-    #: u = width / 2, 1: v = length / 2), tested where each half could be a box (at least
-    #: ``MIDLINE_HALF`` ``min_edge``; with a carton list, a listed size): statistic = the
-    #: groove z there (NaN: no points), critical = Bonferroni z at alpha over the few
-    #: positions tried. Rejected: two boxes side by side (reason ``INTERIOR_SEAM``)
+    #: verification: no seams where attempt a's face would have them were it n equal
+    #: boxes in a row along axis b % 2, n = b // 2 + 2 (b 0: the line u = width / 2, 1:
+    #: v = length / 2; 2, 3: the thirds along u, v; 4, 5: the quarters), tested where each
+    #: part could be a box (at least ``MIDLINE_HALF`` ``min_edge``; with a carton list, a
+    #: listed size): statistic = the lines' groove z summed over sqrt(n - 1) (NaN: no
+    #: points), critical = Bonferroni z at alpha over the few positions tried. Rejected:
+    #: n boxes side by side (reason ``INTERIOR_SEAM``)
     VERIFY_SEAM_MIDLINE = 42
     #: height: a measurement of attempt a's box height reaches deeper than any carton is
     #: tall (b = the side 0-3 of a side face, 4 + the side of a step): statistic = the

@@ -419,3 +419,18 @@ def test_a_candidate_with_a_seam_at_its_middle_is_followed_by_its_half(monkeypat
     # a candidate rejected otherwise (its midline shows nothing) is not halved
     assert hyp._midline_half(hyp._Attempt(DimensionSource.EDGES, -1, 0.6, 0.4, 0.0, 0.0,
                                           outcome=_outcome([], accepted=False))) is None
+    # one rejected by the seams at its thirds along x (b = 2) is followed by its third
+    thirds = TestTable.decision(TestKind.VERIFY_SEAM_MIDLINE, -1, [0, 2], [1.0, 4.7],
+                                [2.9, 2.9], [True, False], 0.01)
+    att = hyp._Attempt(DimensionSource.EDGES, -1, 0.45, 0.4, 0.0, 0.0,
+                       outcome=_failed(VerifyReason.INTERIOR_SEAM, [thirds], 0.01))
+    part = hyp._midline_half(att)
+    assert part is not None and (part.width, part.length) == (0.15, 0.4)
+    # the middle and the quarters along y both showing: halved (the fewest parts), and the
+    # half is halved again when its own middle shows
+    both = TestTable.decision(TestKind.VERIFY_SEAM_MIDLINE, -1, [1, 5], [5.0, 4.0],
+                              [2.9, 2.9], [False, False], 0.01)
+    att = hyp._Attempt(DimensionSource.EDGES, -1, 0.3, 0.6, 0.0, 0.0,
+                       outcome=_failed(VerifyReason.INTERIOR_SEAM, [both], 0.01))
+    part = hyp._midline_half(att)
+    assert part is not None and (part.width, part.length) == (0.3, 0.3)

@@ -579,8 +579,9 @@ def test_a_faint_seam_at_the_middle_of_two_boxes_rejects_the_pair():
         crossed += _test_seam_interior(fp, hyp)[0]
         s, rows = _test_seam_midline(fp, hyp, min_edge=0.15)
         split += s
-        # only the axis whose halves could be boxes: 0.09 m across is no box
-        assert len(rows) == 1 and list(rows[0].b) == [1]
+        # only the axis whose parts could be boxes: 0.09 m across is no box (along v the
+        # halves, b = 1, and the thirds, b = 3, of 0.167 m)
+        assert len(rows) == 1 and list(rows[0].b) == [1, 3]
         assert rows[0].kind[0] == TestKind.VERIFY_SEAM_MIDLINE
     assert split >= 15 and crossed <= 2  # 17 and 0 of these 20
 
@@ -592,6 +593,42 @@ def test_the_middle_of_one_flat_top_keeps_its_level():
     fired = [_test_seam_midline(_midline_face(rng, 0.32, 0.5), hyp, min_edge=0.15)[0]
              for _ in range(200)]
     assert sum(fired) <= 8  # two axes at 1 % each: about 4 of 200 by chance (2 here)
+
+
+def test_three_boxes_in_a_row_show_their_seams_at_the_thirds():
+    # three 0.15 x 0.4 m tops side by side, faint seams (0.53 sigma) at the thirds and none
+    # at the middle: the thirds' lines together reject the rectangle over all three (b = 3:
+    # the thirds along v); one top of the same size keeps its level
+    from boxloc.stages.verify import _test_seam_midline
+    hyp = _midline_hyp(0.4, 0.45)
+    rng = np.random.default_rng(11)
+    split = fired = 0
+    for _ in range(20):
+        fp = _midline_face(rng, 0.4, 0.45, groove_v=0.15, depth=0.0008)
+        g = np.abs(fp.v - 0.30) <= 0.004  # the second seam
+        fp = dataclasses.replace(fp, w=fp.w - 0.0008 * g)
+        s, rows = _test_seam_midline(fp, hyp, min_edge=0.15)
+        r = rows[0]
+        thirds = list(r.b).index(3)
+        split += s and not r.accepted[thirds]
+        assert r.accepted[list(r.b).index(1)] or r.statistic[list(r.b).index(1)] < 4.0
+        fired += _test_seam_midline(_midline_face(rng, 0.4, 0.45), hyp, min_edge=0.15)[0]
+    assert split >= 15
+    assert fired <= 2
+
+
+def test_the_parts_tried_are_those_that_could_be_boxes():
+    # a 0.6 m side: halves, thirds and quarters of 0.15 m (>= 0.9 min_edge); 0.4 m across:
+    # halves only; with a carton list only the tilings whose part is a listed size
+    from boxloc.stages.verify import MAX_TILING_PARTS, _test_seam_midline
+    assert MAX_TILING_PARTS == 4
+    rng = np.random.default_rng(12)
+    hyp = _midline_hyp(0.4, 0.6)
+    fp = _midline_face(rng, 0.4, 0.6)
+    _, rows = _test_seam_midline(fp, hyp, min_edge=0.15)
+    assert list(rows[0].b) == [0, 1, 3, 5]
+    _, rows = _test_seam_midline(fp, hyp, 0.15, ((0.15, 0.4, 0.2),), 0.01)
+    assert list(rows[0].b) == [5]  # 0.6 / 4 x 0.4
 
 
 def test_the_middle_is_tested_only_where_the_halves_could_be_boxes():

@@ -523,7 +523,8 @@ def _seam_peaks(R: Rectangle, ctx: _Context, work: _VertexWork, px: np.ndarray,
     vc = ctx.verify_ctx
     work.pixels += vc.pixels_in(R.origin, R.x_axis, R.y_axis, (0.0, U), (0.0, V))
     fp = face_points(vc.points, vc.valid, vc.sigma, vc.project, R.origin, R.x_axis, R.y_axis,
-                     R.normal, (0.0, U), (0.0, V), spacing, cfg.alpha, cfg.noise.row_corr)
+                     R.normal, (0.0, U), (0.0, V), spacing, cfg.alpha, cfg.noise.row_corr,
+                     vc.gain)
     lo = 0.9 * cfg.min_edge
     found: list[np.ndarray] = []
     spreads: list[tuple[float, ...]] = []
@@ -608,7 +609,7 @@ def _seams_near_max(R: Rectangle, ctx: _Context, work: _VertexWork, b: int, acro
     vc = ctx.verify_ctx
     work.pixels += vc.pixels_in(R.origin, R.x_axis, R.y_axis, ur, vr)
     fp = face_points(vc.points, vc.valid, vc.sigma, vc.project, R.origin, R.x_axis, R.y_axis,
-                     R.normal, ur, vr, spacing, cfg.alpha, cfg.noise.row_corr)
+                     R.normal, ur, vr, spacing, cfg.alpha, cfg.noise.row_corr, vc.gain)
     if not len(fp):
         return np.zeros(0)
     coord = fp.u if b == 0 else fp.v
@@ -847,10 +848,13 @@ def _try_in_turn(R: Rectangle, ctx: _Context, work: _VertexWork, cands: list[_At
 
 
 def _midline_half(att: _Attempt) -> _Attempt | None:
-    """The half at the vertex of a candidate whose verification found a seam at its middle
-    (VERIFY_SEAM_MIDLINE rejected along x, y or both: two boxes, or four, side by side):
-    that seam is the box's far side, as significant as the test that rejected the whole.
-    Its own verification tests it as a side. None where no midline row rejected."""
+    """The part at the vertex of a candidate whose verification found the seams of n equal
+    boxes in a row (VERIFY_SEAM_MIDLINE rejected along x, y or both: two boxes, or four,
+    side by side; or three in a row): the nearest seam is the box's far side, as
+    significant as the test that rejected the whole. Its own verification tests it as a
+    side. Along each axis the fewest parts whose seams showed: the quarters' lines include
+    the middle, whose seam alone can lift their sum, and four boxes are halved twice.
+    None where no midline row rejected."""
     out = att.outcome
     if out is None or out.reason != VerifyReason.INTERIOR_SEAM:
         return None
@@ -858,8 +862,9 @@ def _midline_half(att: _Attempt) -> _Attempt | None:
     split = rows.b[~rows.accepted]
     if not len(split):
         return None
-    w = 0.5 * att.width if 0 in split else att.width
-    ln = 0.5 * att.length if 1 in split else att.length
+    parts = [min((int(b) // 2 + 2 for b in split if b % 2 == axis), default=1)
+             for axis in (0, 1)]
+    w, ln = att.width / parts[0], att.length / parts[1]
     k = int(np.argmax(np.where(rows.accepted, -np.inf, rows.statistic - rows.critical)))
     return _Attempt(DimensionSource.MIDLINE, -1, w, ln, float(rows.statistic[k]),
                     float(rows.critical[k]))
@@ -1364,7 +1369,7 @@ def _region_seams(R: Rectangle, att: _Attempt, ctx: _Context) -> _Seam:
     spacing = vc.spacing_at(R.origin + 0.5 * att.width * R.x_axis + 0.5 * att.length * R.y_axis)
     fp = face_points(vc.points, vc.valid, vc.sigma, vc.project, R.origin, R.x_axis, R.y_axis,
                      R.normal, (0.0, att.width), (0.0, att.length), spacing, ctx.config.alpha,
-                     ctx.config.noise.row_corr)
+                     ctx.config.noise.row_corr, vc.gain)
     spreads: dict[int, tuple[float, ...]] = {}
     memo: dict[tuple[int, float, float, float, bool], tuple[float, float]] = {}
 
@@ -1871,7 +1876,7 @@ def _seams_in_line(ctx: _Context, works: list[_VertexWork]) -> None:
         spacing = vc.spacing_at(origin + 0.5 * a.width * xa + 0.5 * a.length * ya)
         fp = face_points(vc.points, vc.valid, vc.sigma, vc.project, origin, xa, ya, n,
                          (0.0, a.width), (0.0, a.length), spacing, cfg.alpha,
-                         cfg.noise.row_corr)
+                         cfg.noise.row_corr, vc.gain)
         if not len(fp):
             continue
         alpha = cfg.alpha / len(lines)

@@ -124,6 +124,7 @@ def face_points(
     spacing: float,
     alpha: float,
     row_corr: float = 0.0,
+    gain: np.ndarray | None = None,
 ) -> FacePoints:
     """The range points of a rectangular region of a face's plane, with their residuals.
 
@@ -146,6 +147,17 @@ def face_points(
         Significance level; a point is on the face if its distance to the plane passes a
         z test Bonferroni-corrected over the region's points (a groove a few sigma deep
         stays in, another surface does not).
+    row_corr : float
+        :attr:`FacePoints.row_corr`.
+    gain : (H, W) float64 >= 1, optional
+        How much louder than the scan's typical level the noise is around each pixel
+        (:func:`boxloc.stages.edges.local_scale`). Real depth noise is heavy-tailed the way
+        a scale mixture is: its amplitude wanders over a face (a stereo matcher's quality
+        with the texture), and one scale for the whole face makes a seam of every window
+        in a louder patch (true active-stereo tops crossed a seam on 2.8 % of their axes
+        at a level of 1 %, development matrix seed 2). Each residual is divided by its
+        pixel's gain (the points' noise then has one scale), and a point's on-plane test
+        allows for it.
 
     Returns
     -------
@@ -165,6 +177,14 @@ def face_points(
     P, s, D = _gather(np.ascontiguousarray(points, np.float64).reshape(-1, 3),
                       np.ascontiguousarray(sigma, np.float64).reshape(-1), flat,
                       np.asarray(origin, np.float64))
+    g = None
+    if gain is not None:
+        g = np.ascontiguousarray(gain, np.float64).reshape(-1)[flat]
+        if (g == 1.0).all():
+            g = None  # the scan's typical level everywhere: the residuals as they are
+    s_model = s
+    if g is not None:
+        s = s * g
     w = D @ normal
     zc = float(norm_isf(alpha / (2.0 * len(flat))))
     # the face's own points first (relative to the given plane, tilt allowed for by the
@@ -176,13 +196,42 @@ def face_points(
     _, V = np.linalg.eigh(X1.T @ X2)
     nf = V[:, 0] if V[:, 0] @ normal > 0 else -V[:, 0]
     wf = (P - c) @ nf
+    wf_all = wf
     n_on, wf, mad, s_med, Don, r_on = _kept(wf, s, zc, D, rr)
     if n_on < 3:
         return empty
+    if g is not None:  # the residuals in units of the scan's typical level (kernels' median)
+        on_f = np.abs(wf_all) <= zc * s  # _kept's points
+        wf = wf / g[on_f]
+        mad = _median(np.abs(wf - _median(wf)))
+        s_med = _median(s_model[on_f])
     # the points' own scatter, but never below the noise model (a noise-free or quantized
     # surface would otherwise make seams of rounding)
     scale = max(float(1.4826 * mad), float(s_med), 1e-9)
+    # each point's place on the face from its pixel's ray, not from the noisy point: range
+    # noise moves a point along its ray, which on a tilted face moves its orthogonal
+    # projection across the face too, in step with its residual, and a window then takes
+    # in the boundary's points by the sign of their noise
+    Don = _on_plane_along_rays(Don, np.asarray(origin, np.float64), c, nf)
     return FacePoints(Don @ x_axis, Don @ y_axis, wf, scale, spacing, r_on, row_corr)
+
+
+def _on_plane_along_rays(D: np.ndarray, origin: np.ndarray, c: np.ndarray, nf: np.ndarray
+                         ) -> np.ndarray:
+    """Points ``origin + D`` (n, 3) moved along their rays from the sensor onto the plane
+    through ``c`` with unit normal ``nf``, as offsets from ``origin`` again. A ray within
+    a degree of the plane keeps its point (the intersection is ill-conditioned there)."""
+    P = D + origin
+    r = np.sqrt(np.einsum("ij,ij->i", P, P))
+    with np.errstate(invalid="ignore", divide="ignore"):
+        cos = (P @ nf) / r
+        t = np.where(np.abs(cos) > _MIN_RAY_COS, float(c @ nf) / cos, r)
+        scale = np.where(r > 0, t / r, 1.0)
+    return P * scale[:, None] - origin
+
+
+#: Sine of the angle below which a ray is too close to a face's plane to be moved onto it.
+_MIN_RAY_COS = math.sin(math.radians(1.0))
 
 
 # --- face_points' kernels: each NumPy expression it replaces, bit for bit --------------------
