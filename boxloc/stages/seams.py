@@ -154,10 +154,11 @@ def face_points(
         (:func:`boxloc.stages.edges.local_scale`). Real depth noise is heavy-tailed the way
         a scale mixture is: its amplitude wanders over a face (a stereo matcher's quality
         with the texture), and one scale for the whole face makes a seam of every window
-        in a louder patch (true active-stereo tops crossed a seam on 2.8 % of their axes
-        at a level of 1 %, development matrix seed 2). Each residual is divided by its
+        in a louder patch (a patch three times louder on a tilted plane: false seams in at
+        least 10 of 20 draws, ``tests/test_seams.py``). Each residual is divided by its
         pixel's gain (the points' noise then has one scale), and a point's on-plane test
-        allows for it.
+        allows for it. It does not mend the active-stereo field's own tail: true tops
+        still cross a seam at 1 % on about 3 % of their axes (docs/method.md).
 
     Returns
     -------
