@@ -419,18 +419,25 @@ def test_a_candidate_with_a_seam_at_its_middle_is_followed_by_its_half(monkeypat
     # a candidate rejected otherwise (its midline shows nothing) is not halved
     assert hyp._midline_half(hyp._Attempt(DimensionSource.EDGES, -1, 0.6, 0.4, 0.0, 0.0,
                                           outcome=_outcome([], accepted=False))) is None
+
+    def part_after(width: float, length: float, b: list[int], z: list[float]
+                   ) -> hyp._Attempt | None:
+        """_midline_half of a candidate whose midline rows b (z each) all rejected but
+        those at z 1.0."""
+        rows = TestTable.decision(TestKind.VERIFY_SEAM_MIDLINE, -1, b, z, [2.9] * len(b),
+                                  [v == 1.0 for v in z], 0.01)
+        return hyp._midline_half(hyp._Attempt(
+            DimensionSource.EDGES, -1, width, length, 0.0, 0.0,
+            outcome=_failed(VerifyReason.INTERIOR_SEAM, [rows], 0.01)))
+
     # one rejected by the seams at its thirds along x (b = 2) is followed by its third
-    thirds = TestTable.decision(TestKind.VERIFY_SEAM_MIDLINE, -1, [0, 2], [1.0, 4.7],
-                                [2.9, 2.9], [True, False], 0.01)
-    att = hyp._Attempt(DimensionSource.EDGES, -1, 0.45, 0.4, 0.0, 0.0,
-                       outcome=_failed(VerifyReason.INTERIOR_SEAM, [thirds], 0.01))
-    part = hyp._midline_half(att)
+    part = part_after(0.45, 0.4, [0, 2], [1.0, 4.7])
     assert part is not None and (part.width, part.length) == (0.15, 0.4)
     # the middle and the quarters along y both showing: halved (the fewest parts), and the
     # half is halved again when its own middle shows
-    both = TestTable.decision(TestKind.VERIFY_SEAM_MIDLINE, -1, [1, 5], [5.0, 4.0],
-                              [2.9, 2.9], [False, False], 0.01)
-    att = hyp._Attempt(DimensionSource.EDGES, -1, 0.3, 0.6, 0.0, 0.0,
-                       outcome=_failed(VerifyReason.INTERIOR_SEAM, [both], 0.01))
-    part = hyp._midline_half(att)
+    part = part_after(0.3, 0.6, [1, 5], [5.0, 4.0])
     assert part is not None and (part.width, part.length) == (0.3, 0.3)
+    # its support is the middle's z, the row that chose the parts, even where the
+    # quarters' sum is the stronger
+    part = part_after(0.3, 0.6, [1, 5], [4.0, 5.0])
+    assert part is not None and (part.width, part.length, part.support) == (0.3, 0.3, 4.0)

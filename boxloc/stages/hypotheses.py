@@ -865,7 +865,9 @@ def _midline_half(att: _Attempt) -> _Attempt | None:
     parts = [min((int(b) // 2 + 2 for b in split if b % 2 == axis), default=1)
              for axis in (0, 1)]
     w, ln = att.width / parts[0], att.length / parts[1]
-    k = int(np.argmax(np.where(rows.accepted, -np.inf, rows.statistic - rows.critical)))
+    # the attempt's support: the strongest of the rows that chose its parts
+    used = ~rows.accepted & (rows.b // 2 + 2 == np.take(parts, rows.b % 2))
+    k = int(np.argmax(np.where(used, rows.statistic - rows.critical, -np.inf)))
     return _Attempt(DimensionSource.MIDLINE, -1, w, ln, float(rows.statistic[k]),
                     float(rows.critical[k]))
 
