@@ -17,10 +17,10 @@ from boxloc import __version__
 from boxloc.config import Config
 from boxloc.errors import InputError
 from boxloc.observer import NullObserver, Observer
-from boxloc.products import Result
+from boxloc.products import EdgeMap, Result
 from boxloc.scan import NoiseModel, Scan
 from boxloc.stages.ambiguous import ambiguous_regions
-from boxloc.stages.edges import detect_edges
+from boxloc.stages.edges import detect_edges, noise_gain
 from boxloc.stages.hypotheses import generate_hypotheses
 from boxloc.stages.lines import find_lines
 from boxloc.stages.scan_noise import estimate_scan_noise
@@ -37,6 +37,12 @@ def _timed(timing: dict[str, float], name: str, fn: Callable[[], T]) -> T:
     out = fn()
     timing[name] = (time.perf_counter() - t0) * 1e3
     return out
+
+
+def _edges(scan: Scan, config: Config) -> tuple[np.ndarray, EdgeMap]:
+    """The scan's local noise gain (:func:`noise_gain`) and its edges, which use it."""
+    gain = noise_gain(scan, config)
+    return gain, detect_edges(scan, config=config, gain=gain)
 
 
 def check_scan(scan: Scan, config: Config) -> None:
@@ -98,7 +104,8 @@ def find_graspable_surfaces(
     obs.on_noise(scan, noise)
     # every later stage tests against the scan's model (the config's, when pinned)
     config = dataclasses.replace(user_config, noise=NoiseModel(**noise.noise_model()))
-    edges = _timed(timing, "edges", lambda: detect_edges(scan, config=config))
+    # the local noise scale: the edge stage's and the seam tests', computed once
+    gain, edges = _timed(timing, "edges", lambda: _edges(scan, config))
     obs.on_edges(scan, edges)
     lines = _timed(timing, "lines", lambda: find_lines(scan, edges, config=config, rng=rng))
     obs.on_lines(scan, lines)
@@ -107,7 +114,7 @@ def find_graspable_surfaces(
     # the hypothesis stage adds the corners of touching neighbours to the vertices
     vertices, hyps, verification = _timed(
         timing, "hypotheses",
-        lambda: generate_hypotheses(scan, edges, vertices, config=config, up=up),
+        lambda: generate_hypotheses(scan, edges, vertices, config=config, up=up, gain=gain),
     )
     obs.on_vertices(scan, vertices)
     obs.on_hypotheses(scan, hyps)

@@ -195,6 +195,27 @@ def test_local_scale_follows_a_noisier_region_and_ignores_edges():
     assert np.all(local_scale(r2, S) == 1.0)
 
 
+def test_the_edges_of_a_given_noise_gain_are_those_it_computes_and_the_gain_is_used(one_box):
+    """The pipeline computes the local noise gain once (``noise_gain``) and hands it to the
+    edge stage and the seam tests: handed in, it gives the edges computed without it, bit
+    for bit; and it is used: a gain three times louder gives another edge map."""
+    from boxloc.stages.edges import noise_gain
+    from boxloc.stages.verify import VerifyContext
+
+    sim, e = one_box
+    cfg = Config()
+    g = noise_gain(sim.scan, cfg)
+    given = detect_edges(sim.scan, config=cfg, gain=g)
+    assert np.array_equal(given.labels, e.labels)
+    assert np.array_equal(given.points, e.points)
+    assert np.array_equal(given.covariances, e.covariances)
+    up = sim.scan.up
+    assert np.array_equal(VerifyContext.build(sim.scan, e, cfg, up, 1, g).gain,
+                          VerifyContext.build(sim.scan, e, cfg, up, 1).gain)
+    loud = detect_edges(sim.scan, config=cfg, gain=3.0 * g)
+    assert not np.array_equal(loud.labels, e.labels)
+
+
 def _fuse_one_pixel_at_a_time(flat, pt, cov, kd, stg, sd, chi3):
     """The fusion as a loop over the pixels: the reference :func:`_fuse` must equal."""
     order = np.lexsort((kd, flat))

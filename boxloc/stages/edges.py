@@ -761,14 +761,28 @@ def correlation_lags(length_px: float) -> np.ndarray:
     return np.exp(-np.arange(K + 1) / length_px)
 
 
-def point_sigma(scan: Scan, config: Config) -> np.ndarray:
-    """Per-pixel noise sigma (metres) used for line fitting, (H, W), NaN where no return:
-    the noise model's, times the scan's local scale (:func:`local_scale`)."""
+def _model_sigma(scan: Scan, config: Config) -> tuple[np.ndarray, np.ndarray]:
+    """The ranges and the noise model's per-pixel sigma (range and lateral), (H, W) metres."""
     r = scan.range.astype(np.float64)
     sr = config.noise.sigma_range(r)
     sl = config.noise.sigma_lateral(r, scan.sensor.pixel_angle)
-    S = np.sqrt(sr * sr + sl * sl)
-    return S * local_scale(r, S)
+    return r, np.sqrt(sr * sr + sl * sl)
+
+
+def noise_gain(scan: Scan, config: Config) -> np.ndarray:
+    """The scan's local noise scale over the model's, (H, W) >= 1 (:func:`local_scale` of
+    the model's sigma): what :func:`point_sigma` multiplies by, and what the seam tests
+    divide residuals by (:class:`boxloc.stages.verify.VerifyContext`). The pipeline computes
+    it once per scan and hands it to both."""
+    return local_scale(*_model_sigma(scan, config))
+
+
+def point_sigma(scan: Scan, config: Config, gain: np.ndarray | None = None) -> np.ndarray:
+    """Per-pixel noise sigma (metres) used for line fitting, (H, W), NaN where no return:
+    the noise model's, times the scan's local scale (``gain``: :func:`noise_gain`, computed
+    here when not given)."""
+    r, S = _model_sigma(scan, config)
+    return S * (local_scale(r, S) if gain is None else gain)
 
 
 #: Side of the tiles over which the local noise scale is measured, pixels (as the noise
@@ -925,7 +939,7 @@ def _fuse(flat: np.ndarray, pt: np.ndarray, cov: np.ndarray, kd: np.ndarray,
     return uniq, out_pt, out_cov, out_kind, out_str, out_dir
 
 
-def detect_edges(scan: Scan, *, config: Config) -> EdgeMap:
+def detect_edges(scan: Scan, *, config: Config, gain: np.ndarray | None = None) -> EdgeMap:
     """Jump, crease and groove edges of a range image by scan-line approximation.
 
     Parameters
@@ -934,6 +948,8 @@ def detect_edges(scan: Scan, *, config: Config) -> EdgeMap:
         Range image and sensor model.
     config : Config
         Uses ``alpha``, ``noise`` and ``min_crease_angle``.
+    gain : (H, W) float64, optional
+        :func:`noise_gain` of the scan and config, if already computed (the pipeline's).
 
     Returns
     -------
@@ -948,7 +964,7 @@ def detect_edges(scan: Scan, *, config: Config) -> EdgeMap:
     """
     H, W = scan.shape
     P = scan.points.astype(np.float64)
-    S = point_sigma(scan, config)
+    S = point_sigma(scan, config, gain)
     thr = residual_thresholds(max(H, W), config.alpha)
     run_thr = run_thresholds(max(H, W), config.alpha)
     jump_crit = chi2_critical(1.0, config.alpha)
@@ -1048,4 +1064,4 @@ def detect_edges(scan: Scan, *, config: Config) -> EdgeMap:
     )
 
 
-__all__ = ["detect_edges", "residual_thresholds", "point_sigma", "EdgeKind"]
+__all__ = ["detect_edges", "residual_thresholds", "point_sigma", "noise_gain", "EdgeKind"]

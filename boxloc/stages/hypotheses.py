@@ -202,13 +202,13 @@ class _Context:
 
     @classmethod
     def build(cls, scan: Scan, edges: EdgeMap, vertices: VertexSet, config: Config,
-              up: np.ndarray) -> _Context:
+              up: np.ndarray, gain: np.ndarray | None = None) -> _Context:
         return cls(
             scan=scan, config=config, vertices=vertices,
             normal_cov=normal_covariance(vertices) if len(vertices) else np.zeros((0, 3, 3)),
             edge_points=edges.points, edge_cov=edges.covariances,
             edge_tree=cKDTree(edges.points) if len(edges) else None,
-            verify_ctx=VerifyContext.build(scan, edges, config, up, len(vertices)),
+            verify_ctx=VerifyContext.build(scan, edges, config, up, len(vertices), gain),
         )
 
 
@@ -914,7 +914,7 @@ def _in_worker(fn: Callable[[Any, _Context], _Piece], item: Any) -> _Piece:
 
 def generate_hypotheses(
     scan: Scan, edges: EdgeMap, vertices: VertexSet, *, config: Config,
-    up: np.ndarray | None = None,
+    up: np.ndarray | None = None, gain: np.ndarray | None = None,
 ) -> tuple[VertexSet, HypothesisSet, Verification]:
     """One hypothesis per vertex with its dimensions, and the verification of every attempt.
 
@@ -932,6 +932,9 @@ def generate_hypotheses(
     config : Config
     up : ndarray (3,), optional
         Up in the sensor frame (default ``scan.up``), for the tilt prior.
+    gain : (H, W) float64, optional
+        :func:`boxloc.stages.edges.noise_gain` of the scan and config, if already computed
+        (the pipeline's: the edge stage used the same).
 
     Returns
     -------
@@ -941,7 +944,7 @@ def generate_hypotheses(
     HypothesisSet, Verification
     """
     up = scan.up if up is None else np.asarray(up, dtype=np.float64)
-    ctx = _Context.build(scan, edges, vertices, config, up)
+    ctx = _Context.build(scan, edges, vertices, config, up, gain)
     budget = _VertexBudget(config.max_vertices)
     pixels = _PixelBudget(config.max_hypothesis_work)
     ids = range(len(vertices))

@@ -145,13 +145,16 @@ class VerifyContext:
 
     @classmethod
     def build(cls, scan: Scan, edges: EdgeMap, config: Config, up: np.ndarray,
-              n_vertices: int = 1) -> VerifyContext:
+              n_vertices: int = 1, gain: np.ndarray | None = None) -> VerifyContext:
+        """The context of one scan; ``gain``: :func:`boxloc.stages.edges.noise_gain` of the
+        scan and config if already computed (the pipeline's), else computed here."""
         P = scan.points.astype(np.float64)
         r = scan.range.astype(np.float64)
         sr = config.noise.sigma_range(r)
         sl = config.noise.sigma_lateral(r, scan.sensor.pixel_angle)
         valid = np.isfinite(r)
-        gain = local_scale(r, np.sqrt(sr * sr + sl * sl))
+        if gain is None:
+            gain = local_scale(r, np.sqrt(sr * sr + sl * sl))
         return cls(P, sr, sl**2, valid, edges.points, edges.kinds,
                    scan.sensor.pixel_angle, np.asarray(up, dtype=np.float64),
                    scan.sensor.project, seam_alpha(config.alpha, n_vertices), edges.strength,
