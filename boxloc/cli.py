@@ -294,7 +294,7 @@ def _print_surfaces(result: Any) -> None:
               help="Run each scene (or --real frame) N times, with trial_seed +0..N-1 (other "
                    "draws of the random trials); the figures pool them, each draw's is listed. "
                    "One draw is one sample of the trials' luck, and the default one is what "
-                   "development was checked on. [default: 3; 1 with --matrix]")
+                   "development was checked on. [default: 3]")
 @click.option("--matrix", is_flag=True,
               help="The sensor x scene-kind matrix (boxloc.simulate.matrix_suite) with the "
                    "default configuration only (no --set, no --config; the box size range is "
@@ -378,7 +378,7 @@ def bench(
         from boxloc.evaluate import packed_bench as pb
 
         pb.run_packed_bench(n or pb.DEFAULT_N, seed, out=Path(out) if out else None,
-                            jobs=jobs or 1, seeds=seeds or 1, held_out=held_out or pb.HELD_OUT,
+                            jobs=jobs or 1, seeds=seeds or 3, held_out=held_out or pb.HELD_OUT,
                             scan_timeout=scan_timeout or pb.DEFAULT_SCAN_TIMEOUT)
         return
     if matrix:
@@ -390,7 +390,7 @@ def bench(
         )
 
         run_matrix_bench(n or DEFAULT_N, seed, out=Path(out) if out else None, jobs=jobs or 1,
-                         seeds=seeds or 1, held_out=held_out or HELD_OUT,
+                         seeds=seeds or 3, held_out=held_out or HELD_OUT,
                          scan_timeout=scan_timeout or DEFAULT_SCAN_TIMEOUT)
         return
     given = [f"--{k}" for k, v in matrix_only.items() if v is not None]

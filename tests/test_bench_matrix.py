@@ -280,7 +280,7 @@ def test_cli_matrix_refuses_settings(monkeypatch: pytest.MonkeyPatch, tmp_path: 
     r = runner.invoke(cli, ["bench", "--matrix"])
     assert r.exit_code == 0, r.output
     assert (seen["n"], seen["seeds"], seen["jobs"], seen["held_out"],
-            seen["scan_timeout"]) == (320, 1, 1, "tof", 120.0)
+            seen["scan_timeout"]) == (320, 3, 1, "tof", 120.0)  # three draws of the trials
     r = runner.invoke(cli, ["bench", "--matrix", "--n", "64", "--jobs", "2", "--seeds", "2",
                             "--held-out", "laser", "--scan-timeout", "5", "--out",
                             str(tmp_path / "o")])
@@ -308,7 +308,7 @@ def test_cli_packed_runs_the_packed_bench_with_defaults_only(
     r = runner.invoke(cli, ["bench", "--packed"])
     assert r.exit_code == 0, r.output
     assert (seen["n"], seen["seeds"], seen["jobs"], seen["held_out"]) == (
-        pb.DEFAULT_N, 1, 1, pb.HELD_OUT)
+        pb.DEFAULT_N, 3, 1, pb.HELD_OUT)
     r = runner.invoke(cli, ["bench", "--packed", "--n", "8", "--jobs", "2", "--out",
                             str(tmp_path / "o")])
     assert r.exit_code == 0, r.output
