@@ -76,7 +76,7 @@ from boxloc.kernels import kernel
 from boxloc.products import EdgeKind, EdgeMap, VerifyReason
 from boxloc.scan import NoiseModel, Scan
 from boxloc.stages.design_effect import exceedance_design_effects, patch_factor
-from boxloc.stages.edges import local_scale
+from boxloc.stages.edges import noise_gain
 from boxloc.stages.lines import MIN_LINE_POINTS
 from boxloc.stages.raster import fill_polygon, polygon_area, rectangle_pixels
 from boxloc.stages.seams import (
@@ -136,7 +136,7 @@ class VerifyContext:
     #: (N,) jump height or fold angle of each edge point (``EdgeMap.strength``); None: not
     #: known (every jump counts as a boundary)
     edge_strength: np.ndarray | None = None
-    #: (H, W) >= 1: the noise's local loudness (:func:`boxloc.stages.edges.local_scale`, as
+    #: (H, W) >= 1: the noise's local loudness (:func:`boxloc.stages.edges.noise_gain`, as
     #: the edge stage measures it), which the seam tests divide the residuals by; None: 1
     gain: np.ndarray | None = None
     #: :meth:`_per_pixel`'s arrays, built at its first call
@@ -154,7 +154,7 @@ class VerifyContext:
         sl = config.noise.sigma_lateral(r, scan.sensor.pixel_angle)
         valid = np.isfinite(r)
         if gain is None:
-            gain = local_scale(r, np.sqrt(sr * sr + sl * sl))
+            gain = noise_gain(scan, config)
         return cls(P, sr, sl**2, valid, edges.points, edges.kinds,
                    scan.sensor.pixel_angle, np.asarray(up, dtype=np.float64),
                    scan.sensor.project, seam_alpha(config.alpha, n_vertices), edges.strength,
