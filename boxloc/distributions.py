@@ -22,8 +22,8 @@ import numpy.typing as npt
 from scipy import special
 from scipy.special import _ufuncs
 
-__all__ = ["norm_isf", "norm_sf", "halfnorm_ppf", "t_sf", "t_isf", "chi2_sf", "chi2_isf",
-           "chi2_ppf", "poisson_isf", "binom_sf", "binom_isf"]
+__all__ = ["norm_isf", "norm_sf", "halfnorm_ppf", "t_sf", "chi2_sf", "chi2_isf", "chi2_ppf",
+           "poisson_isf", "binom_sf", "binom_isf"]
 
 _BINOM_SF = getattr(_ufuncs, "_binom_sf", None)
 _BINOM_ISF = getattr(_ufuncs, "_binom_isf", None)
@@ -60,11 +60,6 @@ def t_sf(x: npt.ArrayLike, df: npt.ArrayLike) -> np.ndarray:
     x = np.asarray(x, dtype=np.float64)
     df = np.asarray(df, dtype=np.float64)
     return np.asarray(special.stdtr(df, -(x * 1.0 + 0.0)), dtype=np.float64)
-
-
-def t_isf(q: float, df: float) -> float:
-    """``scipy.stats.t.isf(q, df)``: ``-stdtrit(df, q)``, for 0 < q < 1 and finite df > 0."""
-    return float(0.0 - special.stdtrit(float(df), float(q)))
 
 
 def chi2_sf(x: npt.ArrayLike, df: npt.ArrayLike) -> np.ndarray:

@@ -143,9 +143,8 @@ class TestKind(IntEnum):
     SKU_SPLIT_SEAM = 31
     #: hypothesis stage: side b (0-3: v=0, v=length, u=0, u=width) of attempt a has evidence
     #: of the box's end: statistic = the evidence (0 none, 1 a line of jump or convex-crease
-    #: edges, 2 a groove or seam (VERIFY_SEAM_SIDE, or VERIFY_SIDE_KINK: the V of two
-    #: bulged lids), 3 a listed size's implied seam, 4 the outline of the verified flat
-    #: region a part of a split lies on, 5 the face's plane dropping away
+    #: edges, 2 a groove or seam, 3 a listed size's implied seam, 4 the outline of the
+    #: verified flat region a part of a split lies on, 5 the face's plane dropping away
     #: beyond it); critical 1; accepted if any
     END_EVIDENCE = 32
     #: result stage: the height of chosen attempt a's box (b = :class:`boxloc.products.
@@ -261,22 +260,6 @@ class TestKind(IntEnum):
     #: split as by a listed one (SEEN_SPLIT parts; the SKU_* rows' b index it); rejected
     #: (b = -1): one box of a size is no list
     SEEN_CARTON = 48
-    #: verification: no slope jump where attempt a's face would have its seams were it n
-    #: equal boxes in a row (b as VERIFY_SEAM_MIDLINE's, one row per row of it): two
-    #: bulged lids meet in a shallow V that the groove windows barely see
-    #: (:mod:`boxloc.stages.kink`). Statistic = the hinges' summed coefficient at those
-    #: lines over its cluster-robust standard error, in a smooth fit of the face's
-    #: residuals (NaN: too few blocks); dof = the blocks less one; critical = Student's
-    #: t at alpha, one-sided (a V opening toward the sensor). Rejected: n boxes side by
-    #: side (reason ``INTERIOR_SEAM``)
-    VERIFY_SEAM_KINK = 49
-    #: verification: side b (0-3) of attempt a, where VERIFY_SEAM_SIDE showed no groove,
-    #: is the bottom of a V where two bulged lids meet (:func:`boxloc.stages.kink.
-    #: side_kink_z`, over the points within the seam tests' flank of the side): statistic
-    #: = the hinge's coefficient over its jackknife standard error (NaN: too few blocks);
-    #: dof = the blocks less one; critical = Student's t at the seam level, one-sided.
-    #: Accepted counts the side as a seam
-    VERIFY_SIDE_KINK = 50
 
 
 #: ``TestKind.BUDGET`` rows' ``a``: the stage whose budget it is.
@@ -305,7 +288,6 @@ RELATION: dict[TestKind, str | None] = {
     TestKind.SKU_SEEN_TILING: None, TestKind.VERIFY_RAISED_BEYOND: "<",
     TestKind.VERIFY_RAISED_HEIGHT: "<=", TestKind.VERIFY_SEAM_MIDLINE: "<=",
     TestKind.HEIGHT_WITHIN_BOX: "<=", TestKind.SEEN_CARTON: ">=",
-    TestKind.VERIFY_SEAM_KINK: "<=", TestKind.VERIFY_SIDE_KINK: ">",
 }
 
 _RELATION_OPS = {"<=": operator.le, "<": operator.lt, ">": operator.gt, ">=": operator.ge}
@@ -533,7 +515,7 @@ class TestTable:
         accepted: npt.ArrayLike,
         alpha: float,
         p_value: npt.ArrayLike | float = np.nan,
-        dof: npt.ArrayLike = 0.0,
+        dof: float = 0.0,
     ) -> TestTable:
         """Record decisions that are not plain chi-square tests (supports, fractions, priors)."""
         s = np.atleast_1d(np.asarray(statistic, np.float64))
@@ -543,7 +525,7 @@ class TestTable:
             a=_column(a, np.int32, n),
             b=_column(b, np.int32, n),
             statistic=s,
-            dof=_column(dof, np.float32, n),
+            dof=np.full(n, dof, np.float32),
             critical=_column(critical, np.float64, n),
             p_value=float32_precision(_column(p_value, np.float64, n)),
             accepted=_column(accepted, bool, n),

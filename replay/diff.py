@@ -765,9 +765,7 @@ def _test_keys(t: TestTable, maps: Mapping[str, Mapping[int, int] | None]) -> di
               or kind in (TestKind.VERIFY_CONTINUATION, TestKind.VERIFY_SEAM_CROSSING,
                           TestKind.VERIFY_SEAM_IN_LINE, TestKind.VERIFY_RAISED_BEYOND,
                           TestKind.VERIFY_RAISED_HEIGHT, TestKind.VERIFY_SEAM_MIDLINE,
-                          TestKind.VERIFY_SEAM_KINK, TestKind.VERIFY_SIDE_KINK,
-                          TestKind.SURFACE_BULGE,
-                          TestKind.REPEATS_NEIGHBOUR)):
+                          TestKind.SURFACE_BULGE, TestKind.REPEATS_NEIGHBOUR)):
             x = m("attempts", a)
             key = None if x is None else (kind, x)
         elif kind in (TestKind.SEAM_PEAK, TestKind.FACE_EXTENT, TestKind.SKU_ROW):

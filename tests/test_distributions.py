@@ -46,8 +46,6 @@ def test_student_t_tail(df: float) -> None:
     rng = np.random.default_rng(int(df * 10))
     x = np.r_[rng.normal(0, 5, 3000), 0.0, -0.0, np.inf, -np.inf, np.nan, 1e3]
     assert _same(d.t_sf(x, df), st.t.sf(x, df))
-    for q in (1e-6, 0.001, 0.01, 0.05, 0.3, 0.5, 0.9):
-        assert d.t_isf(q, df) == st.t.isf(q, df)
 
 
 def test_poisson_quantile() -> None:

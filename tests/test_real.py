@@ -327,13 +327,11 @@ def test_mosd_row_offsets_make_no_seam_on_a_covered_top() -> None:
     assert not ((t.kind == seam) & t.accepted).any()
 
 
-@pytest.mark.real_data("learn2.pcd")
+@pytest.mark.real_data("learn3.pcd")
 def test_explain_names_a_box_corner_and_its_test(tmp_path: Path) -> None:
-    # both of learn2's surfaces come from box corners (a crease and its third edge); of
-    # learn3's one did until the kink tests made another rectangle the frame's choice
     from replay.explain import explain, format_explanation
-    log = tmp_path / "learn2.mcap"
-    res = CliRunner().invoke(cli, ["run", str(MOSD / "learn2.pcd"), "--record", str(log),
+    log = tmp_path / "learn3.mcap"
+    res = CliRunner().invoke(cli, ["run", str(MOSD / "learn3.pcd"), "--record", str(log),
                                    "-q", *[a for s in MOSD_CONFIG for a in ("--set", s)]])
     assert res.exit_code == 0, res.output
     text = format_explanation(explain(log, 0))

@@ -581,9 +581,8 @@ def test_a_faint_seam_at_the_middle_of_two_boxes_rejects_the_pair():
         split += s
         # only the axis whose parts could be boxes: 0.09 m across is no box (along v the
         # halves, b = 1, and the thirds, b = 3, of 0.167 m)
-        assert len(rows) == 2 and list(rows[0].b) == [1, 3] == list(rows[1].b)
+        assert len(rows) == 1 and list(rows[0].b) == [1, 3]
         assert rows[0].kind[0] == TestKind.VERIFY_SEAM_MIDLINE
-        assert rows[1].kind[0] == TestKind.VERIFY_SEAM_KINK
     assert split >= 15 and crossed <= 2  # 17 and 0 of these 20
 
 
@@ -591,15 +590,9 @@ def test_the_middle_of_one_flat_top_keeps_its_level():
     from boxloc.stages.verify import _test_seam_midline
     hyp = _midline_hyp(0.32, 0.5)
     rng = np.random.default_rng(8)
-    rows = [_test_seam_midline(_midline_face(rng, 0.32, 0.5), hyp, min_edge=0.15)[1]
-            for _ in range(200)]
-    assert all(r[0].kind[0] == TestKind.VERIFY_SEAM_MIDLINE for r in rows)
-    assert all(r[1].kind[0] == TestKind.VERIFY_SEAM_KINK for r in rows)
-    # each kind's rows (the halves along one axis, the halves and thirds along the
-    # other) at 1 % each: about 6 of 200 by chance; the grooves fire on 4 here, the kinks
-    # on 9
-    for k in range(2):
-        assert sum(bool((~r[k].accepted).any()) for r in rows) <= 12
+    fired = [_test_seam_midline(_midline_face(rng, 0.32, 0.5), hyp, min_edge=0.15)[0]
+             for _ in range(200)]
+    assert sum(fired) <= 8  # two axes at 1 % each: about 4 of 200 by chance (2 here)
 
 
 def test_three_boxes_in_a_row_show_their_seams_at_the_thirds():

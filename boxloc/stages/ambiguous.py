@@ -33,8 +33,7 @@ from boxloc.stats import TestKind, TestTable
 #: The verification rows behind an ambiguous region, in the JSON and the log: what shows
 #: its sides end, that nothing splits it, and what the carton list said.
 REGION_TEST_KINDS = (TestKind.VERIFY_INTERIOR, TestKind.VERIFY_BOUNDARY,
-                     TestKind.VERIFY_SEAM_SIDE, TestKind.VERIFY_SIDE_KINK,
-                     TestKind.VERIFY_SEAM_INTERIOR,
+                     TestKind.VERIFY_SEAM_SIDE, TestKind.VERIFY_SEAM_INTERIOR,
                      TestKind.VERIFY_CONTINUATION, TestKind.VERIFY_PLANE_END, TestKind.SKU_SIZE,
                      TestKind.SKU_SPLIT_SEAM, TestKind.SKU_TILING, TestKind.SKU_SEEN_TILING,
                      TestKind.BOX_HEIGHT, TestKind.REPEATS_NEIGHBOUR)
@@ -49,17 +48,16 @@ EVIDENCE_PLANE_END = 5
 def end_evidence(tests: TestTable, attempt: int, part: bool = False) -> TestTable:
     """END_EVIDENCE rows of one attempt's four sides, from its verification rows: a line
     of jump or convex-crease edges (VERIFY_BOUNDARY rows 0-3), else a groove or seam
-    (VERIFY_SEAM_SIDE, or the V of bulged lids, VERIFY_SIDE_KINK), else the plane
-    dropping away beyond it (VERIFY_PLANE_END), else, for a ``part`` of a split region, a
-    listed size's implied seam (its SKU_SPLIT_SEAM rows, b = side), else the region's
-    verified outline it lies on; statistic the evidence, critical 1, accepted if any."""
+    (VERIFY_SEAM_SIDE), else the plane dropping away beyond it (VERIFY_PLANE_END), else,
+    for a ``part`` of a split region, a listed size's implied
+    seam (its SKU_SPLIT_SEAM rows, b = side), else the region's verified outline it lies
+    on; statistic the evidence, critical 1, accepted if any."""
     ev = np.zeros(4)
     b = tests.of_kind(TestKind.VERIFY_BOUNDARY)
     for si in range(min(4, len(b))):
         if b.accepted[si]:
             ev[si] = EVIDENCE_EDGES
-    s = TestTable.concat([tests.of_kind(TestKind.VERIFY_SEAM_SIDE),
-                          tests.of_kind(TestKind.VERIFY_SIDE_KINK)], tests.alpha)
+    s = tests.of_kind(TestKind.VERIFY_SEAM_SIDE)
     for si, ok in zip(s.b, s.accepted):
         if ok and 0 <= si < 4 and ev[si] == EVIDENCE_NONE:
             ev[si] = EVIDENCE_SEAM

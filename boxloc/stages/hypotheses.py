@@ -849,8 +849,8 @@ def _try_in_turn(R: Rectangle, ctx: _Context, work: _VertexWork, cands: list[_At
 
 def _midline_half(att: _Attempt) -> _Attempt | None:
     """The part at the vertex of a candidate whose verification found the seams of n equal
-    boxes in a row (VERIFY_SEAM_MIDLINE or VERIFY_SEAM_KINK rejected along x, y or both:
-    two boxes, or four, side by side; or three in a row): the nearest seam is the box's far side, as
+    boxes in a row (VERIFY_SEAM_MIDLINE rejected along x, y or both: two boxes, or four,
+    side by side; or three in a row): the nearest seam is the box's far side, as
     significant as the test that rejected the whole. Its own verification tests it as a
     side. Along each axis the fewest parts whose seams showed: the quarters' lines include
     the middle, whose seam alone can lift their sum, and four boxes are halved twice.
@@ -858,8 +858,7 @@ def _midline_half(att: _Attempt) -> _Attempt | None:
     out = att.outcome
     if out is None or out.reason != VerifyReason.INTERIOR_SEAM:
         return None
-    rows = TestTable.concat([out.tests.of_kind(TestKind.VERIFY_SEAM_MIDLINE),
-                             out.tests.of_kind(TestKind.VERIFY_SEAM_KINK)], out.tests.alpha)
+    rows = out.tests.of_kind(TestKind.VERIFY_SEAM_MIDLINE)
     split = rows.b[~rows.accepted]
     if not len(split):
         return None

@@ -77,7 +77,6 @@ from boxloc.products import EdgeKind, EdgeMap, VerifyReason
 from boxloc.scan import NoiseModel, Scan
 from boxloc.stages.design_effect import exceedance_design_effects, patch_factor
 from boxloc.stages.edges import noise_gain
-from boxloc.stages.kink import kink_critical, kink_z, side_kink_z
 from boxloc.stages.lines import MIN_LINE_POINTS
 from boxloc.stages.raster import fill_polygon, polygon_area, rectangle_pixels
 from boxloc.stages.seams import (
@@ -940,31 +939,8 @@ def _test_seam_sides(fp: FacePoints, hyp: _Hypothesis, sides: _Sides,
         tests.append(TestTable.decision(TestKind.VERIFY_SEAM_SIDE, hyp.attempt_id, tried,
                                         zz[:, 0], zz[:, 1], zz[:, 0] > zz[:, 1], hyp.alpha))
 
-    def kinks_along(tried: list[int]) -> None:
-        # a groove too shallow for the windows: two bulged lids meeting in a V
-        if not tried:
-            return
-        zs, crit, dofs = [], [], []
-        for si in tried:
-            axis, at = (1, (0.0, hyp.length)[si]) if si < 2 else (0, (0.0, hyp.width)[si - 2])
-            end = hyp.width if si < 2 else hyp.length
-            z, dof = side_kink_z(fp.u, fp.v, fp.w, axis, at, 1.0 if si in (0, 2) else -1.0,
-                                 0.0, end, hyp.flank, hyp.spacing)
-            c = kink_critical(hyp.seam_alpha, dof)
-            zs.append(z)
-            crit.append(c)
-            dofs.append(dof)
-            if z > c:
-                sides.seams.add(si)
-                sides.ok[si] = True
-                sides.covered[si] = int(sides.expected[si])
-        tests.append(TestTable.decision(TestKind.VERIFY_SIDE_KINK, hyp.attempt_id, tried, zs,
-                                        crit, [z > c for z, c in zip(zs, crit)], hyp.alpha,
-                                        dof=dofs))
-
     if not all(sides.ok) and len(fp):
         seams_along([si for si in range(4) if not sides.ok[si]])
-        kinks_along([si for si in range(4) if not sides.ok[si]])
     if (all(sides.ok) and len(fp)
             and sum(sides.covered) < support_fraction * sum(sides.expected)):
         # every side has its line, but together they cover too little of the perimeter:
@@ -1048,8 +1024,6 @@ def _test_seam_midline(fp: FacePoints, hyp: _Hypothesis, min_edge: float,
     if not len(fp):
         return False, []
     bs, zs, crits = [], [], []
-    kinks: list[float] = []
-    kdof: list[int] = []
     for axis, size, other in ((0, hyp.width, hyp.length), (1, hyp.length, hyp.width)):
         for n in range(2, MAX_TILING_PARTS + 1):
             part = size / n
@@ -1058,25 +1032,17 @@ def _test_seam_midline(fp: FacePoints, hyp: _Hypothesis, min_edge: float,
             if sizes and not match_size(min(part, other), max(part, other), sizes, tolerance,
                                         hyp.alpha)[3]:
                 continue
-            at = [k * size / n for k in range(1, n)]
-            lines = [seam_line(fp, axis, p, other, hyp.spacing, hyp.alpha) for p in at]
+            lines = [seam_line(fp, axis, k * size / n, other, hyp.spacing, hyp.alpha)
+                     for k in range(1, n)]
             z = sum(zk for zk, _ in lines) / math.sqrt(n - 1)
             bs.append(axis + 2 * (n - 2))
             zs.append(z if np.isfinite(z) else np.nan)
             crits.append(lines[0][1])
-            kz, dof = kink_z(fp.u, fp.v, fp.w, axis, at, hyp.width, hyp.length, hyp.spacing)
-            kinks.append(kz)
-            kdof.append(dof)
     if not bs:
         return False, []
     split = [bool(z > c) for z, c in zip(zs, crits)]
-    kcrit = [kink_critical(hyp.alpha, d) for d in kdof]
-    kinked = [bool(z > c) for z, c in zip(kinks, kcrit)]  # NaN: no kink shown
-    return any(split) or any(kinked), [
-        TestTable.decision(TestKind.VERIFY_SEAM_MIDLINE, hyp.attempt_id, bs, zs, crits,
-                           [not x for x in split], hyp.alpha),
-        TestTable.decision(TestKind.VERIFY_SEAM_KINK, hyp.attempt_id, bs, kinks, kcrit,
-                           [not x for x in kinked], hyp.alpha, dof=kdof)]
+    return any(split), [TestTable.decision(TestKind.VERIFY_SEAM_MIDLINE, hyp.attempt_id, bs,
+                                           zs, crits, [not x for x in split], hyp.alpha)]
 
 
 def _test_seam_interior(fp: FacePoints, hyp: _Hypothesis, correlated: bool = False
