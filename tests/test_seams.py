@@ -776,3 +776,35 @@ def test_face_points_divide_a_louder_patch_by_its_gain():
         for i in range(5):
             p = _plane_seams(700 + i, 0.2, 3.0, use_gain, groove_col=80)
             assert np.any(np.abs(p - 0.177) <= 0.01), p  # column 80: 0.177 m from column 20
+
+
+def test_moving_points_along_their_rays_is_numpys_bit_for_bit() -> None:
+    # the kernel replaces NumPy's element-wise expression; a ray at the origin and rays
+    # grazing the plane (kept where they are) included
+    from boxloc.stages.seams import _MIN_RAY_COS, _on_plane_along_rays
+
+    def numpy_version(D: np.ndarray, origin: np.ndarray, c: np.ndarray,
+                      nf: np.ndarray) -> np.ndarray:
+        P = D + origin
+        r = np.sqrt(np.einsum("ij,ij->i", P, P))
+        with np.errstate(invalid="ignore", divide="ignore"):
+            cos = (P @ nf) / r
+            t = np.where(np.abs(cos) > _MIN_RAY_COS, float(c @ nf) / cos, r)
+            scale = np.where(r > 0, t / r, 1.0)
+        return P * scale[:, None] - origin
+
+    rng = np.random.default_rng(7)
+    for _ in range(20):
+        n = int(rng.integers(1, 5000))
+        origin = rng.normal(size=3) + np.array([0.0, 0.0, 2.0])
+        nf = rng.normal(size=3)
+        nf /= np.linalg.norm(nf)
+        c = origin + rng.normal(size=3) * 0.1
+        D = rng.normal(size=(n, 3)) * rng.uniform(0.01, 1.0)
+        D[0] = -origin  # the point at the sensor: r = 0
+        u = np.cross(nf, [1.0, 0.0, 0.0])
+        D[-1] = u / np.linalg.norm(u) * 2.0 - origin  # a ray in the plane's direction
+        got = _on_plane_along_rays(D, origin, c, nf)
+        want = numpy_version(D, origin, c, nf)
+        assert np.array_equal(got, want, equal_nan=True)
+        assert got.view(np.int64).tolist() == want.view(np.int64).tolist()

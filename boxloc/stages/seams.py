@@ -217,22 +217,39 @@ def face_points(
     return FacePoints(Don @ x_axis, Don @ y_axis, wf, scale, spacing, r_on, row_corr)
 
 
+#: Sine of the angle below which a ray is too close to a face's plane to be moved onto it.
+_MIN_RAY_COS = math.sin(math.radians(1.0))
+
+
 def _on_plane_along_rays(D: np.ndarray, origin: np.ndarray, c: np.ndarray, nf: np.ndarray
                          ) -> np.ndarray:
     """Points ``origin + D`` (n, 3) moved along their rays from the sensor onto the plane
     through ``c`` with unit normal ``nf``, as offsets from ``origin`` again. A ray within
     a degree of the plane keeps its point (the intersection is ill-conditioned there)."""
     P = D + origin
-    r = np.sqrt(np.einsum("ij,ij->i", P, P))
-    with np.errstate(invalid="ignore", divide="ignore"):
-        cos = (P @ nf) / r
-        t = np.where(np.abs(cos) > _MIN_RAY_COS, float(c @ nf) / cos, r)
-        scale = np.where(r > 0, t / r, 1.0)
-    return P * scale[:, None] - origin
+    # the products NumPy's (BLAS, einsum: their rounding is theirs), the rest in a kernel
+    return _along_rays(P, np.sqrt(np.einsum("ij,ij->i", P, P)), P @ nf, float(c @ nf),
+                       origin)
 
 
-#: Sine of the angle below which a ray is too close to a face's plane to be moved onto it.
-_MIN_RAY_COS = math.sin(math.radians(1.0))
+@kernel
+def _along_rays(P: np.ndarray, r: np.ndarray, pn: np.ndarray, cn: float, origin: np.ndarray
+                ) -> np.ndarray:
+    """:func:`_on_plane_along_rays`' element-wise part, bit for bit: P (n, 3), r its rows'
+    norms, pn = P @ nf, cn = c @ nf; P * scale - origin, scale = t / r (1 where r is not
+    above 0), t = cn / cos where |cos| = |pn / r| > ``_MIN_RAY_COS``, else r."""
+    n = P.shape[0]
+    out = np.empty((n, 3))
+    for i in range(n):
+        ri = r[i]
+        scale = 1.0
+        if ri > 0.0:
+            cos = pn[i] / ri
+            t = cn / cos if abs(cos) > _MIN_RAY_COS else ri
+            scale = t / ri
+        for a in range(3):
+            out[i, a] = P[i, a] * scale - origin[a]
+    return out
 
 
 # --- face_points' kernels: each NumPy expression it replaces, bit for bit --------------------
