@@ -34,7 +34,7 @@ Usage (from the repository's root, with the project's venv)::
 ``--check`` writes nothing and exits 1 if a file would change (a test runs it). A report of
 the wrong schema, an unknown region or a region left open exits 2 with one line.
 
-Regions: ``bench:matrix:{summary,targets,kinds,cells,stages}``,
+Regions: ``bench:matrix:{summary,targets,kinds,cells,stages,false}``,
 ``bench:real:{summary,targets,draws,inputs,stages}``,
 ``bench:sim:{summary,kinds,draws,stages}``, ``bench:packed:{summary,targets}``,
 ``bench:bare:{summary,targets,tests}``, ``bench:speed:summary``,
@@ -441,6 +441,24 @@ def _sensor_groups(r: dict[str, Any]) -> list[tuple[str, dict[str, Any]]]:
 
 def matrix_summary(r: dict[str, Any]) -> str:
     return table(["sensor", *MATRIX_HEAD[1:-1]], _matrix_rows(_sensor_groups(r), edges=False))
+
+
+def matrix_false(r: dict[str, Any]) -> str:
+    """The false surfaces per sensor by what they are (``false_kinds``,
+    :class:`boxloc.evaluate.metrics.FalseKind`)."""
+    from boxloc.evaluate.metrics import FalseKind
+
+    kinds = [k.name.lower() for k in FalseKind if k != FalseKind.NONE]
+    rows = []
+    for label, fig in _sensor_groups(r):
+        fk = fig.get("false_kinds")
+        if fk is None:
+            continue
+        rows.append([label, num(fig.get("fp")), *[num(fk.get(k)) for k in kinds]])
+    head = ["sensor", "false surfaces", "no top", "on a covered top",
+            "a free top seen in part (IoU >= 0.5)", "wrong rectangle (IoU < 0.5)", "normal off"]
+    assert len(head) == 2 + len(kinds)
+    return table(head, rows)
 
 
 def matrix_targets(r: dict[str, Any]) -> str:
@@ -1015,7 +1033,7 @@ def footprint_channels(r: dict[str, Any], **_uses: Any) -> str:
 RENDERERS: dict[str, dict[str, Callable[..., str]]] = {
     "matrix": {"summary": matrix_summary, "targets": matrix_targets, "kinds": matrix_kinds,
                "cells": matrix_cells, "stages": matrix_stages,
-               "normals": matrix_normals},
+               "normals": matrix_normals, "false": matrix_false},
     "real": {"summary": real_summary, "targets": real_targets, "draws": real_draws,
              "inputs": real_inputs, "stages": real_stages},
     "sim": {"summary": sim_summary, "kinds": sim_kinds, "draws": sim_draws,

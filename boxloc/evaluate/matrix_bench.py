@@ -123,7 +123,13 @@ from boxloc.evaluate.funnel import (
     vertex_normal_chi2,
     vertex_normal_figures,
 )
-from boxloc.evaluate.metrics import Match, aggregate_matches, prf
+from boxloc.evaluate.metrics import (
+    Match,
+    aggregate_matches,
+    false_kind_counts,
+    false_kinds,
+    prf,
+)
 from boxloc.evaluate.scene_bench import (
     _default_localizer,
     _err,
@@ -284,6 +290,8 @@ def _flush_seams_show(spec: Any) -> bool:
 
 
 def _meta(sim: Any) -> dict[str, Any]:
+    from boxloc.simulate.truth import resting_on
+
     truth = sim.truth
     h, w = sim.scan.range.shape[:2]
     t = truth if len(truth) else None
@@ -296,7 +304,8 @@ def _meta(sim: Any) -> dict[str, Any]:
             "edge_max": float(np.max(t.length)) if t is not None else None,
             "nothing": _nothing_found(truth),
             "exposed_faces": [int(f) for f in exposed],
-            "separable": [bool(v) for v in separable]}
+            "separable": [bool(v) for v in separable],
+            "covered_faces": [int(f) for f in np.flatnonzero(resting_on(truth))]}
 
 
 def _funnel(result: Any, sim: Any, match: Match | None, separable: list[bool]
@@ -409,6 +418,19 @@ def _scan_funnel(o: _Outcome) -> tuple[list[str], list[bool], list[bool],
     return ["found" if f else NO_PRODUCTS for f in found], separable, found, {}
 
 
+def _false_kinds(outs: Sequence[_Outcome]) -> dict[str, int]:
+    """The false positives of the scans by :class:`~boxloc.evaluate.metrics.FalseKind`
+    (over the scans whose scene records the covered faces)."""
+    kinds = []
+    for o in outs:
+        if o.match is None or "covered_faces" not in o.meta:
+            continue
+        covered = np.zeros(int(o.match.n_faces), dtype=bool)
+        covered[np.asarray(o.meta["covered_faces"], dtype=np.int64)] = True
+        kinds.append(false_kinds(o.match, covered))
+    return false_kind_counts(kinds)
+
+
 def group_figures(outs: Sequence[_Outcome]) -> dict[str, Any]:
     """The figures of a group of scans (see the module docstring)."""
     agg = aggregate_matches(o.match for o in outs if o.match is not None)
@@ -421,6 +443,7 @@ def group_figures(outs: Sequence[_Outcome]) -> dict[str, Any]:
         [v for f in fls for v in f.get("line_direction_z", [])],
         [k for f in fls for k in f.get("line_kinds", [])])
     return {"n_scenes": len({o.index for o in outs}), **agg,
+            "false_kinds": _false_kinds(outs),
             "errors": sum(o.status == "error" for o in outs),
             "timeouts": sum(o.status == "timeout" for o in outs),
             "time": _time_figures(outs), "no_box": _no_box_figures(outs), "funnel": funnel}

@@ -322,6 +322,70 @@ class Match:
         }
 
 
+class FalseKind(IntEnum):
+    """What a false positive of :func:`match_surfaces` would make a robot do
+    (:func:`false_kinds`): the precision counts them alike, a post-mortem does not."""
+
+    #: a true positive
+    NONE = 0
+    #: paired with no top: the floor, a pallet's plane, a phantom
+    NO_TOP = 1
+    #: paired with a top something rests on: gripping it disturbs the box above
+    COVERED = 2
+    #: paired, at IoU >= ``iou_min``, with a top nothing rests on that the scan saw less of
+    #: than a graspable face needs (``visible_fraction`` < 0.9): the right box, which the
+    #: benchmark does not count as graspable (its normal is not checked)
+    SEEN_IN_PART = 3
+    #: paired with a top at IoU < ``iou_min``: a sliver of it or a rectangle over several
+    WRONG_RECTANGLE = 4
+    #: the right rectangle on a graspable top, its normal off by more than the match's bound
+    NORMAL = 5
+
+
+def false_kinds(match: Match, covered: npt.ArrayLike, *, iou_min: float = 0.5) -> np.ndarray:
+    """The :class:`FalseKind` of each prediction of a match.
+
+    Parameters
+    ----------
+    match : Match
+        :func:`match_surfaces`' result, with the same ``iou_min``.
+    covered : (F,) bool
+        The faces something rests on (:func:`boxloc.simulate.truth.resting_on`).
+    iou_min : float
+        The match's smallest IoU of a true positive.
+
+    Returns
+    -------
+    (n_pred,) int8
+        :class:`FalseKind` values; ``NONE`` for the true positives.
+    """
+    covered = np.asarray(covered, dtype=bool)
+    iou = np.zeros(len(match.status))
+    if len(match.pairs):
+        iou[match.pairs[:, 0]] = match.pair_iou
+    out = np.full(len(match.status), FalseKind.NO_TOP, dtype=np.int8)
+    for i, (st, f) in enumerate(zip(match.status, match.pred_face)):
+        if st == PredStatus.TP:
+            out[i] = FalseKind.NONE
+        elif st == PredStatus.LOW_IOU:
+            out[i] = FalseKind.WRONG_RECTANGLE
+        elif st == PredStatus.NORMAL:
+            out[i] = FalseKind.NORMAL
+        elif st == PredStatus.NOT_EXPOSED:
+            out[i] = (FalseKind.COVERED if covered[f] else FalseKind.SEEN_IN_PART
+                      if iou[i] >= iou_min else FalseKind.WRONG_RECTANGLE)
+    return out
+
+
+def false_kind_counts(kinds: Iterable[np.ndarray]) -> dict[str, int]:
+    """The predictions of many scans counted by :class:`FalseKind` name (``NONE`` left out):
+    lower-case names, every kind present, 0 where none."""
+    ks = [np.asarray(k, dtype=np.int64) for k in kinds]
+    flat = np.concatenate(ks) if ks else np.zeros(0, np.int64)
+    counts = np.bincount(flat, minlength=len(FalseKind))
+    return {k.name.lower(): int(counts[k]) for k in FalseKind if k != FalseKind.NONE}
+
+
 def prf(tp: int, n_pred: int, n_true: int) -> tuple[float, float, float]:
     """Precision, recall, F1 with the conventions of :class:`Match` for empty denominators."""
     precision = tp / n_pred if n_pred > 0 else 1.0

@@ -18,7 +18,7 @@ import numpy as np
 from boxloc.simulate.boxes import _rests_on
 from boxloc.simulate.raycast import _FACE_PLANES, _K, _World
 
-__all__ = ["GroundTruth"]
+__all__ = ["GroundTruth", "resting_on"]
 
 #: Surfaces of different objects whose meeting line is within this of both (plus the bevel)
 #: are in contact: a gap of a few mm is below what a range sensor resolves as a jump.
@@ -89,6 +89,12 @@ class GroundTruth:
 
     def __len__(self) -> int:
         return int(self.centers.shape[0])
+
+
+def resting_on(truth: GroundTruth) -> np.ndarray:
+    """``covered[f]``: some box rests on face f's top, shape (F,), bool. A face that is
+    not fully exposed is covered, or free but seen less than 90 %."""
+    return _rests_on(np.asarray(truth.boxes, dtype=np.float64).reshape(-1, 7))
 
 
 def _ground_truth(world: _World, boxes: np.ndarray, T: np.ndarray, rays: np.ndarray,
