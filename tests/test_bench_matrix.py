@@ -29,7 +29,7 @@ TOP_KEYS = {
 }
 GROUP_KEYS = {"n_scenes", "n_scans", "tp", "fp", "fn", "n_pred", "n_exposed", "precision",
               "recall", "grasp_err_median_mm", "grasp_err_p95_mm", "errors", "timeouts",
-              "time", "no_box"}
+              "time", "no_box", "false_kinds"}
 
 #: matrix_suite indices: single (0-3), pallet (4-7) and floor (28-31) of every sensor
 PICK = (0, 1, 2, 3, 4, 5, 6, 7, 28, 29, 30, 31)
@@ -120,6 +120,7 @@ def test_every_cell_is_reported_and_adds_up_to_the_rows(report: dict[str, Any]) 
     for s, g in report["groups"]["sensors"].items():
         mine = [r for r in rows if r["sensor"] == s]
         assert (g["tp"], g["fp"], g["fn"]) == tuple(_sum(mine, k) for k in ("tp", "fp", "fn"))
+        assert sum(g["false_kinds"].values()) == g["fp"]  # every false surface has a kind
     # the faults are seen where they were put
     assert cells["tof/pallet"]["tp"] == 0 and cells["tof/pallet"]["fn"] > 0
     assert cells["laser/pallet"]["fn"] == 1 and cells["laser/single"]["recall"] == 0.0

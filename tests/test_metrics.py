@@ -10,12 +10,15 @@ import pytest
 
 from boxloc.evaluate.baseline import empty_surface_set, surface_set_from_rects
 from boxloc.evaluate.metrics import (
+    FalseKind,
     PredStatus,
     WrongReason,
     aggregate_edges,
     aggregate_matches,
     edge_report,
     edge_scores,
+    false_kind_counts,
+    false_kinds,
     height_errors,
     match_surfaces,
     prf,
@@ -249,6 +252,38 @@ def test_match_low_iou_and_bad_normal_are_fp() -> None:
     assert st[1.0] == PredStatus.NORMAL
     assert match_surfaces(pred, truth, max_normal_deg=25.0).tp == 1
     assert match_surfaces(pred, truth, iou_min=0.1, max_normal_deg=25.0).tp == 2
+
+
+def test_false_surfaces_are_told_apart_by_what_they_would_make_a_robot_do() -> None:
+    truth = _truth([
+        ((0.0, 0.0, 2.0), 0.3, 0.4, True),  # 0: found
+        ((1.0, 0.0, 2.0), 0.3, 0.4, True),  # 1: a sliver of it reported
+        ((0.0, 1.0, 2.0), 0.3, 0.4, False),  # 2: a box rests on it
+        ((1.0, 1.0, 2.0), 0.3, 0.4, False),  # 3: free, seen in part, reported whole
+        ((2.0, 1.0, 2.0), 0.3, 0.4, False),  # 4: free, seen in part, a sliver reported
+        ((2.0, 0.0, 2.0), 0.3, 0.4, True),  # 5: the right rectangle, tilted 20 degrees
+    ])
+    tilt = _rot("x", 20.0) @ np.array([0.0, 0.0, -1.0])
+    up = np.array([0.0, 0.0, -1.0])
+    rects = [((0.0, 0.0, 2.0), 0.3, 0.4), ((1.1, 0.0, 2.0), 0.1, 0.4),
+             ((0.0, 1.0, 2.0), 0.3, 0.4), ((1.0, 1.0, 2.0), 0.3, 0.4),
+             ((2.1, 1.0, 2.0), 0.1, 0.4), ((2.0, 0.0, 2.0), 0.3, 0.4),
+             ((-3.0, -3.0, 2.0), 0.3, 0.4)]  # 6: nothing there
+    pred = _preds(rects, normals=[up, up, up, up, up, tilt, up])
+    m = match_surfaces(pred, truth)
+    covered = np.array([False, False, True, False, False, False])
+    kinds = false_kinds(m, covered)
+    by_x = {(round(float(c[0]), 1), round(float(c[1]), 1)): FalseKind(int(k))
+            for c, k in zip(pred.centers, kinds)}
+    assert by_x == {(0.0, 0.0): FalseKind.NONE, (1.1, 0.0): FalseKind.WRONG_RECTANGLE,
+                    (0.0, 1.0): FalseKind.COVERED, (1.0, 1.0): FalseKind.SEEN_IN_PART,
+                    (2.1, 1.0): FalseKind.WRONG_RECTANGLE, (2.0, 0.0): FalseKind.NORMAL,
+                    (-3.0, -3.0): FalseKind.NO_TOP}
+    counts = false_kind_counts([kinds, kinds[:1]])
+    assert counts == {"no_top": 1, "covered": 1, "seen_in_part": 1, "wrong_rectangle": 2,
+                      "normal": 1}
+    assert sum(counts.values()) == m.fp
+    assert false_kind_counts([]) == dict.fromkeys(counts, 0)
 
 
 def test_match_is_one_to_one() -> None:

@@ -37,6 +37,7 @@ from boxloc.simulate import (
 )
 from boxloc.simulate.raycast import _build_world, _cast, _RayIndex
 from boxloc.simulate.sensors import _shadowed
+from boxloc.simulate.truth import resting_on
 
 #: Near-noiseless sensor without artefacts, for exact geometry checks.
 QUIET = ("noise.sigma0=0.00001,noise.k2=0,noise.sigma_angle=0,dropout=0,mixed_pixels=false,"
@@ -250,6 +251,10 @@ def test_truth_is_consistent(kind: str) -> None:
     assert np.allclose(t.corners.mean(1), t.centers, atol=1e-12)
     assert ((t.visible_fraction >= 0) & (t.visible_fraction <= 1)).all()
     assert (t.visible_fraction[t.fully_exposed] >= 0.9).all()
+    # a face is graspable when nothing rests on it and it is seen: not covered, seen >= 0.9
+    covered = resting_on(t)
+    assert covered.shape == (F,) and covered.dtype == np.bool_
+    assert (t.fully_exposed == (~covered & (t.visible_fraction >= 0.9))).all()
     with pytest.raises(ValueError):
         t.centers[0, 0] = 1.0  # read-only, like every product
     if kind in ("empty", "floor"):

@@ -86,7 +86,9 @@ loss; ``none``: no attempt overlaps; ``REGION``: one flat region over several to
 noise-free render cannot show: :func:`boxloc.evaluate.funnel.separable_faces`; a scene whose
 lids have a bevel or a bulge has none), ``separable_tp``, ``separable_recall`` and
 ``inseparable_misses`` (missed tops that no method could separate without a list of box
-sizes), ``funnel_errors`` (scans whose diagnostic failed).
+sizes), ``funnel_errors`` (scans whose diagnostic failed); ``false_kinds``: the false
+positives by what they are (:class:`boxloc.evaluate.metrics.FalseKind`: ``no_top``,
+``covered``, ``seen_in_part``, ``wrong_rectangle``, ``normal``).
 
 The funnel (:func:`boxloc.evaluate.funnel.loss_stages`) runs in the worker on every scan
 that finished, after its timed localizer run, so it changes no time figure; printed, it is
