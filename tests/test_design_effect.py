@@ -185,3 +185,21 @@ def test_patch_factor_sums_the_tiles_correlation() -> None:
     # tiles as one (factor 6)
     f = [patch_factor(rows, cols, NoiseModel(exceed_corr_px=x)) for x in (5.0, 20.0, 1e9)]
     assert 1.0 < f[0] < f[1] < f[2] == pytest.approx(6.0)
+
+
+def test_design_effects_count_the_rows_as_numpys_unique_does() -> None:
+    # the per-(group, row) counts by bincount: np.unique's keys and counts, in its order
+    from boxloc.stages import design_effect as de
+
+    noise = NoiseModel(row_corr=0.3, corr_px_rows=4.0, corr_px_cols=3.0)
+    rng = np.random.default_rng(5)
+    rows = rng.integers(0, 200, 3000)
+    groups = rng.integers(0, 7, 3000)
+    span = int(rows.max()) + 2 + de._reach(3.0, 0.7)
+    key = groups * span + rows
+    uk, n = np.unique(key, return_counts=True)
+    counts = np.bincount(key, minlength=7 * span)
+    assert uk.tolist() == np.flatnonzero(counts).tolist()
+    assert n.tolist() == counts[uk].tolist()
+    f, s = de.exceedance_design_effects(rows, groups, 7, 2.5, noise)
+    assert f.shape == s.shape == (7,) and (f >= 1.0).all() and (s >= 1.0).all()

@@ -680,3 +680,16 @@ def test_a_face_runs_on_under_a_thin_strip_lying_beyond_its_side():
     assert height.accepted[1] and 0.003 < height.statistic[1] <= height.critical[1]
     # beyond the other sides the floor, 0.25 m down: no strip lying there
     assert (height.statistic[[0, 2, 3]] < -0.2).all()
+
+
+def test_the_exposure_cells_are_numpys_unique() -> None:
+    # the cells of VERIFY_EXPOSED, counted instead of sorted: the same inverse and number
+    from boxloc.stages.verify import _cells
+
+    rng = np.random.default_rng(3)
+    for n in (0, 1, 5, 1000, 20000):
+        iu = np.floor(rng.uniform(0.0, 40.0, n))
+        iv = np.floor(rng.uniform(0.0, 25.0, n) ** rng.uniform(0.5, 1.5))
+        inv, k = _cells(iu, iv)
+        ids, want = np.unique((iu * 1e6 + iv).astype(np.int64), return_inverse=True)
+        assert k == len(ids) and inv.tolist() == want.tolist()

@@ -141,7 +141,10 @@ def exceedance_design_effects(rows: np.ndarray, groups: np.ndarray, n_groups: in
     Kc = _reach(Lc, 1.0 - r)
     span = int(rows.max()) + 2 + Kc  # a row dr below never reaches the next group's keys
     key = groups * span + rows
-    uk, n = np.unique(key, return_counts=True)
+    # np.unique(key, return_counts=True), the keys being small integers: a count per key
+    counts = np.bincount(key, minlength=n_groups * span)
+    uk = np.flatnonzero(counts)
+    n = counts[uk]
     g = uk // span
     n = n.astype(np.float64)
     n_g = np.bincount(g, weights=n, minlength=n_groups)

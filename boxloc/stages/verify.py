@@ -1211,6 +1211,20 @@ def _test_continuation(ctx: VerifyContext, fp: FacePoints, hyp: _Hypothesis, fit
     return ends, cut, rows
 
 
+def _cells(iu: np.ndarray, iv: np.ndarray) -> tuple[np.ndarray, int]:
+    """Each point's cell among the cells that hold points, numbered in the order of (iu,
+    iv), and their number: ``np.unique(iu * 1e6 + iv, return_inverse=True)``'s inverse and
+    length for whole iu, iv (float64, |iv| < 1e6), from a count per cell of their box."""
+    if not iu.size:
+        return np.zeros(0, np.int64), 0
+    a = (iu - iu.min()).astype(np.int64)
+    b = (iv - iv.min()).astype(np.int64)
+    key = a * (int(b.max()) + 1) + b
+    present = np.bincount(key) > 0
+    rank = np.cumsum(present) - 1
+    return rank[key], int(present.sum())
+
+
 def _test_exposed(fit: _FaceFit, hyp: _Hypothesis, noise: NoiseModel
                   ) -> tuple[bool, TestTable]:
     """VERIFY_EXPOSED: nothing rests on the face. Covered only if the points in front of
@@ -1234,10 +1248,9 @@ def _test_exposed(fit: _FaceFit, hyp: _Hypothesis, noise: NoiseModel
     rows = fit.rows[core]
     # cells of four border margins: the corner of a box above is a few square centimetres
     cell = 4.0 * hyp.margin
-    cid = (np.floor(fit.du[core] / cell) * 1e6 + np.floor(fit.dv[core] / cell)).astype(np.int64)
-    ids, inv = np.unique(cid, return_inverse=True)
+    inv, n_ids = _cells(np.floor(fit.du[core] / cell), np.floor(fit.dv[core] / cell))
     D_f, D_s = exceedance_design_effects(rows, np.zeros(len(rows), np.int64), 1, hyp.k, noise)
-    D_cell = exceedance_design_effects(rows, inv, len(ids), hyp.k, noise)[0]
+    D_cell = exceedance_design_effects(rows, inv, n_ids, hyp.k, noise)[0]
     patchy = float(noise.exceed_dispersion)
     # the scan measured the patchiness tile by tile; the core's count of front points
     # spans many tiles, and a patch of large noise raises it over all of them. Not the
@@ -1260,10 +1273,10 @@ def _test_exposed(fit: _FaceFit, hyp: _Hypothesis, noise: NoiseModel
     p_rate = float(binom_sf(f_rate - 1, n_core, rate)) if f_rate else 1.0
     # ... or, in one place (the corner of a box above), more frequent than that: the
     # busiest cell of the core, Bonferroni over the cells
-    n_cell = eff(np.bincount(inv, minlength=len(ids)), D_cell)
+    n_cell = eff(np.bincount(inv, minlength=n_ids), D_cell)
     f_cell = eff(np.bincount(inv, weights=fit.front[core].astype(np.float64),
-                             minlength=len(ids)), D_cell)
-    n_cells = max(len(ids), 1)
+                             minlength=n_ids), D_cell)
+    n_cells = max(n_ids, 1)
     if f_cell.any():
         p_cells = binom_sf(f_cell - 1, n_cell, rate)
         c_best = int(np.argmin(np.where(f_cell > 0, p_cells, np.inf)))
