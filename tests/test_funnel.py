@@ -277,6 +277,15 @@ def test_the_matrix_bench_reports_the_funnel() -> None:
     for s in ("laser", "tof (held out)", "all but tof", "all, tof included"):
         line = next(ln for ln in text.splitlines() if ln.strip().startswith(s + "  "))
         assert "tops:" in line and "separable" in line
+    # ... and a line of its false surfaces by kind, which add up to its false positives
+    assert "what the false surfaces are" in text
+    after = text.split("what the false surfaces are")[1].splitlines()
+    for s, key in (("laser", "laser"), ("all but tof", None)):
+        fig = (r["groups"]["sensors"][key] if key else r["groups"]["overall"]["development"])
+        line = next(ln for ln in after if ln.strip().startswith(s + "  "))
+        assert line.split()[len(s.split())] == str(fig["fp"])
+        assert sum(int(w.rstrip(",")) for w in line.split(":")[-1].split()[1::2]
+                   if ":" in line) == (fig["fp"] if ":" in line else 0)
 
 
 def test_a_scan_without_stage_products_counts_its_misses_as_none() -> None:
@@ -392,3 +401,11 @@ def test_line_direction_figures_pool_jump_and_crease_lines_apart() -> None:
     assert fig["crease"] == {"n": 2, "median_abs": pytest.approx(1.25), "beyond_p99": 0.0}
     assert fn.line_direction_figures([], [])["jump"] == {
         "n": 0, "median_abs": None, "beyond_p99": None}
+
+
+def test_the_false_kind_line_names_the_kinds_there_are_most_first() -> None:
+    fig = {"fp": 15, "false_kinds": {"no_top": 4, "covered": 1, "seen_in_part": 0,
+                                     "wrong_rectangle": 10, "normal": 0}}
+    assert bm.false_kind_line(fig) == "15 false: wrong_rectangle 10, no_top 4, covered 1"
+    assert bm.false_kind_line({"fp": 0, "false_kinds": dict.fromkeys(fig["false_kinds"], 0)}
+                              ) == "0 false"

@@ -893,6 +893,17 @@ def print_funnel(report: dict[str, Any], console: Any) -> None:
         f"median |z| {Z_MEDIAN:.2f}, 1 % beyond {Z_P99:.2f}):"))
     for name, fig in rows:
         console.print(escape(f"  {name:<{width}}  {vertex_normal_line(fig)}"), soft_wrap=True)
+    console.print("what the false surfaces are (boxloc.evaluate.metrics.FalseKind):")
+    for name, fig in rows:
+        console.print(escape(f"  {name:<{width}}  {false_kind_line(fig)}"), soft_wrap=True)
+
+
+def false_kind_line(fig: dict[str, Any]) -> str:
+    """One group's false surfaces by kind, e.g. ``15 false: wrong_rectangle 10, no_top 4,
+    covered 1``; the kinds with none left out."""
+    kinds = fig.get("false_kinds") or {}
+    parts = [f"{k} {v}" for k, v in sorted(kinds.items(), key=lambda kv: -kv[1]) if v]
+    return f"{fig.get('fp', 0)} false" + (": " + ", ".join(parts) if parts else "")
 
 
 def print_targets(report: dict[str, Any], console: Any, title: str) -> None:
