@@ -271,3 +271,27 @@ def test_fusing_a_pixels_detections_equals_fusing_them_one_pixel_at_a_time():
     assert changed.sum() > 100 and (~changed & (counts > 1)).sum() > 50
     assert not changed[counts == 1].any()
     assert len(_fuse(flat[:0], pt[:0], cov[:0], kd[:0], stg[:0], sd[:0], 7.815)[0]) == 0
+
+
+def test_the_local_scales_tile_medians_are_the_sorted_ones_bit_for_bit():
+    # the kernel's per-tile count and median against the arrangement it replaced: the
+    # tiles' values side by side, infinities made NaN, nanmedian_last (a sort)
+    from boxloc.stages.edges import _tile_medians
+    from boxloc.stats import nanmedian_last
+
+    rng = np.random.default_rng(11)
+    for H, W, tile in ((48, 64, 16), (50, 70, 16), (37, 29, 8)):
+        A = np.abs(rng.standard_t(3, size=(2, H, W)))
+        A[rng.random(A.shape) < 0.2] = np.nan
+        A[rng.random(A.shape) < 0.01] = np.inf
+        A[:, :tile, :tile] = np.nan  # a tile without returns
+        A[0, -tile:, -tile:] = np.round(A[0, -tile:, -tile:])  # ties, as quantized depth
+        th, tw = H // tile, W // tile
+        B = A[:, :th * tile, :tw * tile].reshape(2, th, tile, tw, tile)
+        B = B.transpose(1, 3, 0, 2, 4).reshape(th, tw, -1)
+        B[~np.isfinite(B)] = np.nan
+        n, med = _tile_medians(np.ascontiguousarray(A), th, tw, tile)
+        assert n.tolist() == np.sum(np.isfinite(B), axis=2).tolist()
+        want = nanmedian_last(B)
+        assert np.array_equal(med, want, equal_nan=True)
+        assert med.view(np.int64).tolist() == want.view(np.int64).tolist()

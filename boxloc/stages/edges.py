@@ -39,6 +39,7 @@ import math
 import cv2
 import numpy as np
 
+from boxloc.calibrate.noise import _least_after, _select
 from boxloc.config import Config
 from boxloc.distributions import chi2_sf, norm_isf
 from boxloc.kernels import kernel
@@ -50,7 +51,6 @@ from boxloc.stats import (
     TestTable,
     chi2_critical,
     float32_precision,
-    nanmedian_last,
 )
 
 #: A groove is a run of this many to GROOVE_MAX_RUN samples behind the line, with
@@ -790,6 +790,36 @@ def point_sigma(scan: Scan, config: Config, gain: np.ndarray | None = None) -> n
 SCALE_TILE_PX = 16
 
 
+@kernel
+def _tile_medians(A: np.ndarray, th: int, tw: int, tile: int
+                  ) -> tuple[np.ndarray, np.ndarray]:
+    """Per tile (i, j) of ``tile`` x ``tile`` pixels of both planes of A (2, H, W), the
+    number of its finite values and their median, (th, tw) each: ``nanmedian_last`` over
+    the tile's values with the infinities made NaN, bit for bit for values without -0.0
+    (a selection and a sort pick the same value; the two middle ones' mean as there)."""
+    cnt = np.zeros((th, tw), np.int64)
+    med = np.empty((th, tw))
+    buf = np.empty(2 * tile * tile)
+    for i in range(th):
+        for j in range(tw):
+            m = 0
+            for p in range(2):
+                for y in range(i * tile, (i + 1) * tile):
+                    for x in range(j * tile, (j + 1) * tile):
+                        v = A[p, y, x]
+                        if math.isfinite(v):
+                            buf[m] = v
+                            m += 1
+            cnt[i, j] = m
+            if m == 0:
+                med[i, j] = math.nan
+                continue
+            k = (m - 1) // 2
+            lo = _select(buf, k, 0, m - 1)
+            med[i, j] = lo if m % 2 == 1 else (lo + _least_after(buf, k, m)) / 2.0
+    return cnt, med
+
+
 def local_scale(r: np.ndarray, S: np.ndarray, tile: int = SCALE_TILE_PX) -> np.ndarray:
     """How much larger than its typical level the noise is around each pixel, (H, W) >= 1.
 
@@ -822,11 +852,8 @@ def local_scale(r: np.ndarray, S: np.ndarray, tile: int = SCALE_TILE_PX) -> np.n
     A = np.full((2, H, W), np.nan)
     A[0, :, 1:-1] = zr
     A[1, 1:-1, :] = zc
-    A = A[:, :th * tile, :tw * tile].reshape(2, th, tile, tw, tile)
-    A = A.transpose(1, 3, 0, 2, 4).reshape(th, tw, -1)
-    A[~np.isfinite(A)] = np.nan
-    n = np.sum(np.isfinite(A), axis=2)
-    med = nanmedian_last(A)  # NaN for a tile without returns
+    # per tile, its finite values' count and median (NaN for a tile without returns)
+    n, med = _tile_medians(A, th, tw, tile)
     good = (n >= tile * tile // 2) & np.isfinite(med) & (med > 0)
     if good.sum() < 4:
         return out
